@@ -1,0 +1,142 @@
+"""Gaussian-process regression over the pan angle, on the circle, with an explicit lobe basis.
+
+Rx(dir)'s RSSI as a function of the pan angle s is modelled as
+
+    z(s) = c + A h(s - gamma) + f(s) + e,      f ~ GP(0, k),  e ~ N(0, sigma^2),
+
+where h(d) = exp(-2 sin^2(d/2) / w^2) is a generic lobe (no knowledge of the true antenna
+pattern beyond "one main lobe aligned with the camera axis"), gamma is the lobe centre, i.e.
+the Tx bearing, and f is a residual GP whose kernel is the squared exponential of the chordal
+distance,
+
+    k(s, s') = sf2 exp(-|e^{is} - e^{is'}|^2 / (2 l^2)) = sf2 exp(-2 sin^2((s - s')/2) / l^2),
+
+scikit-learn's ``ExpSineSquared`` with period 2 pi: -pi and pi are the same point (MISSION
+defect 2). For each candidate centre gamma on a grid, (c, A) have the generalised-least-squares
+solution of a GP with explicit basis functions (Rasmussen & Williams 2006, Sec. 2.7), and the
+profile log-likelihood -q(gamma)/2 scores gamma. Everything is kept incrementally: a new
+sample appends one row to the Cholesky factor and to L^{-1}[K(X, grid), H(X, grid)], so a
+control step costs O(n M) for n samples and M grid points, never an O(n^3) refit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.linalg import solve_triangular
+
+
+def circular_kernel(a: np.ndarray, b: np.ndarray, length_scale: float, signal_var: float = 1.0) -> np.ndarray:
+    """k(a_i, b_j) for angle arrays ``a`` (n,) and ``b`` (m,); returns (n, m)."""
+    s = np.sin(0.5 * (np.asarray(a, dtype=float)[:, None] - np.asarray(b, dtype=float)[None, :]))
+    return signal_var * np.exp(-2.0 * s * s / (length_scale * length_scale))
+
+
+class LobeGP:
+    """Incremental GP over pan angles with an explicit lobe basis, evaluated on ``grid``.
+
+    Parameters
+    ----------
+    grid : ndarray of shape (M,)
+        Pan angles (and candidate lobe centres) where everything is evaluated.
+    noise_var : float
+        sigma^2, RSSI noise variance [dB^2].
+    lobe_width : float
+        w of the lobe template h [rad].
+    lobe_sign : {+1, -1}
+        Sign A must have: +1 when a stronger signal reads higher (dB gain), -1 for the
+        paper's model where |z| grows with alignment of a negative dBm value.
+    residual_length_scale, residual_var : float
+        l and sf2 of the residual GP f.
+    capacity : int
+        Largest number of samples.
+    """
+
+    def __init__(self, grid: np.ndarray, noise_var: float, lobe_width: float, lobe_sign: int,
+                 residual_length_scale: float, residual_var: float, capacity: int) -> None:
+        self.grid = np.asarray(grid, dtype=float)
+        self.noise_var = float(noise_var)
+        self.lobe_width = float(lobe_width)
+        self.lobe_sign = 1 if lobe_sign >= 0 else -1
+        self.residual_length_scale = float(residual_length_scale)
+        self.residual_var = float(residual_var)
+        self.capacity = int(capacity)
+        M = self.grid.size
+        self.x_ = np.empty(self.capacity)
+        self.n_ = 0
+        self._L = np.zeros((self.capacity, self.capacity))
+        self._V = np.zeros((self.capacity, M))  # L^{-1} k(X, grid)
+        self._H = np.zeros((self.capacity, M))  # L^{-1} h(X - grid)
+        self._o = np.zeros(self.capacity)  # L^{-1} 1
+        self._u = np.zeros(self.capacity)  # L^{-1} z
+        self._res_var = np.full(M, self.residual_var)
+        self._hh = np.zeros(M)
+        self._ho = np.zeros(M)
+        self._hu = np.zeros(M)
+        self._oo = self._ou = self._uu = 0.0
+
+    def add(self, s: float, z: float) -> None:
+        """Add the sample z (dBm) taken at pan angle s (rad). O(n M)."""
+        n = self.n_
+        if n >= self.capacity:
+            raise ValueError(f"LobeGP holds at most {self.capacity} samples")
+        sa = np.array([s])
+        k_grid = circular_kernel(sa, self.grid, self.residual_length_scale, self.residual_var)[0]
+        h_grid = circular_kernel(sa, self.grid, self.lobe_width)[0]
+        d2 = self.residual_var + self.noise_var
+        if n:
+            k_old = circular_kernel(self.x_[:n], sa, self.residual_length_scale, self.residual_var)[:, 0]
+            ell = solve_triangular(self._L[:n, :n], k_old, lower=True, check_finite=False)
+            d2 -= ell @ ell
+            self._L[n, :n] = ell
+            v = k_grid - ell @ self._V[:n]
+            h = h_grid - ell @ self._H[:n]
+            o = 1.0 - ell @ self._o[:n]
+            u = z - ell @ self._u[:n]
+        else:
+            v, h, o, u = k_grid, h_grid, 1.0, z
+        d = math.sqrt(max(d2, 1e-12))
+        self._L[n, n] = d
+        v, h, o, u = v / d, h / d, o / d, u / d
+        self._V[n], self._H[n], self._o[n], self._u[n] = v, h, o, u
+        self._res_var -= v * v
+        self._hh += h * h
+        self._ho += o * h
+        self._hu += u * h
+        self._oo += o * o
+        self._ou += o * u
+        self._uu += u * u
+        self.x_[n] = s
+        self.n_ = n + 1
+
+    def lobe_fit(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For every grid centre gamma: profile log-likelihood -q(gamma)/2, amplitude A, offset c.
+
+        Centres whose best amplitude has the wrong sign get the likelihood of "no lobe".
+        """
+        if self.n_ == 0:
+            M = self.grid.size
+            return np.zeros(M), np.zeros(M), np.zeros(M)
+        det = np.maximum(self._hh * self._oo - self._ho * self._ho, 1e-12)
+        A = (self._oo * self._hu - self._ho * self._ou) / det
+        c = (self._hh * self._ou - self._ho * self._hu) / det
+        q = self._uu - (A * self._hu + c * self._ou)
+        q_flat = self._uu - self._ou * self._ou / max(self._oo, 1e-12)
+        wrong = A * self.lobe_sign <= 0.0
+        q = np.where(wrong, q_flat, q)
+        A = np.where(wrong, 0.0, A)
+        c = np.where(wrong, self._ou / max(self._oo, 1e-12), c)
+        return -0.5 * q, A, c
+
+    def posterior(self, centre_index: int, A: float, c: float) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior mean and standard deviation of z on the grid, given the lobe (gamma, A, c).
+
+        mu = c + A h(s - gamma) + k(s, X) K^{-1} (z - c - A h(X - gamma)) (eq. 17 with an explicit mean).
+        """
+        mean = c + A * circular_kernel(self.grid[centre_index : centre_index + 1], self.grid, self.lobe_width)[0]
+        n = self.n_
+        if n:
+            r = self._u[:n] - c * self._o[:n] - A * self._H[:n, centre_index]
+            mean = mean + r @ self._V[:n]
+        return mean, np.sqrt(np.maximum(self._res_var, 0.0) + 1e-12)

@@ -1,0 +1,300 @@
+"""The Ra²ViPAS controller and its baselines: measurements in, next pan angle and estimate out.
+
+One ``Controller`` runs one test. Each call to ``step`` takes what the platform sensed at
+pan angle s_t (``StepMeasurement``: two RSSI values and the nu frames of anonymous box
+bearings) and returns the next pan angle s_{t+1} and the current estimate gamma_hat_t of the
+Tx bearing (paper eqs. 25-27). It never sees ranges, identities or the true POD.
+
+What it believes, after t samples:
+
+* **Radio** (``LobeGP``): Rx(dir)'s RSSI over the pan angle is a GP with an explicit lobe
+  basis; its profile log-likelihood l_RF(gamma) says how well "the main lobe is centred at
+  gamma" explains the directional samples (the paper's J_RF, eq. 24, without knowing rho).
+* **Vision** (``DetectionTracker`` + the learned POD): every detected target i has an
+  empirical POD p~_i = k_i/n_i; the Tx's POD is predicted from the mean iso RSSI,
+  p_hat = p_hat_D(z_iso) (Sec. III-A). The detectability score is the likelihood ratio
+  l_D(i) = log N(p~_i; p_hat, v_i) - it is largest when the PODs match (MISSION defect 1:
+  the paper's -|p_hat - p~| is never positive and its product with y_RF prefers
+  misalignment).
+* **Fusion**: l(i) = l_RF(gamma_i) + l_D(i). The estimate is the maximiser over the detected
+  bearings (the LOS condition, eq. 10, makes the Tx one of them); a bearing where no target
+  was ever detected competes with l_RF(gamma) + n_view(gamma) log(1 - p_hat), the
+  likelihood of having missed the Tx there.
+
+Where it looks next:
+
+* a warm-up sweep of ceil(pi / half-FoV) evenly spaced pans sees every target once;
+* then GP-UCB on the fused objective (eq. 25): a(s) = U_D(s) (J_RF(s) + sqrt(beta) sigma(s)),
+  with J_RF the posterior mean of the normalised lobe and U_D the posterior mass of candidate
+  targets in view at s (1 where the camera has not looked yet);
+* every ``probe_every``-th step, a discrimination probe: the pan where the two leading
+  hypotheses predict the most different RSSI (Box & Hill 1967), alternating sides, because
+  samples on the flanks of the lobe locate it, samples at its flat top do not.
+
+Algorithms (paper Sec. IV-B, plus one): ``ra2vipas`` fuses both; ``rapas`` uses Rx(dir)
+only (estimate = lobe centre on the grid); ``ravipas`` uses the camera and Rx(iso) only;
+``sweep`` fuses both but pans evenly round the circle, to show what active sensing buys.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from services.controller.circle_gp import LobeGP, circular_kernel
+from services.controller.tracks import DetectionTracker, wrap
+from services.protocol.measurements import StepMeasurement
+from services.protocol.pod import PODModel
+
+
+class Algorithm(str, Enum):
+    ra2vipas = "ra2vipas"
+    rapas = "rapas"
+    ravipas = "ravipas"
+    sweep = "sweep"
+
+
+ALGORITHMS: tuple[str, ...] = tuple(a.value for a in Algorithm)
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """Tuning of the controller. Defaults are what the benchmarks use.
+
+    ``beta`` is the UCB exploration weight (eq. 25); ``probe_every`` = 0 and
+    ``warmup_steps`` = 0 give the paper's plain GP-UCB.
+    """
+
+    beta: float = 4.0
+    grid_points: int = 720
+    lobe_width_rad: float = 1.0
+    residual_length_scale_rad: float = 0.5
+    residual_std_db: float = 3.0
+    probe_every: int = 2
+    warmup_steps: int | None = None  # None: ceil(pi / fov_half_angle)
+    min_pod_std: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.beta < 0:
+            raise ValueError("beta must be >= 0")
+        if self.grid_points < 16:
+            raise ValueError("grid_points must be >= 16")
+        if self.lobe_width_rad <= 0 or self.residual_length_scale_rad <= 0:
+            raise ValueError("lobe_width_rad and residual_length_scale_rad must be > 0")
+        if self.probe_every < 0:
+            raise ValueError("probe_every must be >= 0")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """What the controller knows about its own platform (hardware description, no world truth)."""
+
+    steps: int
+    frames_per_rf: int
+    fov_half_angle_rad: float
+    box_bearing_noise_rad: float
+    initial_pan_rad: float
+    rssi_grows_with_alignment: bool  # True: stronger reads higher (db-gain); False: paper's |g| rho
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The controller's answer to one step."""
+
+    step: int
+    next_pan_rad: float
+    estimate_rad: float  # gamma_hat_t
+    reward: float  # fused objective at the pan the sample was taken at
+    probe: bool  # whether next_pan is a discrimination probe
+
+
+class PODLookup:
+    """p_hat_D(r), its standard deviation and slope, interpolated from a ``PODModel``."""
+
+    def __init__(self, model: PODModel, min_std: float) -> None:
+        self.r = np.asarray(model.rssi_grid_dbm, dtype=float)
+        self.mean = np.asarray(model.mean, dtype=float)
+        self.std = np.maximum(np.asarray(model.std, dtype=float), min_std)
+        self.slope = np.gradient(self.mean, self.r)
+        self.rf_noise_db = float(model.rf_noise_db)
+
+    def __call__(self, rssi: float) -> tuple[float, float, float]:
+        return (float(np.interp(rssi, self.r, self.mean)), float(np.interp(rssi, self.r, self.std)),
+                float(np.interp(rssi, self.r, self.slope)))
+
+
+class Controller:
+    """One test's controller. Create it, call ``first_pan()``, then ``step`` for every sample."""
+
+    def __init__(self, algorithm: Algorithm | str, sensors: SensorConfig, pod_model: PODModel,
+                 settings: ControllerSettings | None = None) -> None:
+        self.algorithm = Algorithm(algorithm)
+        self.sensors = sensors
+        self.settings = cfg = settings or ControllerSettings()
+        self.pod = PODLookup(pod_model, cfg.min_pod_std)
+        self.grid = np.linspace(-math.pi, math.pi, cfg.grid_points, endpoint=False)
+        self.uses_radio = self.algorithm is not Algorithm.ravipas
+        self.uses_camera = self.algorithm is not Algorithm.rapas
+        sigma = max(self.pod.rf_noise_db, 0.1)
+        self.rf = LobeGP(
+            self.grid, noise_var=sigma**2, lobe_width=cfg.lobe_width_rad,
+            lobe_sign=1 if sensors.rssi_grows_with_alignment else -1,
+            residual_length_scale=cfg.residual_length_scale_rad,
+            residual_var=cfg.residual_std_db**2, capacity=max(sensors.steps, 1),
+        )
+        self.tracks = DetectionTracker(sensors.fov_half_angle_rad, sensors.box_bearing_noise_rad)
+        self.warmup = cfg.warmup_steps if cfg.warmup_steps is not None else math.ceil(math.pi / sensors.fov_half_angle_rad)
+        self._view_frames = np.zeros(self.grid.size)  # frames in which each grid bearing was in view
+        self._iso_sum = 0.0
+        self._iso_sq = 0.0
+        self._n = 0
+        self._probes = 0
+
+    # -- public -----------------------------------------------------------------------------
+    def first_pan(self) -> float:
+        """s_0, the pan angle of the first sample."""
+        return float(wrap(self.sensors.initial_pan_rad))
+
+    def step(self, m: StepMeasurement) -> Decision:
+        """Take the measurement of step t; return s_{t+1} and gamma_hat_t."""
+        s = float(m.pan_rad)
+        t = int(m.step)
+        self._n += 1
+        self._iso_sum += m.rf.iso_rssi_dbm
+        self._iso_sq += m.rf.iso_rssi_dbm**2
+        self._view_frames[self.tracks.in_view(s, self.grid)] += len(m.frames)
+        if self.uses_camera:
+            self.tracks.update(s, m.frames)
+        if self.uses_radio:
+            self.rf.add(s, m.rf.dir_rssi_dbm)
+
+        l_rf, amplitude, offset = self.rf.lobe_fit() if self.uses_radio else (np.zeros(self.grid.size),) * 3
+        l_tracks = self._track_loglik(l_rf)
+        estimate = self._estimate(l_rf, l_tracks)
+        j_rf, sd_rf = self._rf_objective(l_rf, amplitude, offset)
+        mass = self._mass_in_view(l_tracks)
+        reward = float(np.interp(s, self.grid, mass * j_rf, period=2 * math.pi))
+        next_pan, probe = self._next_pan(t, l_rf, l_tracks, j_rf, sd_rf, mass)
+        return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe)
+
+    # -- beliefs ------------------------------------------------------------------------------
+    def _iso_mean_and_std(self) -> tuple[float, float]:
+        mean = self._iso_sum / self._n
+        var = max(self._iso_sq / self._n - mean * mean, 0.0)
+        sigma = math.sqrt(var * self._n / (self._n - 1)) if self._n > 2 else self.pod.rf_noise_db
+        return mean, max(sigma, 0.1)
+
+    def _track_loglik(self, l_rf: np.ndarray) -> np.ndarray:
+        """l(i) = l_RF(gamma_i) + l_D(i) for every track (camera algorithms only)."""
+        if not self.uses_camera or not len(self.tracks):
+            return np.empty(0)
+        p_tilde, n = self.tracks.detection_rate()
+        z_iso, sigma = self._iso_mean_and_std()
+        p_hat, p_std, slope = self.pod(z_iso)
+        var = p_std**2 + (slope * sigma) ** 2 / self._n + (p_tilde * (1.0 - p_tilde) + 0.02) / np.maximum(n, 1.0)
+        l_d = np.where(n > 0, -0.5 * (p_tilde - p_hat) ** 2 / var - 0.5 * np.log(2.0 * math.pi * var), 0.0)
+        return np.interp(self.tracks.bearing, self.grid, l_rf, period=2 * math.pi) + l_d
+
+    def _estimate(self, l_rf: np.ndarray, l_tracks: np.ndarray) -> float:
+        if l_tracks.size:
+            best_track = int(np.argmax(l_tracks))
+            if not self.uses_radio:
+                return float(self.tracks.bearing[best_track])
+            z_iso, _ = self._iso_mean_and_std()
+            p_hat = self.pod(z_iso)[0]
+            l_missed = l_rf + self._view_frames * math.log(max(1.0 - p_hat, 1e-3))
+            if l_tracks[best_track] >= l_missed.max():
+                return float(self.tracks.bearing[best_track])
+            return self._refined_argmax(l_missed)
+        if self.uses_radio and self._n:
+            return self._refined_argmax(l_rf)
+        return self.first_pan()
+
+    def _refined_argmax(self, values: np.ndarray) -> float:
+        """Grid argmax refined by a parabola through its two neighbours."""
+        j = int(np.argmax(values))
+        M = values.size
+        a, b, c = values[(j - 1) % M], values[j], values[(j + 1) % M]
+        den = a - 2.0 * b + c
+        shift = 0.5 * (a - c) / den if den < 0 else 0.0
+        return float(self.grid[j] + np.clip(shift, -0.5, 0.5) * (2 * math.pi / M))
+
+    def _rf_objective(self, l_rf, amplitude, offset) -> tuple[np.ndarray, np.ndarray]:
+        """J_RF(s) in [0, ~1]: the normalised lobe of the best fit, and its posterior std."""
+        M = self.grid.size
+        if not self.uses_radio or self._n == 0:
+            return np.ones(M), np.zeros(M)
+        j = int(np.argmax(l_rf))
+        A = float(amplitude[j])
+        if A == 0.0:
+            return np.ones(M), np.ones(M)
+        mean, sd = self.rf.posterior(j, A, float(offset[j]))
+        return (mean - offset[j]) / A, sd / abs(A)
+
+    def _mass_in_view(self, l_tracks: np.ndarray) -> np.ndarray:
+        """U_D(s): posterior mass of the candidate targets in view at each pan; 1 where unseen."""
+        unseen = self._view_frames < 2 * self.sensors.frames_per_rf
+        if not self.uses_camera:
+            return np.ones(self.grid.size)
+        mass = np.zeros(self.grid.size)
+        if l_tracks.size:
+            post = np.exp(l_tracks - l_tracks.max())
+            post /= post.sum()
+            lim = self.tracks.count_limit
+            # for each track, the arc of pans that keep it in view
+            for b, p in zip(self.tracks.bearing, post):
+                if p > 1e-4:
+                    mass[np.abs(wrap(self.grid - b)) <= lim] += p
+        return np.where(unseen, np.maximum(mass, 1.0), mass)
+
+    # -- actions ------------------------------------------------------------------------------
+    def _next_pan(self, t, l_rf, l_tracks, j_rf, sd_rf, mass) -> tuple[float, bool]:
+        sensors, cfg = self.sensors, self.settings
+        if self.algorithm is Algorithm.sweep:
+            return sensors.initial_pan_rad + 2.0 * math.pi * (t + 1) / max(sensors.steps, 1), False
+        if t + 1 < self.warmup:
+            return sensors.initial_pan_rad + 2.0 * math.pi * (t + 1) / self.warmup, False
+        if self.uses_radio and cfg.probe_every and (t + 1 - self.warmup) % cfg.probe_every == 0:
+            return self._probe(l_rf, l_tracks), True
+        acquisition = (j_rf + math.sqrt(cfg.beta) * sd_rf) * (mass if self.uses_camera else 1.0)
+        return float(self.grid[int(np.argmax(acquisition))]), False
+
+    def _probe(self, l_rf: np.ndarray, l_tracks: np.ndarray) -> float:
+        """The pan where the two leading hypotheses' lobes differ most, on alternating sides."""
+        if l_tracks.size >= 2:
+            top = np.argsort(-l_tracks)[:2]
+            g1, g2 = self.tracks.bearing[top[0]], self.tracks.bearing[top[1]]
+        else:
+            order = np.argsort(-l_rf)
+            g1 = self.grid[order[0]]
+            apart = np.abs(wrap(self.grid[order] - g1)) >= math.radians(3.0)
+            g2 = self.grid[order[apart][0]] if apart.any() else g1 + math.radians(3.0)
+        w = self.settings.lobe_width_rad
+        diff = np.abs(circular_kernel(np.array([g1]), self.grid, w)[0] - circular_kernel(np.array([g2]), self.grid, w)[0])
+        mid = g1 + 0.5 * wrap(g2 - g1)
+        side = wrap(self.grid - mid) >= 0
+        self._probes += 1
+        if self._probes % 2:
+            side = ~side
+        return float(self.grid[int(np.argmax(np.where(side, diff, -1.0)))])
+
+
+def sensor_config_from_scenario(scenario) -> SensorConfig:
+    """The hardware description a simulated platform gives its controller.
+
+    Only properties of the platform itself: timing, camera geometry and detector accuracy,
+    the receiver's reporting convention. Nothing about targets or the Tx.
+    """
+    from services.protocol.scenario import AntennaModel
+
+    return SensorConfig(
+        steps=scenario.steps,
+        frames_per_rf=scenario.frames_per_rf,
+        fov_half_angle_rad=scenario.fov_half_angle_rad,
+        box_bearing_noise_rad=scenario.box_bearing_noise_rad,
+        initial_pan_rad=scenario.initial_pan_rad,
+        rssi_grows_with_alignment=scenario.antenna_model is not AntennaModel.paper,
+    )

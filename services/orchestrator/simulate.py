@@ -1,0 +1,121 @@
+"""In-process Monte Carlo campaign: the same episodes the mesh runs, in one Python process.
+
+``run_campaign`` trains the POD model once for (scenario, seed), then runs every test of every
+algorithm, each with its own simulated platform seeded from (seed, test index), and reduces
+the outcomes to the results object that ``ra2vipas simulate --json`` prints and the REST API
+serves.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from services.controller.policy import ALGORITHMS, Controller, ControllerSettings, sensor_config_from_scenario
+from services.learner.pod import LearnedPOD, LearnerSettings, fit_pod, predict, r2_score
+from services.orchestrator.metrics import score_test, summarize_algorithm
+from services.protocol.pod import PODModel
+from services.protocol.scenario import Scenario
+from services.sensors.world import SimulatedPlatform, TrainingEpisode
+
+
+@dataclass(frozen=True)
+class TrainedPOD:
+    """The learned model and how it scores against the truth of its training episode."""
+
+    model: PODModel
+    r2: float
+    train_seconds: float
+
+
+@dataclass
+class TestOutcome:
+    """One test of one algorithm: per step, what the controller did and how it scored."""
+
+    algorithm: str
+    test_index: int
+    pans: list[float] = field(default_factory=list)
+    estimates: list[float] = field(default_factory=list)
+    rewards: list[float] = field(default_factory=list)
+    hits: list[bool] = field(default_factory=list)
+    in_fov: list[bool] = field(default_factory=list)
+    chosen: list[int] = field(default_factory=list)
+
+
+def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = None) -> TrainedPOD:
+    """Run the training episode, fit the POD and score it by eq. (23) against the truth."""
+    episode = TrainingEpisode(scenario, seed)
+    learned: LearnedPOD = fit_pod(list(episode.samples()), settings)
+    r2 = r2_score(episode.truth.pod, predict(learned.model, episode.truth.rssi_dbm))
+    return TrainedPOD(model=learned.model, r2=round(float(r2), 6), train_seconds=learned.train_seconds)
+
+
+def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod_model: PODModel,
+             settings: ControllerSettings | None = None) -> TestOutcome:
+    """One episode: the platform senses, the controller decides, n_test times."""
+    from services.orchestrator.metrics import associate
+
+    platform = SimulatedPlatform(scenario, seed, test_index)
+    controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod_model, settings)
+    outcome = TestOutcome(algorithm=algorithm, test_index=test_index)
+    pan = controller.first_pan()
+    for t in range(scenario.steps):
+        measurement = platform.sense(t, pan)
+        decision = controller.step(measurement)
+        outcome.pans.append(pan)
+        outcome.estimates.append(decision.estimate_rad)
+        outcome.rewards.append(decision.reward)
+        pan = decision.next_pan_rad
+    truth = platform.truth
+    hits, in_fov = score_test(np.asarray(outcome.estimates), truth.bearings_rad, truth.tx_index, scenario.fov_half_angle_rad)
+    outcome.hits = [bool(h) for h in hits]
+    outcome.in_fov = [bool(f) for f in in_fov]
+    outcome.chosen = [int(i) for i in associate(np.asarray(outcome.estimates), truth.bearings_rad)]
+    return outcome
+
+
+def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: TrainedPOD,
+              outcomes: dict[str, list[TestOutcome]], steps_per_second: float | None) -> dict[str, Any]:
+    """The results object (same shape for ``simulate --json`` and the REST API)."""
+    algorithms = {}
+    for name, runs in outcomes.items():
+        runs = sorted(runs, key=lambda o: o.test_index)
+        algorithms[name] = summarize_algorithm(
+            np.array([o.hits for o in runs]), np.array([o.in_fov for o in runs]), scenario.rf_period_s
+        )
+    return {
+        "preset": preset,
+        "scenario": scenario.model_dump(mode="json"),
+        "tests": tests,
+        "seed": seed,
+        "pod": {"r2": pod.r2, "train_seconds": round(pod.train_seconds, 4)},
+        "algorithms": algorithms,
+        "steps_per_second": None if steps_per_second is None else round(steps_per_second, 1),
+    }
+
+
+def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = ALGORITHMS,
+                 settings: ControllerSettings | None = None,
+                 progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """Train once, run tests x algorithms episodes, return the results object.
+
+    ``progress(done, total)`` is called after each episode.
+    """
+    algorithms = list(algorithms)
+    pod = train_pod(scenario, seed)
+    total = tests * len(algorithms)
+    outcomes: dict[str, list[TestOutcome]] = {a: [] for a in algorithms}
+    started = time.perf_counter()
+    done = 0
+    for k in range(tests):
+        for a in algorithms:
+            outcomes[a].append(run_test(scenario, seed, k, a, pod.model, settings))
+            done += 1
+            if progress:
+                progress(done, total)
+    elapsed = time.perf_counter() - started
+    steps_per_second = total * scenario.steps / elapsed if elapsed > 0 else None
+    return summarize(preset, scenario, tests, seed, pod, outcomes, steps_per_second)

@@ -1,0 +1,214 @@
+"""The scenario: every parameter of the paper's Table I (and of the authors' code) as one
+validated object, with the named presets users start from.
+
+A scenario travels on the wire (the orchestrator sends it with each episode), so it lives in
+the protocol package and depends only on pydantic. Field names follow the paper's symbols;
+each field's description names the symbol and its ``ge``/``le`` bounds are the allowed range
+that error messages quote.
+"""
+
+from __future__ import annotations
+
+import math
+from enum import Enum
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+
+class Placement(str, Enum):
+    """How targets are drawn around the platform.
+
+    ``reference`` follows the authors' public code: targets uniform in the square
+    [-w, w]^2, the Tx within ``tx_max_range_m`` of the platform and every other target's
+    range differing from the Tx's by more than ``min_range_gap_m``. ``uniform`` drops the
+    two range constraints.
+    """
+
+    reference = "reference"
+    uniform = "uniform"
+
+
+class AntennaModel(str, Enum):
+    """How Rx(dir) responds to the misalignment Delta = wrap(s - gamma).
+
+    ``paper``: z_dir = g(d) * rho(s, gamma) (paper eq. 6), a dBm value scaled by the
+    attenuation factor, so |z_dir| grows with alignment. ``db-gain``: the physically sound
+    model z_dir = g(d) + 10 log10(max(rho, floor)), an antenna gain in dB added to the
+    path loss, so z_dir is highest when aligned.
+    """
+
+    paper = "paper"
+    db_gain = "db-gain"
+
+
+class Scenario(BaseModel):
+    """One simulated world and its sensors (paper, Table I).
+
+    Angles are given in degrees on the wire and in the CLI (``*_deg``); the code converts to
+    radians where it computes.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_enum_values=False)
+
+    # -- timing (paper eqs. 1-4) ---------------------------------------------------------
+    rf_period_s: float = Field(0.1, gt=0.0, le=10.0, description="T_RF, RF sampling period; one control decision per RF sample [s]")
+    frames_per_rf: int = Field(10, ge=1, le=1000, description="nu, camera frames per RF sample (eq. 4)")
+    steps: int = Field(120, ge=1, le=10000, description="n_test, RF samples (control steps) per test")
+    n_train: int = Field(900, ge=20, le=100000, description="n_train, POD training samples (eq. 20)")
+    # -- targets --------------------------------------------------------------------------
+    n_targets: int = Field(20, ge=1, le=500, description="N, number of targets around the platform")
+    placement: Placement = Field(Placement.reference, description="target placement rule: reference|uniform")
+    arena_half_width_m: float = Field(5.0, gt=0.0, le=1000.0, description="targets are drawn uniformly in [-w, w]^2 [m]")
+    min_target_range_m: float = Field(0.5, ge=0.0, le=100.0, description="no target closer to the platform than this [m]")
+    tx_max_range_m: float = Field(4.0, gt=0.0, le=1000.0, description="reference placement: the Tx lies within this range [m]")
+    min_range_gap_m: float = Field(1.0, ge=0.0, le=100.0, description="reference placement: |d_i - d_Tx| exceeds this for every other target [m]")
+    # -- training motion (Table I) --------------------------------------------------------
+    train_step_var_m2: float = Field(0.04, ge=0.0, le=4.0, description="variance of eta_t in d_{t+1} = d_t + eta_t [m^2]")
+    train_min_range_m: float = Field(0.5, gt=0.0, le=100.0, description="training motion is kept above this range [m]")
+    train_max_range_m: float = Field(7.0, gt=0.0, le=1000.0, description="training motion is kept below this range [m]")
+    # -- radio (eqs. 5-8) -----------------------------------------------------------------
+    path_loss_ref_dbm: float = Field(-30.0, ge=-150.0, le=30.0, description="kappa, RSSI at the reference distance [dBm]")
+    path_loss_exponent: float = Field(2.0, ge=0.5, le=10.0, description="n, path-loss exponent")
+    path_loss_ref_distance_m: float = Field(1.0, gt=0.0, le=100.0, description="delta, reference distance [m]")
+    antenna_model: AntennaModel = Field(AntennaModel.paper, description="Rx(dir) response: paper|db-gain")
+    antenna_curvature: float = Field(0.5, ge=0.0, le=100.0, description="a in rho = 1 - a * Delta^2, clipped to [0, 1]")
+    antenna_floor_db: float = Field(-20.0, ge=-100.0, le=0.0, description="db-gain model: lowest gain of Rx(dir) [dB]")
+    rf_noise_db: float = Field(3.0, ge=0.0, le=30.0, description="sigma_RF, Gaussian RSSI noise on both receivers [dB]")
+    # -- camera (eq. 9, eq. 22) -----------------------------------------------------------
+    fov_half_angle_deg: float = Field(22.5, gt=0.0, le=180.0, description="camera half field of view [deg]")
+    pod_far_slope: float = Field(4.0, ge=0.0, le=100.0, description="slope of the far logistic in p_D(d) (4 in eq. 22) [1/m]")
+    pod_far_range_m: float = Field(4.5, ge=0.0, le=100.0, description="midpoint of the far logistic in p_D(d) (4.5 in eq. 22) [m]")
+    pod_near_slope: float = Field(1.0, ge=0.0, le=100.0, description="slope of the near logistic in p_D(d) (1 in eq. 22) [1/m]")
+    pod_near_range_m: float = Field(2.5, ge=0.0, le=100.0, description="midpoint of the near logistic in p_D(d) (2.5 in eq. 22) [m]")
+    box_bearing_noise_deg: float = Field(0.25, ge=0.0, le=10.0, description="std of the bearing of a detector box (not in the paper) [deg]")
+    initial_pan_deg: float = Field(0.0, ge=-180.0, le=180.0, description="pan angle s_0 at the start of each test [deg]")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "Scenario":
+        if self.train_min_range_m >= self.train_max_range_m:
+            raise ValueError(
+                f"train_min_range_m ({self.train_min_range_m}) must be below train_max_range_m ({self.train_max_range_m})"
+            )
+        corner = self.arena_half_width_m * math.sqrt(2.0)
+        if self.min_target_range_m >= corner:
+            raise ValueError(
+                f"min_target_range_m ({self.min_target_range_m}) must be below the arena's corner range {corner:.3g} m"
+            )
+        if self.placement is Placement.reference and self.tx_max_range_m <= self.min_target_range_m:
+            raise ValueError(
+                f"tx_max_range_m ({self.tx_max_range_m}) must exceed min_target_range_m ({self.min_target_range_m})"
+            )
+        return self
+
+    # -- derived quantities in radians ------------------------------------------------------
+    @property
+    def fov_half_angle_rad(self) -> float:
+        return math.radians(self.fov_half_angle_deg)
+
+    @property
+    def box_bearing_noise_rad(self) -> float:
+        return math.radians(self.box_bearing_noise_deg)
+
+    @property
+    def initial_pan_rad(self) -> float:
+        return math.radians(self.initial_pan_deg)
+
+    @property
+    def duration_s(self) -> float:
+        """T_W = n_test * T_RF, the duration of one test."""
+        return self.steps * self.rf_period_s
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "paper": {},
+    "paper-uniform": {"placement": "uniform"},
+}
+"""Named starting points: overrides applied on top of the field defaults (the paper's values)."""
+
+PRESET_DESCRIPTIONS: dict[str, str] = {
+    "paper": "Table I of the paper with the authors' reference placement (Tx within 4 m, others' range differs by > 1 m)",
+    "paper-uniform": "Table I of the paper with targets uniform in the square, no range constraint",
+}
+
+
+class ScenarioError(ValueError):
+    """A scenario could not be built; the message is one line naming the field and the allowed values."""
+
+
+def field_range(name: str) -> str:
+    """Human description of what a scenario field accepts, e.g. ``an integer in [1, 500]``."""
+    info = Scenario.model_fields[name]
+    annotation = info.annotation
+    if isinstance(annotation, type) and issubclass(annotation, Enum):
+        return "one of " + "|".join(m.value for m in annotation)
+    lo = hi = None
+    lo_open = hi_open = False
+    for meta in info.metadata:
+        if getattr(meta, "ge", None) is not None:
+            lo = meta.ge
+        if getattr(meta, "gt", None) is not None:
+            lo, lo_open = meta.gt, True
+        if getattr(meta, "le", None) is not None:
+            hi = meta.le
+        if getattr(meta, "lt", None) is not None:
+            hi, hi_open = meta.lt, True
+    kind = "an integer" if annotation is int else "a number"
+    if lo is None and hi is None:
+        return kind
+    left = "(" if lo_open else "["
+    right = ")" if hi_open else "]"
+    return f"{kind} in {left}{lo}, {hi}{right}"
+
+
+def _explain(err: ValidationError, given: dict[str, Any]) -> str:
+    first = err.errors()[0]
+    loc = first.get("loc") or ()
+    if loc and isinstance(loc[0], str) and loc[0] in Scenario.model_fields:
+        name = loc[0]
+        if first.get("type") == "extra_forbidden":
+            return f"unknown scenario parameter {name!r}; known: {', '.join(Scenario.model_fields)}"
+        return f"{name}: expected {field_range(name)}, got {given.get(name)!r}"
+    if loc and isinstance(loc[0], str) and first.get("type") == "extra_forbidden":
+        return f"unknown scenario parameter {loc[0]!r}; known: {', '.join(Scenario.model_fields)}"
+    msg = str(first.get("msg", err))
+    return msg.removeprefix("Value error, ")
+
+
+def build_scenario(preset: str = "paper", overrides: dict[str, Any] | None = None) -> Scenario:
+    """The scenario of ``preset`` with ``overrides`` applied.
+
+    Raises
+    ------
+    ScenarioError
+        Unknown preset, unknown parameter, or a value out of its range; the message names
+        the field and what it accepts.
+    """
+    if preset not in PRESETS:
+        raise ScenarioError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    values = {**PRESETS[preset], **(overrides or {})}
+    for name in values:
+        if name not in Scenario.model_fields:
+            raise ScenarioError(f"unknown scenario parameter {name!r}; known: {', '.join(Scenario.model_fields)}")
+    try:
+        return Scenario.model_validate(values)
+    except ValidationError as err:
+        raise ScenarioError(_explain(err, values)) from None
+
+
+def parse_overrides(assignments: list[str] | tuple[str, ...]) -> dict[str, str]:
+    """Turn CLI ``NAME=VALUE`` strings into a dict (values stay strings; the model coerces).
+
+    Raises
+    ------
+    ScenarioError
+        An assignment without ``=`` or with an empty name.
+    """
+    out: dict[str, str] = {}
+    for item in assignments:
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise ScenarioError(f"--set expects NAME=VALUE, got {item!r}")
+        out[name] = value.strip()
+    return out

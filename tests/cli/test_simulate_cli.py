@@ -1,0 +1,90 @@
+"""The real ``ra2vipas`` command, run as a subprocess: output contract and error paths."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+SMALL = ["--set", "steps=20", "--set", "n_train=200", "--set", "n_targets=8"]
+
+
+def ra2vipas(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "cli.main", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_simulate_json_is_the_last_stdout_line_with_the_documented_shape():
+    proc = ra2vipas("simulate", "--preset", "paper", "--tests", "3", "--seed", "7", "--algorithms", "ra2vipas,rapas", "--json", *SMALL)
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert set(results) >= {"preset", "scenario", "tests", "seed", "pod", "algorithms", "steps_per_second"}
+    assert results["preset"] == "paper" and results["tests"] == 3 and results["seed"] == 7
+    assert results["scenario"]["steps"] == 20 and results["scenario"]["n_targets"] == 8
+    assert set(results["pod"]) == {"r2", "train_seconds"}
+    assert list(results["algorithms"]) == ["ra2vipas", "rapas"]
+    for block in results["algorithms"].values():
+        assert len(block["dr"]) == 20
+        assert all(0.0 <= v <= 1.0 for v in block["dr"])
+        assert block["dr_final"] == block["dr"][-1]
+        lo, hi = block["ci95"]
+        assert 0.0 <= lo <= block["dr_final"] <= hi <= 1.0
+        assert set(block) >= {"dr", "dr_final", "ci95", "time_to_dr90_s", "in_fov_final"}
+
+
+def test_simulate_table_names_every_algorithm_and_the_pod_fit():
+    proc = ra2vipas("simulate", "--tests", "2", *SMALL)
+    assert proc.returncode == 0, proc.stderr
+    for name in ("ra2vipas", "rapas", "ravipas", "sweep"):
+        assert name in proc.stdout
+    assert "POD regression R²" in proc.stdout
+
+
+def test_simulate_writes_the_dr_plot(tmp_path):
+    out = tmp_path / "dr.png"
+    proc = ra2vipas("simulate", "--tests", "2", "--algorithms", "ra2vipas", "--plot", str(out), *SMALL)
+    assert proc.returncode == 0, proc.stderr
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--set", "n_targets=0"], "n_targets: expected an integer in [1, 500], got '0'"),
+        (["--set", "rf_noise_db=-1"], "rf_noise_db: expected a number in [0.0, 30.0]"),
+        (["--set", "placement=circle"], "placement: expected one of reference|uniform"),
+        (["--set", "antenna_model=yagi"], "antenna_model: expected one of paper|db-gain"),
+        (["--set", "nope=1"], "unknown scenario parameter 'nope'"),
+        (["--set", "steps"], "--set expects NAME=VALUE"),
+        (["--preset", "moon"], "unknown preset 'moon'"),
+        (["--algorithms", "ra2vipas,magic"], "unknown algorithm 'magic'"),
+        (["--plot", "dr.jpg"], "--plot expects a .png or .svg"),
+    ],
+)
+def test_bad_input_is_one_stderr_line_and_exit_code_2(args, needle):
+    proc = ra2vipas("simulate", "--tests", "1", *args)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("error: ") and needle in lines[0]
+    assert "Traceback" not in proc.stderr
+
+
+def test_presets_show_lists_every_parameter_with_its_range():
+    proc = ra2vipas("presets", "show", "paper", "--json")
+    assert proc.returncode == 0, proc.stderr
+    obj = json.loads(proc.stdout.strip().splitlines()[-1])
+    params = obj["parameters"]
+    assert params["n_targets"] == {"value": 20, "allowed": "an integer in [1, 500]", "description": params["n_targets"]["description"]}
+    assert params["antenna_curvature"]["value"] == 0.5
+    assert params["placement"]["allowed"] == "one of reference|uniform"
+    assert ra2vipas("presets", "show", "nope").returncode == 1
+
+
+def test_bench_step_prints_timings_as_json():
+    proc = ra2vipas("bench", "step", "--tests", "1", "--json")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["benchmark"] == "controller-step" and report["steps"] == 120
+    assert 0 < report["median_ms"] <= report["p99_ms"]

@@ -1,0 +1,97 @@
+"""Shared fixtures and helpers of the unit suite.
+
+Helpers are plain functions (importable as ``tests.conftest``) and are also exposed as
+fixtures. The expensive one, a POD model learned on the paper's training process, is
+trained once per session and shared.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.controller.policy import Controller, ControllerSettings, sensor_config_from_scenario
+from services.orchestrator.simulate import TrainedPOD, train_pod
+from services.protocol.scenario import Scenario, build_scenario
+from services.sensors import physics
+from services.sensors.world import GroundTruth, SimulatedPlatform
+
+SMALL = {"steps": 40, "n_train": 300}
+
+
+def small_scenario(preset: str = "paper", **overrides) -> Scenario:
+    """A paper scenario shortened for the unit suite (40 steps, 300 training samples)."""
+    return build_scenario(preset, {**SMALL, **overrides})
+
+
+def polar_positions(ranges_m, bearings_deg) -> np.ndarray:
+    """(N, 2) positions from ranges [m] and bearings [deg]."""
+    r = np.asarray(ranges_m, dtype=float)
+    b = np.radians(np.asarray(bearings_deg, dtype=float))
+    return np.column_stack([r * np.cos(b), r * np.sin(b)])
+
+
+def make_platform(scenario: Scenario, positions_m, tx_index: int, seed: int = 0, test_index: int = 0) -> SimulatedPlatform:
+    """A ``SimulatedPlatform`` whose world is the given layout instead of a random draw.
+
+    Sets exactly the attributes ``SimulatedPlatform.__init__`` derives from its ground truth;
+    the noise streams stay those of (seed, test_index).
+    """
+    platform = SimulatedPlatform(scenario, seed, test_index)
+    truth = GroundTruth(positions_m=np.asarray(positions_m, dtype=float).reshape(-1, 2), tx_index=int(tx_index))
+    platform.truth = truth
+    platform._bearings = truth.bearings_rad
+    platform._pod = physics.pod(scenario, truth.ranges_m)
+    platform._tx_range = truth.tx_range_m
+    platform._tx_bearing = truth.tx_bearing_rad
+    platform._iso_mean = float(physics.path_loss_dbm(scenario, truth.tx_range_m))
+    return platform
+
+
+def angle_error(a: float, b: float) -> float:
+    """|wrap(a - b)| in radians."""
+    return abs(float(physics.wrap(a - b)))
+
+
+def new_controller(algorithm: str, scenario: Scenario, pod_model, settings: ControllerSettings | None = None) -> Controller:
+    return Controller(algorithm, sensor_config_from_scenario(scenario), pod_model, settings)
+
+
+def run_closed_loop(controller: Controller, platform: SimulatedPlatform, steps: int):
+    """Let the controller choose the pans for ``steps`` steps; return the decisions."""
+    pan = controller.first_pan()
+    decisions = []
+    for t in range(steps):
+        d = controller.step(platform.sense(t, pan))
+        decisions.append(d)
+        pan = d.next_pan_rad
+    return decisions
+
+
+def run_open_loop(controller: Controller, platform: SimulatedPlatform, pans_rad):
+    """Feed the controller the measurements taken at the given pans (its own choices ignored)."""
+    return [controller.step(platform.sense(t, float(p))) for t, p in enumerate(pans_rad)]
+
+
+def sweep_pans(n: int, rounds: int = 1, start_rad: float = 0.0) -> np.ndarray:
+    """``rounds`` full turns of ``n`` evenly spaced pans each, wrapped to [-pi, pi)."""
+    return np.asarray(physics.wrap(start_rad + 2.0 * math.pi * np.arange(n * rounds) / n), dtype=float)
+
+
+@pytest.fixture(scope="session")
+def paper_pod() -> TrainedPOD:
+    """A POD model learned on the paper's training process (900 samples, seed 1)."""
+    return train_pod(build_scenario("paper", {"n_train": 900}), seed=1)
+
+
+@pytest.fixture(scope="session")
+def small_pod() -> TrainedPOD:
+    """A POD model learned on a short training episode (300 samples, seed 3)."""
+    return train_pod(small_scenario(), seed=3)
+
+
+@pytest.fixture
+def platform_factory():
+    return make_platform

@@ -1,0 +1,307 @@
+"""The controller: measurements in, next pan and estimate out (paper Sec. III-B, MISSION defects 1-3)."""
+
+from __future__ import annotations
+
+import ast
+import math
+import pathlib
+import subprocess
+import sys
+import typing
+
+import numpy as np
+import pydantic
+import pytest
+
+import services
+from services.controller.policy import (
+    ALGORITHMS,
+    Controller,
+    ControllerSettings,
+    Decision,
+    SensorConfig,
+    sensor_config_from_scenario,
+)
+from services.learner.pod import predict
+from services.orchestrator.metrics import associate
+from services.orchestrator.simulate import run_test
+from services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
+from services.sensors import physics
+from services.sensors.world import SimulatedPlatform
+from tests.conftest import (
+    angle_error,
+    make_platform,
+    new_controller,
+    polar_positions,
+    run_closed_loop,
+    run_open_loop,
+    small_scenario,
+    sweep_pans,
+)
+
+SERVICES = pathlib.Path(services.__file__).parent
+
+
+def _layout(tx_deg: float):
+    """Tx at 2.5 m and ``tx_deg``; five distractors, two of them within 15 degrees."""
+    ranges = [2.5, 4.0, 5.0, 1.5, 3.8, 6.0]
+    bearings = [tx_deg, tx_deg - 12.0, tx_deg + 15.0, tx_deg + 90.0, tx_deg - 150.0, tx_deg + 170.0]
+    return polar_positions(ranges, bearings)
+
+
+# -- 3. no ground truth reaches the controller ----------------------------------------------------
+
+
+def _leaf_fields(model: type[pydantic.BaseModel], prefix: str = "") -> set[str]:
+    out = set()
+    for name, info in model.model_fields.items():
+        ann = info.annotation
+        args = typing.get_args(ann)
+        if isinstance(ann, type) and issubclass(ann, pydantic.BaseModel):
+            out |= _leaf_fields(ann, f"{prefix}{name}.")
+        elif args and isinstance(args[0], type) and issubclass(args[0], pydantic.BaseModel):
+            out |= _leaf_fields(args[0], f"{prefix}{name}[].")
+        else:
+            out.add(prefix + name)
+    return out
+
+
+def test_step_measurement_carries_only_sensor_readings():
+    assert _leaf_fields(StepMeasurement) == {
+        "step", "pan_rad", "rf.iso_rssi_dbm", "rf.dir_rssi_dbm", "frames[].box_bearings_rad",
+    }
+
+
+def test_training_sample_carries_only_sensor_readings():
+    assert _leaf_fields(TrainingSample) == {"index", "iso_rssi_dbm", "frames[].box_bearings_rad"}
+
+
+def test_measurements_reject_extra_fields():
+    rf = RFSample(iso_rssi_dbm=-40.0, dir_rssi_dbm=-38.0)
+    with pytest.raises(pydantic.ValidationError):
+        StepMeasurement(step=0, pan_rad=0.0, rf=rf, frames=(), tx_index=3)
+    with pytest.raises(pydantic.ValidationError):
+        CameraFrame(box_bearings_rad=(0.1,), target_ids=(4,))
+    with pytest.raises(pydantic.ValidationError):
+        RFSample(iso_rssi_dbm=-40.0, dir_rssi_dbm=float("nan"))
+
+
+def test_sensor_config_describes_only_the_platform():
+    assert {f for f in SensorConfig.__dataclass_fields__} == {
+        "steps", "frames_per_rf", "fov_half_angle_rad", "box_bearing_noise_rad", "initial_pan_rad", "rssi_grows_with_alignment",
+    }
+    sc = small_scenario(initial_pan_deg=45.0)
+    cfg = sensor_config_from_scenario(sc)
+    assert cfg.steps == 40 and cfg.frames_per_rf == 10
+    assert cfg.fov_half_angle_rad == pytest.approx(math.pi / 8)
+    assert cfg.box_bearing_noise_rad == pytest.approx(math.radians(0.25))
+    assert cfg.initial_pan_rad == pytest.approx(math.pi / 4)
+    assert cfg.rssi_grows_with_alignment is False
+    assert sensor_config_from_scenario(small_scenario(antenna_model="db-gain")).rssi_grows_with_alignment is True
+
+
+def test_controller_step_takes_a_step_measurement():
+    hints = typing.get_type_hints(Controller.step)
+    assert hints.pop("return") is Decision
+    assert list(hints.values()) == [StepMeasurement]
+
+
+def _imports(path: pathlib.Path) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                raise AssertionError(f"{path}: relative import")
+            names.add(node.module or "")
+            names |= {f"{node.module}.{a.name}" for a in node.names}
+    return names
+
+
+@pytest.mark.parametrize("package, allowed", [
+    ("controller", ("services.protocol", "services.controller")),
+    ("learner", ("services.protocol", "services.learner")),
+])
+def test_controller_and_learner_never_import_the_simulator(package, allowed):
+    files = sorted((SERVICES / package).glob("*.py"))
+    assert files
+    for path in files:
+        for name in _imports(path):
+            assert not name.startswith("services.sensors"), f"{path.name} imports {name}"
+            assert not name.startswith("services.orchestrator"), f"{path.name} imports {name}"
+            if name.startswith("services"):
+                assert name.startswith(allowed), f"{path.name} imports {name}"
+
+
+def test_controller_and_learner_load_without_the_simulator():
+    code = ("import sys, services.controller.policy, services.learner.pod; "
+            "print(sorted(m for m in sys.modules if m.startswith(('services.sensors', 'services.orchestrator'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SERVICES.parent)
+    assert out.stdout.strip() == "[]"
+
+
+# -- interface ----------------------------------------------------------------------------------------
+
+
+def test_settings_are_validated():
+    bads = ({"beta": -1.0}, {"grid_points": 8}, {"lobe_width_rad": 0.0}, {"residual_length_scale_rad": -1.0}, {"probe_every": -1})
+    for bad in bads:
+        with pytest.raises(ValueError):
+            ControllerSettings(**bad)
+    with pytest.raises(ValueError):
+        Controller("simulated-annealing", sensor_config_from_scenario(small_scenario()), None)
+
+
+@pytest.mark.parametrize("algorithm", ALGORITHMS)
+def test_decisions_are_angles_on_the_circle(algorithm, small_pod):
+    sc = small_scenario(initial_pan_deg=170.0)
+    c = new_controller(algorithm, sc, small_pod.model)
+    assert c.first_pan() == pytest.approx(math.radians(170.0))
+    decisions = run_closed_loop(c, SimulatedPlatform(sc, 3, 0), sc.steps)
+    for t, d in enumerate(decisions):
+        assert d.step == t
+        assert -math.pi <= d.next_pan_rad < math.pi
+        assert -math.pi <= d.estimate_rad < math.pi
+        assert math.isfinite(d.reward)
+
+
+def test_same_measurements_same_decisions(small_pod):
+    sc = small_scenario()
+    a, b = new_controller("ra2vipas", sc, small_pod.model), new_controller("ra2vipas", sc, small_pod.model)
+    da = run_closed_loop(a, SimulatedPlatform(sc, 8, 1), sc.steps)
+    db = run_closed_loop(b, SimulatedPlatform(sc, 8, 1), sc.steps)
+    assert da == db
+
+
+def test_sweep_pans_evenly(small_pod):
+    sc = small_scenario(initial_pan_deg=-90.0)
+    decisions = run_closed_loop(new_controller("sweep", sc, small_pod.model), SimulatedPlatform(sc, 0, 0), sc.steps)
+    for t, d in enumerate(decisions):
+        assert angle_error(d.next_pan_rad, -math.pi / 2 + 2 * math.pi * (t + 1) / sc.steps) < 1e-9
+        assert not d.probe
+
+
+def test_warmup_sees_every_bearing_once(small_pod):
+    sc = small_scenario(initial_pan_deg=30.0)
+    decisions = run_closed_loop(new_controller("ra2vipas", sc, small_pod.model), SimulatedPlatform(sc, 0, 0), sc.steps)
+    warmup = math.ceil(math.pi / sc.fov_half_angle_rad)
+    pans = [sc.initial_pan_rad] + [d.next_pan_rad for d in decisions[: warmup - 1]]
+    for t, pan in enumerate(pans):
+        assert angle_error(pan, sc.initial_pan_rad + 2 * math.pi * t / warmup) < 1e-9
+    # the warm-up pans' fields of view cover the whole circle
+    covered = np.zeros(360, dtype=bool)
+    for pan in pans:
+        covered |= np.abs(physics.wrap(np.radians(np.arange(360)) - pan)) <= sc.fov_half_angle_rad + 1e-9
+    assert covered.all()
+
+
+def _strip(m: StepMeasurement, frames=None, dir_rssi=None) -> StepMeasurement:
+    rf = RFSample(iso_rssi_dbm=m.rf.iso_rssi_dbm, dir_rssi_dbm=m.rf.dir_rssi_dbm if dir_rssi is None else dir_rssi)
+    return StepMeasurement(step=m.step, pan_rad=m.pan_rad, rf=rf, frames=m.frames if frames is None else frames)
+
+
+def test_rapas_ignores_the_camera_and_ravipas_ignores_rx_dir(small_pod):
+    sc = small_scenario()
+    platform = SimulatedPlatform(sc, 5, 0)
+    ms = [platform.sense(t, p) for t, p in enumerate(sweep_pans(sc.steps))]
+    blind = [_strip(m, frames=tuple(CameraFrame() for _ in m.frames)) for m in ms]
+    deaf = [_strip(m, dir_rssi=-60.0) for m in ms]
+    ctl = lambda a: new_controller(a, sc, small_pod.model)  # noqa: E731
+    c1, c2 = ctl("rapas"), ctl("rapas")
+    assert [c1.step(m) for m in ms] == [c2.step(m) for m in blind]
+    c1, c2 = ctl("ravipas"), ctl("ravipas")
+    assert [c1.step(m) for m in ms] == [c2.step(m) for m in deaf]
+    # ... while ra2vipas uses both
+    c1, c2 = ctl("ra2vipas"), ctl("ra2vipas")
+    assert [c1.step(m) for m in ms] != [c2.step(m) for m in blind]
+
+
+# -- 1. the fused objective peaks at the Tx bearing ----------------------------------------------------
+
+
+@pytest.mark.parametrize("model", ["paper", "db-gain"])
+@pytest.mark.parametrize("tx_deg", [30.0, -100.0, 179.0, -179.0])
+def test_sweep_estimate_and_reward_peak_at_the_tx(model, tx_deg, paper_pod):
+    sc = small_scenario(steps=144, antenna_model=model, n_targets=6)
+    platform = make_platform(sc, _layout(tx_deg), tx_index=0, seed=1)
+    pans = sweep_pans(72, rounds=2)
+    decisions = run_open_loop(new_controller("ra2vipas", sc, paper_pod.model), platform, pans)
+    tx = platform.truth.tx_bearing_rad
+    est = decisions[-1].estimate_rad
+    assert associate(np.array([est]), platform.truth.bearings_rad)[0] == 0
+    assert angle_error(est, tx) < math.radians(1.0)
+    # the fused objective at the sampled pan, over the second turn, is largest near the Tx
+    rewards = np.array([d.reward for d in decisions[72:]])
+    assert angle_error(pans[72 + int(np.argmax(rewards))], tx) <= sc.fov_half_angle_rad
+    far = np.abs(physics.wrap(pans[72:] - tx)) > math.radians(60.0)
+    assert rewards.max() > 2.0 * rewards[far].max()
+
+
+@pytest.mark.parametrize("tx_deg", [30.0, -100.0, 179.0])
+def test_paper_reward_prefers_misalignment_ours_does_not(tx_deg, paper_pod):
+    """MISSION defect 1. The paper's y = y_D y_RF with y_D = -|p_hat - p~| <= 0 and
+    y_RF = |z_dir| >= 0 is never positive, so on the same measurements it is maximised where
+    Rx(dir) hears nothing, far from the Tx; the controller's fused objective peaks at the Tx."""
+    sc = small_scenario(steps=144, n_targets=6)
+    platform = make_platform(sc, _layout(tx_deg), tx_index=0, seed=1)
+    pans = sweep_pans(72, rounds=2)
+    ms = [platform.sense(t, p) for t, p in enumerate(pans)]
+    c = new_controller("ra2vipas", sc, paper_pod.model)
+    ours = np.array([c.step(m).reward for m in ms])
+    p_hat = float(predict(paper_pod.model, np.mean([m.rf.iso_rssi_dbm for m in ms])))
+    p_tilde = np.array([np.mean([bool(f.box_bearings_rad) for f in m.frames]) for m in ms])
+    y_paper = -np.abs(p_hat - p_tilde) * np.abs([m.rf.dir_rssi_dbm for m in ms])
+    tx = platform.truth.tx_bearing_rad
+    assert np.all(y_paper <= 0.0)
+    assert angle_error(pans[int(np.argmax(y_paper))], tx) > math.radians(60.0)
+    assert angle_error(pans[72 + int(np.argmax(ours[72:]))], tx) <= sc.fov_half_angle_rad
+
+
+@pytest.mark.parametrize("algorithm", ["ravipas", "ra2vipas"])
+@pytest.mark.parametrize("tx_range, other_range", [(3.0, 5.0), (5.0, 3.0), (2.5, 1.0), (1.0, 2.5)])
+@pytest.mark.parametrize("tx_deg, other_deg", [(30.0, 33.0), (33.0, 30.0)])
+def test_the_target_whose_pod_matches_is_chosen(algorithm, tx_range, other_range, tx_deg, other_deg, paper_pod):
+    """Two targets 3 degrees apart, one is the Tx: whichever it is, and whichever side it is on,
+    the controller picks the one whose detection rate matches the POD predicted from the iso
+    RSSI. A score that rewarded mismatch (the paper's sign) or ignored it would not. The RSSI
+    noise is raised to 8 dB so that Rx(dir) alone cannot tell 3 degrees apart."""
+    sc = small_scenario(steps=144, n_targets=3, rf_noise_db=8.0)
+    assert abs(physics.pod(sc, tx_range) - physics.pod(sc, other_range)) > 0.3
+    layout = polar_positions([tx_range, other_range, 6.0], [tx_deg, other_deg, -120.0])
+    platform = make_platform(sc, layout, tx_index=0, seed=2)
+    decisions = run_open_loop(new_controller(algorithm, sc, paper_pod.model), platform, sweep_pans(72, rounds=2))
+    chosen = associate(np.array([d.estimate_rad for d in decisions[-20:]]), platform.truth.bearings_rad)
+    assert np.all(chosen == 0)
+
+
+# -- 2. wrap-around -------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("model", ["paper", "db-gain"])
+@pytest.mark.parametrize("tx_deg", [179.0, -179.5, 180.0])
+def test_tx_behind_the_platform_is_found_in_closed_loop(model, tx_deg, paper_pod):
+    sc = small_scenario(antenna_model=model, n_targets=6)
+    platform = make_platform(sc, _layout(tx_deg), tx_index=0, seed=3)
+    decisions = run_closed_loop(new_controller("ra2vipas", sc, paper_pod.model), platform, sc.steps)
+    est = decisions[-1].estimate_rad
+    assert associate(np.array([est]), platform.truth.bearings_rad)[0] == 0
+    assert angle_error(est, platform.truth.tx_bearing_rad) < math.radians(1.0)
+
+
+# -- closed loop on random worlds ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("model", ["paper", "db-gain"])
+def test_ra2vipas_discovers_the_tx_on_random_worlds(model, small_pod):
+    sc = small_scenario(steps=60, antenna_model=model)
+    final = {}
+    for alg in ("ra2vipas", "rapas", "ravipas"):
+        outcomes = [run_test(sc, 2024, k, alg, small_pod.model) for k in range(12)]
+        final[alg] = np.mean([o.hits[-1] for o in outcomes])
+        if alg == "ra2vipas":
+            at_4s = np.mean([o.hits[39] for o in outcomes])
+    assert final["ra2vipas"] >= 11 / 12
+    assert at_4s >= 10 / 12
+    assert final["ra2vipas"] >= final["rapas"]
+    assert final["ra2vipas"] >= final["ravipas"]
