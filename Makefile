@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml
 
 campaign: setup
 	mkdir -p results
-	$(BIN)/ra2vipas simulate --preset paper --tests 50 --seed 1 --plot results/dr-paper.png
+	$(BIN)/ra2vipas campaign start --embedded --preset paper --tests 50 --seed 1 --db results/ra2vipas.db --plot results/dr-paper.png
 
 test: setup
 	$(BIN)/pytest -q

@@ -73,3 +73,79 @@ def bench_step(
             f"controller step ({algorithm}): median {report['median_ms']:.3f} ms, p99 {report['p99_ms']:.3f} ms, "
             f"median at n=120 {report['median_ms_at_n_test']:.3f} ms over {report['steps']} steps"
         )
+
+
+def _run_campaign(api: str, body: dict, timeout: float) -> tuple[dict, float]:
+    import httpx
+
+    started = time.perf_counter()
+    c = httpx.post(f"{api}/campaigns", json=body, timeout=30).json()
+    deadline = time.monotonic() + timeout
+    while c["status"] not in ("done", "failed", "cancelled"):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"campaign {c['id']} did not finish within {timeout:.0f} s")
+        time.sleep(0.1)
+        c = httpx.get(f"{api}/campaigns/{c['id']}", timeout=30).json()
+    wall = time.perf_counter() - started
+    if c["status"] != "done":
+        raise RuntimeError(f"campaign {c['id']} {c['status']}: {c.get('error')}")
+    return httpx.get(f"{api}/campaigns/{c['id']}/results", timeout=30).json(), wall
+
+
+@app.command("mesh")
+def bench_mesh(
+    rigs: Annotated[int, typer.Option(min=0, max=16, help="Sensor+controller pairs (0: one per CPU core).")] = 0,
+    window: Annotated[int, typer.Option(min=1, max=256, help="Episodes in flight per rig.")] = 8,
+    tests: Annotated[int, typer.Option(min=1, max=1000, help="Tests of the fast-mode campaign.")] = 50,
+    realtime_tests: Annotated[int, typer.Option(min=0, max=64, help="Tests of the realtime campaign, one at a time per rig (0: skip).")] = 4,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
+) -> None:
+    """Start a local stack and measure it through the real processes.
+
+    Fast mode: the paper campaign (TESTS tests x ra2vipas, rapas, ravipas x 120 steps) in
+    lockstep; reports control steps per second (target >= 2 200 on 2 cores). Realtime mode:
+    REALTIME_TESTS paced tests; reports the sample-to-command latency p50/p99 measured by the
+    sensors (target p99 <= 5 ms). The stack is stopped afterwards.
+    """
+    import os
+    import tempfile
+
+    from cli.stack import Stack, StackConfig, StackError, free_port
+
+    rigs = rigs or max(1, min(os.cpu_count() or 1, 16))
+    with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
+        stack = Stack(StackConfig(rigs=rigs, port=free_port(), db_path=os.path.join(tmp, "bench.db"), window=window,
+                                  log_dir=os.path.join(tmp, "logs"), log_level="WARNING"))
+        try:
+            stack.start()
+            algorithms = ["ra2vipas", "rapas", "ravipas"]
+            fast, fast_wall = _run_campaign(stack.api_url, {"preset": "paper", "tests": tests, "seed": 1, "algorithms": algorithms}, 1800)
+            report = {
+                "benchmark": "mesh",
+                "rigs": rigs,
+                "window": window,
+                "fast": {
+                    "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
+                    "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
+                    "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
+                },
+                "steps_per_second": fast["steps_per_second"],
+                "latency_ms": None,
+                "targets": {"steps_per_second": 2200, "latency_p99_ms": 5.0},
+            }
+            if realtime_tests:
+                rt, rt_wall = _run_campaign(stack.api_url, {"preset": "paper", "tests": realtime_tests, "seed": 1,
+                                                            "algorithms": ["ra2vipas"], "mode": "realtime"}, 600)
+                report["latency_ms"] = rt.get("latency_ms")
+                report["realtime"] = {"tests": realtime_tests, "wall_seconds": round(rt_wall, 3),
+                                      "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"]}
+        except (StackError, TimeoutError, RuntimeError) as err:
+            fail(f"bench mesh: {err}")
+        finally:
+            stack.stop()
+    if as_json:
+        print_json(report)
+    else:
+        lat = report["latency_ms"] or {}
+        stdout.print(f"mesh ({rigs} rigs): {report['steps_per_second']} control steps/s in fast mode (target 2200); "
+                     f"realtime sample->command latency p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms (target p99 <= 5)")

@@ -2,10 +2,19 @@
 
 from __future__ import annotations
 
-import typer
+import os
 
-from cli import bench, presets
-from cli.simulate import simulate
+# The linear algebra here is on matrices of a few hundred entries: BLAS worker threads only
+# spin and steal the cores the services need (they cost milliseconds of latency). Must be
+# set before numpy is first imported.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import typer  # noqa: E402
+
+from cli import bench, campaign, presets, protocol, services  # noqa: E402
+from cli.simulate import simulate  # noqa: E402
+from cli.up import up  # noqa: E402
 
 app = typer.Typer(
     name="ra2vipas",
@@ -14,8 +23,13 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 app.command("simulate")(simulate)
+app.command("up")(up)
+app.add_typer(campaign.app, name="campaign")
 app.add_typer(presets.app, name="presets")
 app.add_typer(bench.app, name="bench")
+app.add_typer(protocol.app, name="protocol")
+for _name in ("sensors", "controller", "learner", "orchestrator", "router"):
+    app.command(_name)(getattr(services, _name))
 
 
 def main() -> None:

@@ -24,7 +24,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg import solve_triangular
+
+from services.controller import _kernels
+from services.controller.grid import CircleGrid
 
 
 def circular_kernel(a: np.ndarray, b: np.ndarray, length_scale: float, signal_var: float = 1.0) -> np.ndarray:
@@ -53,9 +55,15 @@ class LobeGP:
         Largest number of samples.
     """
 
-    def __init__(self, grid: np.ndarray, noise_var: float, lobe_width: float, lobe_sign: int,
+    def __init__(self, grid: "np.ndarray | CircleGrid", noise_var: float, lobe_width: float, lobe_sign: int,
                  residual_length_scale: float, residual_var: float, capacity: int) -> None:
-        self.grid = np.asarray(grid, dtype=float)
+        if not isinstance(grid, CircleGrid):
+            angles = np.asarray(grid, dtype=float)
+            grid = CircleGrid(angles.size)
+            if not np.allclose(grid.angles, angles, atol=1e-9):
+                raise ValueError("LobeGP needs the uniform grid -pi + 2 pi k / M (np.linspace(-pi, pi, M, endpoint=False))")
+        self.circle = grid
+        self.grid = grid.angles
         self.noise_var = float(noise_var)
         self.lobe_width = float(lobe_width)
         self.lobe_sign = 1 if lobe_sign >= 0 else -1
@@ -65,7 +73,7 @@ class LobeGP:
         M = self.grid.size
         self.x_ = np.empty(self.capacity)
         self.n_ = 0
-        self._L = np.zeros((self.capacity, self.capacity))
+        self._Li = np.zeros((self.capacity, self.capacity))  # L^{-1}, grown one row per sample
         self._V = np.zeros((self.capacity, M))  # L^{-1} k(X, grid)
         self._H = np.zeros((self.capacity, M))  # L^{-1} h(X - grid)
         self._o = np.zeros(self.capacity)  # L^{-1} 1
@@ -77,19 +85,25 @@ class LobeGP:
         self._oo = self._ou = self._uu = 0.0
 
     def add(self, s: float, z: float) -> None:
-        """Add the sample z (dBm) taken at pan angle s (rad). O(n M)."""
+        """Add the sample z (dBm) taken at pan angle s (rad). O(n M).
+
+        With K = L L^T, the new row of L is (ell^T, d), ell = L^{-1} k(X, s),
+        d^2 = k(s, s) + sigma^2 - ell^T ell, and the new row of L^{-1} is
+        (-ell^T L^{-1} / d, 1 / d); every matrix kept as L^{-1} M gains the row
+        (m(s) - ell^T L^{-1} M) / d.
+        """
         n = self.n_
         if n >= self.capacity:
             raise ValueError(f"LobeGP holds at most {self.capacity} samples")
-        sa = np.array([s])
-        k_grid = circular_kernel(sa, self.grid, self.residual_length_scale, self.residual_var)[0]
-        h_grid = circular_kernel(sa, self.grid, self.lobe_width)[0]
+        k_grid = self.circle.kernel_row(s, self.residual_length_scale, self.residual_var)
+        h_grid = self.circle.kernel_row(s, self.lobe_width)
         d2 = self.residual_var + self.noise_var
         if n:
-            k_old = circular_kernel(self.x_[:n], sa, self.residual_length_scale, self.residual_var)[:, 0]
-            ell = solve_triangular(self._L[:n, :n], k_old, lower=True, check_finite=False)
+            half = np.sin(0.5 * (self.x_[:n] - s))
+            k_old = self.residual_var * np.exp(-2.0 * half * half / (self.residual_length_scale**2))
+            Li = self._Li[:n, :n]
+            ell = Li @ k_old
             d2 -= ell @ ell
-            self._L[n, :n] = ell
             v = k_grid - ell @ self._V[:n]
             h = h_grid - ell @ self._H[:n]
             o = 1.0 - ell @ self._o[:n]
@@ -97,7 +111,9 @@ class LobeGP:
         else:
             v, h, o, u = k_grid, h_grid, 1.0, z
         d = math.sqrt(max(d2, 1e-12))
-        self._L[n, n] = d
+        if n:
+            self._Li[n, :n] = -(ell @ Li) / d
+        self._Li[n, n] = 1.0 / d
         v, h, o, u = v / d, h / d, o / d, u / d
         self._V[n], self._H[n], self._o[n], self._u[n] = v, h, o, u
         self._res_var -= v * v
@@ -113,30 +129,37 @@ class LobeGP:
     def lobe_fit(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For every grid centre gamma: profile log-likelihood -q(gamma)/2, amplitude A, offset c.
 
-        Centres whose best amplitude has the wrong sign get the likelihood of "no lobe".
+        (A, c) solve [[h.h, h.o], [h.o, o.o]] (A, c) = (h.u, o.u) with h = L^{-1} h(X - gamma),
+        o = L^{-1} 1, u = L^{-1} z, and q = u.u - A h.u - c o.u. Centres whose best amplitude
+        has the wrong sign get the likelihood of "no lobe".
         """
+        M = self.grid.size
         if self.n_ == 0:
-            M = self.grid.size
             return np.zeros(M), np.zeros(M), np.zeros(M)
-        det = np.maximum(self._hh * self._oo - self._ho * self._ho, 1e-12)
-        A = (self._oo * self._hu - self._ho * self._ou) / det
-        c = (self._hh * self._ou - self._ho * self._hu) / det
-        q = self._uu - (A * self._hu + c * self._ou)
-        q_flat = self._uu - self._ou * self._ou / max(self._oo, 1e-12)
-        wrong = A * self.lobe_sign <= 0.0
-        q = np.where(wrong, q_flat, q)
-        A = np.where(wrong, 0.0, A)
-        c = np.where(wrong, self._ou / max(self._oo, 1e-12), c)
-        return -0.5 * q, A, c
+        loglik, A, c = np.empty(M), np.empty(M), np.empty(M)
+        self.best_ = _kernels.lobe_profile(self._hh, self._ho, self._hu, self._oo, self._ou, self._uu,
+                                           float(self.lobe_sign), loglik, A, c)
+        return loglik, A, c
 
     def posterior(self, centre_index: int, A: float, c: float) -> tuple[np.ndarray, np.ndarray]:
         """Posterior mean and standard deviation of z on the grid, given the lobe (gamma, A, c).
 
         mu = c + A h(s - gamma) + k(s, X) K^{-1} (z - c - A h(X - gamma)) (eq. 17 with an explicit mean).
         """
-        mean = c + A * circular_kernel(self.grid[centre_index : centre_index + 1], self.grid, self.lobe_width)[0]
+        mean = c + A * self.circle.kernel_row(float(self.grid[centre_index]), self.lobe_width)
         n = self.n_
         if n:
             r = self._u[:n] - c * self._o[:n] - A * self._H[:n, centre_index]
             mean = mean + r @ self._V[:n]
         return mean, np.sqrt(np.maximum(self._res_var, 0.0) + 1e-12)
+
+    def mean_at(self, s: float, centre_index: int, A: float, c: float) -> float:
+        """Posterior mean of z at one pan angle ``s`` (O(n)), given the lobe (gamma, A, c)."""
+        h = circular_kernel(np.array([s]), self.grid[centre_index : centre_index + 1], self.lobe_width)[0, 0]
+        mean = c + A * h
+        n = self.n_
+        if n:
+            k = circular_kernel(self.x_[:n], np.array([s]), self.residual_length_scale, self.residual_var)[:, 0]
+            r = self._u[:n] - c * self._o[:n] - A * self._H[:n, centre_index]
+            mean += float(k @ (r @ self._Li[:n, :n]))  # k^T L^{-T} (L^{-1} r)
+        return float(mean)

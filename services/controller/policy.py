@@ -44,7 +44,8 @@ from enum import Enum
 
 import numpy as np
 
-from services.controller.circle_gp import LobeGP, circular_kernel
+from services.controller.circle_gp import LobeGP
+from services.controller.grid import CircleGrid
 from services.controller.tracks import DetectionTracker, wrap
 from services.protocol.measurements import StepMeasurement
 from services.protocol.pod import PODModel
@@ -69,7 +70,7 @@ class ControllerSettings:
     """
 
     beta: float = 4.0
-    grid_points: int = 720
+    grid_points: int = 360
     lobe_width_rad: float = 1.0
     residual_length_scale_rad: float = 0.5
     residual_std_db: float = 3.0
@@ -120,10 +121,26 @@ class PODLookup:
         self.std = np.maximum(np.asarray(model.std, dtype=float), min_std)
         self.slope = np.gradient(self.mean, self.r)
         self.rf_noise_db = float(model.rf_noise_db)
+        self._rows = list(zip(self.r.tolist(), self.mean.tolist(), self.std.tolist(), self.slope.tolist()))
+        self._last: tuple[float, tuple[float, float, float]] | None = None
 
     def __call__(self, rssi: float) -> tuple[float, float, float]:
-        return (float(np.interp(rssi, self.r, self.mean)), float(np.interp(rssi, self.r, self.std)),
-                float(np.interp(rssi, self.r, self.slope)))
+        """(mean, std, slope) at ``rssi`` by linear interpolation, clamped at the grid's ends."""
+        if self._last is not None and self._last[0] == rssi:
+            return self._last[1]
+        rows = self._rows
+        if rssi <= rows[0][0]:
+            out = rows[0][1:]
+        elif rssi >= rows[-1][0]:
+            out = rows[-1][1:]
+        else:
+            i = int(np.searchsorted(self.r, rssi)) - 1
+            r0, m0, s0, g0 = rows[i]
+            r1, m1, s1, g1 = rows[i + 1]
+            w = (rssi - r0) / (r1 - r0)
+            out = (m0 + w * (m1 - m0), s0 + w * (s1 - s0), g0 + w * (g1 - g0))
+        self._last = (rssi, out)
+        return out
 
 
 class Controller:
@@ -135,12 +152,14 @@ class Controller:
         self.sensors = sensors
         self.settings = cfg = settings or ControllerSettings()
         self.pod = PODLookup(pod_model, cfg.min_pod_std)
-        self.grid = np.linspace(-math.pi, math.pi, cfg.grid_points, endpoint=False)
+        self.circle = CircleGrid(cfg.grid_points)
+        self.grid = self.circle.angles
+        self._flat = np.zeros(self.grid.size)
         self.uses_radio = self.algorithm is not Algorithm.ravipas
         self.uses_camera = self.algorithm is not Algorithm.rapas
         sigma = max(self.pod.rf_noise_db, 0.1)
         self.rf = LobeGP(
-            self.grid, noise_var=sigma**2, lobe_width=cfg.lobe_width_rad,
+            self.circle, noise_var=sigma**2, lobe_width=cfg.lobe_width_rad,
             lobe_sign=1 if sensors.rssi_grows_with_alignment else -1,
             residual_length_scale=cfg.residual_length_scale_rad,
             residual_var=cfg.residual_std_db**2, capacity=max(sensors.steps, 1),
@@ -165,19 +184,21 @@ class Controller:
         self._n += 1
         self._iso_sum += m.rf.iso_rssi_dbm
         self._iso_sq += m.rf.iso_rssi_dbm**2
-        self._view_frames[self.tracks.in_view(s, self.grid)] += len(m.frames)
+        self._view_frames[self.circle.window(s, self.tracks.count_limit)] += len(m.frames)
         if self.uses_camera:
             self.tracks.update(s, m.frames)
         if self.uses_radio:
             self.rf.add(s, m.rf.dir_rssi_dbm)
-
-        l_rf, amplitude, offset = self.rf.lobe_fit() if self.uses_radio else (np.zeros(self.grid.size),) * 3
+            l_rf, amplitude, offset = self.rf.lobe_fit()
+            best = int(np.argmax(l_rf))
+            lobe = (best, float(amplitude[best]), float(offset[best]))
+        else:
+            l_rf, lobe = self._flat, None
         l_tracks = self._track_loglik(l_rf)
+        post = _softmax(l_tracks)
         estimate = self._estimate(l_rf, l_tracks)
-        j_rf, sd_rf = self._rf_objective(l_rf, amplitude, offset)
-        mass = self._mass_in_view(l_tracks)
-        reward = float(np.interp(s, self.grid, mass * j_rf, period=2 * math.pi))
-        next_pan, probe = self._next_pan(t, l_rf, l_tracks, j_rf, sd_rf, mass)
+        reward = self._mass_at(s, post) * self._rf_at(s, lobe)
+        next_pan, probe = self._next_pan(t, l_rf, lobe, l_tracks, post)
         return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe)
 
     # -- beliefs ------------------------------------------------------------------------------
@@ -196,7 +217,7 @@ class Controller:
         p_hat, p_std, slope = self.pod(z_iso)
         var = p_std**2 + (slope * sigma) ** 2 / self._n + (p_tilde * (1.0 - p_tilde) + 0.02) / np.maximum(n, 1.0)
         l_d = np.where(n > 0, -0.5 * (p_tilde - p_hat) ** 2 / var - 0.5 * np.log(2.0 * math.pi * var), 0.0)
-        return np.interp(self.tracks.bearing, self.grid, l_rf, period=2 * math.pi) + l_d
+        return self.circle.interp(l_rf, self.tracks.bearing) + l_d
 
     def _estimate(self, l_rf: np.ndarray, l_tracks: np.ndarray) -> float:
         if l_tracks.size:
@@ -222,36 +243,43 @@ class Controller:
         shift = 0.5 * (a - c) / den if den < 0 else 0.0
         return float(self.grid[j] + np.clip(shift, -0.5, 0.5) * (2 * math.pi / M))
 
-    def _rf_objective(self, l_rf, amplitude, offset) -> tuple[np.ndarray, np.ndarray]:
-        """J_RF(s) in [0, ~1]: the normalised lobe of the best fit, and its posterior std."""
+    def _rf_objective(self, lobe) -> tuple[np.ndarray, np.ndarray]:
+        """J_RF(s) on the grid, in [0, ~1]: the normalised posterior mean of the best lobe fit,
+        and its posterior standard deviation."""
         M = self.grid.size
-        if not self.uses_radio or self._n == 0:
+        if lobe is None or self._n == 0:
             return np.ones(M), np.zeros(M)
-        j = int(np.argmax(l_rf))
-        A = float(amplitude[j])
+        j, A, c = lobe
         if A == 0.0:
             return np.ones(M), np.ones(M)
-        mean, sd = self.rf.posterior(j, A, float(offset[j]))
-        return (mean - offset[j]) / A, sd / abs(A)
+        mean, sd = self.rf.posterior(j, A, c)
+        return (mean - c) / A, sd / abs(A)
 
-    def _mass_in_view(self, l_tracks: np.ndarray) -> np.ndarray:
+    def _rf_at(self, s: float, lobe) -> float:
+        """J_RF at one pan angle (O(n))."""
+        if lobe is None or lobe[1] == 0.0:
+            return 1.0
+        j, A, c = lobe
+        return (self.rf.mean_at(s, j, A, c) - c) / A
+
+    def _unseen(self) -> np.ndarray:
+        return self._view_frames < 2 * self.sensors.frames_per_rf
+
+    def _mass_in_view(self, post: np.ndarray) -> np.ndarray:
         """U_D(s): posterior mass of the candidate targets in view at each pan; 1 where unseen."""
-        unseen = self._view_frames < 2 * self.sensors.frames_per_rf
         if not self.uses_camera:
             return np.ones(self.grid.size)
-        mass = np.zeros(self.grid.size)
-        if l_tracks.size:
-            post = np.exp(l_tracks - l_tracks.max())
-            post /= post.sum()
-            lim = self.tracks.count_limit
-            # for each track, the arc of pans that keep it in view
-            for b, p in zip(self.tracks.bearing, post):
-                if p > 1e-4:
-                    mass[np.abs(wrap(self.grid - b)) <= lim] += p
-        return np.where(unseen, np.maximum(mass, 1.0), mass)
+        mass = self.circle.arc_sum(self.tracks.bearing, post, self.tracks.count_limit) if post.size else np.zeros(self.grid.size)
+        return np.where(self._unseen(), np.maximum(mass, 1.0), mass)
+
+    def _mass_at(self, s: float, post: np.ndarray) -> float:
+        if not self.uses_camera:
+            return 1.0
+        mass = float(post[self.tracks.in_view(s)].sum()) if post.size else 0.0
+        return max(mass, 1.0) if self._unseen()[self.circle.nearest(s)] else mass
 
     # -- actions ------------------------------------------------------------------------------
-    def _next_pan(self, t, l_rf, l_tracks, j_rf, sd_rf, mass) -> tuple[float, bool]:
+    def _next_pan(self, t, l_rf, lobe, l_tracks, post) -> tuple[float, bool]:
         sensors, cfg = self.sensors, self.settings
         if self.algorithm is Algorithm.sweep:
             return sensors.initial_pan_rad + 2.0 * math.pi * (t + 1) / max(sensors.steps, 1), False
@@ -259,7 +287,8 @@ class Controller:
             return sensors.initial_pan_rad + 2.0 * math.pi * (t + 1) / self.warmup, False
         if self.uses_radio and cfg.probe_every and (t + 1 - self.warmup) % cfg.probe_every == 0:
             return self._probe(l_rf, l_tracks), True
-        acquisition = (j_rf + math.sqrt(cfg.beta) * sd_rf) * (mass if self.uses_camera else 1.0)
+        j_rf, sd_rf = self._rf_objective(lobe)
+        acquisition = (j_rf + math.sqrt(cfg.beta) * sd_rf) * self._mass_in_view(post)
         return float(self.grid[int(np.argmax(acquisition))]), False
 
     def _probe(self, l_rf: np.ndarray, l_tracks: np.ndarray) -> float:
@@ -273,13 +302,20 @@ class Controller:
             apart = np.abs(wrap(self.grid[order] - g1)) >= math.radians(3.0)
             g2 = self.grid[order[apart][0]] if apart.any() else g1 + math.radians(3.0)
         w = self.settings.lobe_width_rad
-        diff = np.abs(circular_kernel(np.array([g1]), self.grid, w)[0] - circular_kernel(np.array([g2]), self.grid, w)[0])
+        diff = np.abs(self.circle.kernel_row(float(g1), w) - self.circle.kernel_row(float(g2), w))
         mid = g1 + 0.5 * wrap(g2 - g1)
         side = wrap(self.grid - mid) >= 0
         self._probes += 1
         if self._probes % 2:
             side = ~side
         return float(self.grid[int(np.argmax(np.where(side, diff, -1.0)))])
+
+
+def _softmax(log_weights: np.ndarray) -> np.ndarray:
+    if not log_weights.size:
+        return log_weights
+    w = np.exp(log_weights - log_weights.max())
+    return w / w.sum()
 
 
 def sensor_config_from_scenario(scenario) -> SensorConfig:

@@ -121,15 +121,14 @@ def _frames(sc: Scenario, rng: np.random.Generator, rel_bearings: np.ndarray, p_
     nu = sc.frames_per_rf
     n = rel_bearings.size
     if n == 0:
-        return tuple(CameraFrame.model_construct(box_bearings_rad=()) for _ in range(nu))
-    hits = rng.random((nu, n)) < p_detect
-    noise = rng.normal(0.0, sc.box_bearing_noise_rad, size=(nu, n))
-    boxes = rel_bearings + noise
-    out = []
-    for f in range(nu):
-        b = np.sort(boxes[f][hits[f]])
-        out.append(CameraFrame.model_construct(box_bearings_rad=tuple(float(x) for x in b)))
-    return tuple(out)
+        empty = CameraFrame.model_construct(box_bearings_rad=())
+        return (empty,) * nu
+    hits = (rng.random((nu, n)) < p_detect).tolist()
+    boxes = (rel_bearings + rng.normal(0.0, sc.box_bearing_noise_rad, size=(nu, n))).tolist()
+    return tuple(
+        CameraFrame.model_construct(box_bearings_rad=tuple(sorted(b for b, h in zip(row, hit) if h)))
+        for row, hit in zip(boxes, hits)
+    )
 
 
 class SimulatedPlatform:
@@ -151,15 +150,16 @@ class SimulatedPlatform:
         self._tx_range = self.truth.tx_range_m
         self._tx_bearing = self.truth.tx_bearing_rad
         self._iso_mean = float(physics.path_loss_dbm(scenario, self._tx_range))
+        self._fov = scenario.fov_half_angle_rad
 
     def sense(self, step: int, pan_rad: float) -> StepMeasurement:
         sc = self.scenario
         sigma = sc.rf_noise_db
         iso = self._iso_mean + self._rf.normal(0.0, sigma)
-        dir_mean = float(physics.directional_rssi_dbm(sc, self._tx_range, pan_rad - self._tx_bearing))
+        dir_mean = physics.directional_rssi_scalar(sc, self._iso_mean, pan_rad - self._tx_bearing)
         dir_ = dir_mean + self._rf.normal(0.0, sigma)
-        rel = physics.wrap(self._bearings - pan_rad)
-        in_view = np.abs(rel) <= sc.fov_half_angle_rad
+        rel = (self._bearings - pan_rad + np.pi) % (2.0 * np.pi) - np.pi
+        in_view = np.abs(rel) <= self._fov
         frames = _frames(sc, self._camera, rel[in_view], self._pod[in_view])
         return StepMeasurement.model_construct(
             step=step,

@@ -346,3 +346,14 @@ def test_training_episode_is_seeded():
     np.testing.assert_array_equal(a.truth.ranges_m, b.truth.ranges_m)
     assert list(a.samples()) == list(b.samples())
     assert not np.array_equal(a.truth.ranges_m, c.truth.ranges_m)
+
+
+@pytest.mark.parametrize("model", ["paper", "db-gain"])
+def test_scalar_directional_rssi_equals_the_array_version(model):
+    from services.sensors import physics
+
+    sc = build_scenario("paper", {"antenna_model": model})
+    g = float(physics.path_loss_dbm(sc, 2.7))
+    for delta in np.linspace(-7.0, 7.0, 57):
+        expected = float(physics.directional_rssi_dbm(sc, 2.7, delta))
+        assert physics.directional_rssi_scalar(sc, g, float(delta)) == pytest.approx(expected, abs=1e-12)

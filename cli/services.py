@@ -1,0 +1,148 @@
+"""``ra2vipas sensors|learner|controller|orchestrator|router``: start one service process.
+
+Every service takes the same Zenoh options (flag > environment > default):
+``--mode`` (RA2VIPAS_ZENOH_MODE), ``--connect`` (repeatable; RA2VIPAS_ZENOH_CONNECT,
+comma-separated), ``--listen`` (repeatable; RA2VIPAS_ZENOH_LISTEN), ``--zenoh-config``
+(RA2VIPAS_ZENOH_CONFIG, a Zenoh JSON5 file). SIGINT/SIGTERM close the session and exit 0.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import sys
+from typing import Annotated, Callable, Optional
+
+import typer
+
+from cli.output import EXIT_USAGE, fail
+from services.transport.zenoh_config import ZenohSettings, ZenohSettingsError
+
+log = logging.getLogger("ra2vipas")
+
+ModeOpt = Annotated[Optional[str], typer.Option("--mode", help="Zenoh mode: peer|client|router [env RA2VIPAS_ZENOH_MODE; default peer].")]
+ConnectOpt = Annotated[Optional[list[str]], typer.Option("--connect", "-e", metavar="ENDPOINT", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable) [env RA2VIPAS_ZENOH_CONNECT].")]
+ListenOpt = Annotated[Optional[list[str]], typer.Option("--listen", "-l", metavar="ENDPOINT", help="Zenoh endpoint to listen on (repeatable) [env RA2VIPAS_ZENOH_LISTEN].")]
+ConfigOpt = Annotated[Optional[str], typer.Option("--zenoh-config", metavar="FILE", help="Zenoh JSON5 configuration file, applied first [env RA2VIPAS_ZENOH_CONFIG].")]
+LogOpt = Annotated[str, typer.Option("--log-level", envvar="RA2VIPAS_LOG_LEVEL", help="Log level.")]
+RigOpt = Annotated[str, typer.Option("--rig", envvar="RA2VIPAS_RIG", help="Rig name (one sensing platform and its controller).")]
+
+
+def zenoh_settings(mode, connect, listen, config) -> ZenohSettings:
+    try:
+        return ZenohSettings.from_sources(mode=mode, connect=connect, listen=listen, config_file=config)
+    except ZenohSettingsError as err:
+        fail(str(err), EXIT_USAGE)
+
+
+def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
+    """Open the Zenoh session, build the node on it, serve until SIGINT/SIGTERM, close both."""
+    from services.transport.runtime import wait_for_shutdown_signal
+    from services.transport.zenoh_bus import ZenohBus
+
+    try:
+        bus = ZenohBus(zenoh)
+    except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, ...
+        fail(f"cannot open the Zenoh session: {err}")
+    node = None
+    try:
+        node = build(bus)
+        gc.collect()
+        gc.freeze()
+        sys.setswitchinterval(0.0005)  # a Zenoh thread waiting for the GIL gets it within 0.5 ms  # start-up objects never need scanning again: shorter GC pauses on the hot path
+        log.info("%s up (zenoh %s, connect %s, listen %s)", name, zenoh.mode, list(zenoh.connect), list(zenoh.listen))
+        signum = wait_for_shutdown_signal()
+        log.info("%s: signal %d, shutting down", name, signum)
+    finally:
+        if node is not None:
+            node.close()
+        bus.close()
+
+
+def sensors(rig: RigOpt = "rig-1", mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+            zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
+    """Run a rig's simulated sensors: the world, the camera detector, Rx(iso) and Rx(dir)."""
+    from services.protocol.keys import check_chunk
+    from services.sensors.node import SensorsNode
+    from services.transport.runtime import configure_logging
+
+    configure_logging(log_level)
+    _check_rig(rig, check_chunk)
+    run_node(f"sensors[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config), lambda bus: SensorsNode(bus, rig))
+
+
+def controller(rig: RigOpt = "rig-1", beta: Annotated[float, typer.Option(min=0.0, help="UCB exploration weight beta.")] = 4.0,
+               mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+               zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
+    """Run a rig's Ra²ViPAS controller: measurements in, pan commands out."""
+    from services.controller.node import ControllerNode
+    from services.controller.policy import ControllerSettings
+    from services.protocol.keys import check_chunk
+    from services.transport.runtime import configure_logging
+
+    configure_logging(log_level)
+    _check_rig(rig, check_chunk)
+    run_node(f"controller[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config),
+             lambda bus: ControllerNode(bus, rig, ControllerSettings(beta=beta)))
+
+
+def learner(name: Annotated[str, typer.Option("--name", envvar="RA2VIPAS_LEARNER_NAME", help="Instance name.")] = "learner",
+            cache_dir: Annotated[Optional[str], typer.Option("--cache-dir", envvar="RA2VIPAS_MODEL_CACHE", help="Keep trained POD models here across restarts.")] = None,
+            mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+            zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
+    """Run the POD learner: trains p_hat_D(r) once per scenario and seed, serves it."""
+    from services.learner.node import LearnerNode
+    from services.protocol.keys import check_chunk
+    from services.transport.runtime import configure_logging
+
+    configure_logging(log_level)
+    _check_rig(name, check_chunk, "learner name")
+    run_node(f"learner[{name}]", zenoh_settings(mode, connect, listen, zenoh_config), lambda bus: LearnerNode(bus, name, cache_dir))
+
+
+def orchestrator(
+    host: Annotated[Optional[str], typer.Option(help="API bind address [env RA2VIPAS_HOST; default 127.0.0.1].")] = None,
+    port: Annotated[Optional[int], typer.Option(min=1, max=65535, help="API port [env RA2VIPAS_PORT; default 8080].")] = None,
+    db: Annotated[Optional[str], typer.Option("--db", help="SQLite file [env RA2VIPAS_DB; default ra2vipas.db].")] = None,
+    window: Annotated[Optional[int], typer.Option(min=1, max=1024, help="Episodes in flight per rig [env RA2VIPAS_WINDOW; default 8].")] = None,
+    expect_rigs: Annotated[Optional[int], typer.Option(min=0, max=1000, help="Rigs that must be live for /health to be 200 [env RA2VIPAS_EXPECT_RIGS; default 1].")] = None,
+    mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+    zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO",
+) -> None:
+    """Run the orchestrator: schedules campaigns over the rigs, stores results, serves the REST API."""
+    import uvicorn
+
+    from services.orchestrator.api.app import create_app
+    from services.orchestrator.settings import OrchestratorSettings
+    from services.transport.runtime import configure_logging
+
+    configure_logging(log_level)
+    settings = OrchestratorSettings.from_sources(host=host, port=port, db_path=db, window=window, expect_rigs=expect_rigs,
+                                                 zenoh=zenoh_settings(mode, connect, listen, zenoh_config))
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=log_level.lower(), timeout_graceful_shutdown=5)
+
+
+def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
+    """Run a standalone Zenoh router (Python) for hosts without the official zenohd binary."""
+    from services.transport.runtime import configure_logging, wait_for_shutdown_signal
+
+    configure_logging(log_level)
+    settings = zenoh_settings("router", connect, listen or ["tcp/0.0.0.0:7447"], zenoh_config)
+    import zenoh
+
+    try:
+        session = zenoh.open(settings.to_zenoh())
+    except Exception as err:
+        fail(f"cannot start the Zenoh router: {err}")
+    log.info("zenoh router up, listening on %s", list(settings.listen))
+    try:
+        wait_for_shutdown_signal()
+    finally:
+        session.close()
+
+
+def _check_rig(name: str, check, what: str = "rig") -> None:
+    try:
+        check(name, what)
+    except ValueError as err:
+        fail(str(err), EXIT_USAGE)

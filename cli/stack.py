@@ -1,0 +1,186 @@
+"""A whole local stack as child processes: a Zenoh router on loopback, the orchestrator
+(REST API), the learner and N rigs (sensors + controller). Used by ``ra2vipas up`` and
+``ra2vipas bench mesh``.
+
+Children get ``PR_SET_PDEATHSIG`` so they die with their parent even if it is killed with
+SIGKILL; ``stop()`` sends SIGTERM, waits, then SIGKILLs stragglers, and reaps every pid it
+started.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+@dataclass
+class Child:
+    name: str
+    argv: list[str]
+    env: dict[str, str]
+    log_path: Path
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+
+    def start(self) -> None:
+        log = open(self.log_path, "ab", buffering=0)
+        self.proc = subprocess.Popen(self.argv, env=self.env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     preexec_fn=_die_with_parent, close_fds=True)
+        log.close()
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def tail(self, lines: int = 15) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+
+@dataclass
+class StackConfig:
+    rigs: int = 1
+    host: str = "127.0.0.1"
+    port: int = 8080
+    db_path: str = "ra2vipas.db"
+    router_port: int = 0  # 0: pick a free port
+    window: int = 8
+    log_dir: str | None = None
+    log_level: str = "INFO"
+    zenoh_mode: str = "peer"
+
+
+class StackError(RuntimeError):
+    pass
+
+
+@dataclass
+class Stack:
+    config: StackConfig
+    children: list[Child] = field(default_factory=list)
+    log_dir: Path | None = None
+
+    @property
+    def api_url(self) -> str:
+        return f"http://{self.config.host}:{self.config.port}"
+
+    def start(self, ready_timeout: float = 90.0) -> None:
+        cfg = self.config
+        self.log_dir = Path(cfg.log_dir or tempfile.mkdtemp(prefix="ra2vipas-logs-"))
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        router_port = cfg.router_port or free_port()
+        endpoint = f"tcp/127.0.0.1:{router_port}"
+        base_env = {k: v for k, v in os.environ.items() if not k.startswith("RA2VIPAS_")}
+        base_env.update({
+            "RA2VIPAS_ZENOH_MODE": cfg.zenoh_mode,
+            "RA2VIPAS_ZENOH_CONNECT": endpoint,
+            "RA2VIPAS_LOG_LEVEL": cfg.log_level,
+            "PYTHONUNBUFFERED": "1",
+        })
+        py = [sys.executable, "-m", "cli.main"]
+        specs = [("router", [*py, "router", "--listen", endpoint], {"RA2VIPAS_ZENOH_CONNECT": ""})]
+        specs.append(("learner", [*py, "learner"], {}))
+        for i in range(1, cfg.rigs + 1):
+            rig = f"rig-{i}"
+            specs.append((f"sensors-{rig}", [*py, "sensors", "--rig", rig], {}))
+            specs.append((f"controller-{rig}", [*py, "controller", "--rig", rig], {}))
+        specs.append(("orchestrator", [*py, "orchestrator"], {
+            "RA2VIPAS_HOST": cfg.host, "RA2VIPAS_PORT": str(cfg.port), "RA2VIPAS_DB": cfg.db_path,
+            "RA2VIPAS_WINDOW": str(cfg.window), "RA2VIPAS_EXPECT_RIGS": str(cfg.rigs),
+        }))
+        for name, argv, extra in specs:
+            env = {**base_env, **extra}
+            env = {k: v for k, v in env.items() if v != ""}
+            child = Child(name, argv, env, self.log_dir / f"{name}.log")
+            child.start()
+            self.children.append(child)
+            if name == "router":
+                self._wait_port(router_port, child, 15.0)
+        self._wait_ready(ready_timeout)
+
+    def _wait_port(self, port: int, child: Child, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if not child.alive():
+                raise StackError(f"{child.name} exited during start-up:\n{child.tail()}")
+            try:
+                with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                    return
+            except OSError:
+                time.sleep(0.05)
+        raise StackError(f"{child.name} did not open port {port} within {timeout:.0f} s")
+
+    def _wait_ready(self, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        last = "no answer"
+        while time.monotonic() < deadline:
+            dead = [c for c in self.children if not c.alive()]
+            if dead:
+                raise StackError(f"{dead[0].name} exited during start-up (log {dead[0].log_path}):\n{dead[0].tail()}")
+            try:
+                r = httpx.get(f"{self.api_url}/health", timeout=1.0)
+                if r.status_code == 200:
+                    return
+                last = r.text
+            except httpx.HTTPError as err:
+                last = str(err)
+            time.sleep(0.1)
+        raise StackError(f"the stack was not ready within {timeout:.0f} s (last /health: {last[:300]})")
+
+    def watch(self) -> Child | None:
+        """The first child that died, or None."""
+        for c in self.children:
+            if not c.alive():
+                return c
+        return None
+
+    def restart(self, child: Child) -> None:
+        child.restarts += 1
+        child.start()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """SIGTERM every child (orchestrator first, router last), wait, SIGKILL what is left."""
+        order = sorted(self.children, key=lambda c: (c.name != "orchestrator", c.name == "router"))
+        for c in order:
+            if c.alive():
+                try:
+                    c.proc.send_signal(signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+        deadline = time.monotonic() + timeout
+        for c in order:
+            if c.proc is None:
+                continue
+            try:
+                c.proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                c.proc.kill()
+                c.proc.wait(5.0)
+
+    def pids(self) -> list[int]:
+        return [c.proc.pid for c in self.children if c.proc is not None]

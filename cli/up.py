@@ -1,0 +1,51 @@
+"""``ra2vipas up``: the whole local stack in the foreground."""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from typing import Annotated, Optional
+
+import typer
+
+from cli.output import fail
+from cli.stack import Stack, StackConfig, StackError
+
+
+def up(
+    rigs: Annotated[int, typer.Option(min=1, max=64, help="Sensor+controller pairs to start.")] = 1,
+    port: Annotated[int, typer.Option(min=1, max=65535, envvar="RA2VIPAS_PORT", help="API port.")] = 8080,
+    host: Annotated[str, typer.Option(envvar="RA2VIPAS_HOST", help="API bind address.")] = "127.0.0.1",
+    db: Annotated[str, typer.Option("--db", envvar="RA2VIPAS_DB", help="SQLite file of campaigns and results.")] = "ra2vipas.db",
+    router_port: Annotated[int, typer.Option(min=0, max=65535, help="Port of the loopback Zenoh router (0: any free port).")] = 0,
+    window: Annotated[int, typer.Option(min=1, max=1024, help="Episodes in flight per rig.")] = 8,
+    log_dir: Annotated[Optional[str], typer.Option(help="Directory for the services' logs (default: a new temporary directory).")] = None,
+) -> None:
+    """Run a local stack in the foreground: a Zenoh router on loopback, the orchestrator (REST
+    API), the learner and RIGS sensor+controller pairs. Prints the API address once
+    GET /health answers 200; Ctrl-C or SIGTERM stops every process it started.
+    A service that crashes is restarted."""
+    stop = threading.Event()
+
+    def on_signal(_signum, _frame) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    stack = Stack(StackConfig(rigs=rigs, host=host, port=port, db_path=db, router_port=router_port, window=window, log_dir=log_dir))
+    try:
+        try:
+            stack.start()
+        except StackError as err:
+            fail(str(err))
+        print(f"ra2vipas up: API on {stack.api_url} (rigs: {rigs}, database: {db}, logs: {stack.log_dir}); Ctrl-C to stop", flush=True)
+        while not stop.wait(0.5):
+            dead = stack.watch()
+            if dead is not None and not stop.is_set():
+                print(f"ra2vipas up: {dead.name} exited (code {dead.proc.returncode}); restarting it", flush=True)
+                time.sleep(min(5.0, 0.5 * (dead.restarts + 1)))
+                stack.restart(dead)
+    finally:
+        stack.stop()
+    print("ra2vipas up: stopped", flush=True)

@@ -1,0 +1,176 @@
+"""The controller service's node logic: one rig's Ra²ViPAS controllers on the bus.
+
+* ``control/<rig>/episode``: on ``EpisodeStart`` it fetches the POD model of (scenario,
+  seed) from the learner (``model/pod`` query; cached here afterwards), builds a
+  ``Controller`` and sends the step-0 ``Command`` with the initial pan angle;
+* ``data/<rig>/measurement``: each ``Measurement`` of step t goes through
+  ``Controller.step``; the node answers with the ``Command`` for step t+1, or, after the last
+  step, publishes the episode's ``EpisodeResult`` on the result plane.
+
+Only measurements reach the controller: it subscribes to nothing on the truth plane.
+Many episodes may be in flight at once; each has its own ``Controller``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from pydantic import ValidationError
+
+from services.controller.policy import Controller, ControllerSettings, sensor_config_from_scenario
+from services.protocol import keys
+from services.protocol.messages import (
+    Command, EpisodeResult, EpisodeStart, EpisodeStop, ErrorReply, Measurement, Mode, PODRequest, PODResponse, dump,
+    episode_control_adapter, training_job_id,
+)
+from services.protocol.pod import PODModel
+from services.transport.bus import Bus, Reply
+from services.transport.runtime import EventLoop
+
+log = logging.getLogger(__name__)
+
+MODEL_TIMEOUT_S = 300.0
+
+
+@dataclass
+class _Episode:
+    start: EpisodeStart
+    controller: Controller | None = None
+    next_step: int = 0
+    estimates: list[float] = field(default_factory=list)
+    pans: list[float] = field(default_factory=list)
+    rewards: list[float] = field(default_factory=list)
+
+
+def warm_up() -> None:
+    """Run a few controller steps on synthetic data so compiled kernels are loaded (or
+    compiled) before the node accepts episodes: the first real step must not take seconds."""
+    from services.protocol.measurements import CameraFrame, RFSample, StepMeasurement
+    from services.protocol.scenario import Scenario
+
+    sc = Scenario(steps=4)
+    model = PODModel(rssi_grid_dbm=(-60.0, -20.0), mean=(0.0, 0.5), std=(0.1, 0.1), rf_noise_db=3.0, n_train=2, frames_per_rf=sc.frames_per_rf)
+    for algorithm in ("ra2vipas", "rapas", "ravipas"):
+        ctl = Controller(algorithm, sensor_config_from_scenario(sc), model)
+        pan = ctl.first_pan()
+        for t in range(sc.steps):
+            frames = tuple(CameraFrame(box_bearings_rad=(0.01 * t, 0.2)) for _ in range(sc.frames_per_rf))
+            pan = ctl.step(StepMeasurement(step=t, pan_rad=pan, rf=RFSample(iso_rssi_dbm=-40.0, dir_rssi_dbm=-35.0), frames=frames)).next_pan_rad
+
+
+class ControllerNode:
+    """One rig's controller process. All state lives on ``self.loop``'s thread."""
+
+    def __init__(self, bus: Bus, rig: str, settings: ControllerSettings | None = None) -> None:
+        self.bus = bus
+        self.rig = keys.check_chunk(rig)
+        self.settings = settings or ControllerSettings()
+        self.loop = EventLoop(f"controller-{rig}")
+        self.episodes: dict[str, _Episode] = {}
+        self.models: dict[str, PODModel] = {}
+        self._waiting: dict[str, list[str]] = {}  # job id -> episodes waiting for that model
+        self._command_key = keys.command(rig)
+        warm_up()
+        self._handles = [
+            bus.subscribe(keys.episode_control(rig), lambda _k, p: self.loop.post(self._on_control, p)),
+            bus.subscribe(keys.measurement(rig), lambda _k, p: self.loop.post(self._on_measurement, p)),
+            bus.announce(keys.alive("controller", rig)),
+        ]
+
+    # -- episode lifecycle ------------------------------------------------------------------
+    def _on_control(self, payload: bytes) -> None:
+        try:
+            msg = episode_control_adapter.validate_json(payload)
+        except ValidationError as err:
+            log.warning("dropping malformed episode control message: %s", err.errors()[0].get("msg", "") if err.errors() else err)
+            return
+        if isinstance(msg, EpisodeStop):
+            self.episodes.pop(msg.episode_id, None)
+            return
+        if msg.episode_id in self.episodes:
+            return
+        self.episodes[msg.episode_id] = _Episode(start=msg)
+        job = training_job_id(msg.scenario, msg.seed)
+        if job in self.models:
+            self._begin(msg.episode_id, self.models[job])
+            return
+        waiting = self._waiting.setdefault(job, [])
+        waiting.append(msg.episode_id)
+        if len(waiting) == 1:
+            request = dump(PODRequest(scenario=msg.scenario, seed=msg.seed))
+            self.bus.query(keys.pod_model(), request, MODEL_TIMEOUT_S,
+                           lambda replies, job=job: self.loop.post(self._on_model, job, replies))
+
+    def _on_model(self, job: str, replies: list[Reply]) -> None:
+        waiting = self._waiting.pop(job, [])
+        model, error = None, "no learner answered"
+        for reply in replies:
+            if not reply.ok:
+                try:
+                    error = ErrorReply.model_validate_json(reply.payload).error
+                except ValidationError:
+                    error = reply.payload.decode(errors="replace")[:500]
+                continue
+            try:
+                model = PODResponse.model_validate_json(reply.payload).model
+                break
+            except ValidationError as err:
+                error = f"malformed PODResponse: {err.errors()[0].get('msg', '')}"
+        if model is None:
+            for episode_id in waiting:
+                self._fail(episode_id, f"POD model unavailable: {error}")
+            return
+        self.models[job] = model
+        for episode_id in waiting:
+            self._begin(episode_id, model)
+
+    def _begin(self, episode_id: str, model: PODModel) -> None:
+        ep = self.episodes.get(episode_id)
+        if ep is None:
+            return
+        sc = ep.start.scenario
+        ep.controller = Controller(ep.start.algorithm, sensor_config_from_scenario(sc), model, self.settings)
+        self.bus.publish(self._command_key, dump(Command(episode_id=episode_id, step=0, pan_rad=ep.controller.first_pan())))
+
+    def _fail(self, episode_id: str, error: str) -> None:
+        if self.episodes.pop(episode_id, None) is None:
+            return
+        log.error("episode %s failed: %s", episode_id, error)
+        self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(episode_id=episode_id, rig=self.rig, status="failed", error=error[:2000])))
+
+    # -- stepping ---------------------------------------------------------------------------
+    def _on_measurement(self, payload: bytes) -> None:
+        try:
+            m = Measurement.model_validate_json(payload)
+        except ValidationError as err:
+            log.warning("dropping malformed measurement: %s", err.errors()[0].get("msg", "") if err.errors() else err)
+            return
+        ep = self.episodes.get(m.episode_id)
+        if ep is None or ep.controller is None or m.step != ep.next_step:
+            return  # not ours, not started, or a duplicate
+        sc = ep.start.scenario
+        if len(m.frames) != sc.frames_per_rf:
+            log.warning("episode %s step %d: %d frames, expected %d; dropped", m.episode_id, m.step, len(m.frames), sc.frames_per_rf)
+            return
+        decision = ep.controller.step(m)
+        ep.estimates.append(decision.estimate_rad)
+        ep.pans.append(m.pan_rad)
+        ep.rewards.append(decision.reward)
+        ep.next_step = m.step + 1
+        if ep.next_step < sc.steps:
+            command = dump(Command(episode_id=m.episode_id, step=ep.next_step, pan_rad=decision.next_pan_rad))
+            self.bus.publish(self._command_key, command, express=ep.start.mode is Mode.realtime)
+            return
+        self.episodes.pop(m.episode_id, None)
+        self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(
+            episode_id=m.episode_id, rig=self.rig, estimates_rad=tuple(ep.estimates), pans_rad=tuple(ep.pans), rewards=tuple(ep.rewards))))
+
+    def close(self) -> None:
+        for h in self._handles:
+            try:
+                h.undeclare()
+            except Exception:
+                pass
+        self.loop.stop()
+

@@ -1,0 +1,124 @@
+"""The learner service's node logic: train the POD model once per (scenario, seed), serve it.
+
+``model/pod`` is a queryable. A ``PODRequest`` names a scenario and a seed; the learner
+looks up its cache, or asks a rig's sensors to run the training episode
+(``data/*/training`` query), fits ``p_hat_D(r)`` (``services.learner.pod``) and caches
+the result. Concurrent requests for the same model wait for one training. Training is
+deterministic in (scenario, seed), so a restarted learner retrains the identical model; with
+``cache_dir`` set, models also survive restarts on disk.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from pathlib import Path
+
+from pydantic import ValidationError
+
+from services.learner.pod import LearnerSettings, fit_pod
+from services.protocol import keys
+from services.protocol.messages import ErrorReply, PODRequest, PODResponse, TrainingRequest, TrainingStream, dump, training_job_id
+from services.transport.bus import Bus, QueryError, Reply
+
+log = logging.getLogger(__name__)
+
+TRAINING_TIMEOUT_S = 600.0
+
+
+class LearnerNode:
+    """Serves POD models; each model is trained at most once per process (and per cache dir)."""
+
+    def __init__(self, bus: Bus, name: str = "learner", cache_dir: str | None = None, settings: LearnerSettings | None = None) -> None:
+        self.bus = bus
+        self.name = keys.check_chunk(name, "name")
+        self.settings = settings or LearnerSettings()
+        self.cache_dir = Path(cache_dir) if cache_dir else None
+        if self.cache_dir:
+            self.cache_dir.mkdir(parents=True, exist_ok=True)
+        self._cache: dict[str, PODResponse] = {}
+        self._locks: dict[str, threading.Lock] = {}
+        self._guard = threading.Lock()
+        self._handles = [
+            bus.serve(keys.pod_model(), self._on_request),
+            bus.announce(keys.alive("learner", self.name)),
+        ]
+
+    def _on_request(self, _key: str, payload: bytes) -> bytes:
+        try:
+            req = PODRequest.model_validate_json(payload)
+        except ValidationError as err:
+            raise QueryError(dump(ErrorReply(error=f"malformed PODRequest: {err.errors()[0].get('msg', '')}")).decode()) from None
+        return dump(self.model_for(req))
+
+    def model_for(self, req: PODRequest) -> PODResponse:
+        """The cached model of (scenario, seed), training it first if needed (blocking)."""
+        job = training_job_id(req.scenario, req.seed)
+        with self._guard:
+            lock = self._locks.setdefault(job, threading.Lock())
+        with lock:
+            cached = self._cache.get(job) or self._load(job)
+            if cached is not None:
+                self._cache[job] = cached
+                return cached
+            stream = self._run_training(TrainingRequest(job_id=job, scenario=req.scenario, seed=req.seed))
+            learned = fit_pod(list(stream.samples), self.settings)
+            response = PODResponse(job_id=job, model=learned.model, train_seconds=round(learned.train_seconds, 6))
+            self._cache[job] = response
+            self._store(job, response)
+            log.info("trained POD model %s in %.2f s", job, learned.train_seconds)
+            return response
+
+    def _run_training(self, request: TrainingRequest) -> TrainingStream:
+        done = threading.Event()
+        box: dict[str, list[Reply]] = {}
+
+        def got(replies: list[Reply]) -> None:
+            box["replies"] = replies
+            done.set()
+
+        self.bus.query(keys.training_any(), dump(request), TRAINING_TIMEOUT_S, got)
+        done.wait(TRAINING_TIMEOUT_S + 5.0)
+        errors = []
+        for reply in box.get("replies", []):
+            if not reply.ok:
+                errors.append(reply.payload.decode(errors="replace")[:300])
+                continue
+            try:
+                stream = TrainingStream.model_validate_json(reply.payload)
+            except ValidationError as err:
+                errors.append(f"malformed TrainingStream: {err.errors()[0].get('msg', '')}")
+                continue
+            if stream.job_id == request.job_id:
+                return stream
+        raise QueryError(dump(ErrorReply(error="no training stream: " + ("; ".join(errors) or "no sensors answered"))).decode())
+
+    # -- optional disk cache ----------------------------------------------------------------
+    def _path(self, job: str) -> Path | None:
+        return self.cache_dir / f"{job}.json" if self.cache_dir else None
+
+    def _load(self, job: str) -> PODResponse | None:
+        path = self._path(job)
+        if path is None or not path.is_file():
+            return None
+        try:
+            return PODResponse.model_validate_json(path.read_bytes())
+        except (OSError, ValidationError):
+            log.warning("ignoring unreadable cached model %s", path)
+            return None
+
+    def _store(self, job: str, response: PODResponse) -> None:
+        path = self._path(job)
+        if path is None:
+            return
+        tmp = path.with_suffix(f".tmp-{os.getpid()}")
+        tmp.write_bytes(dump(response))
+        os.replace(tmp, path)
+
+    def close(self) -> None:
+        for h in self._handles:
+            try:
+                h.undeclare()
+            except Exception:
+                pass

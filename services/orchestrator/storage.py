@@ -1,0 +1,275 @@
+"""Campaign storage: one SQLite file in WAL mode.
+
+Rows here are the orchestrator's own records, distinct from wire messages and API schemas.
+Every write is one transaction (``Store.transaction``), so a crash never leaves a
+half-written test: an episode row is either still pending/running or done with its whole
+trace. The schema carries a version (``meta.schema_version``) and migrations run on open.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+import uuid
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, Iterator
+
+SCHEMA_VERSION = 1
+
+_MIGRATIONS: dict[int, str] = {
+    1: """
+    CREATE TABLE campaigns (
+        id TEXT PRIMARY KEY,
+        name TEXT,
+        preset TEXT NOT NULL,
+        overrides TEXT NOT NULL,
+        scenario TEXT NOT NULL,
+        algorithms TEXT NOT NULL,
+        tests INTEGER NOT NULL,
+        seed INTEGER NOT NULL,
+        mode TEXT NOT NULL,
+        status TEXT NOT NULL,
+        created_at REAL NOT NULL,
+        started_at REAL,
+        finished_at REAL,
+        pod_job TEXT,
+        pod_r2 REAL,
+        pod_train_seconds REAL,
+        error TEXT,
+        results TEXT,
+        steps_per_second REAL
+    );
+    CREATE INDEX campaigns_status ON campaigns(status);
+    CREATE TABLE episodes (
+        campaign_id TEXT NOT NULL REFERENCES campaigns(id) ON DELETE CASCADE,
+        test_index INTEGER NOT NULL,
+        algorithm TEXT NOT NULL,
+        status TEXT NOT NULL,
+        rig TEXT,
+        attempt INTEGER NOT NULL DEFAULT 0,
+        hits TEXT,
+        in_fov TEXT,
+        estimates TEXT,
+        pans TEXT,
+        rewards TEXT,
+        chosen TEXT,
+        tx_index INTEGER,
+        bearings TEXT,
+        ranges TEXT,
+        latencies TEXT,
+        finished_at REAL,
+        PRIMARY KEY (campaign_id, test_index, algorithm)
+    );
+    CREATE INDEX episodes_status ON episodes(campaign_id, status);
+    """,
+}
+
+ACTIVE = ("queued", "training", "running")
+FINISHED = ("done", "failed", "cancelled")
+
+
+class StoreError(Exception):
+    """A storage operation failed (e.g. the file cannot be opened or is from a newer version)."""
+
+
+@dataclass(frozen=True)
+class EpisodeKey:
+    campaign_id: str
+    test_index: int
+    algorithm: str
+
+
+class Store:
+    """Thread-safe access to the campaign database (one connection, one lock)."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        try:
+            self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None, timeout=30.0)
+        except sqlite3.Error as err:
+            raise StoreError(f"cannot open database {path!r}: {err}") from None
+        self._db.row_factory = sqlite3.Row
+        self._lock = threading.RLock()
+        with self._lock:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            self._migrate()
+
+    # -- plumbing ---------------------------------------------------------------------------
+    @contextmanager
+    def transaction(self) -> Iterator[sqlite3.Connection]:
+        """BEGIN IMMEDIATE ... COMMIT, rolled back on any exception."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._db
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            else:
+                self._db.execute("COMMIT")
+
+    def _migrate(self) -> None:
+        self._db.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+        row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+        version = int(row[0]) if row else 0
+        if version > SCHEMA_VERSION:
+            raise StoreError(f"database {self.path!r} has schema version {version}, newer than this program's {SCHEMA_VERSION}")
+        for target in range(version + 1, SCHEMA_VERSION + 1):
+            with self.transaction() as db:
+                for statement in filter(str.strip, _MIGRATIONS[target].split(";")):
+                    db.execute(statement)
+                db.execute("INSERT OR REPLACE INTO meta(key, value) VALUES ('schema_version', ?)", (str(target),))
+
+    def ping(self) -> bool:
+        try:
+            with self._lock:
+                self._db.execute("SELECT 1").fetchone()
+            return True
+        except sqlite3.Error:
+            return False
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    # -- campaigns --------------------------------------------------------------------------
+    def create_campaign(self, *, preset: str, overrides: dict, scenario: dict, algorithms: list[str], tests: int,
+                        seed: int, mode: str, name: str | None = None) -> str:
+        """Insert a campaign and all its pending episodes in one transaction; return its id."""
+        cid = uuid.uuid4().hex[:12]
+        now = time.time()
+        with self.transaction() as db:
+            db.execute(
+                "INSERT INTO campaigns(id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?)",
+                (cid, name, preset, json.dumps(overrides), json.dumps(scenario), json.dumps(algorithms), tests, seed, mode, now),
+            )
+            db.executemany(
+                "INSERT INTO episodes(campaign_id, test_index, algorithm, status) VALUES (?, ?, ?, 'pending')",
+                [(cid, k, a) for k in range(tests) for a in algorithms],
+            )
+        return cid
+
+    def campaign(self, cid: str) -> dict[str, Any] | None:
+        with self._lock:
+            row = self._db.execute("SELECT * FROM campaigns WHERE id=?", (cid,)).fetchone()
+            if row is None:
+                return None
+            counts = dict(self._db.execute(
+                "SELECT status, COUNT(*) FROM episodes WHERE campaign_id=? GROUP BY status", (cid,)).fetchall())
+        return _campaign_dict(row, counts)
+
+    def campaigns(self, *, status: str | None = None, preset: str | None = None, limit: int = 50, offset: int = 0) -> tuple[list[dict], int]:
+        where, args = [], []
+        if status:
+            where.append("status=?")
+            args.append(status)
+        if preset:
+            where.append("preset=?")
+            args.append(preset)
+        clause = (" WHERE " + " AND ".join(where)) if where else ""
+        with self._lock:
+            total = self._db.execute(f"SELECT COUNT(*) FROM campaigns{clause}", args).fetchone()[0]
+            rows = self._db.execute(f"SELECT * FROM campaigns{clause} ORDER BY created_at DESC, id LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
+            out = []
+            for row in rows:
+                counts = dict(self._db.execute("SELECT status, COUNT(*) FROM episodes WHERE campaign_id=? GROUP BY status", (row["id"],)).fetchall())
+                out.append(_campaign_dict(row, counts))
+        return out, total
+
+    def active_campaigns(self) -> list[dict[str, Any]]:
+        with self._lock:
+            ids = [r[0] for r in self._db.execute(
+                f"SELECT id FROM campaigns WHERE status IN ({','.join('?' * len(ACTIVE))}) ORDER BY created_at, id", ACTIVE)]
+        return [c for c in (self.campaign(i) for i in ids) if c]
+
+    def set_campaign(self, cid: str, **fields: Any) -> None:
+        if not fields:
+            return
+        cols = ", ".join(f"{k}=?" for k in fields)
+        with self.transaction() as db:
+            db.execute(f"UPDATE campaigns SET {cols} WHERE id=?", [*fields.values(), cid])
+
+    def delete_campaign(self, cid: str) -> bool:
+        with self.transaction() as db:
+            db.execute("DELETE FROM episodes WHERE campaign_id=?", (cid,))
+            return db.execute("DELETE FROM campaigns WHERE id=?", (cid,)).rowcount > 0
+
+    # -- episodes ---------------------------------------------------------------------------
+    def pending_episodes(self, cid: str) -> list[EpisodeKey]:
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT test_index, algorithm FROM episodes WHERE campaign_id=? AND status='pending' ORDER BY test_index, rowid",
+                (cid,)).fetchall()
+        return [EpisodeKey(cid, r[0], r[1]) for r in rows]
+
+    def reset_running(self, cid: str) -> int:
+        """Put every running episode of a campaign back to pending (after a restart)."""
+        with self.transaction() as db:
+            return db.execute("UPDATE episodes SET status='pending', rig=NULL WHERE campaign_id=? AND status='running'", (cid,)).rowcount
+
+    def mark_running(self, key: EpisodeKey, rig: str, attempt: int) -> None:
+        with self.transaction() as db:
+            db.execute("UPDATE episodes SET status='running', rig=?, attempt=? WHERE campaign_id=? AND test_index=? AND algorithm=? AND status!='done'",
+                       (rig, attempt, key.campaign_id, key.test_index, key.algorithm))
+
+    def mark_pending(self, key: EpisodeKey) -> None:
+        with self.transaction() as db:
+            db.execute("UPDATE episodes SET status='pending', rig=NULL WHERE campaign_id=? AND test_index=? AND algorithm=? AND status='running'",
+                       (key.campaign_id, key.test_index, key.algorithm))
+
+    def attempt_of(self, key: EpisodeKey) -> int:
+        with self._lock:
+            row = self._db.execute("SELECT attempt FROM episodes WHERE campaign_id=? AND test_index=? AND algorithm=?",
+                                   (key.campaign_id, key.test_index, key.algorithm)).fetchone()
+        return int(row[0]) if row else 0
+
+    def finish_episode(self, key: EpisodeKey, *, hits: list[bool], in_fov: list[bool], estimates: list[float], pans: list[float],
+                       rewards: list[float], chosen: list[int], tx_index: int, bearings: list[float], ranges: list[float],
+                       latencies: list[float] | None) -> bool:
+        """Record a finished test in one transaction; False if it was already recorded (no duplicate)."""
+        with self.transaction() as db:
+            cur = db.execute(
+                "UPDATE episodes SET status='done', hits=?, in_fov=?, estimates=?, pans=?, rewards=?, chosen=?, tx_index=?,"
+                " bearings=?, ranges=?, latencies=?, finished_at=? WHERE campaign_id=? AND test_index=? AND algorithm=? AND status!='done'",
+                (json.dumps([int(h) for h in hits]), json.dumps([int(f) for f in in_fov]), json.dumps(estimates), json.dumps(pans),
+                 json.dumps(rewards), json.dumps(chosen), tx_index, json.dumps(bearings), json.dumps(ranges),
+                 None if latencies is None else json.dumps(latencies), time.time(),
+                 key.campaign_id, key.test_index, key.algorithm))
+            return cur.rowcount == 1
+
+    def episode_rows(self, cid: str, status: str | None = "done") -> list[dict[str, Any]]:
+        with self._lock:
+            if status is None:
+                rows = self._db.execute("SELECT * FROM episodes WHERE campaign_id=? ORDER BY test_index, algorithm", (cid,)).fetchall()
+            else:
+                rows = self._db.execute("SELECT * FROM episodes WHERE campaign_id=? AND status=? ORDER BY test_index, algorithm", (cid, status)).fetchall()
+        return [_episode_dict(r) for r in rows]
+
+    def episode(self, cid: str, test_index: int, algorithm: str) -> dict[str, Any] | None:
+        with self._lock:
+            row = self._db.execute("SELECT * FROM episodes WHERE campaign_id=? AND test_index=? AND algorithm=?", (cid, test_index, algorithm)).fetchone()
+        return None if row is None else _episode_dict(row)
+
+
+def _campaign_dict(row: sqlite3.Row, counts: dict[str, int]) -> dict[str, Any]:
+    d = dict(row)
+    for k in ("overrides", "scenario", "algorithms", "results"):
+        if d.get(k) is not None:
+            d[k] = json.loads(d[k])
+    total = sum(counts.values())
+    d["progress"] = {"done": counts.get("done", 0), "running": counts.get("running", 0), "pending": counts.get("pending", 0), "total": total}
+    return d
+
+
+def _episode_dict(row: sqlite3.Row) -> dict[str, Any]:
+    d = dict(row)
+    for k in ("hits", "in_fov", "estimates", "pans", "rewards", "chosen", "bearings", "ranges", "latencies"):
+        if d.get(k) is not None:
+            d[k] = json.loads(d[k])
+    return d

@@ -1,0 +1,188 @@
+"""Wire messages: the JSON payloads that travel on the keys of ``services.protocol.keys``.
+
+Every payload is a JSON object (Zenoh encoding ``application/json``) validated by one of
+these pydantic models; ``ra2vipas protocol schemas OUTDIR`` writes their JSON Schemas
+(checked in under ``docs/schemas``). Angles are radians, RSSI dBm, times seconds.
+A message that fails validation is logged and dropped by the receiver.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from enum import Enum
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+
+from services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
+from services.protocol.pod import PODModel
+from services.protocol.scenario import Scenario
+
+MAX_STEPS = 10000
+_ID = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:-]+$")
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
+class Mode(str, Enum):
+    """How an episode is paced: ``fast`` lockstep as fast as possible, ``realtime`` one RF
+    sample every T_RF on the wall clock (hardware in the loop)."""
+
+    fast = "fast"
+    realtime = "realtime"
+
+
+# -- control plane -----------------------------------------------------------------------------
+
+class EpisodeStart(_Message):
+    """Start one test of one algorithm on a rig (orchestrator -> sensors and controller)."""
+
+    kind: Literal["start"] = "start"
+    episode_id: str = _ID
+    campaign_id: str = _ID
+    test_index: int = Field(ge=0, le=1_000_000)
+    algorithm: Literal["ra2vipas", "rapas", "ravipas", "sweep"]
+    seed: int = Field(ge=0, le=2**63 - 1)
+    scenario: Scenario
+    mode: Mode = Mode.fast
+
+
+class EpisodeStop(_Message):
+    """Abandon an episode (cancelled campaign, reassignment). Receivers drop its state."""
+
+    kind: Literal["stop"] = "stop"
+    episode_id: str = _ID
+    reason: str = Field(default="", max_length=500)
+
+
+EpisodeControl = Annotated[Union[EpisodeStart, EpisodeStop], Field(discriminator="kind")]
+episode_control_adapter: TypeAdapter = TypeAdapter(EpisodeControl)
+
+
+# -- data plane --------------------------------------------------------------------------------
+
+class Command(_Message):
+    """Point the camera at ``pan_rad`` and take sample ``step`` there (controller -> sensors).
+
+    Step 0's command carries the initial pan s_0; after sample t the controller sends step t+1.
+    """
+
+    episode_id: str = _ID
+    step: int = Field(ge=0, le=MAX_STEPS)
+    pan_rad: float = Field(ge=-7.0, le=7.0)
+
+
+class Measurement(StepMeasurement):
+    """What the platform sensed at step t (sensors -> controller): the pan angle it was at,
+    Rx(iso) and Rx(dir) RSSI, and the nu frames of box bearings (relative to the optical axis,
+    sorted, no identities)."""
+
+    episode_id: str = _ID
+
+
+class TrainingRequest(_Message):
+    """Run a POD training episode (learner -> sensors queryable): the Tx walks in view while
+    the platform records iso RSSI and frames (paper Sec. III-A)."""
+
+    job_id: str = _ID
+    scenario: Scenario
+    seed: int = Field(ge=0, le=2**63 - 1)
+
+
+class TrainingStream(_Message):
+    """The training episode's samples, in the order taken (sensors -> learner, query reply)."""
+
+    job_id: str = _ID
+    samples: tuple[TrainingSample, ...] = Field(min_length=1, max_length=100_000)
+
+
+# -- model plane -------------------------------------------------------------------------------
+
+class PODRequest(_Message):
+    """Ask the learner for the POD model of (scenario, seed); it trains once and caches."""
+
+    scenario: Scenario
+    seed: int = Field(ge=0, le=2**63 - 1)
+
+
+class PODResponse(_Message):
+    """The learner's answer: the model, the training job it came from, and how long fitting took."""
+
+    job_id: str = _ID
+    model: PODModel
+    train_seconds: float = Field(ge=0.0)
+
+
+class ErrorReply(_Message):
+    """Payload of an error reply to any query."""
+
+    error: str = Field(max_length=2000)
+
+
+# -- result plane ------------------------------------------------------------------------------
+
+class EpisodeResult(_Message):
+    """The controller's trace of one episode (controller -> orchestrator).
+
+    ``estimates_rad[t]`` is gamma_hat_t after sample t; ``pans_rad[t]`` the pan angle sample t
+    was taken at; ``rewards[t]`` the fused objective there. ``status`` is ``failed`` with an
+    ``error`` if the controller could not run the episode.
+    """
+
+    episode_id: str = _ID
+    rig: str = Field(min_length=1, max_length=64)
+    status: Literal["done", "failed"] = "done"
+    error: str = Field(default="", max_length=2000)
+    estimates_rad: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
+    pans_rad: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
+    rewards: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
+
+
+class EpisodeTiming(_Message):
+    """Realtime episodes only: for each step, the time from the sensors publishing sample t to
+    receiving the command for step t+1 [ms] (sensors -> orchestrator)."""
+
+    episode_id: str = _ID
+    latencies_ms: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
+    late_commands: int = Field(default=0, ge=0, description="commands that arrived after the next sample was taken")
+
+
+# -- truth plane -------------------------------------------------------------------------------
+
+class EpisodeTruth(_Message):
+    """Ground truth of a simulated episode, for scoring only (simulated sensors -> orchestrator)."""
+
+    episode_id: str = _ID
+    bearings_rad: tuple[float, ...] = Field(min_length=1, max_length=1000)
+    ranges_m: tuple[float, ...] = Field(min_length=1, max_length=1000)
+    tx_index: int = Field(ge=0)
+
+
+class TrainingTruth(_Message):
+    """Ground truth of a simulated training episode: noiseless iso RSSI r_j and p_D(d_j) per
+    sample, to score the learned POD by R^2 (eq. 23)."""
+
+    job_id: str = _ID
+    rssi_dbm: tuple[float, ...] = Field(min_length=1, max_length=100_000)
+    pod: tuple[float, ...] = Field(min_length=1, max_length=100_000)
+
+
+WIRE_MESSAGES: tuple[type[BaseModel], ...] = (
+    EpisodeStart, EpisodeStop, Command, Measurement, TrainingRequest, TrainingStream,
+    PODRequest, PODResponse, ErrorReply, EpisodeResult, EpisodeTiming, EpisodeTruth, TrainingTruth,
+    RFSample, CameraFrame, TrainingSample, PODModel, Scenario,
+)
+
+
+def training_job_id(scenario: Scenario, seed: int) -> str:
+    """Deterministic id of the training episode of (scenario, seed): the POD cache key."""
+    canonical = json.dumps({"scenario": scenario.model_dump(mode="json"), "seed": seed}, sort_keys=True, separators=(",", ":"))
+    return "pod-" + hashlib.sha256(canonical.encode()).hexdigest()[:16]
+
+
+def dump(message: BaseModel) -> bytes:
+    """The message as compact JSON bytes."""
+    return message.model_dump_json().encode()

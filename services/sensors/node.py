@@ -1,0 +1,236 @@
+"""The sensors service's node logic: a simulated platform on the bus.
+
+It plays the part real hardware will play, through exactly the messages a hardware node
+would use (docs/protocol.md):
+
+* ``control/<rig>/episode``: an ``EpisodeStart`` builds the simulated world of that test and
+  publishes its ground truth on the *truth* plane (for the orchestrator only);
+* ``data/<rig>/command``: each ``Command(step, pan)`` is answered by the ``Measurement`` taken
+  at that pan: immediately in ``fast`` mode (lockstep), or on the wall clock every T_RF in
+  ``realtime`` mode, where the platform samples at the last commanded pan and the node
+  records how long each command took to come back;
+* ``data/<rig>/training`` (queryable): runs the POD training episode and replies with its
+  stream, publishing the training truth on the truth plane.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+from pydantic import ValidationError
+
+from services.protocol import keys
+from services.protocol.messages import (
+    Command, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Measurement, Mode, TrainingRequest,
+    TrainingStream, TrainingTruth, dump, episode_control_adapter,
+)
+from services.sensors.world import SimulatedPlatform, TrainingEpisode
+from services.transport.bus import Bus, QueryError
+from services.transport.runtime import EventLoop
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class _Episode:
+    start: EpisodeStart
+    platform: SimulatedPlatform
+    last: Measurement | None = None
+    # realtime pacing
+    pan: float = 0.0
+    ticking: bool = False
+    next_step: int = 0
+    t0: float = 0.0
+    sent_at: dict[int, float] = field(default_factory=dict)
+    latencies_ms: list[float] = field(default_factory=list)
+    late: int = 0
+
+
+class SensorsNode:
+    """One rig's simulated sensors. All state lives on ``self.loop``'s thread."""
+
+    def __init__(self, bus: Bus, rig: str, clock=time.monotonic) -> None:
+        self.bus = bus
+        self.rig = keys.check_chunk(rig)
+        self.clock = clock
+        self.loop = EventLoop(f"sensors-{rig}")
+        self.episodes: dict[str, _Episode] = {}
+        self._finished: dict[str, None] = {}
+        self._early: dict[str, list[bytes]] = {}  # commands that overtook their EpisodeStart
+        self._timers: list[tuple[float, str, int]] = []
+        self._timer_cv = threading.Condition()
+        self._closing = False
+        self._timer_thread = threading.Thread(target=self._run_timers, name=f"sensors-timer-{rig}", daemon=True)
+        self._timer_thread.start()
+        self._measurement_key = keys.measurement(rig)
+        self._handles = [
+            bus.subscribe(keys.episode_control(rig), lambda _k, p: self.loop.post(self._on_control, p)),
+            bus.subscribe(keys.command(rig), lambda _k, p: self.loop.post(self._on_command, p)),
+            bus.serve(keys.training(rig), self._on_training),
+            bus.serve(keys.training_truth(rig), self._on_training_truth),
+            bus.announce(keys.alive("sensors", rig)),
+        ]
+
+    # -- episodes ---------------------------------------------------------------------------
+    def _on_control(self, payload: bytes) -> None:
+        try:
+            msg = episode_control_adapter.validate_json(payload)
+        except ValidationError as err:
+            log.warning("dropping malformed episode control message: %s", _short(err))
+            return
+        if isinstance(msg, EpisodeStop):
+            self._end(msg.episode_id)
+            return
+        if msg.episode_id in self.episodes:
+            return  # duplicate start
+        platform = SimulatedPlatform(msg.scenario, msg.seed, msg.test_index)
+        self.episodes[msg.episode_id] = _Episode(start=msg, platform=platform, pan=msg.scenario.initial_pan_rad)
+        self._finished.pop(msg.episode_id, None)
+        truth = platform.truth
+        self.bus.publish(keys.episode_truth(self.rig), dump(EpisodeTruth(
+            episode_id=msg.episode_id, bearings_rad=tuple(float(b) for b in truth.bearings_rad),
+            ranges_m=tuple(float(r) for r in truth.ranges_m), tx_index=truth.tx_index)))
+        for early in self._early.pop(msg.episode_id, []):
+            self._on_command(early)
+
+    def _on_command(self, payload: bytes) -> None:
+        try:
+            cmd = Command.model_validate_json(payload)
+        except ValidationError as err:
+            log.warning("dropping malformed command: %s", _short(err))
+            return
+        ep = self.episodes.get(cmd.episode_id)
+        if ep is None:
+            # The controller's first command can overtake the orchestrator's EpisodeStart (two
+            # publishers, no ordering between them): keep it until the start arrives.
+            if cmd.episode_id not in self._finished and cmd.step == 0:
+                self._early.setdefault(cmd.episode_id, [])[:1] = [payload]
+                while len(self._early) > 1000:
+                    self._early.pop(next(iter(self._early)))
+            return
+        if ep.start.mode is Mode.realtime:
+            self._realtime_command(ep, cmd)
+            return
+        steps = ep.start.scenario.steps
+        if ep.last is not None and cmd.step == ep.last.step:
+            self.bus.publish(self._measurement_key, dump(ep.last))  # a repeated command: same sample again
+            return
+        expected = 0 if ep.last is None else ep.last.step + 1
+        if cmd.step != expected or cmd.step >= steps:
+            log.warning("episode %s: command for step %d, expected %d; dropped", cmd.episode_id, cmd.step, expected)
+            return
+        ep.last = self._sense(ep, cmd.step, cmd.pan_rad)
+        self.bus.publish(self._measurement_key, dump(ep.last))
+        if cmd.step == steps - 1:
+            self._end(cmd.episode_id)
+
+    def _sense(self, ep: _Episode, step: int, pan: float) -> Measurement:
+        m = ep.platform.sense(step, pan)
+        return Measurement.model_construct(episode_id=ep.start.episode_id, step=m.step, pan_rad=m.pan_rad, rf=m.rf, frames=m.frames)
+
+    # -- realtime pacing --------------------------------------------------------------------
+    def _realtime_command(self, ep: _Episode, cmd: Command) -> None:
+        now = self.clock()
+        ep.pan = cmd.pan_rad
+        if not ep.ticking:
+            if cmd.step != 0:
+                return
+            ep.ticking = True
+            ep.t0 = now
+            self._tick(ep.start.episode_id, 0)
+            return
+        sent = ep.sent_at.pop(cmd.step - 1, None)
+        if sent is not None:
+            ep.latencies_ms.append((now - sent) * 1e3)
+            if cmd.step < ep.next_step:
+                ep.late += 1  # the sample of this step was already taken at the old pan
+
+    def _tick(self, episode_id: str, step: int) -> None:
+        ep = self.episodes.get(episode_id)
+        if ep is None or step != ep.next_step:
+            return
+        steps = ep.start.scenario.steps
+        m = self._sense(ep, step, ep.pan)
+        payload = dump(m)
+        ep.sent_at[step] = self.clock()
+        self.bus.publish(self._measurement_key, payload, express=True)
+        ep.next_step = step + 1
+        period = ep.start.scenario.rf_period_s
+        if ep.next_step < steps:
+            self._schedule(ep.t0 + ep.next_step * period, episode_id, ep.next_step)
+        else:
+            self._schedule(ep.t0 + steps * period, episode_id, -1)  # give the last command one period to arrive
+
+    def _finish_realtime(self, episode_id: str) -> None:
+        ep = self.episodes.get(episode_id)
+        if ep is None:
+            return
+        self.bus.publish(keys.episode_timing(self.rig), dump(EpisodeTiming(
+            episode_id=episode_id, latencies_ms=tuple(round(v, 4) for v in ep.latencies_ms), late_commands=ep.late)))
+        self._end(episode_id)
+
+    def _schedule(self, when: float, episode_id: str, step: int) -> None:
+        with self._timer_cv:
+            heapq.heappush(self._timers, (when, episode_id, step))
+            self._timer_cv.notify()
+
+    def _run_timers(self) -> None:
+        while True:
+            with self._timer_cv:
+                while not self._closing and (not self._timers or self._timers[0][0] > self.clock()):
+                    timeout = None if not self._timers else max(0.0, self._timers[0][0] - self.clock())
+                    self._timer_cv.wait(timeout)
+                if self._closing:
+                    return
+                _, episode_id, step = heapq.heappop(self._timers)
+            if step < 0:
+                self.loop.post(self._finish_realtime, episode_id)
+            else:
+                self.loop.post(self._tick, episode_id, step)
+
+    def _end(self, episode_id: str) -> None:
+        self._early.pop(episode_id, None)
+        if self.episodes.pop(episode_id, None) is not None:
+            self._finished[episode_id] = None
+            while len(self._finished) > 10000:
+                self._finished.pop(next(iter(self._finished)))
+
+    # -- training ---------------------------------------------------------------------------
+    def _on_training(self, _key: str, payload: bytes) -> bytes:
+        """Queryable handler (runs on the bus's worker pool, touches no episode state)."""
+        try:
+            req = TrainingRequest.model_validate_json(payload)
+        except ValidationError as err:
+            raise QueryError(f"malformed TrainingRequest: {_short(err)}") from None
+        samples = tuple(TrainingEpisode(req.scenario, req.seed).samples())
+        return TrainingStream.model_construct(job_id=req.job_id, samples=samples).model_dump_json().encode()
+
+    def _on_training_truth(self, _key: str, payload: bytes) -> bytes:
+        """Truth-plane queryable: the noiseless RSSI and POD behind the training episode of
+        (scenario, seed), regenerated deterministically, for the orchestrator's R^2."""
+        try:
+            req = TrainingRequest.model_validate_json(payload)
+        except ValidationError as err:
+            raise QueryError(f"malformed TrainingRequest: {_short(err)}") from None
+        truth = TrainingEpisode(req.scenario, req.seed).truth
+        return dump(TrainingTruth(job_id=req.job_id, rssi_dbm=tuple(float(v) for v in truth.rssi_dbm), pod=tuple(float(v) for v in truth.pod)))
+
+    def close(self) -> None:
+        with self._timer_cv:
+            self._closing = True
+            self._timer_cv.notify()
+        for h in self._handles:
+            try:
+                h.undeclare()
+            except Exception:
+                pass
+        self.loop.stop()
+
+
+def _short(err: ValidationError) -> str:
+    first = err.errors()[0] if err.errors() else {}
+    return f"{'.'.join(str(p) for p in first.get('loc', ()))}: {first.get('msg', err)}"[:200]

@@ -1,0 +1,134 @@
+"""``Bus`` over a Zenoh session (eclipse-zenoh 1.x Python API).
+
+Payloads are JSON bytes published with encoding ``application/json``. Queryable handlers run
+on a small thread pool and reply from there (a Zenoh query stays open until its ``Query``
+object is dropped), so a long handler such as a training episode never blocks Zenoh's own
+threads.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import zenoh
+
+from services.transport.bus import AliveCallback, Callback, QueryError, QueryHandler, RepliesCallback, Reply
+from services.transport.zenoh_config import ZenohSettings
+
+log = logging.getLogger(__name__)
+
+JSON = zenoh.Encoding.APPLICATION_JSON
+
+
+class ZenohBus:
+    """A ``Bus`` bound to one Zenoh session; ``close`` closes the session."""
+
+    def __init__(self, settings: ZenohSettings, workers: int = 4) -> None:
+        self.session = zenoh.open(settings.to_zenoh())
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._declared: list = []
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="zenoh-query")
+        self._lock = threading.Lock()
+        self._closed = False
+
+    # -- pub/sub -----------------------------------------------------------------------------
+    def publish(self, key: str, payload: bytes, express: bool = False) -> None:
+        """``express`` sends at once instead of waiting up to Zenoh's batching time limit
+        (1 ms per hop): for latency-critical traffic such as realtime pan commands."""
+        pub = self._publishers.get((key, express))
+        if pub is None:
+            with self._lock:
+                pub = self._publishers.get((key, express))
+                if pub is None:
+                    pub = self.session.declare_publisher(key, encoding=JSON, congestion_control=zenoh.CongestionControl.BLOCK, express=express)
+                    self._publishers[(key, express)] = pub
+        pub.put(payload)
+
+    def subscribe(self, key: str, callback: Callback):
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception:  # a bad message must never kill Zenoh's thread
+                log.exception("subscriber callback on %s failed", key)
+
+        sub = self.session.declare_subscriber(key, on_sample)
+        self._declared.append(sub)
+        return sub
+
+    # -- query/reply -------------------------------------------------------------------------
+    def serve(self, key: str, handler: QueryHandler):
+        def answer(query: zenoh.Query) -> None:
+            try:
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                try:
+                    reply = handler(str(query.key_expr), payload)
+                except QueryError as err:
+                    query.reply_err(str(err).encode(), encoding=zenoh.Encoding.TEXT_PLAIN)
+                except Exception as err:  # never leave a query unanswered
+                    log.exception("query handler on %s failed", key)
+                    query.reply_err(f"internal error: {type(err).__name__}".encode(), encoding=zenoh.Encoding.TEXT_PLAIN)
+                else:
+                    query.reply(key, reply, encoding=JSON)
+            finally:
+                query.drop()
+
+        def on_query(query: zenoh.Query) -> None:
+            if self._closed:
+                query.drop()
+                return
+            self._pool.submit(answer, query)
+
+        qbl = self.session.declare_queryable(key, on_query)
+        self._declared.append(qbl)
+        return qbl
+
+    def query(self, key: str, payload: bytes, timeout: float, callback: RepliesCallback) -> None:
+        def run() -> None:
+            replies: list[Reply] = []
+            try:
+                for r in self.session.get(key, payload=payload, encoding=JSON, timeout=timeout, target=zenoh.QueryTarget.BEST_MATCHING):
+                    if r.ok is not None:
+                        replies.append(Reply(str(r.ok.key_expr), r.ok.payload.to_bytes(), True))
+                    elif r.err is not None:
+                        replies.append(Reply(key, r.err.payload.to_bytes(), False))
+            except Exception:
+                log.exception("query on %s failed", key)
+            callback(replies)
+
+        self._pool.submit(run)
+
+    # -- liveliness --------------------------------------------------------------------------
+    def announce(self, key: str):
+        token = self.session.liveliness().declare_token(key)
+        self._declared.append(token)
+        return token
+
+    def watch_alive(self, key: str, callback: AliveCallback):
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                callback(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+            except Exception:
+                log.exception("liveliness callback on %s failed", key)
+
+        sub = self.session.liveliness().declare_subscriber(key, on_sample, history=True)
+        self._declared.append(sub)
+        return sub
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for obj in reversed(self._declared):
+            try:
+                obj.undeclare()
+            except Exception:
+                pass
+        for pub in self._publishers.values():
+            try:
+                pub.undeclare()
+            except Exception:
+                pass
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        self.session.close()

@@ -1,0 +1,110 @@
+"""The real thing: `ra2vipas up` (Zenoh router + orchestrator + learner + 2 rigs as separate
+processes), driven through the CLI and the REST API, then stopped."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+
+import httpx
+import pytest
+
+from cli.stack import free_port
+from tests.integration.conftest import ROOT, Procs, alive, children_of, wait_for_line
+
+SMALL = ["--set", "steps=30", "--set", "n_train=250", "--set", "n_targets=10"]
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("stack")
+    registry = Procs()
+    port = free_port()
+    up = registry.start("up", "--rigs", "2", "--port", str(port), "--db", str(tmp / "stack.db"), "--log-dir", str(tmp / "logs"))
+    line = wait_for_line(up, "API on http://", 120)
+    api = re.search(r"(http://[0-9.:]+)", line).group(1)
+    state = {"api": api, "up": up, "children": children_of(up.pid), "db": tmp / "stack.db", "logs": tmp / "logs"}
+    yield state
+    registry.cleanup()
+
+
+def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "cli.main", *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+
+
+def untimed(results: dict) -> dict:
+    results = json.loads(json.dumps(results))
+    results.pop("steps_per_second", None)
+    results["pod"].pop("train_seconds", None)
+    return results
+
+
+def test_up_starts_router_orchestrator_learner_and_two_rigs(stack):
+    assert len(stack["children"]) == 1 + 1 + 1 + 2 * 2
+    health = httpx.get(f"{stack['api']}/health", timeout=10)
+    assert health.status_code == 200
+    body = health.json()
+    assert body["ready"] and body["database"] and body["zenoh"]
+    assert body["rigs"] == ["rig-1", "rig-2"] and body["learners"] == ["learner"]
+
+
+def test_campaign_through_the_cli_equals_simulate_value_for_value(stack):
+    args = ["--preset", "paper", "--tests", "4", "--seed", "5", "--algorithms", "ra2vipas,rapas,ravipas,sweep", *SMALL]
+    mesh = cli("campaign", "start", "--api", stack["api"], *args, "--wait", "--json")
+    assert mesh.returncode == 0, mesh.stderr
+    sim = cli("simulate", *args, "--json")
+    assert sim.returncode == 0, sim.stderr
+    mesh_results = json.loads(mesh.stdout.strip().splitlines()[-1])
+    sim_results = json.loads(sim.stdout.strip().splitlines()[-1])
+    assert untimed(mesh_results) == untimed(sim_results)
+    assert mesh_results["steps_per_second"] > 0
+
+
+def test_campaign_start_status_and_results_commands(stack):
+    started = cli("campaign", "start", "--api", stack["api"], "--tests", "2", "--seed", "9", "-a", "rapas", *SMALL)
+    assert started.returncode == 0, started.stderr
+    cid = started.stdout.strip().splitlines()[-1]
+    assert re.fullmatch(r"[0-9a-f]{12}", cid)
+    status = cli("campaign", "status", cid, "--api", stack["api"], "--json")
+    assert status.returncode == 0
+    assert json.loads(status.stdout.strip().splitlines()[-1])["id"] == cid
+    import time
+
+    for _ in range(600):
+        c = httpx.get(f"{stack['api']}/campaigns/{cid}", timeout=10).json()
+        if c["status"] == "done":
+            break
+        time.sleep(0.1)
+    results = cli("campaign", "results", cid, "--api", stack["api"])
+    assert results.returncode == 0 and "rapas" in results.stdout and "POD regression" in results.stdout
+
+
+def test_api_rejects_bad_campaigns_and_unknown_ids(stack):
+    api = stack["api"]
+    r = httpx.post(f"{api}/campaigns", json={"preset": "paper", "overrides": {"n_targets": 0}}, timeout=10)
+    assert r.status_code == 422 and "n_targets" in r.json()["detail"]
+    r = httpx.post(f"{api}/campaigns", json={"preset": "paper", "tests": 0}, timeout=10)
+    assert r.status_code == 422
+    assert httpx.get(f"{api}/campaigns/nope", timeout=10).status_code == 404
+    bad = cli("campaign", "start", "--api", api, "--set", "rf_noise_db=99")
+    assert bad.returncode == 2 and bad.stderr.startswith("error: ")
+
+
+def test_cli_reports_an_unreachable_api_in_one_line():
+    r = cli("campaign", "status", "abc", "--api", f"http://127.0.0.1:{free_port()}")
+    assert r.returncode == 1
+    assert r.stderr.strip().startswith("error: cannot reach the API") and "Traceback" not in r.stderr
+
+
+def test_stopping_the_stack_leaves_no_process(stack):
+    up = stack["up"]
+    children = stack["children"]
+    assert children and all(alive(p) for p in children)
+    up.send_signal(signal.SIGTERM)
+    assert up.wait(30) == 0
+    assert not [p for p in children if alive(p)]
+    assert not alive(up.pid)
