@@ -75,7 +75,7 @@ def bench_step(
         )
 
 
-def _run_campaign(api: str, body: dict, timeout: float) -> tuple[dict, float]:
+def _run_campaign(api: str, body: dict, timeout: float, poll: float = 0.1) -> tuple[dict, float]:
     import httpx
 
     started = time.perf_counter()
@@ -84,7 +84,7 @@ def _run_campaign(api: str, body: dict, timeout: float) -> tuple[dict, float]:
     while c["status"] not in ("done", "failed", "cancelled"):
         if time.monotonic() > deadline:
             raise TimeoutError(f"campaign {c['id']} did not finish within {timeout:.0f} s")
-        time.sleep(0.1)
+        time.sleep(poll)
         c = httpx.get(f"{api}/campaigns/{c['id']}", timeout=30).json()
     wall = time.perf_counter() - started
     if c["status"] != "done":
@@ -94,18 +94,19 @@ def _run_campaign(api: str, body: dict, timeout: float) -> tuple[dict, float]:
 
 @app.command("mesh")
 def bench_mesh(
-    rigs: Annotated[int, typer.Option(min=0, max=16, help="Sensor+controller pairs (0: one per CPU core).")] = 0,
+    rigs: Annotated[int, typer.Option(min=0, max=16, help="Sensor+controller pairs for fast mode (0: one per CPU core).")] = 0,
     window: Annotated[int, typer.Option(min=1, max=256, help="Episodes in flight per rig.")] = 8,
     tests: Annotated[int, typer.Option(min=1, max=1000, help="Tests of the fast-mode campaign.")] = 50,
-    realtime_tests: Annotated[int, typer.Option(min=0, max=64, help="Tests of the realtime campaign, one at a time per rig (0: skip).")] = 4,
+    realtime_tests: Annotated[int, typer.Option(min=0, max=64, help="Tests of the realtime campaign (0: skip).")] = 3,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
-    """Start a local stack and measure it through the real processes.
+    """Start local stacks and measure them through the real processes.
 
     Fast mode: the paper campaign (TESTS tests x ra2vipas, rapas, ravipas x 120 steps) in
-    lockstep; reports control steps per second (target >= 2 200 on 2 cores). Realtime mode:
-    REALTIME_TESTS paced tests; reports the sample-to-command latency p50/p99 measured by the
-    sensors (target p99 <= 5 ms). The stack is stopped afterwards.
+    lockstep on RIGS rigs; reports control steps per second (target >= 2 200 on 2 cores).
+    Realtime mode: REALTIME_TESTS tests paced at T_RF on one rig (one platform in the loop);
+    reports the sample-to-command latency p50/p99 measured by the sensors (target p99 <= 5
+    ms). Every stack is stopped afterwards.
     """
     import os
     import tempfile
@@ -113,36 +114,42 @@ def bench_mesh(
     from cli.stack import Stack, StackConfig, StackError, free_port
 
     rigs = rigs or max(1, min(os.cpu_count() or 1, 16))
+    algorithms = ["ra2vipas", "rapas", "ravipas"]
+    report: dict = {"benchmark": "mesh", "rigs": rigs, "window": window, "targets": {"steps_per_second": 2200, "latency_p99_ms": 5.0}}
     with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
-        stack = Stack(StackConfig(rigs=rigs, port=free_port(), db_path=os.path.join(tmp, "bench.db"), window=window,
-                                  log_dir=os.path.join(tmp, "logs"), log_level="WARNING"))
+
+        def stack_of(n: int, name: str) -> Stack:
+            return Stack(StackConfig(rigs=n, port=free_port(), db_path=os.path.join(tmp, f"{name}.db"), window=window,
+                                     log_dir=os.path.join(tmp, f"logs-{name}"), log_level="WARNING"))
+
+        stack = stack_of(rigs, "fast")
         try:
             stack.start()
-            algorithms = ["ra2vipas", "rapas", "ravipas"]
             fast, fast_wall = _run_campaign(stack.api_url, {"preset": "paper", "tests": tests, "seed": 1, "algorithms": algorithms}, 1800)
-            report = {
-                "benchmark": "mesh",
-                "rigs": rigs,
-                "window": window,
-                "fast": {
-                    "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
-                    "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
-                    "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
-                },
-                "steps_per_second": fast["steps_per_second"],
-                "latency_ms": None,
-                "targets": {"steps_per_second": 2200, "latency_p99_ms": 5.0},
+            report["fast"] = {
+                "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
+                "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
+                "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
             }
-            if realtime_tests:
-                rt, rt_wall = _run_campaign(stack.api_url, {"preset": "paper", "tests": realtime_tests, "seed": 1,
-                                                            "algorithms": ["ra2vipas"], "mode": "realtime"}, 600)
-                report["latency_ms"] = rt.get("latency_ms")
-                report["realtime"] = {"tests": realtime_tests, "wall_seconds": round(rt_wall, 3),
-                                      "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"]}
+            report["steps_per_second"] = fast["steps_per_second"]
         except (StackError, TimeoutError, RuntimeError) as err:
-            fail(f"bench mesh: {err}")
+            fail(f"bench mesh (fast): {err}")
         finally:
             stack.stop()
+        report["latency_ms"] = None
+        if realtime_tests:
+            stack = stack_of(1, "realtime")
+            try:
+                stack.start()
+                rt, rt_wall = _run_campaign(stack.api_url, {"preset": "paper", "tests": realtime_tests, "seed": 1,
+                                                            "algorithms": ["ra2vipas"], "mode": "realtime"}, 900, poll=1.0)
+                report["latency_ms"] = rt.get("latency_ms")
+                report["realtime"] = {"rigs": 1, "tests": realtime_tests, "samples": realtime_tests * (rt["scenario"]["steps"] - 1),
+                                      "wall_seconds": round(rt_wall, 3), "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"]}
+            except (StackError, TimeoutError, RuntimeError) as err:
+                fail(f"bench mesh (realtime): {err}")
+            finally:
+                stack.stop()
     if as_json:
         print_json(report)
     else:

@@ -161,3 +161,125 @@ def lobe_profile(hh, ho, hu, oo, ou, uu, sign, loglik, amplitude, offset):
             best_ll = loglik[j]
             best = j
     return best
+
+
+@njit(cache=True)
+def track_loglik(l_rf, grid_step, bearings, detections, frames, p_hat, var_model, out):
+    """l(i) = l_RF(gamma_i) + l_D(i) per track, written into ``out`` (see ``Controller``).
+
+    l_D(i) = log N(p~_i; p_hat, v_i), v_i = var_model + (p~_i (1 - p~_i) + 0.02) / n_i, is 0 for a
+    track never counted in view; l_RF is interpolated linearly on the periodic grid.
+    """
+    M = l_rf.size
+    for i in range(bearings.size):
+        n = frames[i]
+        if n > 0:
+            p = min(max(detections[i] / n, 0.0), 1.0)
+            var = var_model + (p * (1.0 - p) + 0.02) / n
+            l_d = -0.5 * (p - p_hat) ** 2 / var - 0.5 * math.log(TWO_PI * var)
+        else:
+            l_d = 0.0
+        pos = ((bearings[i] + math.pi) / grid_step) % M
+        lo = int(math.floor(pos)) % M
+        frac = pos - math.floor(pos)
+        out[i] = l_rf[lo] * (1.0 - frac) + l_rf[(lo + 1) % M] * frac + l_d
+    return out
+
+
+@njit(cache=True)
+def best_missed(l_rf, view_frames, log_miss):
+    """max and argmax over the grid of l_RF(gamma) + n_view(gamma) log(1 - p_hat)."""
+    best = -1e300
+    arg = 0
+    for j in range(l_rf.size):
+        v = l_rf[j] + view_frames[j] * log_miss
+        if v > best:
+            best = v
+            arg = j
+    return best, arg
+
+
+@njit(cache=True)
+def mass_at(bearings, post, s, limit):
+    """Posterior mass of the tracks within ``limit`` of pan ``s``."""
+    total = 0.0
+    for i in range(bearings.size):
+        if abs(_wrap(bearings[i] - s)) <= limit:
+            total += post[i]
+    return total
+
+
+@njit(cache=True)
+def acquire(mean, offset, amplitude, sd, sqrt_beta, bearings, post, view_frames, unseen_below, grid_step, limit, use_mass):
+    """argmax over the grid of a(s) = U_D(s) (J_RF(s) + sqrt(beta) sigma(s)) (paper eq. 25 on the
+    fused objective): J_RF is the normalised lobe, U_D the posterior mass of the tracks in view
+    at s (1 where the camera has not looked yet)."""
+    M = mean.size
+    mass = np.zeros(M)
+    if use_mass:
+        w = int(math.floor(limit / grid_step + 1e-9))
+        for i in range(bearings.size):
+            if post[i] <= 0.0:
+                continue
+            centre = int(round(((bearings[i] + math.pi) / grid_step))) % M
+            for d in range(-w, w + 1):
+                mass[(centre + d) % M] += post[i]
+    best = -1e300
+    arg = 0
+    for j in range(M):
+        if amplitude != 0.0:
+            value = (mean[j] - offset) / amplitude + sqrt_beta * sd[j] / abs(amplitude)
+        else:
+            value = 1.0
+        if use_mass:
+            u = mass[j]
+            if view_frames[j] < unseen_below and u < 1.0:
+                u = 1.0
+            value *= u
+        if value > best:
+            best = value
+            arg = j
+    return arg
+
+
+@njit(cache=True)
+def probe(grid, g1, g2, width, left):
+    """The grid pan where lobes centred at g1 and g2 differ most, on one side of their midpoint."""
+    mid = g1 + 0.5 * _wrap(g2 - g1)
+    best = -1.0
+    arg = 0
+    inv = 1.0 / (width * width)
+    for j in range(grid.size):
+        side = _wrap(grid[j] - mid) >= 0.0
+        if side == left:
+            continue
+        a = math.sin(0.5 * (grid[j] - g1))
+        b = math.sin(0.5 * (grid[j] - g2))
+        d = abs(math.exp(-2.0 * a * a * inv) - math.exp(-2.0 * b * b * inv))
+        if d > best:
+            best = d
+            arg = j
+    return arg
+
+
+@njit(cache=True)
+def lobe_mean_at(s, x, Li, u, o, H_col, centre, A, c, width, res_len, res_var):
+    """Posterior mean of the RSSI at pan ``s`` given the lobe (centre, A, c):
+    c + A h(s - centre) + k(X, s)^T L^{-T} (u - c o - A H_col)."""
+    n = x.size
+    a = math.sin(0.5 * (s - centre))
+    mean = c + A * math.exp(-2.0 * a * a / (width * width))
+    if n == 0:
+        return mean
+    r = np.empty(n)
+    for i in range(n):
+        r[i] = u[i] - c * o[i] - A * H_col[i]
+    # alpha = L^{-T} r, i.e. alpha_j = sum_i Li[i, j] r_i (Li lower triangular)
+    total = 0.0
+    for j in range(n):
+        alpha = 0.0
+        for i in range(j, n):
+            alpha += Li[i, j] * r[i]
+        b = math.sin(0.5 * (x[j] - s))
+        total += res_var * math.exp(-2.0 * b * b / (res_len * res_len)) * alpha
+    return mean + total

@@ -154,12 +154,8 @@ class LobeGP:
         return mean, np.sqrt(np.maximum(self._res_var, 0.0) + 1e-12)
 
     def mean_at(self, s: float, centre_index: int, A: float, c: float) -> float:
-        """Posterior mean of z at one pan angle ``s`` (O(n)), given the lobe (gamma, A, c)."""
-        h = circular_kernel(np.array([s]), self.grid[centre_index : centre_index + 1], self.lobe_width)[0, 0]
-        mean = c + A * h
+        """Posterior mean of z at one pan angle ``s`` (O(n^2), compiled), given the lobe (gamma, A, c)."""
         n = self.n_
-        if n:
-            k = circular_kernel(self.x_[:n], np.array([s]), self.residual_length_scale, self.residual_var)[:, 0]
-            r = self._u[:n] - c * self._o[:n] - A * self._H[:n, centre_index]
-            mean += float(k @ (r @ self._Li[:n, :n]))  # k^T L^{-T} (L^{-1} r)
-        return float(mean)
+        return float(_kernels.lobe_mean_at(s, self.x_[:n], self._Li[:n, :n], self._u[:n], self._o[:n],
+                                           np.ascontiguousarray(self._H[:n, centre_index]), float(self.grid[centre_index]),
+                                           A, c, self.lobe_width, self.residual_length_scale, self.residual_var))

@@ -44,6 +44,7 @@ from enum import Enum
 
 import numpy as np
 
+from services.controller import _kernels
 from services.controller.circle_gp import LobeGP
 from services.controller.grid import CircleGrid
 from services.controller.tracks import DetectionTracker, wrap
@@ -209,27 +210,30 @@ class Controller:
         return mean, max(sigma, 0.1)
 
     def _track_loglik(self, l_rf: np.ndarray) -> np.ndarray:
-        """l(i) = l_RF(gamma_i) + l_D(i) for every track (camera algorithms only)."""
+        """l(i) = l_RF(gamma_i) + l_D(i) for every track (camera algorithms only), with
+        l_D(i) = log N(p~_i; p_hat, v_i) and v_i = std(p_hat)^2 + (slope sigma)^2 / t + p~(1-p~)/n_i."""
         if not self.uses_camera or not len(self.tracks):
             return np.empty(0)
-        p_tilde, n = self.tracks.detection_rate()
         z_iso, sigma = self._iso_mean_and_std()
         p_hat, p_std, slope = self.pod(z_iso)
-        var = p_std**2 + (slope * sigma) ** 2 / self._n + (p_tilde * (1.0 - p_tilde) + 0.02) / np.maximum(n, 1.0)
-        l_d = np.where(n > 0, -0.5 * (p_tilde - p_hat) ** 2 / var - 0.5 * np.log(2.0 * math.pi * var), 0.0)
-        return self.circle.interp(l_rf, self.tracks.bearing) + l_d
+        var_model = p_std**2 + (slope * sigma) ** 2 / self._n
+        out = np.empty(len(self.tracks))
+        return _kernels.track_loglik(l_rf, self.circle.step, self.tracks.bearing, self.tracks.detections,
+                                     self.tracks.frames_in_view, p_hat, var_model, out)
 
     def _estimate(self, l_rf: np.ndarray, l_tracks: np.ndarray) -> float:
+        """gamma_hat_t: the detected bearing with the largest fused log-posterior, unless the
+        likelihood of having missed the Tx at some undetected bearing is larger."""
         if l_tracks.size:
             best_track = int(np.argmax(l_tracks))
             if not self.uses_radio:
                 return float(self.tracks.bearing[best_track])
             z_iso, _ = self._iso_mean_and_std()
             p_hat = self.pod(z_iso)[0]
-            l_missed = l_rf + self._view_frames * math.log(max(1.0 - p_hat, 1e-3))
-            if l_tracks[best_track] >= l_missed.max():
+            best_missed, _ = _kernels.best_missed(l_rf, self._view_frames, math.log(max(1.0 - p_hat, 1e-3)))
+            if l_tracks[best_track] >= best_missed:
                 return float(self.tracks.bearing[best_track])
-            return self._refined_argmax(l_missed)
+            return self._refined_argmax(l_rf + self._view_frames * math.log(max(1.0 - p_hat, 1e-3)))
         if self.uses_radio and self._n:
             return self._refined_argmax(l_rf)
         return self.first_pan()
@@ -243,40 +247,20 @@ class Controller:
         shift = 0.5 * (a - c) / den if den < 0 else 0.0
         return float(self.grid[j] + np.clip(shift, -0.5, 0.5) * (2 * math.pi / M))
 
-    def _rf_objective(self, lobe) -> tuple[np.ndarray, np.ndarray]:
-        """J_RF(s) on the grid, in [0, ~1]: the normalised posterior mean of the best lobe fit,
-        and its posterior standard deviation."""
-        M = self.grid.size
-        if lobe is None or self._n == 0:
-            return np.ones(M), np.zeros(M)
-        j, A, c = lobe
-        if A == 0.0:
-            return np.ones(M), np.ones(M)
-        mean, sd = self.rf.posterior(j, A, c)
-        return (mean - c) / A, sd / abs(A)
-
     def _rf_at(self, s: float, lobe) -> float:
-        """J_RF at one pan angle (O(n))."""
+        """J_RF at one pan angle: the normalised posterior mean of the best lobe fit."""
         if lobe is None or lobe[1] == 0.0:
             return 1.0
         j, A, c = lobe
         return (self.rf.mean_at(s, j, A, c) - c) / A
 
-    def _unseen(self) -> np.ndarray:
-        return self._view_frames < 2 * self.sensors.frames_per_rf
-
-    def _mass_in_view(self, post: np.ndarray) -> np.ndarray:
-        """U_D(s): posterior mass of the candidate targets in view at each pan; 1 where unseen."""
-        if not self.uses_camera:
-            return np.ones(self.grid.size)
-        mass = self.circle.arc_sum(self.tracks.bearing, post, self.tracks.count_limit) if post.size else np.zeros(self.grid.size)
-        return np.where(self._unseen(), np.maximum(mass, 1.0), mass)
-
     def _mass_at(self, s: float, post: np.ndarray) -> float:
+        """U_D(s) at one pan angle: posterior mass of the tracks in view, 1 where unseen."""
         if not self.uses_camera:
             return 1.0
-        mass = float(post[self.tracks.in_view(s)].sum()) if post.size else 0.0
-        return max(mass, 1.0) if self._unseen()[self.circle.nearest(s)] else mass
+        mass = _kernels.mass_at(self.tracks.bearing, post, s, self.tracks.count_limit) if post.size else 0.0
+        unseen = self._view_frames[self.circle.nearest(s)] < 2 * self.sensors.frames_per_rf
+        return max(mass, 1.0) if unseen else mass
 
     # -- actions ------------------------------------------------------------------------------
     def _next_pan(self, t, l_rf, lobe, l_tracks, post) -> tuple[float, bool]:
@@ -287,9 +271,18 @@ class Controller:
             return sensors.initial_pan_rad + 2.0 * math.pi * (t + 1) / self.warmup, False
         if self.uses_radio and cfg.probe_every and (t + 1 - self.warmup) % cfg.probe_every == 0:
             return self._probe(l_rf, l_tracks), True
-        j_rf, sd_rf = self._rf_objective(lobe)
-        acquisition = (j_rf + math.sqrt(cfg.beta) * sd_rf) * self._mass_in_view(post)
-        return float(self.grid[int(np.argmax(acquisition))]), False
+        # GP-UCB on the fused objective (eq. 25): a(s) = U_D(s) (J_RF(s) + sqrt(beta) sigma(s))
+        if lobe is not None and self._n:
+            j, A, c = lobe
+            mean, sd = self.rf.posterior(j, A, c)
+        else:
+            A, c = 0.0, 0.0
+            mean = sd = self._flat
+        bearings = self.tracks.bearing if post.size else np.empty(0)
+        arg = _kernels.acquire(mean, c, A, sd, math.sqrt(cfg.beta), bearings, post if post.size else np.empty(0),
+                               self._view_frames, 2.0 * sensors.frames_per_rf, self.circle.step, self.tracks.count_limit,
+                               self.uses_camera)
+        return float(self.grid[arg]), False
 
     def _probe(self, l_rf: np.ndarray, l_tracks: np.ndarray) -> float:
         """The pan where the two leading hypotheses' lobes differ most, on alternating sides."""
@@ -301,14 +294,9 @@ class Controller:
             g1 = self.grid[order[0]]
             apart = np.abs(wrap(self.grid[order] - g1)) >= math.radians(3.0)
             g2 = self.grid[order[apart][0]] if apart.any() else g1 + math.radians(3.0)
-        w = self.settings.lobe_width_rad
-        diff = np.abs(self.circle.kernel_row(float(g1), w) - self.circle.kernel_row(float(g2), w))
-        mid = g1 + 0.5 * wrap(g2 - g1)
-        side = wrap(self.grid - mid) >= 0
         self._probes += 1
-        if self._probes % 2:
-            side = ~side
-        return float(self.grid[int(np.argmax(np.where(side, diff, -1.0)))])
+        arg = _kernels.probe(self.grid, float(g1), float(g2), self.settings.lobe_width_rad, bool(self._probes % 2))
+        return float(self.grid[arg])
 
 
 def _softmax(log_weights: np.ndarray) -> np.ndarray:
