@@ -9,7 +9,6 @@ from typing import Annotated
 import typer
 
 from cli.output import EXIT_USAGE, fail, print_json, stdout
-from services.controller.policy import ALGORITHMS
 
 app = typer.Typer(help="Speed benchmarks (print JSON with --json).", no_args_is_help=True)
 
@@ -32,6 +31,8 @@ def bench_step(
     Reports the median and p99 over all steps and over the last step of each test (when the
     controller holds n_test = 120 samples). Target: median <= 1 ms.
     """
+    from services.controller.policy import ALGORITHMS
+
     if algorithm not in ALGORITHMS:
         fail(f"unknown algorithm {algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
     from services.controller.policy import Controller, sensor_config_from_scenario

@@ -1,89 +1,64 @@
-"""``ra2vipas campaign ...``: a thin HTTP client of the orchestrator's REST API."""
+"""``ra2vipas campaign ...``: a thin HTTP client of the orchestrator's REST API.
+
+start | list | show (status: one line) | watch | results | trace | cancel | delete | export | plot.
+Read commands print rich tables, or JSON with ``--json``; errors are one stderr line with
+exit code 1 (a failed operation) or 2 (bad usage or input).
+"""
 
 from __future__ import annotations
 
-import time
-from typing import Annotated, Any, Optional
+import sys
+from typing import Annotated, Optional
 
-import httpx
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from cli.output import EXIT_FAILED, EXIT_USAGE, fail, print_json, print_results, stderr, stdout
+from cli.client import DEFAULT_API, ApiOpt, Client, JsonOpt, TokenOpt
+from cli.output import (
+    EXIT_FAILED, EXIT_USAGE, campaign_tables, campaigns_table, emit_results, fail, outcomes_table, print_json, print_results, stderr, stdout,
+    trace_table, write_file,
+)
+from services.protocol.messages import ALGORITHMS
 from services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
 app = typer.Typer(help="Start, watch and read campaigns on a running stack (see `ra2vipas up`).", no_args_is_help=True)
 
-ApiOpt = Annotated[str, typer.Option("--api", envvar="RA2VIPAS_API", help="Base URL of the orchestrator API.")]
-TokenOpt = Annotated[Optional[str], typer.Option("--token", envvar="RA2VIPAS_TOKEN", help="Bearer token, if the API requires one.")]
-JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON line (the last line of stdout).")]
-
-DEFAULT_API = "http://127.0.0.1:8080"
+STATUSES = ("queued", "training", "running", "done", "failed", "cancelled")
+IdArg = Annotated[str, typer.Argument(help="Campaign id (see `ra2vipas campaign list`).")]
 
 
-class Client:
-    """HTTP calls with the CLI's error convention: unreachable API or 4xx/5xx -> one stderr line."""
-
-    def __init__(self, api: str, token: str | None) -> None:
-        self.api = api.rstrip("/")
-        headers = {"Authorization": f"Bearer {token}"} if token else {}
-        self.http = httpx.Client(base_url=self.api, headers=headers, timeout=30.0)
-
-    def request(self, method: str, path: str, **kw) -> Any:
-        try:
-            r = self.http.request(method, path, **kw)
-        except httpx.HTTPError as err:
-            fail(f"cannot reach the API at {self.api} ({type(err).__name__}); is `ra2vipas up` running? (--api / RA2VIPAS_API)")
-        if r.status_code >= 400:
-            detail = _detail(r)
-            code = EXIT_USAGE if r.status_code == 422 else EXIT_FAILED
-            fail(f"{method} {path}: {r.status_code} {detail}", code)
-        return r.json()
+def _complete(choices):
+    return lambda incomplete: [c for c in choices if c.startswith(incomplete)]
 
 
-def _detail(r: httpx.Response) -> str:
-    try:
-        body = r.json()
-    except ValueError:
-        return r.text[:300]
-    detail = body.get("detail", body) if isinstance(body, dict) else body
-    if isinstance(detail, list) and detail and isinstance(detail[0], dict):
-        first = detail[0]
-        loc = ".".join(str(p) for p in first.get("loc", ())[1:])
-        return f"{loc}: {first.get('msg', '')}" if loc else str(first.get("msg", ""))
-    return str(detail)
-
-
-def _wait(client: "Client", cid: str, as_json: bool) -> dict:
-    """Poll until the campaign finishes, with a progress bar on stderr; return the campaign."""
+def _follow(client: Client, cid: str, as_json_lines: bool = False) -> dict:
+    """Follow a campaign's progress (a bar on stderr; JSON lines on stdout if asked) until it finishes."""
     with Progress(TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
                   TimeElapsedColumn(), console=stderr, transient=True) as bar:
         task = bar.add_task(f"campaign {cid}", total=None)
-        while True:
-            c = client.request("GET", f"/campaigns/{cid}")
+
+        def update(c: dict) -> None:
             p = c["progress"]
             bar.update(task, total=p["total"], completed=p["done"], description=f"campaign {cid} ({c['status']})")
-            if c["status"] in ("done", "failed", "cancelled"):
-                return c
-            time.sleep(0.25)
+            if as_json_lines:
+                print_json(c)
+
+        return client.follow(cid, update)
 
 
-def _show_results(client: Client, cid: str, as_json: bool) -> None:
-    results = client.request("GET", f"/campaigns/{cid}/results")
-    if as_json:
-        print_json(results)
-    else:
-        print_results(results)
+def _check_finished(c: dict) -> None:
+    if c["status"] != "done":
+        fail(f"campaign {c['id']} {c['status']}: {c.get('error') or 'no results'}")
 
 
 @app.command("start")
 def start(
-    preset: Annotated[str, typer.Option(help=f"Scenario preset: {', '.join(PRESETS)}.")] = "paper",
+    preset: Annotated[str, typer.Option(help=f"Scenario preset: {', '.join(PRESETS)}.", autocompletion=_complete(PRESETS))] = "paper",
     tests: Annotated[int, typer.Option(min=1, max=10000, help="Monte Carlo tests per algorithm.")] = 50,
     seed: Annotated[int, typer.Option(min=0, help="Campaign seed.")] = 1,
     algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of ra2vipas, rapas, ravipas, sweep (default: all).")] = None,
     overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help="Override a scenario parameter (repeatable).")] = None,
-    mode: Annotated[str, typer.Option(help="fast (lockstep, as fast as possible) or realtime (one sample every T_RF).")] = "fast",
+    mode: Annotated[str, typer.Option(help="fast (lockstep, as fast as possible) or realtime (one sample every T_RF).", autocompletion=_complete(("fast", "realtime")))] = "fast",
     name: Annotated[Optional[str], typer.Option(help="A label for the campaign.")] = None,
     wait: Annotated[bool, typer.Option("--wait", help="Show progress until it finishes, then print the DR table.")] = False,
     plot: Annotated[Optional[str], typer.Option(metavar="FILE", help="With --wait: also write the DR curves to FILE (.png or .svg).")] = None,
@@ -94,7 +69,8 @@ def start(
     api: ApiOpt = DEFAULT_API,
     token: TokenOpt = None,
 ) -> None:
-    """Start a campaign on the stack; with --wait, follow it and print the results.
+    """Start a campaign on the stack. Prints its id (with --json: the campaign object); with
+    --wait, follows it with a progress bar and prints the results.
 
     With --embedded the stack runs inside this command: the quickest way to run the paper
     campaign on a laptop (`make campaign`).
@@ -103,7 +79,6 @@ def start(
 
     if plot is not None and not plot.lower().endswith((".png", ".svg")):
         fail(f"--plot expects a .png or .svg file name, got {plot!r}", EXIT_USAGE)
-
     try:
         body = {"preset": preset, "overrides": parse_overrides(overrides or []), "algorithms": parse_algorithms(algorithms),
                 "tests": tests, "seed": seed, "mode": mode}
@@ -127,24 +102,10 @@ def start(
     _finish(client, c["id"], plot, as_json)
 
 
-def _finish(client: "Client", cid: str, plot: str | None, as_json: bool) -> None:
-    c = _wait(client, cid, as_json)
-    if c["status"] != "done":
-        fail(f"campaign {c['id']} {c['status']}: {c.get('error') or 'no results'}")
+def _finish(client: Client, cid: str, plot: str | None, as_json: bool) -> None:
+    _check_finished(_follow(client, cid))
     results = client.request("GET", f"/campaigns/{cid}/results")
-    if plot:
-        from services.orchestrator.plots import write_dr_plot
-
-        try:
-            write_dr_plot(results, plot)
-        except OSError as err:
-            fail(f"cannot write {plot}: {err.strerror or err}")
-    if as_json:
-        print_json(results)
-    else:
-        print_results(results)
-        if plot:
-            print(f"DR plot written to {plot}")
+    emit_results(results, plot, as_json)
 
 
 def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: bool) -> None:
@@ -173,10 +134,39 @@ def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: boo
         signal.signal(signal.SIGTERM, previous)
 
 
+@app.command("list")
+def list_campaigns(
+    status: Annotated[Optional[str], typer.Option(help=f"Only campaigns in this state: {', '.join(STATUSES)}.", autocompletion=_complete(STATUSES))] = None,
+    preset: Annotated[Optional[str], typer.Option(help="Only campaigns of this preset.", autocompletion=_complete(PRESETS))] = None,
+    limit: Annotated[int, typer.Option(min=1, max=200, help="Page size.")] = 20,
+    offset: Annotated[int, typer.Option(min=0, help="Campaigns to skip (newest first).")] = 0,
+    as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
+) -> None:
+    """List campaigns, newest first (with --json: the page object, items and total)."""
+    if status is not None and status not in STATUSES:
+        fail(f"--status must be one of {', '.join(STATUSES)}, got {status!r}", EXIT_USAGE)
+    params = {"limit": limit, "offset": offset, **({"status": status} if status else {}), **({"preset": preset} if preset else {})}
+    page = Client(api, token).request("GET", "/campaigns", params=params)
+    if as_json:
+        print_json(page)
+    else:
+        stdout.print(campaigns_table(page))
+
+
+@app.command("show")
+def show(campaign_id: IdArg, as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None) -> None:
+    """Status, progress, timings, POD R² and the full scenario of a campaign."""
+    c = Client(api, token).request("GET", f"/campaigns/{campaign_id}")
+    if as_json:
+        print_json(c)
+        return
+    for table in campaign_tables(c):
+        stdout.print(table)
+
+
 @app.command("status")
-def status(campaign_id: Annotated[str, typer.Argument(help="Campaign id.")], as_json: JsonOpt = False,
-           api: ApiOpt = DEFAULT_API, token: TokenOpt = None) -> None:
-    """Status and progress of a campaign."""
+def status_(campaign_id: IdArg, as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None) -> None:
+    """One line: status and progress of a campaign (with --json: the campaign object, as `show`)."""
     c = Client(api, token).request("GET", f"/campaigns/{campaign_id}")
     if as_json:
         print_json(c)
@@ -188,8 +178,127 @@ def status(campaign_id: Annotated[str, typer.Argument(help="Campaign id.")], as_
                  + (f", error: {c['error']}" if c.get("error") else ""))
 
 
+@app.command("watch")
+def watch(campaign_id: IdArg,
+          as_json: Annotated[bool, typer.Option("--json", help="Print every progress update as one JSON line; the last is the final state.")] = False,
+          api: ApiOpt = DEFAULT_API, token: TokenOpt = None) -> None:
+    """Follow a campaign with a live progress bar until it finishes. Exit code 0 if it is
+    done, 1 if it failed or was cancelled."""
+    client = Client(api, token)
+    final = _follow(client, campaign_id, as_json_lines=as_json)
+    if not as_json:
+        stdout.print(f"{campaign_id}: {final['status']}, {final['progress']['done']}/{final['progress']['total']} episodes done")
+    _check_finished(final | {"id": campaign_id})
+
+
 @app.command("results")
-def results(campaign_id: Annotated[str, typer.Argument(help="Campaign id.")], as_json: JsonOpt = False,
-            api: ApiOpt = DEFAULT_API, token: TokenOpt = None) -> None:
-    """The DR table (or the results object with --json) of a finished campaign."""
-    _show_results(Client(api, token), campaign_id, as_json)
+def results(
+    campaign_id: IdArg,
+    per_test: Annotated[bool, typer.Option("--per-test", help="The per-test outcome table instead of the DR table.")] = False,
+    algorithm: Annotated[Optional[str], typer.Option(help="With --per-test: only this algorithm.", autocompletion=_complete(ALGORITHMS))] = None,
+    limit: Annotated[int, typer.Option(min=1, max=200, help="With --per-test: page size.")] = 50,
+    offset: Annotated[int, typer.Option(min=0, help="With --per-test: rows to skip.")] = 0,
+    as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
+) -> None:
+    """The DR table of a finished campaign (with --json: the results object); with --per-test,
+    how each test ended."""
+    client = Client(api, token)
+    if per_test:
+        params = {"limit": limit, "offset": offset, **({"algorithm": algorithm} if algorithm else {})}
+        page = client.request("GET", f"/campaigns/{campaign_id}/tests", params=params)
+        if as_json:
+            print_json(page)
+        else:
+            stdout.print(outcomes_table(page))
+        return
+    body = client.request("GET", f"/campaigns/{campaign_id}/results")
+    if as_json:
+        print_json(body)
+    else:
+        print_results(body)
+
+
+@app.command("trace")
+def trace(
+    campaign_id: IdArg,
+    test: Annotated[int, typer.Option("--test", min=0, max=9999, help="The test index k.")] = 0,
+    algorithm: Annotated[str, typer.Option(help="The algorithm.", autocompletion=_complete(ALGORITHMS))] = "ra2vipas",
+    as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
+) -> None:
+    """One finished test step by step: pan angle, reward, estimate γ̂_t, the chosen target î_t
+    and whether it is the Tx."""
+    body = Client(api, token).request("GET", f"/campaigns/{campaign_id}/tests/{test}/{algorithm}")
+    if as_json:
+        print_json(body)
+    else:
+        stdout.print(trace_table(body))
+
+
+@app.command("cancel")
+def cancel(campaign_id: IdArg, as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None) -> None:
+    """Cancel a running campaign: its in-flight tests stop; the tests recorded so far stay."""
+    c = Client(api, token).request("POST", f"/campaigns/{campaign_id}/cancel")
+    if as_json:
+        print_json(c)
+    else:
+        print(f"campaign {c['id']} cancelled ({c['progress']['done']}/{c['progress']['total']} episodes done)")
+
+
+@app.command("delete")
+def delete(campaign_id: IdArg, as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None) -> None:
+    """Delete a finished campaign and its recorded tests (cancel a running one first)."""
+    Client(api, token).request("DELETE", f"/campaigns/{campaign_id}")
+    if as_json:
+        print_json({"id": campaign_id, "deleted": True})
+    else:
+        print(f"campaign {campaign_id} deleted")
+
+
+@app.command("export")
+def export(
+    campaign_id: IdArg,
+    fmt: Annotated[Optional[str], typer.Option("--format", "-f", help="json or csv (default: from the file extension, else json).", autocompletion=_complete(("json", "csv")))] = None,
+    output: Annotated[Optional[str], typer.Option("--output", "-o", metavar="FILE", help="Write here instead of stdout.")] = None,
+    api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
+) -> None:
+    """Export the results of a finished campaign as JSON or CSV, with the scenario and seed in
+    the file so it can be reproduced from it alone."""
+    if fmt is None:
+        fmt = "csv" if output and output.lower().endswith(".csv") else "json"
+    if fmt not in ("json", "csv"):
+        fail(f"--format must be json or csv, got {fmt!r}", EXIT_USAGE)
+    r = Client(api, token).response("GET", f"/campaigns/{campaign_id}/results", params={"format": fmt})
+    data = r.content if fmt == "csv" else (r.text.strip() + "\n").encode()
+    if output in (None, "-"):
+        sys.stdout.buffer.write(data)
+        sys.stdout.flush()
+        return
+    write_file(data, output)
+    print(f"{fmt.upper()} written to {output}", file=sys.stderr)
+
+
+@app.command("plot")
+def plot(
+    campaign_id: IdArg,
+    kind: Annotated[str, typer.Option("--kind", "-k", help="dr: DR curves (Fig. 4); pod: learned POD (Fig. 3); episode: one test (needs --test and --algorithm).", autocompletion=_complete(("dr", "pod", "episode")))] = "dr",
+    test: Annotated[Optional[int], typer.Option("--test", min=0, max=9999, help="With --kind episode: the test index.")] = None,
+    algorithm: Annotated[Optional[str], typer.Option(help="With --kind episode: the algorithm.", autocompletion=_complete(ALGORITHMS))] = None,
+    output: Annotated[Optional[str], typer.Option("--output", "-o", metavar="FILE", help="PNG or SVG file (default: campaign-ID-KIND.png).")] = None,
+    api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
+) -> None:
+    """Fetch a figure rendered by the server and write it to a file (.png or .svg)."""
+    output = output or f"campaign-{campaign_id}-{kind}.png"
+    if not output.lower().endswith((".png", ".svg")):
+        fail(f"--output expects a .png or .svg file name, got {output!r}", EXIT_USAGE)
+    fmt = "svg" if output.lower().endswith(".svg") else "png"
+    if kind in ("dr", "pod"):
+        path = f"/campaigns/{campaign_id}/plots/{kind}"
+    elif kind == "episode":
+        if test is None or algorithm is None:
+            fail("--kind episode needs --test K and --algorithm NAME", EXIT_USAGE)
+        path = f"/campaigns/{campaign_id}/tests/{test}/{algorithm}/plot"
+    else:
+        fail(f"--kind must be dr, pod or episode, got {kind!r}", EXIT_USAGE)
+    r = Client(api, token).response("GET", path, params={"format": fmt})
+    write_file(r.content, output)
+    print(f"{kind} plot written to {output}")

@@ -4,8 +4,11 @@ single-line error convention (exit 1 for a failed operation, 2 for bad usage).""
 from __future__ import annotations
 
 import json
+import math
+import os
 import shutil
 import sys
+import time
 from typing import Any, NoReturn
 
 import typer
@@ -26,6 +29,22 @@ def fail(message: str, code: int = EXIT_FAILED) -> NoReturn:
     """Print ``error: message`` on one stderr line and exit with ``code``."""
     print(f"error: {message}", file=sys.stderr)
     raise typer.Exit(code)
+
+
+def write_file(data: bytes, path: str) -> None:
+    """Write ``data`` to ``path`` through a temporary file (never a half-written file); a
+    failure is one stderr line and exit code 1."""
+    tmp = f"{path}.tmp-{os.getpid()}"
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except OSError as err:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        fail(f"cannot write {path}: {err.strerror or err}")
 
 
 def print_json(obj: Any) -> None:
@@ -57,6 +76,23 @@ def dr_table(results: dict[str, Any]) -> Table:
     return table
 
 
+def emit_results(results: dict[str, Any], plot: str | None, as_json: bool) -> None:
+    """Write the DR plot if asked, then print the results: one JSON line, or the table."""
+    if plot:
+        from services.orchestrator.plots import write_dr_plot
+
+        try:
+            write_dr_plot(results, plot)
+        except OSError as err:
+            fail(f"cannot write {plot}: {err.strerror or err}")
+    if as_json:
+        print_json(results)
+    else:
+        print_results(results)
+        if plot:
+            print(f"DR plot written to {plot}")
+
+
 def print_results(results: dict[str, Any]) -> None:
     stdout.print(dr_table(results))
     pod = results["pod"]
@@ -68,3 +104,99 @@ def print_results(results: dict[str, Any]) -> None:
         "DR: paper's association rule (eq. 11) at each time; 95% CI: Wilson interval of the final DR; "
         "t90: time after which DR stays >= 0.9; in-FoV: Tx inside the FoV at the final estimate (secondary)."
     )
+
+
+# -- campaigns ---------------------------------------------------------------------------------
+
+def _when(ts: float | None) -> str:
+    return "—" if ts is None else time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(ts))
+
+
+def _r2(pod: dict[str, Any]) -> str:
+    return "—" if pod.get("r2") is None else f"{pod['r2']:.4f}"
+
+
+def progress_text(c: dict[str, Any]) -> str:
+    p = c["progress"]
+    return f"{p['done']}/{p['total']}" + (f" ({p['running']} running)" if p.get("running") else "")
+
+
+def campaigns_table(page: dict[str, Any]) -> Table:
+    """One page of ``GET /campaigns``."""
+    items = page["items"]
+    first = page["offset"] + 1 if items else 0
+    table = Table(title=f"Campaigns {first}–{page['offset'] + len(items)} of {page['total']}")
+    for col in ("id", "name", "status", "preset", "tests", "seed", "algorithms", "episodes", "POD R²", "created"):
+        table.add_column(col, no_wrap=col in ("id", "created"))
+    for c in items:
+        table.add_row(c["id"], c["name"] or "", c["status"], c["preset"], str(c["tests"]), str(c["seed"]), ",".join(c["algorithms"]),
+                      progress_text(c), _r2(c["pod"]), _when(c["created_at"]))
+    return table
+
+
+def campaign_tables(c: dict[str, Any]) -> list[Table]:
+    """``GET /campaigns/{id}`` for people: the campaign, then its scenario (overrides marked *)."""
+    about = Table(title=f"Campaign {c['id']}", show_header=False)
+    about.add_column("field", style="bold")
+    about.add_column("value")
+    elapsed = c.get("elapsed_s")
+    rows = [
+        ("name", c["name"] or ""), ("status", c["status"]), ("progress", progress_text(c) + " episodes"),
+        ("preset", c["preset"]), ("mode", c["mode"]), ("tests", str(c["tests"])), ("seed", str(c["seed"])),
+        ("algorithms", ", ".join(c["algorithms"])), ("created", _when(c["created_at"])), ("started", _when(c["started_at"])),
+        ("finished", _when(c["finished_at"])), ("elapsed", "—" if elapsed is None else f"{elapsed:.1f} s"),
+        ("POD R²", _r2(c["pod"])),
+        ("steps/s", "—" if not c.get("steps_per_second") else f"{c['steps_per_second']:.0f}"),
+    ]
+    if c.get("error"):
+        rows.append(("error", c["error"]))
+    for k, v in rows:
+        about.add_row(k, v)
+    scenario = Table(title="Scenario (* overridden)")
+    scenario.add_column("parameter")
+    scenario.add_column("value", justify="right")
+    for name, value in c["scenario"].items():
+        scenario.add_row(name + (" *" if name in c["overrides"] else ""), str(value))
+    return [about, scenario]
+
+
+def outcomes_table(page: dict[str, Any]) -> Table:
+    """One page of ``GET /campaigns/{id}/tests``."""
+    items = page["items"]
+    first = page["offset"] + 1 if items else 0
+    table = Table(title=f"Tests {first}–{page['offset'] + len(items)} of {page['total']}")
+    for col in ("test", "algorithm", "status", "Tx", "final î", "hit", "hit rate", "first hit", "settled", "rig"):
+        table.add_column(col, justify="right" if col not in ("algorithm", "status", "rig") else "left")
+
+    def opt(v: Any, fmt: str = "{}") -> str:
+        return "—" if v is None else fmt.format(v)
+
+    for o in items:
+        hit = "—" if o["final_hit"] is None else ("yes" if o["final_hit"] else "no")
+        table.add_row(str(o["test_index"]), o["algorithm"], o["status"], opt(o["tx_index"]), opt(o["final_choice"]), hit,
+                      opt(o["hit_rate"], "{:.2f}"), opt(o["first_hit_s"], "{:g} s"), opt(o["settled_s"], "{:g} s"), o["rig"] or "")
+    return table
+
+
+def trace_table(trace: dict[str, Any]) -> Table:
+    """``GET /campaigns/{id}/tests/{k}/{algorithm}``: one row per step, angles in degrees."""
+    tx = trace["tx_index"]
+    table = Table(title=f"Test {trace['test_index']} ({trace['algorithm']}): the Tx is target {tx} at "
+                        f"{math.degrees(trace['targets'][tx]['bearing_rad']):.1f}°, {trace['targets'][tx]['range_m']:.2f} m")
+    for col in ("step", "time", "pan s_t", "reward", "estimate γ̂_t", "î_t", "hit"):
+        table.add_column(col, justify="right")
+    for s in trace["steps"]:
+        table.add_row(str(s["step"]), f"{s['time_s']:g} s", f"{math.degrees(s['pan_rad']):.1f}°", f"{s['reward']:.3g}",
+                      f"{math.degrees(s['gamma_hat_rad']):.1f}°", str(s["i_hat"]), "yes" if s["hit"] else "no")
+    return table
+
+
+def rigs_table(body: dict[str, Any]) -> Table:
+    """``GET /rigs``."""
+    table = Table(title=f"Rigs (learners: {', '.join(body['learners']) or 'none'})")
+    for col in ("rig", "live", "sensors", "controller", "episodes in flight"):
+        table.add_column(col)
+    for r in body["rigs"]:
+        table.add_row(r["name"], "yes" if r["live"] else "no", "up" if r["sensors"] else "down",
+                      "up" if r["controller"] else "down", str(r["in_flight"]))
+    return table

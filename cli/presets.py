@@ -8,42 +8,29 @@ import typer
 from rich.table import Table
 
 from cli.output import EXIT_FAILED, fail, print_json, stdout
-from services.protocol.scenario import PRESET_DESCRIPTIONS, PRESETS, Scenario, ScenarioError, build_scenario, field_range
+from services.orchestrator.presets import preset_object, preset_summaries
+from services.protocol.scenario import PRESETS, ScenarioError
 
-app = typer.Typer(help="Scenario presets and their parameters.", no_args_is_help=True)
-
-
-def preset_object(name: str) -> dict:
-    """A preset as data: its description and every parameter with value, range and meaning."""
-    scenario = build_scenario(name)
-    values = scenario.model_dump(mode="json")
-    return {
-        "name": name,
-        "description": PRESET_DESCRIPTIONS[name],
-        "parameters": {
-            field: {"value": values[field], "allowed": field_range(field), "description": info.description}
-            for field, info in Scenario.model_fields.items()
-        },
-    }
+app = typer.Typer(help="Scenario presets and their parameters (the same as GET /presets; no server needed).", no_args_is_help=True)
 
 
 @app.command("list")
 def list_presets(as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False) -> None:
     """List the presets."""
     if as_json:
-        print_json([{"name": n, "description": PRESET_DESCRIPTIONS[n]} for n in PRESETS])
+        print_json(preset_summaries())
         return
     table = Table(title="Scenario presets")
     table.add_column("name")
     table.add_column("description")
-    for name in PRESETS:
-        table.add_row(name, PRESET_DESCRIPTIONS[name])
+    for p in preset_summaries():
+        table.add_row(p["name"], p["description"])
     stdout.print(table)
 
 
 @app.command("show")
 def show_preset(
-    name: Annotated[str, typer.Argument(help="Preset name, e.g. paper.")],
+    name: Annotated[str, typer.Argument(help="Preset name, e.g. paper.", autocompletion=lambda incomplete: [p for p in PRESETS if p.startswith(incomplete)])],
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Every parameter of a preset with its value and allowed range (override with --set NAME=VALUE)."""

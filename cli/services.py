@@ -110,6 +110,7 @@ def orchestrator(
     db: Annotated[Optional[str], typer.Option("--db", help="SQLite file [env RA2VIPAS_DB; default ra2vipas.db].")] = None,
     window: Annotated[Optional[int], typer.Option(min=1, max=1024, help="Episodes in flight per rig [env RA2VIPAS_WINDOW; default 8].")] = None,
     expect_rigs: Annotated[Optional[int], typer.Option(min=0, max=1000, help="Rigs that must be live for /health to be 200 [env RA2VIPAS_EXPECT_RIGS; default 1].")] = None,
+    token: Annotated[Optional[str], typer.Option("--token", help="Require `Authorization: Bearer TOKEN` on every request that changes state [env RA2VIPAS_TOKEN; default: none].")] = None,
     mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
     zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO",
 ) -> None:
@@ -123,9 +124,16 @@ def orchestrator(
     configure_logging(log_level)
     _yield_cpu()
     settings = OrchestratorSettings.from_sources(host=host, port=port, db_path=db, window=window, expect_rigs=expect_rigs,
-                                                 zenoh=zenoh_settings(mode, connect, listen, zenoh_config))
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=log_level.lower(),
-                access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5)
+                                                 token=token, zenoh=zenoh_settings(mode, connect, listen, zenoh_config))
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), host=settings.host, port=settings.port, log_level=log_level.lower(),
+                                           access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5))
+    import signal
+
+    # uvicorn shuts down gracefully on SIGINT/SIGTERM, then re-raises the signal to the handler
+    # that was there before it; with this no-op one the process exits 0 like the other services.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: None)
+    server.run()
 
 
 def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:

@@ -7,8 +7,8 @@ from typing import Annotated, Optional
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from cli.output import EXIT_USAGE, fail, print_json, print_results, stderr
-from services.controller.policy import ALGORITHMS
+from cli.output import EXIT_USAGE, emit_results, fail, stderr
+from services.protocol.messages import ALGORITHMS
 from services.protocol.scenario import PRESETS, ScenarioError, build_scenario, parse_overrides
 
 
@@ -60,16 +60,4 @@ def simulate(
             results = run_campaign(preset, scenario, tests, seed, names, progress=lambda done, _: bar.update(task, completed=done))
         except ScenarioError as err:
             fail(str(err))
-    if plot:
-        from services.orchestrator.plots import write_dr_plot
-
-        try:
-            write_dr_plot(results, plot)
-        except OSError as err:
-            fail(f"cannot write {plot}: {err.strerror or err}")
-    if as_json:
-        print_json(results)
-    else:
-        print_results(results)
-        if plot:
-            print(f"DR plot written to {plot}")
+    emit_results(results, plot, as_json)

@@ -71,18 +71,23 @@ class LobeGP:
         self.residual_var = float(residual_var)
         self.capacity = int(capacity)
         M = self.grid.size
-        self.x_ = np.empty(self.capacity)
         self.n_ = 0
-        self._Li = np.zeros((self.capacity, self.capacity))  # L^{-1}, grown one row per sample
-        self._V = np.zeros((self.capacity, M))  # L^{-1} k(X, grid)
-        self._H = np.zeros((self.capacity, M))  # L^{-1} h(X - grid)
-        self._o = np.zeros(self.capacity)  # L^{-1} 1
-        self._u = np.zeros(self.capacity)  # L^{-1} z
+        self._allocate(min(self.capacity, 128))
         self._res_var = np.full(M, self.residual_var)
         self._hh = np.zeros(M)
         self._ho = np.zeros(M)
         self._hu = np.zeros(M)
         self._oo = self._ou = self._uu = 0.0
+
+    def _allocate(self, size: int) -> None:
+        """(Re)allocate storage for ``size`` samples, keeping the first ``n_`` (memory grows with
+        the samples actually taken, not with the largest test allowed)."""
+        M, n = self.grid.size, self.n_
+        old = getattr(self, "_Li", None)
+        x, Li, V, H, o, u = np.empty(size), np.zeros((size, size)), np.zeros((size, M)), np.zeros((size, M)), np.zeros(size), np.zeros(size)
+        if old is not None and n:
+            x[:n], Li[:n, :n], V[:n], H[:n], o[:n], u[:n] = self.x_[:n], self._Li[:n, :n], self._V[:n], self._H[:n], self._o[:n], self._u[:n]
+        self.x_, self._Li, self._V, self._H, self._o, self._u = x, Li, V, H, o, u  # L^{-1}, L^{-1}k(X,grid), L^{-1}h(X-grid), L^{-1}1, L^{-1}z
 
     def add(self, s: float, z: float) -> None:
         """Add the sample z (dBm) taken at pan angle s (rad). O(n M).
@@ -95,6 +100,8 @@ class LobeGP:
         n = self.n_
         if n >= self.capacity:
             raise ValueError(f"LobeGP holds at most {self.capacity} samples")
+        if n >= self.x_.size:
+            self._allocate(min(self.capacity, 2 * self.x_.size))
         k_grid = self.circle.kernel_row(s, self.residual_length_scale, self.residual_var)
         h_grid = self.circle.kernel_row(s, self.lobe_width)
         d2 = self.residual_var + self.noise_var

@@ -14,23 +14,23 @@ Many episodes may be in flight at once; each has its own ``Controller``.
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass, field
-
-from pydantic import ValidationError
 
 from services.controller.policy import Controller, ControllerSettings, sensor_config_from_scenario
 from services.protocol import keys
 from services.protocol.messages import (
-    Command, EpisodeResult, EpisodeStart, EpisodeStop, ErrorReply, Measurement, Mode, PODRequest, PODResponse, dump,
-    episode_control_adapter, training_job_id,
+    Command, EpisodeResult, EpisodeStart, EpisodeStop, Measurement, Mode, PODRequest, PODResponse, decode, dump,
+    episode_control_adapter, error_text, training_job_id,
 )
 from services.protocol.pod import PODModel
-from services.transport.bus import Bus, Reply
-from services.transport.runtime import EventLoop
+from services.transport.bus import Bus, Reply, undeclare_all
+from services.transport.runtime import EventLoop, decode_or_drop
 
 log = logging.getLogger(__name__)
 
 MODEL_TIMEOUT_S = 300.0
+MODEL_ATTEMPTS = 30  # about a minute of retries while no learner answers
 
 
 @dataclass
@@ -80,10 +80,8 @@ class ControllerNode:
 
     # -- episode lifecycle ------------------------------------------------------------------
     def _on_control(self, payload: bytes) -> None:
-        try:
-            msg = episode_control_adapter.validate_json(payload)
-        except ValidationError as err:
-            log.warning("dropping malformed episode control message: %s", err.errors()[0].get("msg", "") if err.errors() else err)
+        msg = decode_or_drop(episode_control_adapter, payload, "episode control message", log)
+        if msg is None:
             return
         if isinstance(msg, EpisodeStop):
             self.episodes.pop(msg.episode_id, None)
@@ -98,25 +96,30 @@ class ControllerNode:
         waiting = self._waiting.setdefault(job, [])
         waiting.append(msg.episode_id)
         if len(waiting) == 1:
-            request = dump(PODRequest(scenario=msg.scenario, seed=msg.seed))
-            self.bus.query(keys.pod_model(), request, MODEL_TIMEOUT_S,
-                           lambda replies, job=job: self.loop.post(self._on_model, job, replies))
+            self._request_model(job, dump(PODRequest(scenario=msg.scenario, seed=msg.seed)), 1)
 
-    def _on_model(self, job: str, replies: list[Reply]) -> None:
+    def _request_model(self, job: str, request: bytes, attempt: int) -> None:
+        self.bus.query(keys.pod_model(), request, MODEL_TIMEOUT_S,
+                       lambda replies: self.loop.post(self._on_model, job, replies, request, attempt))
+
+    def _on_model(self, job: str, replies: list[Reply], request: bytes = b"", attempt: int = MODEL_ATTEMPTS) -> None:
+        if not replies and attempt < MODEL_ATTEMPTS and self._waiting.get(job):
+            # no learner reachable right now (restarting?): ask again shortly instead of failing
+            timer = threading.Timer(min(0.5 * attempt, 5.0), self.loop.post, (self._request_model, job, request, attempt + 1))
+            timer.daemon = True
+            timer.start()
+            return
         waiting = self._waiting.pop(job, [])
         model, error = None, "no learner answered"
         for reply in replies:
             if not reply.ok:
-                try:
-                    error = ErrorReply.model_validate_json(reply.payload).error
-                except ValidationError:
-                    error = reply.payload.decode(errors="replace")[:500]
+                error = error_text(reply.payload)
                 continue
-            try:
-                model = PODResponse.model_validate_json(reply.payload).model
+            response, reason = decode(PODResponse, reply.payload)
+            if response is not None:
+                model = response.model
                 break
-            except ValidationError as err:
-                error = f"malformed PODResponse: {err.errors()[0].get('msg', '')}"
+            error = f"malformed PODResponse: {reason}"
         if model is None:
             for episode_id in waiting:
                 self._fail(episode_id, f"POD model unavailable: {error}")
@@ -141,10 +144,8 @@ class ControllerNode:
 
     # -- stepping ---------------------------------------------------------------------------
     def _on_measurement(self, payload: bytes) -> None:
-        try:
-            m = Measurement.model_validate_json(payload)
-        except ValidationError as err:
-            log.warning("dropping malformed measurement: %s", err.errors()[0].get("msg", "") if err.errors() else err)
+        m = decode_or_drop(Measurement, payload, "measurement", log)
+        if m is None:
             return
         ep = self.episodes.get(m.episode_id)
         if ep is None or ep.controller is None or m.step != ep.next_step:
@@ -167,10 +168,6 @@ class ControllerNode:
             episode_id=m.episode_id, rig=self.rig, estimates_rad=tuple(ep.estimates), pans_rad=tuple(ep.pans), rewards=tuple(ep.rewards))))
 
     def close(self) -> None:
-        for h in self._handles:
-            try:
-                h.undeclare()
-            except Exception:
-                pass
+        undeclare_all(self._handles)
         self.loop.stop()
 

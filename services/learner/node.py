@@ -19,8 +19,8 @@ from pydantic import ValidationError
 
 from services.learner.pod import LearnerSettings, fit_pod
 from services.protocol import keys
-from services.protocol.messages import ErrorReply, PODRequest, PODResponse, TrainingRequest, TrainingStream, dump, training_job_id
-from services.transport.bus import Bus, QueryError, Reply
+from services.protocol.messages import ErrorReply, PODRequest, PODResponse, TrainingRequest, TrainingStream, decode, dump, training_job_id
+from services.transport.bus import Bus, QueryError, Reply, undeclare_all
 
 log = logging.getLogger(__name__)
 
@@ -46,10 +46,9 @@ class LearnerNode:
         ]
 
     def _on_request(self, _key: str, payload: bytes) -> bytes:
-        try:
-            req = PODRequest.model_validate_json(payload)
-        except ValidationError as err:
-            raise QueryError(dump(ErrorReply(error=f"malformed PODRequest: {err.errors()[0].get('msg', '')}")).decode()) from None
+        req, reason = decode(PODRequest, payload)
+        if req is None:
+            raise QueryError(dump(ErrorReply(error=f"malformed PODRequest: {reason}")).decode())
         return dump(self.model_for(req))
 
     def model_for(self, req: PODRequest) -> PODResponse:
@@ -85,10 +84,9 @@ class LearnerNode:
             if not reply.ok:
                 errors.append(reply.payload.decode(errors="replace")[:300])
                 continue
-            try:
-                stream = TrainingStream.model_validate_json(reply.payload)
-            except ValidationError as err:
-                errors.append(f"malformed TrainingStream: {err.errors()[0].get('msg', '')}")
+            stream, reason = decode(TrainingStream, reply.payload)
+            if stream is None:
+                errors.append(f"malformed TrainingStream: {reason}")
                 continue
             if stream.job_id == request.job_id:
                 return stream
@@ -117,8 +115,4 @@ class LearnerNode:
         os.replace(tmp, path)
 
     def close(self) -> None:
-        for h in self._handles:
-            try:
-                h.undeclare()
-            except Exception:
-                pass
+        undeclare_all(self._handles)

@@ -37,17 +37,18 @@ from services.orchestrator.simulate import TestOutcome, TrainedPOD, summarize
 from services.orchestrator.storage import EpisodeKey, Store
 from services.protocol import keys
 from services.protocol.messages import (
-    EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, ErrorReply, Mode, PODRequest, PODResponse,
-    TrainingRequest, TrainingTruth, dump, training_job_id,
+    EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Mode, PODRequest, PODResponse,
+    TrainingRequest, TrainingTruth, dump, error_text,
 )
 from services.protocol.scenario import Scenario
-from services.transport.bus import Bus, Reply
-from services.transport.runtime import EventLoop
+from services.transport.bus import Bus, Reply, undeclare_all
+from services.transport.runtime import EventLoop, decode_or_drop
 
 log = logging.getLogger(__name__)
 
 MAX_ATTEMPTS = 5
 MODEL_TIMEOUT_S = 600.0
+MODEL_ATTEMPTS = 60  # retries (every 2-10 s) while no learner answers
 EPISODE_TIMEOUT_S = 60.0  # plus twice the test's duration in realtime mode
 TIMEOUT_CHECK_S = 2.0
 
@@ -74,6 +75,8 @@ class _Run:
     pending: deque = field(default_factory=deque)
     pod: TrainedPOD | None = None
     running_since: float | None = None
+    model_attempts: int = 0
+    model_retry_at: float | None = None
 
 
 @dataclass
@@ -119,6 +122,9 @@ class Scheduler:
     def _check_timeouts(self) -> None:
         """Requeue episodes that made no progress for far too long (a lost message, a hung rig)."""
         now = time.time()
+        for run in list(self.runs.values()):
+            if run.model_retry_at is not None and now >= run.model_retry_at:
+                self._request_model(run)
         for eid, flight in list(self.flights.items()):
             run = self.runs.get(flight.key.campaign_id)
             if run is None:
@@ -141,11 +147,7 @@ class Scheduler:
 
     def close(self) -> None:
         self._stop.set()
-        for h in self._handles:
-            try:
-                h.undeclare()
-            except Exception:
-                pass
+        undeclare_all(self._handles)
         self.loop.stop()
 
     # -- campaign lifecycle ---------------------------------------------------------------------
@@ -171,12 +173,21 @@ class Scheduler:
             self._go(run)
             return
         self.store.set_campaign(cid, status="training", started_at=c["started_at"] or time.time())
-        request = dump(PODRequest(scenario=scenario, seed=run.seed))
-        self.bus.query(keys.pod_model(), request, MODEL_TIMEOUT_S, lambda replies: self.loop.post(self._on_model, cid, replies))
+        self._request_model(run)
+
+    def _request_model(self, run: _Run) -> None:
+        run.model_attempts += 1
+        run.model_retry_at = None
+        request = dump(PODRequest(scenario=run.scenario, seed=run.seed))
+        self.bus.query(keys.pod_model(), request, MODEL_TIMEOUT_S, lambda replies: self.loop.post(self._on_model, run.id, replies))
 
     def _on_model(self, cid: str, replies: list[Reply]) -> None:
         run = self.runs.get(cid)
         if run is None:
+            return
+        if not replies and run.model_attempts < MODEL_ATTEMPTS:
+            # no learner (yet): the timeout ticker asks again; a campaign waits for its learner
+            run.model_retry_at = time.time() + min(2.0 * run.model_attempts, 10.0)
             return
         response, error = None, "no learner answered"
         for reply in replies:
@@ -187,7 +198,7 @@ class Scheduler:
                 except ValidationError:
                     error = "malformed PODResponse"
             else:
-                error = _error_text(reply.payload)
+                error = error_text(reply.payload)
         if response is None:
             self._fail(run, f"POD model unavailable: {error}")
             return
@@ -200,6 +211,7 @@ class Scheduler:
         if run is None:
             return
         r2 = None
+        truth_data = None  # kept with the model for the POD figure (paper Fig. 3)
         for reply in replies:
             if not reply.ok:
                 continue
@@ -209,9 +221,11 @@ class Scheduler:
                 continue
             if truth.job_id == response.job_id and len(truth.rssi_dbm) == len(truth.pod):
                 r2 = round(float(r2_score(np.asarray(truth.pod), predict(response.model, np.asarray(truth.rssi_dbm)))), 6)
+                truth_data = {"rssi_dbm": list(truth.rssi_dbm), "pod": list(truth.pod)}
                 break
         run.pod = TrainedPOD(model=response.model, r2=r2, train_seconds=response.train_seconds)
         self.store.set_campaign(cid, pod_job=response.job_id, pod_r2=r2, pod_train_seconds=response.train_seconds)
+        self.store.set_pod_artifacts(cid, model=response.model.model_dump(mode="json"), truth=truth_data)
         self._go(run)
 
     def _go(self, run: _Run) -> None:
@@ -222,6 +236,7 @@ class Scheduler:
         self._maybe_finish(run)
 
     def _cancel(self, cid: str) -> None:
+        self.store.cancel_campaign(cid)  # no-op if it already finished (e.g. failed just before)
         run = self.runs.pop(cid, None)
         if cid in self._order:
             self._order.remove(cid)
@@ -276,10 +291,8 @@ class Scheduler:
 
     # -- results --------------------------------------------------------------------------------
     def _on_result(self, payload: bytes) -> None:
-        try:
-            msg = EpisodeResult.model_validate_json(payload)
-        except ValidationError as err:
-            log.warning("dropping malformed EpisodeResult: %s", err.errors()[0].get("msg", "") if err.errors() else err)
+        msg = decode_or_drop(EpisodeResult, payload, "EpisodeResult", log)
+        if msg is None:
             return
         flight = self.flights.get(msg.episode_id)
         if flight is None:
@@ -292,10 +305,8 @@ class Scheduler:
         self._complete(msg.episode_id)
 
     def _on_truth(self, payload: bytes) -> None:
-        try:
-            msg = EpisodeTruth.model_validate_json(payload)
-        except ValidationError:
-            log.warning("dropping malformed EpisodeTruth")
+        msg = decode_or_drop(EpisodeTruth, payload, "EpisodeTruth", log)
+        if msg is None:
             return
         flight = self.flights.get(msg.episode_id)
         if flight is not None:
@@ -303,10 +314,8 @@ class Scheduler:
             self._complete(msg.episode_id)
 
     def _on_timing(self, payload: bytes) -> None:
-        try:
-            msg = EpisodeTiming.model_validate_json(payload)
-        except ValidationError:
-            log.warning("dropping malformed EpisodeTiming")
+        msg = decode_or_drop(EpisodeTiming, payload, "EpisodeTiming", log)
+        if msg is None:
             return
         flight = self.flights.get(msg.episode_id)
         if flight is not None:
@@ -421,13 +430,6 @@ class Scheduler:
             "rigs": {name: {"sensors": st.sensors, "controller": st.controller, "in_flight": len(st.in_flight)} for name, st in list(self.rigs.items())},
             "learners": sorted(self.learners),
         }
-
-
-def _error_text(payload: bytes) -> str:
-    try:
-        return ErrorReply.model_validate_json(payload).error
-    except ValidationError:
-        return payload.decode(errors="replace")[:500]
 
 
 def _json(obj: Any) -> str:

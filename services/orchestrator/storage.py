@@ -4,6 +4,10 @@ Rows here are the orchestrator's own records, distinct from wire messages and AP
 Every write is one transaction (``Store.transaction``), so a crash never leaves a
 half-written test: an episode row is either still pending/running or done with its whole
 trace. The schema carries a version (``meta.schema_version``) and migrations run on open.
+
+A campaign moves queued -> training -> running -> done | failed | cancelled; once it is
+finished its status never changes again (``set_campaign`` refuses), so a late result cannot
+turn a cancelled campaign into a done one.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Iterator
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -65,14 +69,33 @@ _MIGRATIONS: dict[int, str] = {
     );
     CREATE INDEX episodes_status ON episodes(campaign_id, status);
     """,
+    # 2: the learned POD model (PODModel JSON) and its training episode's truth
+    #    ({"rssi_dbm": [...], "pod": [...]}), for the POD figure (paper Fig. 3).
+    2: """
+    ALTER TABLE campaigns ADD COLUMN pod_model TEXT;
+    ALTER TABLE campaigns ADD COLUMN pod_truth TEXT
+    """,
 }
 
 ACTIVE = ("queued", "training", "running")
 FINISHED = ("done", "failed", "cancelled")
+EPISODE_STATES = ("pending", "running", "done", "cancelled")
+
+# Every campaign column but the large POD artifacts (read them with ``Store.pod_artifacts``);
+# lists leave out the results object too.
+_LIST_COLUMNS = (
+    "id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at, started_at, finished_at,"
+    " pod_job, pod_r2, pod_train_seconds, error, steps_per_second"
+)
+_CAMPAIGN_COLUMNS = _LIST_COLUMNS + ", results"
 
 
 class StoreError(Exception):
     """A storage operation failed (e.g. the file cannot be opened or is from a newer version)."""
+
+
+class CampaignActiveError(StoreError):
+    """The operation needs a finished campaign and this one is still queued, training or running."""
 
 
 @dataclass(frozen=True)
@@ -157,7 +180,7 @@ class Store:
 
     def campaign(self, cid: str) -> dict[str, Any] | None:
         with self._lock:
-            row = self._db.execute("SELECT * FROM campaigns WHERE id=?", (cid,)).fetchone()
+            row = self._db.execute(f"SELECT {_CAMPAIGN_COLUMNS} FROM campaigns WHERE id=?", (cid,)).fetchone()
             if row is None:
                 return None
             counts = dict(self._db.execute(
@@ -165,22 +188,21 @@ class Store:
         return _campaign_dict(row, counts)
 
     def campaigns(self, *, status: str | None = None, preset: str | None = None, limit: int = 50, offset: int = 0) -> tuple[list[dict], int]:
-        where, args = [], []
-        if status:
-            where.append("status=?")
-            args.append(status)
-        if preset:
-            where.append("preset=?")
-            args.append(preset)
-        clause = (" WHERE " + " AND ".join(where)) if where else ""
+        """One page of campaigns (without their results objects), newest first, optionally
+        filtered; and how many match in all."""
+        clause, args = _where(status=status, preset=preset)
         with self._lock:
             total = self._db.execute(f"SELECT COUNT(*) FROM campaigns{clause}", args).fetchone()[0]
-            rows = self._db.execute(f"SELECT * FROM campaigns{clause} ORDER BY created_at DESC, id LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
-            out = []
-            for row in rows:
-                counts = dict(self._db.execute("SELECT status, COUNT(*) FROM episodes WHERE campaign_id=? GROUP BY status", (row["id"],)).fetchall())
-                out.append(_campaign_dict(row, counts))
-        return out, total
+            rows = self._db.execute(f"SELECT {_LIST_COLUMNS} FROM campaigns{clause} ORDER BY created_at DESC, id LIMIT ? OFFSET ?",
+                                    [*args, limit, offset]).fetchall()
+            ids = [row["id"] for row in rows]
+            counts: dict[str, dict[str, int]] = {i: {} for i in ids}
+            if ids:
+                for cid, st, n in self._db.execute(
+                        f"SELECT campaign_id, status, COUNT(*) FROM episodes WHERE campaign_id IN ({','.join('?' * len(ids))})"
+                        " GROUP BY campaign_id, status", ids):
+                    counts[cid][st] = n
+        return [_campaign_dict(row, counts[row["id"]]) for row in rows], total
 
     def active_campaigns(self) -> list[dict[str, Any]]:
         with self._lock:
@@ -188,17 +210,63 @@ class Store:
                 f"SELECT id FROM campaigns WHERE status IN ({','.join('?' * len(ACTIVE))}) ORDER BY created_at, id", ACTIVE)]
         return [c for c in (self.campaign(i) for i in ids) if c]
 
-    def set_campaign(self, cid: str, **fields: Any) -> None:
+    def set_campaign(self, cid: str, **fields: Any) -> bool:
+        """Update columns of a campaign; False if nothing changed.
+
+        An update that sets ``status`` applies only while the campaign is active: a finished
+        campaign (done, failed, cancelled) keeps its status and everything written with it.
+        """
         if not fields:
-            return
+            return False
         cols = ", ".join(f"{k}=?" for k in fields)
+        guard = f" AND status IN ({','.join('?' * len(ACTIVE))})" if "status" in fields else ""
         with self.transaction() as db:
-            db.execute(f"UPDATE campaigns SET {cols} WHERE id=?", [*fields.values(), cid])
+            cur = db.execute(f"UPDATE campaigns SET {cols} WHERE id=?{guard}", [*fields.values(), cid, *(ACTIVE if guard else ())])
+            return cur.rowcount > 0
+
+    def cancel_campaign(self, cid: str) -> bool:
+        """Mark an active campaign cancelled and its unfinished episodes with it, in one
+        transaction; False if there is no such campaign or it had already finished."""
+        with self.transaction() as db:
+            cur = db.execute(
+                f"UPDATE campaigns SET status='cancelled', finished_at=? WHERE id=? AND status IN ({','.join('?' * len(ACTIVE))})",
+                (time.time(), cid, *ACTIVE))
+            if cur.rowcount == 0:
+                return False
+            db.execute("UPDATE episodes SET status='cancelled', rig=NULL WHERE campaign_id=? AND status IN ('pending', 'running')", (cid,))
+            return True
 
     def delete_campaign(self, cid: str) -> bool:
+        """Delete a finished campaign with all its episodes; False if there is no such campaign.
+
+        Raises
+        ------
+        CampaignActiveError
+            The campaign is still queued, training or running (cancel it first).
+        """
         with self.transaction() as db:
+            row = db.execute("SELECT status FROM campaigns WHERE id=?", (cid,)).fetchone()
+            if row is None:
+                return False
+            if row[0] in ACTIVE:
+                raise CampaignActiveError(f"campaign {cid} is {row[0]}; cancel it first")
             db.execute("DELETE FROM episodes WHERE campaign_id=?", (cid,))
-            return db.execute("DELETE FROM campaigns WHERE id=?", (cid,)).rowcount > 0
+            db.execute("DELETE FROM campaigns WHERE id=?", (cid,))
+            return True
+
+    def set_pod_artifacts(self, cid: str, *, model: dict | None, truth: dict | None) -> None:
+        """Keep the learned POD model (PODModel as JSON data) and its training truth
+        (``{"rssi_dbm": [...], "pod": [...]}``) for the POD figure."""
+        self.set_campaign(cid, pod_model=None if model is None else json.dumps(model, separators=(",", ":")),
+                          pod_truth=None if truth is None else json.dumps(truth, separators=(",", ":")))
+
+    def pod_artifacts(self, cid: str) -> dict[str, Any] | None:
+        """``{"model": dict | None, "truth": dict | None}``; None if there is no such campaign."""
+        with self._lock:
+            row = self._db.execute("SELECT pod_model, pod_truth FROM campaigns WHERE id=?", (cid,)).fetchone()
+        if row is None:
+            return None
+        return {"model": None if row[0] is None else json.loads(row[0]), "truth": None if row[1] is None else json.loads(row[1])}
 
     # -- episodes ---------------------------------------------------------------------------
     def pending_episodes(self, cid: str) -> list[EpisodeKey]:
@@ -232,11 +300,13 @@ class Store:
     def finish_episode(self, key: EpisodeKey, *, hits: list[bool], in_fov: list[bool], estimates: list[float], pans: list[float],
                        rewards: list[float], chosen: list[int], tx_index: int, bearings: list[float], ranges: list[float],
                        latencies: list[float] | None) -> bool:
-        """Record a finished test in one transaction; False if it was already recorded (no duplicate)."""
+        """Record a finished test in one transaction; False if it was already recorded (no
+        duplicate) or its campaign was cancelled."""
         with self.transaction() as db:
             cur = db.execute(
                 "UPDATE episodes SET status='done', hits=?, in_fov=?, estimates=?, pans=?, rewards=?, chosen=?, tx_index=?,"
-                " bearings=?, ranges=?, latencies=?, finished_at=? WHERE campaign_id=? AND test_index=? AND algorithm=? AND status!='done'",
+                " bearings=?, ranges=?, latencies=?, finished_at=?"
+                " WHERE campaign_id=? AND test_index=? AND algorithm=? AND status IN ('pending', 'running')",
                 (json.dumps([int(h) for h in hits]), json.dumps([int(f) for f in in_fov]), json.dumps(estimates), json.dumps(pans),
                  json.dumps(rewards), json.dumps(chosen), tx_index, json.dumps(bearings), json.dumps(ranges),
                  None if latencies is None else json.dumps(latencies), time.time(),
@@ -251,10 +321,32 @@ class Store:
                 rows = self._db.execute("SELECT * FROM episodes WHERE campaign_id=? AND status=? ORDER BY test_index, algorithm", (cid, status)).fetchall()
         return [_episode_dict(r) for r in rows]
 
+    def episode_page(self, cid: str, *, algorithm: str | None = None, status: str | None = None, limit: int = 50,
+                     offset: int = 0) -> tuple[list[dict[str, Any]], int]:
+        """One page of a campaign's episodes ordered by (test index, algorithm), optionally
+        filtered; and how many match in all. Rows are summaries: ``hits`` per step and the
+        last step's ``final_choice`` (î), ``final_in_fov`` and ``final_estimate`` (gamma_hat),
+        not the whole trace."""
+        clause, args = _where(campaign_id=cid, algorithm=algorithm, status=status)
+        with self._lock:
+            total = self._db.execute(f"SELECT COUNT(*) FROM episodes{clause}", args).fetchone()[0]
+            rows = self._db.execute(
+                "SELECT test_index, algorithm, status, rig, attempt, tx_index, hits, json_extract(chosen, '$[#-1]') AS final_choice,"
+                " json_extract(in_fov, '$[#-1]') AS final_in_fov, json_extract(estimates, '$[#-1]') AS final_estimate"
+                f" FROM episodes{clause} ORDER BY test_index, algorithm LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
+        return [_episode_dict(r) for r in rows], total
+
     def episode(self, cid: str, test_index: int, algorithm: str) -> dict[str, Any] | None:
         with self._lock:
             row = self._db.execute("SELECT * FROM episodes WHERE campaign_id=? AND test_index=? AND algorithm=?", (cid, test_index, algorithm)).fetchone()
         return None if row is None else _episode_dict(row)
+
+
+def _where(**equal: Any) -> tuple[str, list[Any]]:
+    """A ``WHERE column=? AND ...`` clause and its arguments for the filters that are set
+    (column names come from the keyword names, never from input)."""
+    columns = [name for name, value in equal.items() if value]
+    return (" WHERE " + " AND ".join(f"{c}=?" for c in columns)) if columns else "", [equal[c] for c in columns]
 
 
 def _campaign_dict(row: sqlite3.Row, counts: dict[str, int]) -> dict[str, Any]:

@@ -13,13 +13,17 @@ import json
 from enum import Enum
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
 from services.protocol.pod import PODModel
 from services.protocol.scenario import Scenario
 
 MAX_STEPS = 10000
+
+AlgorithmName = Literal["ra2vipas", "rapas", "ravipas", "sweep"]
+ALGORITHMS: tuple[str, ...] = AlgorithmName.__args__
+"""The controller algorithms an episode can run (paper Sec. IV-B plus the non-active sweep)."""
 _ID = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:-]+$")
 
 
@@ -44,7 +48,7 @@ class EpisodeStart(_Message):
     episode_id: str = _ID
     campaign_id: str = _ID
     test_index: int = Field(ge=0, le=1_000_000)
-    algorithm: Literal["ra2vipas", "rapas", "ravipas", "sweep"]
+    algorithm: AlgorithmName
     seed: int = Field(ge=0, le=2**63 - 1)
     scenario: Scenario
     mode: Mode = Mode.fast
@@ -181,6 +185,27 @@ def training_job_id(scenario: Scenario, seed: int) -> str:
     """Deterministic id of the training episode of (scenario, seed): the POD cache key."""
     canonical = json.dumps({"scenario": scenario.model_dump(mode="json"), "seed": seed}, sort_keys=True, separators=(",", ":"))
     return "pod-" + hashlib.sha256(canonical.encode()).hexdigest()[:16]
+
+
+def decode(schema: "type[BaseModel] | TypeAdapter", payload: bytes):
+    """``(message, None)`` if ``payload`` validates against ``schema``, else ``(None, reason)``
+    with a one-line reason naming the first offending field."""
+    try:
+        if isinstance(schema, TypeAdapter):
+            return schema.validate_json(payload), None
+        return schema.model_validate_json(payload), None
+    except ValidationError as err:
+        errors = err.errors()
+        first = errors[0] if errors else {}
+        where = ".".join(str(p) for p in first.get("loc", ()))
+        reason = f"{where}: {first.get('msg', 'invalid')}" if where else str(first.get("msg", "invalid"))
+        return None, reason[:200]
+
+
+def error_text(payload: bytes) -> str:
+    """The text of an error reply (an ``ErrorReply`` or plain text)."""
+    message, _ = decode(ErrorReply, payload)
+    return message.error if message is not None else payload.decode(errors="replace")[:500]
 
 
 def dump(message: BaseModel) -> bytes:

@@ -21,16 +21,14 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from pydantic import ValidationError
-
 from services.protocol import keys
 from services.protocol.messages import (
     Command, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Measurement, Mode, TrainingRequest,
-    TrainingStream, TrainingTruth, dump, episode_control_adapter,
+    TrainingStream, TrainingTruth, decode, dump, episode_control_adapter,
 )
 from services.sensors.world import SimulatedPlatform, TrainingEpisode
-from services.transport.bus import Bus, QueryError
-from services.transport.runtime import EventLoop
+from services.transport.bus import Bus, QueryError, undeclare_all
+from services.transport.runtime import EventLoop, decode_or_drop
 
 log = logging.getLogger(__name__)
 
@@ -77,10 +75,8 @@ class SensorsNode:
 
     # -- episodes ---------------------------------------------------------------------------
     def _on_control(self, payload: bytes) -> None:
-        try:
-            msg = episode_control_adapter.validate_json(payload)
-        except ValidationError as err:
-            log.warning("dropping malformed episode control message: %s", _short(err))
+        msg = decode_or_drop(episode_control_adapter, payload, "episode control message", log)
+        if msg is None:
             return
         if isinstance(msg, EpisodeStop):
             self._end(msg.episode_id)
@@ -98,10 +94,8 @@ class SensorsNode:
             self._on_command(early)
 
     def _on_command(self, payload: bytes) -> None:
-        try:
-            cmd = Command.model_validate_json(payload)
-        except ValidationError as err:
-            log.warning("dropping malformed command: %s", _short(err))
+        cmd = decode_or_drop(Command, payload, "command", log)
+        if cmd is None:
             return
         ep = self.episodes.get(cmd.episode_id)
         if ep is None:
@@ -202,20 +196,18 @@ class SensorsNode:
     # -- training ---------------------------------------------------------------------------
     def _on_training(self, _key: str, payload: bytes) -> bytes:
         """Queryable handler (runs on the bus's worker pool, touches no episode state)."""
-        try:
-            req = TrainingRequest.model_validate_json(payload)
-        except ValidationError as err:
-            raise QueryError(f"malformed TrainingRequest: {_short(err)}") from None
+        req, reason = decode(TrainingRequest, payload)
+        if req is None:
+            raise QueryError(f"malformed TrainingRequest: {reason}")
         samples = tuple(TrainingEpisode(req.scenario, req.seed).samples())
         return TrainingStream.model_construct(job_id=req.job_id, samples=samples).model_dump_json().encode()
 
     def _on_training_truth(self, _key: str, payload: bytes) -> bytes:
         """Truth-plane queryable: the noiseless RSSI and POD behind the training episode of
         (scenario, seed), regenerated deterministically, for the orchestrator's R^2."""
-        try:
-            req = TrainingRequest.model_validate_json(payload)
-        except ValidationError as err:
-            raise QueryError(f"malformed TrainingRequest: {_short(err)}") from None
+        req, reason = decode(TrainingRequest, payload)
+        if req is None:
+            raise QueryError(f"malformed TrainingRequest: {reason}")
         truth = TrainingEpisode(req.scenario, req.seed).truth
         return dump(TrainingTruth(job_id=req.job_id, rssi_dbm=tuple(float(v) for v in truth.rssi_dbm), pod=tuple(float(v) for v in truth.pod)))
 
@@ -223,14 +215,5 @@ class SensorsNode:
         with self._timer_cv:
             self._closing = True
             self._timer_cv.notify()
-        for h in self._handles:
-            try:
-                h.undeclare()
-            except Exception:
-                pass
+        undeclare_all(self._handles)
         self.loop.stop()
-
-
-def _short(err: ValidationError) -> str:
-    first = err.errors()[0] if err.errors() else {}
-    return f"{'.'.join(str(p) for p in first.get('loc', ()))}: {first.get('msg', err)}"[:200]

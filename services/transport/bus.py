@@ -67,6 +67,15 @@ class Bus(Protocol):
         """Undeclare everything and leave the network."""
 
 
+def undeclare_all(handles) -> None:
+    """Undeclare every handle, ignoring ones already gone (used by every node's ``close``)."""
+    for h in handles:
+        try:
+            h.undeclare()
+        except Exception:
+            pass
+
+
 def key_matches(pattern: str, key: str) -> bool:
     """Whether a concrete ``key`` matches a Zenoh key expression ``pattern`` (``*`` one chunk,
     ``**`` any number of chunks)."""

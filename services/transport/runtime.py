@@ -61,6 +61,16 @@ class EventLoop:
             self._thread.join(timeout)
 
 
+def decode_or_drop(schema, payload: bytes, what: str, logger: logging.Logger):
+    """The validated message, or None after logging why it was dropped (log-and-drop at the edge)."""
+    from services.protocol.messages import decode
+
+    message, reason = decode(schema, payload)
+    if message is None:
+        logger.warning("dropping malformed %s (%d bytes): %s", what, len(payload), reason)
+    return message
+
+
 def wait_for_shutdown_signal() -> int:
     """Block until SIGINT or SIGTERM; return the signal number."""
     got = threading.Event()

@@ -21,6 +21,11 @@ log = logging.getLogger(__name__)
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 
+MAX_MESSAGE_BYTES = 1 << 20
+"""Largest publication or query payload a node accepts (1 MiB; the largest legitimate message,
+an EpisodeStart or a Measurement, is a few kB). Query replies, such as a training stream, are
+not limited."""
+
 
 class ZenohBus:
     """A ``Bus`` bound to one Zenoh session; ``close`` closes the session."""
@@ -49,7 +54,11 @@ class ZenohBus:
     def subscribe(self, key: str, callback: Callback):
         def on_sample(sample: zenoh.Sample) -> None:
             try:
-                callback(str(sample.key_expr), sample.payload.to_bytes())
+                payload = sample.payload
+                if len(payload) > MAX_MESSAGE_BYTES:
+                    log.warning("dropping a %d-byte message on %s (limit %d)", len(payload), sample.key_expr, MAX_MESSAGE_BYTES)
+                    return
+                callback(str(sample.key_expr), payload.to_bytes())
             except Exception:  # a bad message must never kill Zenoh's thread
                 log.exception("subscriber callback on %s failed", key)
 
@@ -61,6 +70,9 @@ class ZenohBus:
     def serve(self, key: str, handler: QueryHandler):
         def answer(query: zenoh.Query) -> None:
             try:
+                if query.payload is not None and len(query.payload) > MAX_MESSAGE_BYTES:
+                    query.reply_err(b"query payload too large", encoding=zenoh.Encoding.TEXT_PLAIN)
+                    return
                 payload = query.payload.to_bytes() if query.payload is not None else b""
                 try:
                     reply = handler(str(query.key_expr), payload)

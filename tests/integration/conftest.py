@@ -89,3 +89,24 @@ def wait_for_line(proc: subprocess.Popen, needle: str, timeout: float) -> str:
         if needle in line:
             return line
     raise AssertionError(f"{needle!r} not seen within {timeout} s; output:\n{''.join(seen)}")
+
+
+def start_stack(registry: Procs, tmp: Path, *extra: str, rigs: int = 2) -> dict:
+    """``ra2vipas up`` with its database and logs under ``tmp``; returns api, the up process,
+    the database path and the log directory once the API is ready."""
+    import re
+
+    from cli.stack import free_port
+
+    up = registry.start("up", "--rigs", str(rigs), "--port", str(free_port()), "--db", str(tmp / "stack.db"),
+                        "--log-dir", str(tmp / "logs"), *extra)
+    line = wait_for_line(up, "API on http://", 120)
+    return {"api": re.search(r"(http://[0-9.:]+)", line).group(1), "up": up, "db": tmp / "stack.db", "logs": tmp / "logs"}
+
+
+def stop_stack(registry: Procs, up: subprocess.Popen) -> None:
+    up.send_signal(signal.SIGTERM)
+    try:
+        up.wait(30)
+    finally:
+        registry.cleanup()

@@ -4,7 +4,6 @@ processes), driven through the CLI and the REST API, then stopped."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import signal
 import subprocess

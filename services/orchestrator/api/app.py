@@ -1,7 +1,8 @@
 """``create_app(settings)``: the orchestrator's FastAPI application.
 
 The lifespan opens the store and the bus (a Zenoh session unless a bus factory is given, as
-tests do), starts the scheduler, and closes all three on shutdown.
+tests do), starts the scheduler, and closes all three on shutdown. OpenAPI at ``/docs`` and
+``/openapi.json``.
 """
 
 from __future__ import annotations
@@ -10,12 +11,25 @@ from contextlib import asynccontextmanager
 from typing import Callable
 
 from fastapi import FastAPI
+from fastapi.exceptions import RequestValidationError
 
-from services.orchestrator.api.routes import campaigns, health
+from services.orchestrator.api.errors import responses, validation_error
+from services.orchestrator.api.limits import MAX_BODY_BYTES, BodySizeLimit
+from services.orchestrator.api.routes import campaigns, catalog, events, health, results, tests
 from services.orchestrator.scheduler import Scheduler
 from services.orchestrator.settings import OrchestratorSettings
 from services.orchestrator.storage import Store
 from services.transport.bus import Bus
+
+DESCRIPTION = """
+Run Monte Carlo campaigns of transmitter discovery (Ra²ViPAS and its baselines) on the rigs of
+a Zenoh mesh, and read their results: discovery-rate curves with Wilson bands (JSON or CSV),
+per-test outcomes and traces, and figures (PNG or SVG).
+
+When the server has a token (`RA2VIPAS_TOKEN`), every request that changes state needs
+`Authorization: Bearer <token>`. Errors are `{"detail": "one line"}`; a 422 names the field
+and what it accepts.
+"""
 
 
 def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | None = None) -> FastAPI:
@@ -45,9 +59,13 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
     app = FastAPI(
         title="ra2vipas orchestrator",
         summary="Transmitter discovery campaigns (Ra²ViPAS) over a Zenoh mesh",
+        description=DESCRIPTION,
         version="1",
         lifespan=lifespan,
+        responses=responses(400, 413, 422),  # every route: our error body, not FastAPI's default 422 schema
     )
-    app.include_router(health.router)
-    app.include_router(campaigns.router)
+    app.add_middleware(BodySizeLimit, max_bytes=MAX_BODY_BYTES)
+    app.add_exception_handler(RequestValidationError, validation_error)
+    for module in (health, campaigns, events, results, tests, catalog):
+        app.include_router(module.router)
     return app

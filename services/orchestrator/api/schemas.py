@@ -1,50 +1,92 @@
-"""API schemas (request and response bodies), distinct from wire messages and database rows."""
+"""API schemas (request and response bodies), distinct from wire messages and database rows.
+
+Families: ``CampaignCreate`` (what a client sends), ``*Public`` (what the API shows), and
+``*Page`` (one page of a list with its total).
+"""
 
 from __future__ import annotations
 
-from typing import Any, Literal, Optional
+from typing import Annotated, Any, Literal, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StringConstraints
 
-from services.controller.policy import ALGORITHMS
+from services.protocol.messages import ALGORITHMS, AlgorithmName
 
 MAX_TESTS = 10000
+MAX_OVERRIDES = 64
+MAX_PAGE = 200
+MAX_OFFSET = 1_000_000_000
 
-AlgorithmName = Literal["ra2vipas", "rapas", "ravipas", "sweep"]
+ALGORITHM_NAMES = ALGORITHMS
+CampaignStatus = Literal["queued", "training", "running", "done", "failed", "cancelled"]
+EpisodeStatus = Literal["pending", "running", "done", "cancelled"]
 
+ParameterName = Annotated[str, StringConstraints(min_length=1, max_length=64)]
+OverrideValue = Union[StrictBool, StrictInt, StrictFloat, Annotated[str, StringConstraints(max_length=64)]]
+
+
+# -- errors --------------------------------------------------------------------------------------
+
+class ErrorItem(BaseModel):
+    loc: list[Union[str, int]] = Field(description="where the error is, e.g. [\"body\", \"tests\"]")
+    msg: str
+    type: str
+
+
+class ErrorPublic(BaseModel):
+    """Body of every error response: one line naming the field and what is allowed."""
+
+    detail: str
+    errors: Optional[list[ErrorItem]] = Field(None, description="422 only: every invalid field")
+
+
+# -- campaigns -----------------------------------------------------------------------------------
 
 class CampaignCreate(BaseModel):
     """Body of ``POST /campaigns``."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     preset: str = Field("paper", description="scenario preset (GET /presets)", max_length=64)
-    overrides: dict[str, Any] = Field(default_factory=dict, description="scenario parameters to override, NAME: value", max_length=64)
-    algorithms: list[AlgorithmName] = Field(default_factory=lambda: list(ALGORITHMS), min_length=1, max_length=4)
+    overrides: dict[ParameterName, OverrideValue] = Field(
+        default_factory=dict, max_length=MAX_OVERRIDES,
+        description="scenario parameters to override, NAME: value (GET /presets/{name} lists them with their ranges)")
+    algorithms: list[AlgorithmName] = Field(default_factory=lambda: list(ALGORITHM_NAMES), min_length=1, max_length=4)
     tests: int = Field(50, ge=1, le=MAX_TESTS, description="Monte Carlo tests per algorithm")
     seed: int = Field(1, ge=0, le=2**63 - 1, description="campaign seed; fixes every random draw")
     mode: Literal["fast", "realtime"] = Field("fast", description="fast: lockstep as fast as possible; realtime: one sample every T_RF")
-    name: Optional[str] = Field(None, max_length=100)
+    name: Optional[str] = Field(None, max_length=100, description="a label")
 
 
 class Progress(BaseModel):
-    done: int
+    done: int = Field(description="episodes (test x algorithm) recorded")
     running: int
     pending: int
     total: int
 
 
 class PODSummary(BaseModel):
-    r2: Optional[float] = None
+    r2: Optional[float] = Field(None, description="R^2 of the learned POD against the truth of its training episode (eq. 23)")
     train_seconds: Optional[float] = None
 
 
-class CampaignPublic(BaseModel):
-    """A campaign as the API shows it."""
+class CampaignProgress(BaseModel):
+    """What the progress stream sends (``event: progress``)."""
 
     id: str
+    status: CampaignStatus
+    progress: Progress
+    started_at: Optional[float]
+    finished_at: Optional[float]
+    pod: PODSummary
+    error: Optional[str]
+
+
+class CampaignPublic(CampaignProgress):
+    """A campaign as the API shows it: status, progress, timings, the scenario resolved in
+    full (every parameter) and the POD fit."""
+
     name: Optional[str]
-    status: Literal["queued", "training", "running", "done", "failed", "cancelled"]
     preset: str
     overrides: dict[str, Any]
     scenario: dict[str, Any]
@@ -52,23 +94,130 @@ class CampaignPublic(BaseModel):
     tests: int
     seed: int
     mode: str
-    progress: Progress
     created_at: float
-    started_at: Optional[float]
-    finished_at: Optional[float]
-    pod: PODSummary
+    elapsed_s: Optional[float] = Field(description="from start to finish (or to now while it runs)")
     steps_per_second: Optional[float]
-    error: Optional[str]
 
 
-def campaign_public(row: dict[str, Any]) -> CampaignPublic:
-    return CampaignPublic(
-        id=row["id"], name=row["name"], status=row["status"], preset=row["preset"], overrides=row["overrides"],
-        scenario=row["scenario"], algorithms=row["algorithms"], tests=row["tests"], seed=row["seed"], mode=row["mode"],
-        progress=Progress(**row["progress"]), created_at=row["created_at"], started_at=row["started_at"],
-        finished_at=row["finished_at"], pod=PODSummary(r2=row["pod_r2"], train_seconds=row["pod_train_seconds"]),
-        steps_per_second=row["steps_per_second"], error=row["error"],
-    )
+class CampaignPage(BaseModel):
+    items: list[CampaignPublic]
+    total: int = Field(description="campaigns matching the filters")
+    limit: int
+    offset: int
+
+
+# -- results -------------------------------------------------------------------------------------
+
+class AlgorithmResults(BaseModel):
+    dr: list[float] = Field(description="DR_t at every step (association rule, eq. 11)")
+    dr_final: float
+    ci95: list[float] = Field(min_length=2, max_length=2, description="Wilson 95 % interval of the final DR")
+    dr_ci95: list[list[float]] = Field(description="Wilson 95 % interval [lo, hi] at every step")
+    time_to_dr90_s: Optional[float] = Field(description="time after which DR stays >= 0.9; null if it ends below")
+    in_fov_final: float = Field(description="rate of tests with the Tx inside the FoV at the final estimate (secondary)")
+
+
+class LatencySummary(BaseModel):
+    p50: float
+    p99: float
+
+
+class ResultsPublic(BaseModel):
+    """The results object, the same as ``ra2vipas simulate --json`` prints."""
+
+    preset: str
+    scenario: dict[str, Any]
+    tests: int
+    seed: int
+    pod: PODSummary
+    algorithms: dict[str, AlgorithmResults]
+    steps_per_second: Optional[float]
+    latency_ms: Optional[LatencySummary] = Field(None, description="realtime campaigns only: sample -> command latency")
+
+
+class OutcomePublic(BaseModel):
+    """One test of one algorithm: how it ended (null fields until it is done)."""
+
+    test_index: int
+    algorithm: str
+    status: EpisodeStatus
+    rig: Optional[str]
+    attempt: int
+    tx_index: Optional[int] = Field(description="i*, the target carrying the Tx")
+    final_choice: Optional[int] = Field(description="î at the last step (eq. 11)")
+    final_hit: Optional[bool] = Field(description="î = i* at the last step")
+    final_in_fov: Optional[bool]
+    final_estimate_rad: Optional[float] = Field(description="gamma_hat at the last step")
+    hit_rate: Optional[float] = Field(description="fraction of steps with î_t = i*")
+    first_hit_s: Optional[float] = Field(description="time of the first step with î_t = i*")
+    settled_s: Optional[float] = Field(description="time after which î_t = i* until the end; null if the test ends on a miss")
+
+
+class OutcomePage(BaseModel):
+    items: list[OutcomePublic]
+    total: int
+    limit: int
+    offset: int
+
+
+class TargetPublic(BaseModel):
+    index: int
+    bearing_rad: float
+    range_m: float
+    is_tx: bool
+
+
+class TraceStep(BaseModel):
+    step: int
+    time_s: float = Field(description="(step + 1) * T_RF")
+    pan_rad: float = Field(description="pan angle s_t the sample was taken at")
+    reward: float = Field(description="fused objective at s_t")
+    gamma_hat_rad: float = Field(description="estimate gamma_hat_t after the sample")
+    i_hat: int = Field(description="î_t, the target nearest to gamma_hat_t (eq. 11)")
+    hit: bool = Field(description="î_t = i*")
+    in_fov: bool = Field(description="the Tx is inside the FoV at gamma_hat_t")
+    latency_ms: Optional[float] = Field(None, description="realtime only: sample -> command latency")
+
+
+class TracePublic(BaseModel):
+    campaign_id: str
+    test_index: int
+    algorithm: str
+    rig: Optional[str]
+    attempt: int
+    tx_index: int
+    targets: list[TargetPublic]
+    steps: list[TraceStep]
+
+
+# -- presets, rigs, health -----------------------------------------------------------------------
+
+class PresetSummary(BaseModel):
+    name: str
+    description: str
+
+
+class ParameterPublic(BaseModel):
+    value: Union[StrictBool, StrictInt, StrictFloat, str]
+    allowed: str = Field(description="what the parameter accepts, e.g. 'an integer in [1, 500]'")
+    description: Optional[str]
+
+
+class PresetPublic(PresetSummary):
+    parameters: dict[str, ParameterPublic]
+
+
+class RigPublic(BaseModel):
+    name: str
+    live: bool = Field(description="both its sensors and its controller hold their Zenoh liveliness tokens")
+    sensors: bool
+    controller: bool
+    in_flight: int = Field(description="episodes running on it now")
+
+
+class RigsPublic(BaseModel):
+    rigs: list[RigPublic]
+    learners: list[str]
 
 
 class Health(BaseModel):

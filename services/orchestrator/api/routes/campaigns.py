@@ -1,35 +1,37 @@
-"""/campaigns: create, show, results."""
+"""/campaigns: create, list, show, cancel, delete."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Optional
 
-from fastapi import APIRouter, HTTPException, Response, status
+from fastapi import APIRouter, HTTPException, Query, Response, status
+from fastapi.exceptions import RequestValidationError
 
-from services.orchestrator.api.deps import Authorized, SchedulerDep, StoreDep
-from services.orchestrator.api.schemas import CampaignCreate, CampaignPublic, campaign_public
+from services.orchestrator.api.deps import Authorized, CampaignDep, SchedulerDep, StoreDep
+from services.orchestrator.api.errors import responses
+from services.orchestrator.api.schemas import MAX_OFFSET, MAX_PAGE, CampaignCreate, CampaignPage, CampaignPublic, CampaignStatus
+from services.orchestrator.api.views import campaign_public
+from services.orchestrator.storage import CampaignActiveError
 from services.protocol.scenario import ScenarioError, build_scenario
 
 router = APIRouter(prefix="/campaigns", tags=["campaigns"])
 
-NOT_FOUND = {404: {"description": "no campaign with this id"}}
-
-
-def _get(store, campaign_id: str) -> dict[str, Any]:
-    row = store.campaign(campaign_id)
-    if row is None:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {campaign_id!r}")
-    return row
-
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=CampaignPublic, dependencies=[Authorized],
-             responses={422: {"description": "invalid preset, override or field"}})
+             responses={201: {"headers": {"Location": {"description": "the new campaign's URL", "schema": {"type": "string"}}}},
+                        **responses(401, 413, 422)})
 def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, scheduler: SchedulerDep) -> CampaignPublic:
-    """Store a campaign and queue its tests x algorithms episodes on the live rigs."""
+    """Store a campaign and queue its tests x algorithms episodes on the live rigs.
+
+    The preset and overrides are resolved into the full scenario first: an unknown preset or
+    parameter, or a value out of its range, is a 422 naming it and what it accepts, and
+    nothing is stored.
+    """
     try:
         scenario = build_scenario(body.preset, body.overrides)
     except ScenarioError as err:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, str(err)) from None
+        loc = ["body", "preset"] if str(err).startswith("unknown preset") else ["body", "overrides"]
+        raise RequestValidationError([{"loc": tuple(loc), "msg": str(err), "type": "value_error"}]) from None
     algorithms = list(dict.fromkeys(body.algorithms))
     cid = store.create_campaign(
         preset=body.preset, overrides=body.overrides, scenario=scenario.model_dump(mode="json"), algorithms=algorithms,
@@ -37,20 +39,54 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
     )
     scheduler.submit(cid)
     response.headers["Location"] = f"/campaigns/{cid}"
-    return campaign_public(_get(store, cid))
+    row = store.campaign(cid)
+    assert row is not None
+    return campaign_public(row)
 
 
-@router.get("/{campaign_id}", response_model=CampaignPublic, responses=NOT_FOUND)
-def show_campaign(campaign_id: str, store: StoreDep) -> CampaignPublic:
-    """Status, progress, timings, the resolved scenario and the POD fit of one campaign."""
-    return campaign_public(_get(store, campaign_id))
+@router.get("", response_model=CampaignPage, responses=responses(422))
+def list_campaigns(
+    store: StoreDep,
+    status_: Annotated[Optional[CampaignStatus], Query(alias="status", description="only campaigns in this state")] = None,
+    preset: Annotated[Optional[str], Query(max_length=64, description="only campaigns of this preset")] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description="page size")] = 50,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET, description="campaigns to skip")] = 0,
+) -> CampaignPage:
+    """Campaigns, newest first, one page at a time."""
+    rows, total = store.campaigns(status=status_, preset=preset, limit=limit, offset=offset)
+    return CampaignPage(items=[campaign_public(r) for r in rows], total=total, limit=limit, offset=offset)
 
 
-@router.get("/{campaign_id}/results", responses={**NOT_FOUND, 409: {"description": "the campaign has not finished"}})
-def campaign_results(campaign_id: str, store: StoreDep) -> dict[str, Any]:
-    """The results object: the same as ``ra2vipas simulate --json`` for the same preset, overrides and seed."""
-    row = _get(store, campaign_id)
-    if row["status"] != "done" or row["results"] is None:
-        p = row["progress"]
-        raise HTTPException(status.HTTP_409_CONFLICT, f"campaign {campaign_id} is {row['status']} ({p['done']}/{p['total']} episodes done)")
-    return row["results"]
+@router.get("/{campaign_id}", response_model=CampaignPublic, responses=responses(404))
+def show_campaign(campaign: CampaignDep) -> CampaignPublic:
+    """Status, progress, timings, the resolved scenario (every parameter) and the POD fit (R²)."""
+    return campaign_public(campaign)
+
+
+@router.post("/{campaign_id}/cancel", response_model=CampaignPublic, dependencies=[Authorized],
+             responses=responses(401, 404, 409, e409="the campaign has already finished"))
+def cancel_campaign(campaign: CampaignDep, store: StoreDep, scheduler: SchedulerDep) -> CampaignPublic:
+    """Cancel a queued, training or running campaign: its in-flight episodes are stopped on the
+    rigs and it keeps the tests recorded so far. 409 if it has already finished."""
+    cid = campaign["id"]
+    if not store.cancel_campaign(cid):
+        current = store.campaign(cid) or campaign
+        raise HTTPException(status.HTTP_409_CONFLICT, f"campaign {cid} has already finished ({current['status']})")
+    scheduler.cancel(cid)
+    row = store.campaign(cid)
+    if row is None:  # deleted in between
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {cid!r}")
+    return campaign_public(row)
+
+
+@router.delete("/{campaign_id}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response, dependencies=[Authorized],
+               responses=responses(401, 404, 409, e409="the campaign is still queued, training or running; cancel it first"))
+def delete_campaign(campaign: CampaignDep, store: StoreDep) -> Response:
+    """Delete a finished (done, failed or cancelled) campaign and every test it recorded."""
+    try:
+        deleted = store.delete_campaign(campaign["id"])
+    except CampaignActiveError as err:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(err)) from None
+    if not deleted:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {campaign['id']!r}")
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

@@ -1,0 +1,101 @@
+"""``ra2vipas rig``: one rig's sensors and controller in one process.
+
+For deployments that scale rigs by replicas (``docker compose up --scale rig=N``): replicas
+share one configuration, so they cannot be told their rig name one by one, and a sensors node
+and its controller must agree on it. A ``rig`` process runs both nodes, so they do, and takes
+its name from ``--rig`` / ``RA2VIPAS_RIG`` or, when neither is given, from the host name (a
+container's host name is unique and survives a restart).
+
+Each node keeps its own Zenoh session, exactly as if it were ``ra2vipas sensors`` and
+``ra2vipas controller`` in two processes: their traffic goes through the router like any
+other, and both liveliness tokens disappear together if the process dies. ``--listen``
+endpoints belong to the sensors' session; the controller's session connects through
+``--connect``, or, without it, to the sensors' listener.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+import logging
+import os
+import re
+import socket
+import sys
+from typing import Annotated, Optional
+
+import typer
+
+from cli.output import EXIT_USAGE, fail
+from cli.services import ConfigOpt, ConnectOpt, ListenOpt, LogOpt, ModeOpt, zenoh_settings
+from services.transport.zenoh_config import ZenohSettings
+
+log = logging.getLogger("ra2vipas")
+
+_NOT_IN_CHUNK = re.compile(r"[^A-Za-z0-9_-]+")
+
+
+def rig_name_from_host(hostname: str) -> str:
+    """A valid rig name (1-64 of ``A-Z a-z 0-9 - _``) from a host name: its first label with
+    any other character replaced by ``-``, e.g. ``robot-1.lab.example`` -> ``robot-1``."""
+    label = hostname.split(".", 1)[0]
+    name = _NOT_IN_CHUNK.sub("-", label).strip("-")[:64]
+    return name or "rig"
+
+
+def controller_settings(sensors: ZenohSettings) -> ZenohSettings:
+    """The controller session's settings: the sensors' settings without their listeners (one
+    port, one listener), joining through the same ``connect`` endpoints or, if there are none,
+    through the sensors' own listener (on loopback when it listens on every address)."""
+    connect = sensors.connect or tuple(ep.replace("/0.0.0.0:", "/127.0.0.1:").replace("/[::]:", "/[::1]:") for ep in sensors.listen)
+    return dataclasses.replace(sensors, listen=(), connect=connect)
+
+
+def rig(
+    rig: Annotated[Optional[str], typer.Option("--rig", envvar="RA2VIPAS_RIG",
+                                               help="Rig name (default: this host's name, e.g. the container's).")] = None,
+    beta: Annotated[float, typer.Option(min=0.0, help="UCB exploration weight beta.")] = 4.0,
+    mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+    zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO",
+) -> None:
+    """Run one rig, its simulated sensors and its Ra²ViPAS controller, in one process."""
+    from services.controller.node import ControllerNode
+    from services.controller.policy import ControllerSettings
+    from services.protocol.keys import check_chunk
+    from services.sensors.node import SensorsNode
+    from services.transport.runtime import configure_logging, wait_for_shutdown_signal
+    from services.transport.zenoh_bus import ZenohBus
+
+    configure_logging(log_level)
+    name = rig or rig_name_from_host(socket.gethostname())
+    try:
+        check_chunk(name, "rig")
+    except ValueError as err:
+        fail(str(err), EXIT_USAGE)
+    settings = zenoh_settings(mode, connect, listen, zenoh_config)
+    try:
+        os.nice(-5)  # like `ra2vipas sensors|controller`: the control loop first, where allowed
+    except OSError:
+        pass
+
+    buses: list = []
+    nodes: list = []
+    try:
+        try:
+            buses.append(ZenohBus(settings))
+            buses.append(ZenohBus(controller_settings(settings)))
+        except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, ...
+            fail(f"cannot open the Zenoh session: {err}")
+        nodes.append(ControllerNode(buses[1], name, ControllerSettings(beta=beta)))
+        nodes.append(SensorsNode(buses[0], name))
+        gc.collect()
+        gc.freeze()
+        sys.setswitchinterval(0.0005)
+        log.info("rig[%s] up (zenoh %s, connect %s, listen %s)", name, settings.mode, list(settings.connect), list(settings.listen))
+        signum = wait_for_shutdown_signal()
+        log.info("rig[%s]: signal %d, shutting down", name, signum)
+    finally:
+        for node in reversed(nodes):
+            node.close()
+        for bus in reversed(buses):
+            bus.close()

@@ -1,0 +1,36 @@
+"""/presets and /rigs: what a campaign can be made of."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, HTTPException, status
+
+from services.orchestrator.api.deps import SchedulerDep
+from services.orchestrator.api.errors import responses
+from services.orchestrator.api.schemas import PresetPublic, PresetSummary, RigsPublic
+from services.orchestrator.api.views import rigs_public
+from services.orchestrator.presets import preset_object, preset_summaries
+from services.protocol.scenario import PRESETS
+
+router = APIRouter(tags=["presets and rigs"])
+
+
+@router.get("/presets", response_model=list[PresetSummary])
+def list_presets() -> list[PresetSummary]:
+    """The named scenarios."""
+    return [PresetSummary(**p) for p in preset_summaries()]
+
+
+@router.get("/presets/{name}", response_model=PresetPublic, responses=responses(404))
+def show_preset(name: str) -> PresetPublic:
+    """Every scenario parameter of a preset with its value, allowed range and meaning (any of
+    them can be overridden in ``POST /campaigns``)."""
+    if name not in PRESETS:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no preset {name!r}; presets: {', '.join(PRESETS)}")
+    return PresetPublic.model_validate(preset_object(name))
+
+
+@router.get("/rigs", response_model=RigsPublic)
+def list_rigs(scheduler: SchedulerDep) -> RigsPublic:
+    """Rigs (sensors + controller) and learners seen through Zenoh liveliness; a rig is live
+    while both its nodes hold their tokens."""
+    return rigs_public(scheduler.status())

@@ -1,0 +1,100 @@
+"""/campaigns/{id}/events: a running campaign's progress as server-sent events.
+
+Each change of status or progress is one ``event: progress`` whose ``data`` is a
+``CampaignProgress`` JSON object; a comment line keeps an idle connection open; the stream
+ends after the event that shows the campaign finished (done, failed or cancelled), or with
+``event: deleted`` if it disappears.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from typing import Annotated, AsyncIterator
+
+from fastapi import APIRouter, HTTPException, Query, Request, status
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import StreamingResponse
+
+from services.orchestrator.api.deps import CampaignDep, StoreDep
+from services.orchestrator.api.errors import responses
+from services.orchestrator.api.schemas import CampaignProgress
+from services.orchestrator.api.views import campaign_progress
+from services.orchestrator.storage import FINISHED, Store
+
+router = APIRouter(prefix="/campaigns/{campaign_id}", tags=["campaigns"])
+
+MAX_STREAMS = 64  # open event streams per server
+KEEPALIVE_S = 10.0
+
+
+class _Streams:
+    """Counts open streams so that many idle clients cannot pin the server."""
+
+    def __init__(self) -> None:
+        self.open = 0
+
+
+def _streams(request: Request) -> _Streams:
+    state = request.app.state
+    if not hasattr(state, "event_streams"):
+        state.event_streams = _Streams()
+    return state.event_streams
+
+
+def _event_schema() -> dict:
+    """One server-sent event as OpenAPI describes it: its ``data`` is JSON, a
+    ``CampaignProgress`` (``event: progress``) or ``{"id"}`` (``event: deleted``)."""
+    progress = CampaignProgress.model_json_schema(ref_template="#/components/schemas/{model}")
+    progress.pop("$defs", None)
+    deleted = {"type": "object", "properties": {"id": {"type": "string"}}, "required": ["id"]}
+    return {
+        "type": "object",
+        "required": ["data", "event"],
+        "properties": {
+            "event": {"type": "string", "enum": ["progress", "deleted"]},
+            "id": {"type": "string"},
+            "data": {"type": "string", "contentMediaType": "application/json", "contentSchema": {"anyOf": [progress, deleted]}},
+        },
+    }
+
+
+@router.get("/events", response_class=StreamingResponse,
+            responses={200: {"content": {"text/event-stream": {"schema": _event_schema()}},
+                             "description": "`event: progress` with a CampaignProgress as JSON data, at every change, until the "
+                                            "campaign finishes"},
+                       **responses(404, 422, 503)})
+async def campaign_events(campaign: CampaignDep, request: Request, store: StoreDep,
+                          interval: Annotated[float, Query(ge=0.05, le=10.0, description="seconds between checks")] = 0.5
+                          ) -> StreamingResponse:
+    """Progress of a campaign as server-sent events, until it finishes."""
+    streams = _streams(request)
+    if streams.open >= MAX_STREAMS:
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"too many open event streams ({MAX_STREAMS}); poll GET /campaigns/{{id}}")
+    return StreamingResponse(_events(store, campaign["id"], interval, streams), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
+async def _events(store: Store, cid: str, interval: float, streams: _Streams) -> AsyncIterator[str]:
+    streams.open += 1  # counted here, not in the route, so that the finally below always balances it
+    try:
+        last, last_sent, n = None, time.monotonic(), 0
+        while True:
+            row = await run_in_threadpool(store.campaign, cid)
+            if row is None:
+                yield f"event: deleted\ndata: {json.dumps({'id': cid})}\n\n"
+                return
+            data = campaign_progress(row).model_dump_json()
+            if data != last:
+                n += 1
+                yield f"id: {n}\nevent: progress\ndata: {data}\n\n"
+                last, last_sent = data, time.monotonic()
+            elif time.monotonic() - last_sent > KEEPALIVE_S:
+                yield ": keep-alive\n\n"
+                last_sent = time.monotonic()
+            if row["status"] in FINISHED:
+                return
+            await asyncio.sleep(interval)
+    finally:
+        streams.open -= 1

@@ -1,0 +1,76 @@
+"""/campaigns/{id}/results (JSON or CSV) and the campaign-level figures: DR curves (paper
+Fig. 4) and the learned POD (paper Fig. 3)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Optional
+
+from fastapi import APIRouter, HTTPException, Query, Request, Response, status
+from fastapi.concurrency import run_in_threadpool
+
+from services.orchestrator import plots
+from services.orchestrator.api.deps import CampaignDep, StoreDep
+from services.orchestrator.api.errors import responses
+from services.orchestrator.api.export import write_results_csv
+from services.orchestrator.api.negotiate import IMAGE_CONTENT, ImageFormat, ResultsFormat, image_format, results_format
+from services.orchestrator.api.schemas import ResultsPublic
+from services.protocol.scenario import Scenario
+
+router = APIRouter(prefix="/campaigns/{campaign_id}", tags=["results"])
+
+NOT_DONE = "the campaign has not finished (or failed, or was cancelled): no results"
+
+
+def finished_results(campaign: dict[str, Any]) -> dict[str, Any]:
+    """The stored results object; 409 until the campaign is done."""
+    if campaign["status"] != "done" or campaign["results"] is None:
+        p = campaign["progress"]
+        raise HTTPException(status.HTTP_409_CONFLICT,
+                            f"campaign {campaign['id']} is {campaign['status']} ({p['done']}/{p['total']} episodes done): no results")
+    return campaign["results"]
+
+
+@router.get("/results", response_model=ResultsPublic, response_model_exclude_unset=True,
+            responses={200: {"content": {"text/csv": {"schema": {"type": "string"}}},
+                             "description": "the results object (JSON), or as CSV with `?format=csv` or `Accept: text/csv`"},
+                       **responses(404, 409, 422, e409=NOT_DONE)})
+def campaign_results(campaign: CampaignDep, request: Request,
+                     fmt: Annotated[Optional[ResultsFormat], Query(alias="format", description="json (default) or csv")] = None) -> Any:
+    """Per algorithm: the DR curve with Wilson 95 % bands, the final DR, the time to DR ≥ 0.9 and
+    the in-FoV rate, with the preset, the full scenario and the seed (the same object as
+    ``ra2vipas simulate --json``). The CSV carries the scenario and seed in its header lines."""
+    results = finished_results(campaign)
+    if results_format(request, fmt) == "csv":
+        return Response(write_results_csv(results, campaign["id"]), media_type="text/csv",
+                        headers={"Content-Disposition": f'inline; filename="campaign-{campaign["id"]}.csv"'})
+    return results
+
+
+@router.get("/plots/dr", response_class=Response, responses={200: {"content": IMAGE_CONTENT, "description": "the figure"},
+                                                            **responses(404, 409, 422, e409=NOT_DONE)})
+async def dr_plot(campaign: CampaignDep, request: Request,
+                  fmt: Annotated[Optional[ImageFormat], Query(alias="format", description="png (default) or svg")] = None) -> Response:
+    """DR_t of every algorithm with its Wilson 95 % band against time (paper Fig. 4)."""
+    results = finished_results(campaign)
+    kind = image_format(request, fmt)
+    data = await run_in_threadpool(plots.draw, lambda: plots.dr_figure(results), kind)
+    return Response(data, media_type=plots.MEDIA_TYPES[kind])
+
+
+@router.get("/plots/pod", response_class=Response,
+            responses={200: {"content": IMAGE_CONTENT, "description": "the figure"},
+                       **responses(404, 409, 422, e409="the POD model is not trained yet (or was not kept)")})
+async def pod_plot(campaign: CampaignDep, request: Request, store: StoreDep,
+                   fmt: Annotated[Optional[ImageFormat], Query(alias="format", description="png (default) or svg")] = None) -> Response:
+    """The learned POD p̂_D(r) (mean ± 2 std) against the true p_D(r), with the truth at every
+    training sample (paper Fig. 3). The noisy labels the learner fitted are not kept by the
+    orchestrator, so the points are the true p_D at each sample's true RSSI."""
+    artifacts = await run_in_threadpool(store.pod_artifacts, campaign["id"])
+    if not artifacts or artifacts["model"] is None:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"campaign {campaign['id']} has no POD model yet ({campaign['status']})")
+    scenario = Scenario.model_validate(campaign["scenario"])
+    r2 = campaign["pod_r2"]
+    title = f"POD regression, {campaign['preset']} seed {campaign['seed']}" + ("" if r2 is None else f": R² {r2:.3f}")
+    kind = image_format(request, fmt)
+    data = await run_in_threadpool(plots.draw, lambda: plots.pod_figure(scenario, artifacts["model"], artifacts["truth"], title), kind)
+    return Response(data, media_type=plots.MEDIA_TYPES[kind])

@@ -1,0 +1,81 @@
+"""Database rows -> API objects (pure functions, no FastAPI): what each endpoint shows."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from services.orchestrator.api.schemas import (
+    CampaignProgress, CampaignPublic, OutcomePublic, PODSummary, Progress, RigPublic, RigsPublic, TargetPublic, TracePublic,
+    TraceStep,
+)
+from services.orchestrator.metrics import time_to_level
+from services.orchestrator.storage import ACTIVE
+
+
+def campaign_progress(row: dict[str, Any]) -> CampaignProgress:
+    return CampaignProgress(
+        id=row["id"], status=row["status"], progress=Progress(**row["progress"]), started_at=row["started_at"],
+        finished_at=row["finished_at"], pod=PODSummary(r2=row["pod_r2"], train_seconds=row["pod_train_seconds"]),
+        error=row["error"],
+    )
+
+
+def campaign_public(row: dict[str, Any], now: float | None = None) -> CampaignPublic:
+    started, finished = row["started_at"], row["finished_at"]
+    if started is None:
+        elapsed = None
+    elif finished is not None:
+        elapsed = max(0.0, finished - started)
+    else:
+        elapsed = max(0.0, (now or time.time()) - started) if row["status"] in ACTIVE else None
+    return CampaignPublic(
+        **campaign_progress(row).model_dump(), name=row["name"], preset=row["preset"], overrides=row["overrides"],
+        scenario=row["scenario"], algorithms=row["algorithms"], tests=row["tests"], seed=row["seed"], mode=row["mode"],
+        created_at=row["created_at"], elapsed_s=None if elapsed is None else round(elapsed, 3),
+        steps_per_second=row["steps_per_second"],
+    )
+
+
+def outcome_public(row: dict[str, Any], rf_period_s: float) -> OutcomePublic:
+    """How one test of one algorithm ended (a ``Store.episode_page`` row); the step-derived
+    fields are null until it is done."""
+    base = dict(test_index=row["test_index"], algorithm=row["algorithm"], status=row["status"], rig=row["rig"],
+                attempt=row["attempt"], tx_index=row["tx_index"])
+    hits = row.get("hits")
+    if row["status"] != "done" or not hits:
+        return OutcomePublic(**base, final_choice=None, final_hit=None, final_in_fov=None, final_estimate_rad=None,
+                             hit_rate=None, first_hit_s=None, settled_s=None)
+    h = np.asarray(hits, dtype=float)
+    first = np.flatnonzero(h > 0)
+    return OutcomePublic(
+        **base, final_choice=row["final_choice"], final_hit=bool(hits[-1]), final_in_fov=bool(row["final_in_fov"]),
+        final_estimate_rad=row["final_estimate"], hit_rate=round(float(h.mean()), 6),
+        first_hit_s=None if first.size == 0 else round((int(first[0]) + 1) * rf_period_s, 10),
+        settled_s=time_to_level(h, 1.0, rf_period_s),
+    )
+
+
+def trace_public(row: dict[str, Any], rf_period_s: float) -> TracePublic:
+    """Per step of a finished test: pan angle, reward, gamma_hat_t, î_t and whether it hit."""
+    latencies = row.get("latencies") or []
+    steps = [
+        TraceStep(step=t, time_s=round((t + 1) * rf_period_s, 10), pan_rad=row["pans"][t], reward=row["rewards"][t],
+                  gamma_hat_rad=row["estimates"][t], i_hat=row["chosen"][t], hit=bool(row["hits"][t]), in_fov=bool(row["in_fov"][t]),
+                  latency_ms=latencies[t] if t < len(latencies) else None)
+        for t in range(len(row["estimates"]))
+    ]
+    targets = [TargetPublic(index=i, bearing_rad=b, range_m=r, is_tx=i == row["tx_index"])
+               for i, (b, r) in enumerate(zip(row["bearings"], row["ranges"]))]
+    return TracePublic(campaign_id=row["campaign_id"], test_index=row["test_index"], algorithm=row["algorithm"], rig=row["rig"],
+                       attempt=row["attempt"], tx_index=row["tx_index"], targets=targets, steps=steps)
+
+
+def rigs_public(status: dict[str, Any]) -> RigsPublic:
+    """The scheduler's view of the mesh (from Zenoh liveliness) as the API shows it."""
+    rigs = [RigPublic(name=name, live=st["sensors"] and st["controller"], sensors=st["sensors"], controller=st["controller"],
+                      in_flight=st["in_flight"])
+            for name, st in sorted(status["rigs"].items())]
+    return RigsPublic(rigs=rigs, learners=list(status["learners"]))
