@@ -8,6 +8,9 @@ import sys
 
 import pytest
 
+from services.orchestrator.simulate import run_campaign
+from services.protocol.scenario import build_scenario
+
 SMALL = ["--set", "steps=20", "--set", "n_train=200", "--set", "n_targets=8"]
 
 
@@ -88,3 +91,25 @@ def test_bench_step_prints_timings_as_json():
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["benchmark"] == "controller-step" and report["steps"] == 120
     assert 0 < report["median_ms"] <= report["p99_ms"]
+
+
+def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
+    """A small `bench mesh`: both parts run on their own stacks, the report carries the two
+    measured figures (and the DR the mesh reached, equal to the in-process campaign's)."""
+    before = _ra2vipas_processes()
+    proc = ra2vipas("bench", "mesh", "--rigs", "1", "--tests", "2", "--realtime-tests", "1", "--json", timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["benchmark"] == "mesh" and report["rigs"] == 1
+    assert report["fast"]["steps"] == 2 * 3 * 120 and report["steps_per_second"] > 0
+    assert report["realtime"]["samples"] == 119
+    assert 0 < report["latency_ms"]["p50"] <= report["latency_ms"]["p99"]
+    expected = run_campaign("paper", build_scenario("paper"), 2, 1, ["ra2vipas", "rapas", "ravipas"])
+    assert report["fast"]["dr_final"] == {a: s["dr_final"] for a, s in expected["algorithms"].items()}
+    assert _ra2vipas_processes() == before, "the benchmark's stacks left processes behind"
+
+
+def _ra2vipas_processes() -> set[int]:
+    out = subprocess.run(["pgrep", "-f", "cli.main|ra2vipas (up|router|sensors|controller|learner|orchestrator|rig)"],
+                         capture_output=True, text=True).stdout
+    return {int(p) for p in out.split()}
