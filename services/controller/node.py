@@ -20,12 +20,12 @@ from dataclasses import dataclass, field
 from services.controller.policy import Controller, ControllerSettings, sensor_config_from_scenario
 from services.protocol import keys
 from services.protocol.messages import (
-    Command, EpisodeResult, EpisodeStart, EpisodeStop, Measurement, Mode, PODRequest, PODResponse, decode, dump,
-    episode_control_adapter, error_text, training_job_id,
+    Command, EpisodeResult, EpisodeStart, EpisodeStop, Measurement, Mode, PODRequest, PODResponse, dump,
+    episode_control_adapter, training_job_id,
 )
 from services.protocol.pod import PODModel
 from services.transport.bus import Bus, Reply, undeclare_all
-from services.transport.runtime import EventLoop, decode_or_drop
+from services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
 
 log = logging.getLogger(__name__)
 
@@ -110,23 +110,15 @@ class ControllerNode:
             timer.start()
             return
         waiting = self._waiting.pop(job, [])
-        model, error = None, "no learner answered"
-        for reply in replies:
-            if not reply.ok:
-                error = error_text(reply.payload)
-                continue
-            response, reason = decode(PODResponse, reply.payload)
-            if response is not None:
-                model = response.model
-                break
-            error = f"malformed PODResponse: {reason}"
-        if model is None:
+        response, passed_over = first_valid_reply(replies, PODResponse, "PODResponse")
+        if response is None:
+            error = passed_over[-1] if passed_over else "no learner answered"
             for episode_id in waiting:
                 self._fail(episode_id, f"POD model unavailable: {error}")
             return
-        self.models[job] = model
+        self.models[job] = response.model
         for episode_id in waiting:
-            self._begin(episode_id, model)
+            self._begin(episode_id, response.model)
 
     def _begin(self, episode_id: str, model: PODModel) -> None:
         ep = self.episodes.get(episode_id)

@@ -21,6 +21,7 @@ from services.learner.pod import LearnerSettings, fit_pod
 from services.protocol import keys
 from services.protocol.messages import ErrorReply, PODRequest, PODResponse, TrainingRequest, TrainingStream, decode, dump, training_job_id
 from services.transport.bus import Bus, QueryError, Reply, undeclare_all
+from services.transport.runtime import first_valid_reply
 
 log = logging.getLogger(__name__)
 
@@ -79,18 +80,11 @@ class LearnerNode:
 
         self.bus.query(keys.training_any(), dump(request), TRAINING_TIMEOUT_S, got)
         done.wait(TRAINING_TIMEOUT_S + 5.0)
-        errors = []
-        for reply in box.get("replies", []):
-            if not reply.ok:
-                errors.append(reply.payload.decode(errors="replace")[:300])
-                continue
-            stream, reason = decode(TrainingStream, reply.payload)
-            if stream is None:
-                errors.append(f"malformed TrainingStream: {reason}")
-                continue
-            if stream.job_id == request.job_id:
-                return stream
-        raise QueryError(dump(ErrorReply(error="no training stream: " + ("; ".join(errors) or "no sensors answered"))).decode())
+        stream, passed_over = first_valid_reply(box.get("replies", []), TrainingStream, "TrainingStream",
+                                                accept=lambda s: s.job_id == request.job_id)
+        if stream is None:
+            raise QueryError(dump(ErrorReply(error="no training stream: " + ("; ".join(passed_over) or "no sensors answered"))).decode())
+        return stream
 
     # -- optional disk cache ----------------------------------------------------------------
     def _path(self, job: str) -> Path | None:

@@ -29,7 +29,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from pydantic import ValidationError
 
 from services.learner.pod import predict, r2_score
 from services.orchestrator.metrics import associate, score_test
@@ -38,11 +37,11 @@ from services.orchestrator.storage import EpisodeKey, Store
 from services.protocol import keys
 from services.protocol.messages import (
     EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Mode, PODRequest, PODResponse,
-    TrainingRequest, TrainingTruth, dump, error_text,
+    TrainingRequest, TrainingTruth, dump,
 )
 from services.protocol.scenario import Scenario
 from services.transport.bus import Bus, Reply, undeclare_all
-from services.transport.runtime import EventLoop, decode_or_drop
+from services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +119,7 @@ class Scheduler:
             self.loop.post(self._check_timeouts)
 
     def _check_timeouts(self) -> None:
-        """Requeue episodes that made no progress for far too long (a lost message, a hung rig)."""
+        """Requeue episodes unfinished far too long after they were sent (a lost message, a hung rig)."""
         now = time.time()
         for run in list(self.runs.values()):
             if run.model_retry_at is not None and now >= run.model_retry_at:
@@ -189,18 +188,9 @@ class Scheduler:
             # no learner (yet): the timeout ticker asks again; a campaign waits for its learner
             run.model_retry_at = time.time() + min(2.0 * run.model_attempts, 10.0)
             return
-        response, error = None, "no learner answered"
-        for reply in replies:
-            if reply.ok:
-                try:
-                    response = PODResponse.model_validate_json(reply.payload)
-                    break
-                except ValidationError:
-                    error = "malformed PODResponse"
-            else:
-                error = error_text(reply.payload)
+        response, passed_over = first_valid_reply(replies, PODResponse, "PODResponse")
         if response is None:
-            self._fail(run, f"POD model unavailable: {error}")
+            self._fail(run, f"POD model unavailable: {passed_over[-1] if passed_over else 'no learner answered'}")
             return
         request = dump(TrainingRequest(job_id=response.job_id, scenario=run.scenario, seed=run.seed))
         self.bus.query(keys.training_truth_any(), request, 120.0,
@@ -212,17 +202,11 @@ class Scheduler:
             return
         r2 = None
         truth_data = None  # kept with the model for the POD figure (paper Fig. 3)
-        for reply in replies:
-            if not reply.ok:
-                continue
-            try:
-                truth = TrainingTruth.model_validate_json(reply.payload)
-            except ValidationError:
-                continue
-            if truth.job_id == response.job_id and len(truth.rssi_dbm) == len(truth.pod):
-                r2 = round(float(r2_score(np.asarray(truth.pod), predict(response.model, np.asarray(truth.rssi_dbm)))), 6)
-                truth_data = {"rssi_dbm": list(truth.rssi_dbm), "pod": list(truth.pod)}
-                break
+        truth, _ = first_valid_reply(replies, TrainingTruth, "TrainingTruth",
+                                     accept=lambda t: t.job_id == response.job_id and len(t.rssi_dbm) == len(t.pod))
+        if truth is not None:
+            r2 = round(float(r2_score(np.asarray(truth.pod), predict(response.model, np.asarray(truth.rssi_dbm)))), 6)
+            truth_data = {"rssi_dbm": list(truth.rssi_dbm), "pod": list(truth.pod)}
         run.pod = TrainedPOD(model=response.model, r2=r2, train_seconds=response.train_seconds)
         self.store.set_campaign(cid, pod_job=response.job_id, pod_r2=r2, pod_train_seconds=response.train_seconds)
         self.store.set_pod_artifacts(cid, model=response.model.model_dump(mode="json"), truth=truth_data)
@@ -305,21 +289,20 @@ class Scheduler:
         self._complete(msg.episode_id)
 
     def _on_truth(self, payload: bytes) -> None:
-        msg = decode_or_drop(EpisodeTruth, payload, "EpisodeTruth", log)
-        if msg is None:
-            return
-        flight = self.flights.get(msg.episode_id)
-        if flight is not None:
-            flight.truth = msg
-            self._complete(msg.episode_id)
+        self._attach(EpisodeTruth, payload, "truth")
 
     def _on_timing(self, payload: bytes) -> None:
-        msg = decode_or_drop(EpisodeTiming, payload, "EpisodeTiming", log)
+        self._attach(EpisodeTiming, payload, "timing")
+
+    def _attach(self, schema: type[EpisodeTruth] | type[EpisodeTiming], payload: bytes, part: str) -> None:
+        """Keep the episode's truth or timing report with its flight; complete it if that was
+        the last part missing."""
+        msg = decode_or_drop(schema, payload, schema.__name__, log)
         if msg is None:
             return
         flight = self.flights.get(msg.episode_id)
         if flight is not None:
-            flight.timing = msg
+            setattr(flight, part, msg)
             self._complete(msg.episode_id)
 
     def _complete(self, eid: str) -> None:

@@ -196,18 +196,14 @@ class SensorsNode:
     # -- training ---------------------------------------------------------------------------
     def _on_training(self, _key: str, payload: bytes) -> bytes:
         """Queryable handler (runs on the bus's worker pool, touches no episode state)."""
-        req, reason = decode(TrainingRequest, payload)
-        if req is None:
-            raise QueryError(f"malformed TrainingRequest: {reason}")
+        req = _training_request(payload)
         samples = tuple(TrainingEpisode(req.scenario, req.seed).samples())
         return TrainingStream.model_construct(job_id=req.job_id, samples=samples).model_dump_json().encode()
 
     def _on_training_truth(self, _key: str, payload: bytes) -> bytes:
         """Truth-plane queryable: the noiseless RSSI and POD behind the training episode of
         (scenario, seed), regenerated deterministically, for the orchestrator's R^2."""
-        req, reason = decode(TrainingRequest, payload)
-        if req is None:
-            raise QueryError(f"malformed TrainingRequest: {reason}")
+        req = _training_request(payload)
         truth = TrainingEpisode(req.scenario, req.seed).truth
         return dump(TrainingTruth(job_id=req.job_id, rssi_dbm=tuple(float(v) for v in truth.rssi_dbm), pod=tuple(float(v) for v in truth.pod)))
 
@@ -217,3 +213,11 @@ class SensorsNode:
             self._timer_cv.notify()
         undeclare_all(self._handles)
         self.loop.stop()
+
+
+def _training_request(payload: bytes) -> TrainingRequest:
+    """The request of a training queryable; a malformed one is answered with an error reply."""
+    req, reason = decode(TrainingRequest, payload)
+    if req is None:
+        raise QueryError(f"malformed TrainingRequest: {reason}")
+    return req

@@ -8,7 +8,9 @@ import queue
 import signal
 import sys
 import threading
-from typing import Callable
+from typing import Any, Callable, Iterable
+
+from services.protocol.messages import decode, error_text
 
 log = logging.getLogger(__name__)
 
@@ -63,12 +65,29 @@ class EventLoop:
 
 def decode_or_drop(schema, payload: bytes, what: str, logger: logging.Logger):
     """The validated message, or None after logging why it was dropped (log-and-drop at the edge)."""
-    from services.protocol.messages import decode
-
     message, reason = decode(schema, payload)
     if message is None:
         logger.warning("dropping malformed %s (%d bytes): %s", what, len(payload), reason)
     return message
+
+
+def first_valid_reply(replies: Iterable, schema, what: str, accept: Callable[[Any], bool] | None = None) -> tuple[Any, list[str]]:
+    """The first query reply that is not an error, validates against ``schema`` and passes
+    ``accept`` (if given); else None. Also why earlier replies were passed over: an error
+    reply's text, or ``malformed <what>: <first invalid field>`` (replies ``accept`` refuses,
+    such as another job's, are skipped without a reason)."""
+    passed_over: list[str] = []
+    for reply in replies:
+        if not reply.ok:
+            passed_over.append(error_text(reply.payload))
+            continue
+        message, reason = decode(schema, reply.payload)
+        if message is None:
+            passed_over.append(f"malformed {what}: {reason}")
+            continue
+        if accept is None or accept(message):
+            return message, passed_over
+    return None, passed_over
 
 
 def wait_for_shutdown_signal() -> int:
