@@ -21,6 +21,18 @@ from services.sensors.world import GroundTruth, SimulatedPlatform
 SMALL = {"steps": 40, "n_train": 300}
 
 
+def untimed(results: dict) -> dict:
+    """A results object without what depends on the wall clock (speeds, latencies, training
+    time), so two runs of the same campaign compare equal value for value."""
+    import json
+
+    out = json.loads(json.dumps(results))
+    out.pop("steps_per_second", None)
+    out.pop("latency_ms", None)
+    out["pod"].pop("train_seconds", None)
+    return out
+
+
 def small_scenario(preset: str = "paper", **overrides) -> Scenario:
     """A paper scenario shortened for the unit suite (40 steps, 300 training samples)."""
     return build_scenario(preset, {**SMALL, **overrides})

@@ -9,6 +9,7 @@ that error messages quote.
 
 from __future__ import annotations
 
+import difflib
 import math
 from enum import Enum
 from typing import Any
@@ -83,6 +84,31 @@ class Scenario(BaseModel):
     pod_near_range_m: float = Field(2.5, ge=0.0, le=100.0, description="midpoint of the near logistic in p_D(d) (2.5 in eq. 22) [m]")
     box_bearing_noise_deg: float = Field(0.25, ge=0.0, le=10.0, description="std of the bearing of a detector box (not in the paper) [deg]")
     initial_pan_deg: float = Field(0.0, ge=-180.0, le=180.0, description="pan angle s_0 at the start of each test [deg]")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _strict_numbers(cls, data: Any) -> Any:
+        """Numbers must be numbers: a string or a boolean is never coerced into an integer or a
+        number (the same rule for the CLI, the API and the wire), an integer parameter takes no
+        fraction, and -0.0 is 0.0 (so a parameter that must be positive refuses it, and one
+        that may be zero accepts it as zero)."""
+        if not isinstance(data, dict):
+            return data
+        out = dict(data)
+        for name, value in data.items():
+            info = cls.model_fields.get(name)
+            if info is None or info.annotation not in (int, float):
+                continue
+            wrong = isinstance(value, bool) or not isinstance(value, (int, float))
+            if not wrong and info.annotation is int and isinstance(value, float):
+                wrong = not value.is_integer()
+                if not wrong:
+                    out[name] = int(value)
+            if wrong:
+                raise ValueError(f"{name}: expected {field_range(name)}, got {value!r}")
+            if isinstance(value, float) and value == 0.0:
+                out[name] = 0.0  # -0.0 -> 0.0
+        return out
 
     @model_validator(mode="after")
     def _consistent(self) -> "Scenario":
@@ -189,26 +215,59 @@ def build_scenario(preset: str = "paper", overrides: dict[str, Any] | None = Non
     values = {**PRESETS[preset], **(overrides or {})}
     for name in values:
         if name not in Scenario.model_fields:
-            raise ScenarioError(f"unknown scenario parameter {name!r}; known: {', '.join(Scenario.model_fields)}")
+            raise ScenarioError(f"unknown scenario parameter {name!r}{suggest_parameter(name)}; known: {', '.join(Scenario.model_fields)}")
     try:
         return Scenario.model_validate(values)
     except ValidationError as err:
         raise ScenarioError(_explain(err, values)) from None
 
 
-def parse_overrides(assignments: list[str] | tuple[str, ...]) -> dict[str, str]:
-    """Turn CLI ``NAME=VALUE`` strings into a dict (values stay strings; the model coerces).
+def suggest_parameter(name: str) -> str:
+    """`` (did you mean 'n_targets'?)`` for a misspelt parameter name, or ``""``."""
+    close = difflib.get_close_matches(name, list(Scenario.model_fields), n=1, cutoff=0.75)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def parse_value(name: str, text: str) -> Any:
+    """The typed value of a CLI ``NAME=VALUE``: an integer or a number for numeric parameters
+    (never coerced by the scenario itself), the text for the others.
 
     Raises
     ------
     ScenarioError
-        An assignment without ``=`` or with an empty name.
+        A numeric parameter whose text is not a number of its kind; an unknown parameter.
     """
-    out: dict[str, str] = {}
+    info = Scenario.model_fields.get(name)
+    if info is None:
+        raise ScenarioError(f"unknown scenario parameter {name!r}{suggest_parameter(name)}; known: {', '.join(Scenario.model_fields)}")
+    text = text.strip()
+    try:
+        if info.annotation is int:
+            return int(text)
+        if info.annotation is float:
+            value = float(text)
+            if not math.isfinite(value):
+                raise ValueError
+            return value
+    except ValueError:
+        raise ScenarioError(f"{name}: expected {field_range(name)}, got {text!r}") from None
+    return text
+
+
+def parse_overrides(assignments: list[str] | tuple[str, ...]) -> dict[str, Any]:
+    """Turn CLI ``NAME=VALUE`` strings into typed overrides (see ``parse_value``).
+
+    Raises
+    ------
+    ScenarioError
+        An assignment without ``=`` or with an empty name, an unknown parameter, or a value that
+        is not of the parameter's kind.
+    """
+    out: dict[str, Any] = {}
     for item in assignments:
         name, sep, value = item.partition("=")
         name = name.strip()
         if not sep or not name:
             raise ScenarioError(f"--set expects NAME=VALUE, got {item!r}")
-        out[name] = value.strip()
+        out[name] = parse_value(name, value)
     return out

@@ -35,6 +35,7 @@ import pytest
 
 from tests.deploy.compose import environment, interpolate, load, ra2vipas_argv
 from tests.deploy.conftest import ROOT, Services, clean_env
+from tests.conftest import untimed
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 
@@ -232,12 +233,6 @@ def wait_healthy(mesh: Mesh, timeout: float) -> dict:
     raise AssertionError(f"/health not 200 within {timeout} s (last: {last[:300]})\n{mesh.diagnostics()}")
 
 
-def untimed(results: dict) -> dict:
-    results = json.loads(json.dumps(results))
-    results.pop("steps_per_second", None)
-    results.pop("latency_ms", None)
-    results["pod"].pop("train_seconds", None)
-    return results
 
 
 def simulate(args: list[str]) -> dict:

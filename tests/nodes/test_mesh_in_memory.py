@@ -17,6 +17,7 @@ from services.protocol.messages import Command, EpisodeStart, Measurement, dump
 from services.protocol.scenario import build_scenario
 from services.sensors.node import SensorsNode
 from services.transport.bus import MemoryBus
+from tests.conftest import untimed
 
 SMALL = {"steps": 25, "n_train": 200, "n_targets": 8}
 
@@ -49,11 +50,15 @@ def _run(store, scheduler, preset, overrides, tests, seed, algorithms, mode="fas
     raise AssertionError(f"campaign did not finish: {store.campaign(cid)}")
 
 
-def _untimed(results):
-    out = json.loads(json.dumps(results))
-    out.pop("steps_per_second", None)
-    out["pod"].pop("train_seconds", None)
-    return out
+def settle(bus, *loops, rounds: int = 3) -> None:
+    """Wait until the bus and the nodes' event loops have handled everything so far (a
+    handler may publish, whose delivery may post to a loop again)."""
+    for _ in range(rounds):
+        bus.wait_idle()
+        for loop in loops:
+            assert loop.wait_idle()
+
+
 
 
 def test_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
@@ -62,7 +67,7 @@ def test_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
     c = _run(store, scheduler, "paper", SMALL, 4, 11, algorithms)
     assert c["status"] == "done", c["error"]
     expected = run_campaign("paper", build_scenario("paper", SMALL), 4, 11, algorithms)
-    assert _untimed(c["results"]) == _untimed(expected)
+    assert untimed(c["results"]) == untimed(expected)
     assert c["progress"] == {"done": 16, "running": 0, "pending": 0, "total": 16}
 
 
@@ -98,10 +103,10 @@ def test_a_command_that_overtakes_its_episode_start_is_kept():
     sc = build_scenario("paper", SMALL)
     start = EpisodeStart(episode_id="c.0.ra2vipas.1", campaign_id="c", test_index=0, algorithm="ra2vipas", seed=1, scenario=sc)
     bus.publish(keys.command("rig-9"), dump(Command(episode_id=start.episode_id, step=0, pan_rad=0.0)))
-    bus.wait_idle()
+    settle(bus, sensors.loop)
     assert got == []
     bus.publish(keys.episode_control("rig-9"), dump(start))
-    bus.wait_idle()
+    settle(bus, sensors.loop)
     assert [m.step for m in got] == [0]
     sensors.close()
     bus.close()

@@ -13,12 +13,12 @@ from typing import Callable
 from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
 
-from services.orchestrator.api.errors import responses, validation_error
+from services.orchestrator.api.errors import responses, storage_fault, validation_error
 from services.orchestrator.api.limits import MAX_BODY_BYTES, BodySizeLimit
 from services.orchestrator.api.routes import campaigns, catalog, events, health, results, tests
 from services.orchestrator.scheduler import Scheduler
 from services.orchestrator.settings import OrchestratorSettings
-from services.orchestrator.storage import Store
+from services.orchestrator.storage import StorageFault, Store
 from services.transport.bus import Bus
 
 DESCRIPTION = """
@@ -35,7 +35,7 @@ and what it accepts.
 def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        store = Store(settings.db_path)
+        store = Store(settings.db_path, lazy=True)  # a database that cannot be opened yet: 503 until it can
         if bus_factory is None:
             from services.transport.zenoh_bus import ZenohBus
 
@@ -62,10 +62,11 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
         description=DESCRIPTION,
         version="1",
         lifespan=lifespan,
-        responses=responses(400, 413, 422),  # every route: our error body, not FastAPI's default 422 schema
+        responses=responses(400, 413, 422, 503),  # every route: our error body, not FastAPI's default 422 schema
     )
     app.add_middleware(BodySizeLimit, max_bytes=MAX_BODY_BYTES)
     app.add_exception_handler(RequestValidationError, validation_error)
+    app.add_exception_handler(StorageFault, storage_fault)
     for module in (health, campaigns, events, results, tests, catalog):
         app.include_router(module.router)
     return app

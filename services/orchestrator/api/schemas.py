@@ -52,10 +52,10 @@ class CampaignCreate(BaseModel):
         default_factory=dict, max_length=MAX_OVERRIDES,
         description="scenario parameters to override, NAME: value (GET /presets/{name} lists them with their ranges)")
     algorithms: list[AlgorithmName] = Field(default_factory=lambda: list(ALGORITHM_NAMES), min_length=1, max_length=4)
-    tests: int = Field(50, ge=1, le=MAX_TESTS, description="Monte Carlo tests per algorithm")
-    seed: int = Field(1, ge=0, le=2**63 - 1, description="campaign seed; fixes every random draw")
+    tests: int = Field(50, ge=1, le=MAX_TESTS, strict=True, description="Monte Carlo tests per algorithm")
+    seed: int = Field(1, ge=0, le=2**63 - 1, strict=True, description="campaign seed; fixes every random draw")
     mode: Literal["fast", "realtime"] = Field("fast", description="fast: lockstep as fast as possible; realtime: one sample every T_RF")
-    name: Optional[str] = Field(None, max_length=100, description="a label")
+    name: Optional[str] = Field(None, max_length=100, strict=True, description="a label")
 
 
 class Progress(BaseModel):
@@ -223,8 +223,14 @@ class RigsPublic(BaseModel):
 class Health(BaseModel):
     status: Literal["ok", "starting", "degraded"]
     ready: bool
-    database: bool
+    database: bool = Field(description="the database answers and takes writes")
+    database_error: Optional[str] = Field(None, description="why not, e.g. 'not writable: database or disk is full (since 12:01:02)'")
     zenoh: bool
     rigs: list[str]
     expected_rigs: int
     learners: list[str]
+    rejected_messages: dict[str, int] = Field(
+        default_factory=dict,
+        description="result/truth-plane messages dropped, by reason: malformed, not_in_flight (unknown or stale episode id), "
+                    "wrong_rig (not on the key of the rig the episode was assigned to)")
+    waiting_writes: int = Field(0, description="database writes waiting to be retried")

@@ -12,18 +12,23 @@ from services.orchestrator.api.schemas import (
     TraceStep,
 )
 from services.orchestrator.metrics import time_to_level
-from services.orchestrator.storage import ACTIVE
+from services.orchestrator.storage import ACTIVE, Fault
 
 
-def campaign_progress(row: dict[str, Any]) -> CampaignProgress:
+def campaign_progress(row: dict[str, Any], storage_fault: Fault | None = None) -> CampaignProgress:
+    """``storage_fault``: the store's current fault; an unfinished campaign shows it in
+    ``error`` (it cannot be written to the database, which is what is failing)."""
+    error = row["error"]
+    if error is None and storage_fault is not None and row["status"] in ACTIVE:
+        error = f"database {storage_fault.describe()}; retrying, nothing is lost"
     return CampaignProgress(
         id=row["id"], status=row["status"], progress=Progress(**row["progress"]), started_at=row["started_at"],
         finished_at=row["finished_at"], pod=PODSummary(r2=row["pod_r2"], train_seconds=row["pod_train_seconds"]),
-        error=row["error"],
+        error=error,
     )
 
 
-def campaign_public(row: dict[str, Any], now: float | None = None) -> CampaignPublic:
+def campaign_public(row: dict[str, Any], now: float | None = None, storage_fault: Fault | None = None) -> CampaignPublic:
     started, finished = row["started_at"], row["finished_at"]
     if started is None:
         elapsed = None
@@ -32,7 +37,7 @@ def campaign_public(row: dict[str, Any], now: float | None = None) -> CampaignPu
     else:
         elapsed = max(0.0, (now or time.time()) - started) if row["status"] in ACTIVE else None
     return CampaignPublic(
-        **campaign_progress(row).model_dump(), name=row["name"], preset=row["preset"], overrides=row["overrides"],
+        **campaign_progress(row, storage_fault).model_dump(), name=row["name"], preset=row["preset"], overrides=row["overrides"],
         scenario=row["scenario"], algorithms=row["algorithms"], tests=row["tests"], seed=row["seed"], mode=row["mode"],
         created_at=row["created_at"], elapsed_s=None if elapsed is None else round(elapsed, 3),
         steps_per_second=row["steps_per_second"],
