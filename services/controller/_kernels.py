@@ -163,40 +163,45 @@ def lobe_profile(hh, ho, hu, oo, ou, uu, sign, loglik, amplitude, offset):
     return best
 
 
-@njit(cache=True)
-def track_loglik(l_rf, grid_step, bearings, detections, frames, p_hat, var_model, out):
-    """l(i) = l_RF(gamma_i) + l_D(i) per track, written into ``out`` (see ``Controller``).
+@njit(cache=True, inline="always")
+def _lbeta(a: float, b: float) -> float:
+    return math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)
 
-    l_D(i) = log N(p~_i; p_hat, v_i), v_i = var_model + (p~_i (1 - p~_i) + 0.02) / n_i, is 0 for a
-    track never counted in view; l_RF is interpolated linearly on the periodic grid.
-    """
+
+@njit(cache=True, inline="always")
+def pod_evidence(k, n, alpha, beta, alpha0, beta0):
+    """log of the Bayes factor of k detections in n frames for "this target is the Tx" (its POD
+    ~ Beta(alpha, beta), predicted from the iso RSSI) against "it is another target" (its POD ~
+    Beta(alpha0, beta0)): a ratio of beta-binomial marginals, so the binomial label noise p(1-p)/n
+    (paper eq. 21) and the POD model's own uncertainty are both in it and it stays bounded."""
+    if n <= 0.0:
+        return 0.0
+    k = min(max(k, 0.0), n)
+    return (_lbeta(k + alpha, n - k + beta) - _lbeta(alpha, beta)) - (_lbeta(k + alpha0, n - k + beta0) - _lbeta(alpha0, beta0))
+
+
+@njit(cache=True)
+def track_logpost(l_rf, grid_step, rf_weight, bearings, detections, frames, alpha, beta, alpha0, beta0, out):
+    """Unnormalised log-posterior of "track i is the Tx": rf_weight * l_RF(gamma_i) (linear
+    interpolation on the periodic grid) plus ``pod_evidence`` of its detection counts."""
     M = l_rf.size
     for i in range(bearings.size):
-        n = frames[i]
-        if n > 0:
-            p = min(max(detections[i] / n, 0.0), 1.0)
-            var = var_model + (p * (1.0 - p) + 0.02) / n
-            l_d = -0.5 * (p - p_hat) ** 2 / var - 0.5 * math.log(TWO_PI * var)
-        else:
-            l_d = 0.0
         pos = ((bearings[i] + math.pi) / grid_step) % M
         lo = int(math.floor(pos)) % M
         frac = pos - math.floor(pos)
-        out[i] = l_rf[lo] * (1.0 - frac) + l_rf[(lo + 1) % M] * frac + l_d
+        l = l_rf[lo] * (1.0 - frac) + l_rf[(lo + 1) % M] * frac
+        out[i] = rf_weight * l + pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0)
     return out
 
 
 @njit(cache=True)
-def best_missed(l_rf, view_frames, log_miss):
-    """max and argmax over the grid of l_RF(gamma) + n_view(gamma) log(1 - p_hat)."""
-    best = -1e300
-    arg = 0
+def missed_logdensity(l_rf, rf_weight, view_frames, alpha, beta, log_prior, out):
+    """Log-posterior of "the Tx is a target never detected, at grid bearing gamma": rf_weight *
+    l_RF(gamma) + log P(no detection in the n_view(gamma) frames that looked there | the Tx's
+    POD ~ Beta(alpha, beta)) + the log prior of an undetected target in that grid cell."""
     for j in range(l_rf.size):
-        v = l_rf[j] + view_frames[j] * log_miss
-        if v > best:
-            best = v
-            arg = j
-    return best, arg
+        out[j] = rf_weight * l_rf[j] + (_lbeta(alpha, view_frames[j] + beta) - _lbeta(alpha, beta)) + log_prior
+    return out
 
 
 @njit(cache=True)

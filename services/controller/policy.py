@@ -78,6 +78,13 @@ class ControllerSettings:
     probe_every: int = 2
     warmup_steps: int | None = None  # None: ceil(pi / fov_half_angle)
     min_pod_std: float = 0.05
+    # -- fusion and confidence (fitted on simulated campaigns: services/controller/calibration.py)
+    rf_weight: float = 2.0  # tempering of the RF profile log-likelihood l_RF
+    pod_floor_std: float = 0.08  # misspecification of the POD model, added to its predictive std
+    null_pod_prior: tuple[float, float] = (1.0, 1.0)  # Beta prior of a non-Tx target's POD
+    missed_prior_per_rad: float = 5.0  # prior density of "the Tx is a target the camera never detected"
+    answer_window_rad: float = math.radians(2.0)  # posterior mass within this of the answer is its confidence
+    confidence_calibration: tuple[tuple[str, float, float], ...] = ()  # (algorithm, A, B): sigmoid(A logit(raw) + B)
 
     def __post_init__(self) -> None:
         if self.beta < 0:
@@ -111,6 +118,7 @@ class Decision:
     estimate_rad: float  # gamma_hat_t
     reward: float  # fused objective at the pan the sample was taken at
     probe: bool  # whether next_pan is a discrimination probe
+    confidence: float = 0.0  # posterior probability that the target named by estimate_rad is the Tx
 
 
 class PODLookup:
@@ -151,7 +159,7 @@ class Controller:
                  settings: ControllerSettings | None = None) -> None:
         self.algorithm = Algorithm(algorithm)
         self.sensors = sensors
-        self.settings = cfg = settings or ControllerSettings()
+        self.settings = cfg = settings or tuned_settings(self.algorithm)
         self.pod = PODLookup(pod_model, cfg.min_pod_std)
         self.circle = CircleGrid(cfg.grid_points)
         self.grid = self.circle.angles
@@ -168,6 +176,7 @@ class Controller:
         self.tracks = DetectionTracker(sensors.fov_half_angle_rad, sensors.box_bearing_noise_rad)
         self.warmup = cfg.warmup_steps if cfg.warmup_steps is not None else math.ceil(math.pi / sensors.fov_half_angle_rad)
         self._view_frames = np.zeros(self.grid.size)  # frames in which each grid bearing was in view
+        self._missed_buffer = np.empty(self.grid.size)
         self._iso_sum = 0.0
         self._iso_sq = 0.0
         self._n = 0
@@ -195,12 +204,12 @@ class Controller:
             lobe = (best, float(amplitude[best]), float(offset[best]))
         else:
             l_rf, lobe = self._flat, None
-        l_tracks = self._track_loglik(l_rf)
-        post = _softmax(l_tracks)
-        estimate = self._estimate(l_rf, l_tracks)
+        l_tracks, l_missed = self._beliefs(l_rf)
+        estimate, raw_confidence, post = self._answer(l_rf, l_tracks, l_missed)
         reward = self._mass_at(s, post) * self._rf_at(s, lobe)
         next_pan, probe = self._next_pan(t, l_rf, lobe, l_tracks, post)
-        return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe)
+        return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe,
+                        confidence=self._calibrated(raw_confidence))
 
     # -- beliefs ------------------------------------------------------------------------------
     def _iso_mean_and_std(self) -> tuple[float, float]:
@@ -209,34 +218,74 @@ class Controller:
         sigma = math.sqrt(var * self._n / (self._n - 1)) if self._n > 2 else self.pod.rf_noise_db
         return mean, max(sigma, 0.1)
 
-    def _track_loglik(self, l_rf: np.ndarray) -> np.ndarray:
-        """l(i) = l_RF(gamma_i) + l_D(i) for every track (camera algorithms only), with
-        l_D(i) = log N(p~_i; p_hat, v_i) and v_i = std(p_hat)^2 + (slope sigma)^2 / t + p~(1-p~)/n_i."""
-        if not self.uses_camera or not len(self.tracks):
-            return np.empty(0)
+    def _beliefs(self, l_rf: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Unnormalised log-posteriors of the hypotheses "the Tx is track i" and "the Tx is a
+        target the camera never detected, at grid bearing gamma" (camera algorithms only).
+
+        Each is rf_weight * l_RF(bearing) plus the camera's evidence: the Tx's POD is predicted
+        from the mean iso RSSI, p_hat = p_hat_D(z_iso) (Sec. III-A), with variance std(p_hat)^2 +
+        (slope sigma_z)^2 / t + pod_floor_std^2, as a Beta distribution; a track's k detections in
+        n frames are scored by the beta-binomial Bayes factor against an ordinary target's POD
+        (``_kernels.pod_evidence``), and an undetected bearing by the probability that the Tx was
+        missed in every frame that looked there. Largest when the PODs match (MISSION defect 1).
+        """
+        if not self.uses_camera:
+            return np.empty(0), None
+        cfg = self.settings
         z_iso, sigma = self._iso_mean_and_std()
         p_hat, p_std, slope = self.pod(z_iso)
-        var_model = p_std**2 + (slope * sigma) ** 2 / self._n
-        out = np.empty(len(self.tracks))
-        return _kernels.track_loglik(l_rf, self.circle.step, self.tracks.bearing, self.tracks.detections,
-                                     self.tracks.frames_in_view, p_hat, var_model, out)
+        var = p_std**2 + (slope * sigma) ** 2 / self._n + cfg.pod_floor_std**2
+        alpha, beta = _beta_of(p_hat, var)
+        a0, b0 = cfg.null_pod_prior
+        l_tracks = np.empty(len(self.tracks))
+        if len(self.tracks):
+            _kernels.track_logpost(l_rf, self.circle.step, cfg.rf_weight, self.tracks.bearing, self.tracks.detections,
+                                   self.tracks.frames_in_view, alpha, beta, a0, b0, l_tracks)
+        l_missed = _kernels.missed_logdensity(l_rf, cfg.rf_weight, self._view_frames, alpha, beta,
+                                              math.log(cfg.missed_prior_per_rad * self.circle.step), self._missed_buffer)
+        return l_tracks, l_missed
 
-    def _estimate(self, l_rf: np.ndarray, l_tracks: np.ndarray) -> float:
-        """gamma_hat_t: the detected bearing with the largest fused log-posterior, unless the
-        likelihood of having missed the Tx at some undetected bearing is larger."""
-        if l_tracks.size:
-            best_track = int(np.argmax(l_tracks))
-            if not self.uses_radio:
-                return float(self.tracks.bearing[best_track])
-            z_iso, _ = self._iso_mean_and_std()
-            p_hat = self.pod(z_iso)[0]
-            best_missed, _ = _kernels.best_missed(l_rf, self._view_frames, math.log(max(1.0 - p_hat, 1e-3)))
-            if l_tracks[best_track] >= best_missed:
-                return float(self.tracks.bearing[best_track])
-            return self._refined_argmax(l_rf + self._view_frames * math.log(max(1.0 - p_hat, 1e-3)))
-        if self.uses_radio and self._n:
-            return self._refined_argmax(l_rf)
-        return self.first_pan()
+    def _answer(self, l_rf: np.ndarray, l_tracks: np.ndarray, l_missed: np.ndarray | None) -> tuple[float, float, np.ndarray]:
+        """gamma_hat_t, the raw posterior probability that the target it names is the Tx, and
+        the tracks' posterior probabilities.
+
+        Camera algorithms name the detected target with the largest posterior, unless the
+        posterior mass of "missed" within ``answer_window_rad`` of some undetected bearing is
+        larger (the LOS condition, eq. 10, makes the Tx one of the detected targets, but a far
+        target's POD is close to 0). RaPAS names the lobe centre (eq. 27), with the RF posterior
+        mass around it as its confidence.
+        """
+        cfg = self.settings
+        half = max(1, int(round(cfg.answer_window_rad / self.circle.step)))
+        if l_missed is None:  # rapas
+            if not self._n:
+                return self.first_pan(), 0.0, l_tracks
+            post_grid = _softmax(cfg.rf_weight * l_rf)
+            estimate = self._refined_argmax(l_rf)
+            return estimate, _arc_mass(post_grid, self.circle.nearest(estimate), half), l_tracks
+        top = max(float(l_missed.max()), float(l_tracks.max()) if l_tracks.size else -np.inf)
+        w_missed = np.exp(l_missed - top)
+        w_tracks = np.exp(l_tracks - top)
+        total = float(w_missed.sum() + w_tracks.sum())
+        post_missed, post = w_missed / total, w_tracks / total
+        j = int(np.argmax(post_missed))
+        missed_mass = _arc_mass(post_missed, j, half)
+        if post.size and (float(post.max()) >= missed_mass or not self.uses_radio):  # without Rx(dir), "missed" names no bearing
+            i = int(np.argmax(post))
+            estimate = float(self.tracks.bearing[i])
+            return estimate, float(post[i]) + _arc_mass(post_missed, self.circle.nearest(estimate), half), post
+        if not self._n:
+            return self.first_pan(), 0.0, post
+        return self._refined_argmax(l_missed), missed_mass, post
+
+    def _calibrated(self, raw: float) -> float:
+        """The confidence reported: the raw posterior through the algorithm's fitted Platt map
+        sigmoid(A logit(raw) + B) (identity when none is set)."""
+        for name, A, B in self.settings.confidence_calibration:
+            if name == self.algorithm.value:
+                p = min(max(raw, 1e-9), 1.0 - 1e-9)
+                return float(1.0 / (1.0 + math.exp(-(A * math.log(p / (1.0 - p)) + B))))
+        return float(min(max(raw, 0.0), 1.0))
 
     def _refined_argmax(self, values: np.ndarray) -> float:
         """Grid argmax refined by a parabola through its two neighbours."""
@@ -297,6 +346,33 @@ class Controller:
         self._probes += 1
         arg = _kernels.probe(self.grid, float(g1), float(g2), self.settings.lobe_width_rad, bool(self._probes % 2))
         return float(self.grid[arg])
+
+
+TUNING: dict[str, dict] = {
+    "ravipas": {"pod_floor_std": 0.0},  # with the camera as its only cue, RaViPAS does best trusting the POD model fully
+}
+"""Per-algorithm departures from the ``ControllerSettings`` defaults, fitted like them on simulated
+campaigns (each baseline gets its own best settings, so comparisons are fair)."""
+
+
+def tuned_settings(algorithm: "Algorithm | str") -> ControllerSettings:
+    """The settings an algorithm runs with by default."""
+    return ControllerSettings(**TUNING.get(Algorithm(algorithm).value, {}))
+
+
+def _beta_of(mean: float, var: float) -> tuple[float, float]:
+    """Beta(alpha, beta) with this mean and variance (moment matching; kept proper and not
+    sharper than the variance allows)."""
+    m = min(max(mean, 1e-3), 1.0 - 1e-3)
+    kappa = max(m * (1.0 - m) / max(var, 1e-6) - 1.0, 0.5)
+    return m * kappa, (1.0 - m) * kappa
+
+
+def _arc_mass(weights: np.ndarray, centre: int, half: int) -> float:
+    """Sum of grid ``weights`` within ``half`` cells of ``centre`` (periodic)."""
+    M = weights.size
+    idx = np.arange(centre - half, centre + half + 1) % M
+    return float(weights[idx].sum())
 
 
 def _softmax(log_weights: np.ndarray) -> np.ndarray:
