@@ -38,6 +38,7 @@ only (estimate = lobe centre on the grid); ``ravipas`` uses the camera and Rx(is
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from enum import Enum
@@ -47,7 +48,7 @@ import numpy as np
 from services.controller import _kernels
 from services.controller.circle_gp import LobeGP
 from services.controller.grid import CircleGrid
-from services.controller.tracks import DetectionTracker, wrap
+from services.controller.tracks import BearingTracker, wrap
 from services.protocol.measurements import StepMeasurement
 from services.protocol.pod import PODModel
 
@@ -107,6 +108,8 @@ class SensorConfig:
     box_bearing_noise_rad: float
     initial_pan_rad: float
     rssi_grows_with_alignment: bool  # True: stronger reads higher (db-gain); False: paper's |g| rho
+    rf_period_s: float = 0.1  # T_RF, time between control steps
+
 
 
 @dataclass(frozen=True)
@@ -159,7 +162,7 @@ class Controller:
                  settings: ControllerSettings | None = None) -> None:
         self.algorithm = Algorithm(algorithm)
         self.sensors = sensors
-        self.settings = cfg = settings or tuned_settings(self.algorithm)
+        self.settings = cfg = tuned_settings(self.algorithm, settings)
         self.pod = PODLookup(pod_model, cfg.min_pod_std)
         self.circle = CircleGrid(cfg.grid_points)
         self.grid = self.circle.angles
@@ -173,7 +176,7 @@ class Controller:
             residual_length_scale=cfg.residual_length_scale_rad,
             residual_var=cfg.residual_std_db**2, capacity=max(sensors.steps, 1),
         )
-        self.tracks = DetectionTracker(sensors.fov_half_angle_rad, sensors.box_bearing_noise_rad)
+        self.tracks = BearingTracker(sensors.fov_half_angle_rad, sensors.box_bearing_noise_rad, sensors.rf_period_s)
         self.warmup = cfg.warmup_steps if cfg.warmup_steps is not None else math.ceil(math.pi / sensors.fov_half_angle_rad)
         self._view_frames = np.zeros(self.grid.size)  # frames in which each grid bearing was in view
         self._missed_buffer = np.empty(self.grid.size)
@@ -194,9 +197,9 @@ class Controller:
         self._n += 1
         self._iso_sum += m.rf.iso_rssi_dbm
         self._iso_sq += m.rf.iso_rssi_dbm**2
-        self._view_frames[self.circle.window(s, self.tracks.count_limit)] += len(m.frames)
         if self.uses_camera:
-            self.tracks.update(s, m.frames)
+            self.tracks.update(s, m.frames, self._view_frames)
+        self._view_frames[self.circle.window(s, self.tracks.count_limit)] += len(m.frames)
         if self.uses_radio:
             self.rf.add(s, m.rf.dir_rssi_dbm)
             l_rf, amplitude, offset = self.rf.lobe_fit()
@@ -355,9 +358,11 @@ TUNING: dict[str, dict] = {
 campaigns (each baseline gets its own best settings, so comparisons are fair)."""
 
 
-def tuned_settings(algorithm: "Algorithm | str") -> ControllerSettings:
-    """The settings an algorithm runs with by default."""
-    return ControllerSettings(**TUNING.get(Algorithm(algorithm).value, {}))
+def tuned_settings(algorithm: "Algorithm | str", base: ControllerSettings | None = None) -> ControllerSettings:
+    """The settings an algorithm runs with: ``base`` (default ``ControllerSettings()``) with the
+    algorithm's own tuning (``TUNING``) on top, whoever builds the controller (in-process
+    campaigns and the controller service alike)."""
+    return dataclasses.replace(base or ControllerSettings(), **TUNING.get(Algorithm(algorithm).value, {}))
 
 
 def _beta_of(mean: float, var: float) -> tuple[float, float]:
@@ -397,4 +402,5 @@ def sensor_config_from_scenario(scenario) -> SensorConfig:
         box_bearing_noise_rad=scenario.box_bearing_noise_rad,
         initial_pan_rad=scenario.initial_pan_rad,
         rssi_grows_with_alignment=scenario.antenna_model is not AntennaModel.paper,
+        rf_period_s=scenario.rf_period_s,
     )
