@@ -183,13 +183,15 @@ def place_targets(sc: Scenario, rng: np.random.Generator) -> GroundTruth:
 
 
 def add_walkers(sc: Scenario, rng: np.random.Generator, truth: GroundTruth) -> GroundTruth:
-    """Choose the ``sc.n_walkers`` targets that walk (uniformly at random, the Tx among the
-    candidates) and draw their trajectories over ``sc.steps`` steps from their step-0
-    positions (``physics.walk``). All draws come from ``rng``; none when nobody walks."""
-    n_walk = sc.n_walkers
+    """Choose the targets that walk, ``walking_fraction`` of them rounded half up (``sc.n_walkers``
+    for a drawn layout), uniformly at random with the Tx among the candidates, and draw their
+    trajectories over ``sc.steps`` steps from their step-0 positions (``physics.walk``). All
+    draws come from ``rng``; none when nobody walks."""
+    n = truth.positions_m.shape[0]
+    n_walk = int(math.floor(sc.walking_fraction * n + 0.5))
     if n_walk == 0:
         return truth
-    walkers = np.sort(rng.choice(truth.positions_m.shape[0], size=n_walk, replace=False))
+    walkers = np.sort(rng.choice(n, size=n_walk, replace=False))
     paths = physics.walk(sc, rng, truth.positions_m[walkers], sc.steps)
     return GroundTruth(positions_m=truth.positions_m, tx_index=truth.tx_index, walkers=walkers, walker_positions_m=paths)
 
@@ -300,11 +302,13 @@ class SimulatedPlatform:
         self._tx_bearing = truth.tx_bearing_rad
         self._iso_mean = float(physics.path_loss_dbm(sc, self._tx_range))
         self._iso_means = self._tx_bearings = None
-        if truth.tx_walks or sc.shadowing_db > 0.0:
+        self.shadowing = None if sc.shadowing_db <= 0.0 else physics.ShadowingField(sc.shadowing_db, sc.shadowing_corr_m, streams.shadowing)
+        """The test's shadowing field S(p) [dB] (truth, None when off)."""
+        if truth.tx_walks or self.shadowing is not None:
             tx_path = truth.tx_positions_m(steps) if truth.tx_walks else truth.positions_m[truth.tx_index][None, :]
             means = physics.path_loss_dbm(sc, np.hypot(tx_path[:, 0], tx_path[:, 1]))
-            if sc.shadowing_db > 0.0:
-                means = means + physics.ShadowingField(sc.shadowing_db, sc.shadowing_corr_m, streams.shadowing)(tx_path)
+            if self.shadowing is not None:
+                means = means + self.shadowing(tx_path)
             if truth.tx_walks:
                 self._iso_means = means.tolist()
                 self._tx_bearings = np.arctan2(tx_path[:, 1], tx_path[:, 0]).tolist()
@@ -314,6 +318,17 @@ class SimulatedPlatform:
         self._phi = physics.fading_coefficient(sc)
         self._innovation = math.sqrt(1.0 - self._phi * self._phi)
         self._noise = None  # (iso, dir) of the previous step
+
+    # -- truth accessors (for scoring and tests; never part of a measurement) ------------------
+    def iso_mean_dbm(self, step: int) -> float:
+        """The noiseless iso RSSI at step ``step``: g(d_Tx) plus the shadowing at the Tx."""
+        return self._iso_mean if self._iso_means is None else self._iso_means[min(step, len(self._iso_means) - 1)]
+
+    def visible_at(self, step: int) -> np.ndarray:
+        """(N,) bool: which targets no nearer target hides at step ``step`` (all without bodies)."""
+        if self._visible is None:
+            return np.ones(self._bearings.shape[0], dtype=bool)
+        return self._visible if self._visible.ndim == 1 else self._visible[min(step, self._visible.shape[0] - 1)]
 
     def sense(self, step: int, pan_rad: float) -> StepMeasurement:
         sc = self.scenario
