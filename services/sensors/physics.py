@@ -91,8 +91,10 @@ def occluded(body_width_m: float, bearings_rad: np.ndarray, ranges_m: np.ndarray
 
     Every target is a disc of diameter ``body_width_m``; target i subtends the arc
     [gamma_i - alpha_i, gamma_i + alpha_i], alpha_i = asin(min(1, (w/2)/d_i)). It is occluded
-    when a *nearer* target j (d_j < d_i) covers more than half of that arc (overlap > alpha_i):
-    the LOS condition of eq. 10 fails for it.
+    when a *nearer* target j (d_j < d_i) covers more than half of that arc: the LOS condition
+    of eq. 10 fails for it. A nearer disc subtends a wider arc (alpha_j >= alpha_i), and then
+    "more than half of i's arc is covered by j's" is exactly "j's arc contains i's centre",
+    |wrap(gamma_i - gamma_j)| < alpha_j, which is what is computed.
 
     Parameters
     ----------
@@ -115,11 +117,9 @@ def occluded(body_width_m: float, bearings_rad: np.ndarray, ranges_m: np.ndarray
     for lo in range(0, b2.shape[0], block):
         bb, dd = b2[lo:lo + block], d2[lo:lo + block]
         half = angular_half_width(body_width_m, dd)  # (K, N)
-        hi_i, hi_j = half[:, :, None], half[:, None, :]
         delta = np.abs(bb[:, :, None] - bb[:, None, :])  # (K, N_i, N_j): angle between i's and j's centres
         delta = np.minimum(delta, 2.0 * np.pi - delta)  # = |wrap(gamma_i - gamma_j)| (bearings in [-pi, pi))
-        overlap = np.minimum(hi_i, delta + hi_j) - np.maximum(-hi_i, delta - hi_j)
-        covered = (dd[:, None, :] < dd[:, :, None]) & (overlap > hi_i)
+        covered = (delta < half[:, None, :]) & (dd[:, None, :] < dd[:, :, None])
         out[lo:lo + block] = covered.any(axis=2)
     return out.reshape(*lead, n)
 

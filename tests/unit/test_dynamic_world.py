@@ -322,10 +322,11 @@ def test_occlusion_geometry():
 
 
 def test_occlusion_matches_brute_force_on_random_crowds():
+    """The definition itself: more than half of a target's arc covered by one nearer target's."""
     rng = np.random.default_rng(4)
-    w = 0.7
-    for _ in range(30):
+    for _ in range(200):
         n = 12
+        w = rng.choice([0.3, 0.7, 2.0, 4.0])
         b, d = rng.uniform(-math.pi, math.pi, n), rng.uniform(0.5, 6.0, n)
         got = physics.occluded(w, b, d)
         for i in range(n):
