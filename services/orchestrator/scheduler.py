@@ -44,7 +44,7 @@ from typing import Any, Callable
 import numpy as np
 
 from services.learner.pod import predict, r2_score
-from services.orchestrator.metrics import associate, score_test
+from services.orchestrator.metrics import associate, score_test, truth_bearings
 from services.orchestrator.simulate import TestOutcome, TrainedPOD, summarize
 from services.orchestrator.storage import EpisodeKey, StorageFault, Store
 from services.protocol import keys
@@ -468,12 +468,12 @@ class Scheduler:
             self._drop_flight(eid)
             return
         res, truth = flight.result, flight.truth
-        if len(res.estimates_rad) != run.scenario.steps or truth.tx_index >= len(truth.bearings_rad):
+        bearings = truth_bearings(truth, run.scenario.steps)  # (N,), or (steps, N) when targets walk
+        if len(res.estimates_rad) != run.scenario.steps or bearings is None:
             log.warning("episode %s: inconsistent result (%d estimates for %d steps); rerun", eid, len(res.estimates_rad),
                         run.scenario.steps)
             self._requeue(eid, count_attempt=True, reason="inconsistent result")
             return
-        bearings = np.asarray(truth.bearings_rad)
         estimates = np.asarray(res.estimates_rad)
         hits, in_fov = score_test(estimates, bearings, truth.tx_index, run.scenario.fov_half_angle_rad)
         record = dict(
@@ -481,6 +481,7 @@ class Scheduler:
             pans=list(res.pans_rad), rewards=list(res.rewards), chosen=[int(i) for i in associate(estimates, bearings)],
             tx_index=truth.tx_index, bearings=list(truth.bearings_rad), ranges=list(truth.ranges_m),
             latencies=list(flight.timing.latencies_ms) if flight.timing else None,
+            trajectories=[t.model_dump(mode="json") for t in truth.trajectories] or None,
         )
 
         def save() -> None:

@@ -70,10 +70,11 @@ def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod
         outcome.rewards.append(decision.reward)
         pan = decision.next_pan_rad
     truth = platform.truth
-    hits, in_fov = score_test(np.asarray(outcome.estimates), truth.bearings_rad, truth.tx_index, scenario.fov_half_angle_rad)
+    bearings = truth.step_bearings_rad()  # (N,), or (T, N) when targets walk: DR_t against the bearings at t
+    hits, in_fov = score_test(np.asarray(outcome.estimates), bearings, truth.tx_index, scenario.fov_half_angle_rad)
     outcome.hits = [bool(h) for h in hits]
     outcome.in_fov = [bool(f) for f in in_fov]
-    outcome.chosen = [int(i) for i in associate(np.asarray(outcome.estimates), truth.bearings_rad)]
+    outcome.chosen = [int(i) for i in associate(np.asarray(outcome.estimates), bearings)]
     return outcome
 
 

@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Iterator
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -80,6 +80,11 @@ _MIGRATIONS: dict[int, str] = {
     2: """
     ALTER TABLE campaigns ADD COLUMN pod_model TEXT;
     ALTER TABLE campaigns ADD COLUMN pod_truth TEXT
+    """,
+    # 3: the walking targets' per-step truth of an episode (EpisodeTruth.trajectories:
+    #    [{"index", "bearings_rad": [...], "ranges_m": [...]}]); NULL for a static world.
+    3: """
+    ALTER TABLE episodes ADD COLUMN trajectories TEXT
     """,
 }
 
@@ -423,17 +428,19 @@ class Store:
 
     def finish_episode(self, key: EpisodeKey, *, hits: list[bool], in_fov: list[bool], estimates: list[float], pans: list[float],
                        rewards: list[float], chosen: list[int], tx_index: int, bearings: list[float], ranges: list[float],
-                       latencies: list[float] | None) -> bool:
+                       latencies: list[float] | None, trajectories: list[dict] | None = None) -> bool:
         """Record a finished test in one transaction; False if it was already recorded (no
-        duplicate) or its campaign was cancelled."""
+        duplicate) or its campaign was cancelled. ``bearings``/``ranges`` are the targets at
+        step 0; ``trajectories`` the walking ones' per-step truth, if any."""
         with self.transaction() as db:
             cur = db.execute(
                 "UPDATE episodes SET status='done', hits=?, in_fov=?, estimates=?, pans=?, rewards=?, chosen=?, tx_index=?,"
-                " bearings=?, ranges=?, latencies=?, finished_at=?"
+                " bearings=?, ranges=?, latencies=?, trajectories=?, finished_at=?"
                 " WHERE campaign_id=? AND test_index=? AND algorithm=? AND status IN ('pending', 'running')",
                 (json.dumps([int(h) for h in hits]), json.dumps([int(f) for f in in_fov]), json.dumps(estimates), json.dumps(pans),
                  json.dumps(rewards), json.dumps(chosen), tx_index, json.dumps(bearings), json.dumps(ranges),
-                 None if latencies is None else json.dumps(latencies), time.time(),
+                 None if latencies is None else json.dumps(latencies),
+                 None if trajectories is None else json.dumps(trajectories, separators=(",", ":")), time.time(),
                  key.campaign_id, key.test_index, key.algorithm))
             return cur.rowcount == 1
 
@@ -485,7 +492,7 @@ def _campaign_dict(row: sqlite3.Row, counts: dict[str, int]) -> dict[str, Any]:
 
 def _episode_dict(row: sqlite3.Row) -> dict[str, Any]:
     d = dict(row)
-    for k in ("hits", "in_fov", "estimates", "pans", "rewards", "chosen", "bearings", "ranges", "latencies"):
+    for k in ("hits", "in_fov", "estimates", "pans", "rewards", "chosen", "bearings", "ranges", "latencies", "trajectories"):
         if d.get(k) is not None:
             d[k] = json.loads(d[k])
     return d

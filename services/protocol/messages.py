@@ -156,13 +156,28 @@ class EpisodeTiming(_Message):
 
 # -- truth plane -------------------------------------------------------------------------------
 
+class TargetTrajectory(_Message):
+    """Where one walking target was at every step of an episode (truth plane only)."""
+
+    index: int = Field(ge=0, le=999, description="i, the target's index in EpisodeTruth.bearings_rad")
+    bearings_rad: tuple[float, ...] = Field(min_length=1, max_length=MAX_STEPS, description="gamma_i at step t = 0 ... steps-1 [rad]")
+    ranges_m: tuple[float, ...] = Field(min_length=1, max_length=MAX_STEPS, description="d_i at step t [m]")
+
+
 class EpisodeTruth(_Message):
-    """Ground truth of a simulated episode, for scoring only (simulated sensors -> orchestrator)."""
+    """Ground truth of a simulated episode, for scoring only (simulated sensors -> orchestrator).
+
+    ``bearings_rad``/``ranges_m``: every target at step 0 (static targets stay there).
+    ``trajectories`` (optional, added in v1.1): one entry per *walking* target with its
+    bearing and range at every step; DR_t is then scored against the bearings at step t.
+    A node that sends none describes a static world.
+    """
 
     episode_id: str = _ID
     bearings_rad: tuple[float, ...] = Field(min_length=1, max_length=1000)
     ranges_m: tuple[float, ...] = Field(min_length=1, max_length=1000)
     tx_index: int = Field(ge=0)
+    trajectories: tuple[TargetTrajectory, ...] = Field(default=(), max_length=1000)
 
 
 class TrainingTruth(_Message):
@@ -177,7 +192,7 @@ class TrainingTruth(_Message):
 WIRE_MESSAGES: tuple[type[BaseModel], ...] = (
     EpisodeStart, EpisodeStop, Command, Measurement, TrainingRequest, TrainingStream,
     PODRequest, PODResponse, ErrorReply, EpisodeResult, EpisodeTiming, EpisodeTruth, TrainingTruth,
-    RFSample, CameraFrame, TrainingSample, PODModel, Scenario,
+    RFSample, CameraFrame, TrainingSample, TargetTrajectory, PODModel, Scenario,
 )
 
 

@@ -117,13 +117,16 @@ def test_the_pod_model_and_its_training_truth_are_kept_for_the_figure(live, done
 
 
 def test_presets_list_every_parameter_with_its_range(http):
-    assert [p["name"] for p in http.get("/presets").json()] == ["paper", "paper-uniform"]
+    assert [p["name"] for p in http.get("/presets").json()] == ["paper", "paper-uniform", "dynamic"]
     paper = http.get("/presets/paper").json()
     assert set(paper["parameters"]) == set(Scenario.model_fields)
     assert paper["parameters"]["n_targets"] == {"value": 20, "allowed": "an integer in [1, 500]",
                                                  "description": Scenario.model_fields["n_targets"].description}
     assert paper["parameters"]["placement"]["allowed"] == "one of reference|uniform"
     assert http.get("/presets/paper-uniform").json()["parameters"]["placement"]["value"] == "uniform"
+    dynamic = http.get("/presets/dynamic").json()["parameters"]
+    assert dynamic["clutter_rate"] == {"value": 0.3, "allowed": "a number in [0.0, 100.0]",
+                                       "description": Scenario.model_fields["clutter_rate"].description}
     r = http.get("/presets/moon")
     assert r.status_code == 404 and "paper" in r.json()["detail"]
 

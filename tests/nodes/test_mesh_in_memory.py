@@ -122,3 +122,77 @@ def test_malformed_messages_are_dropped_and_the_mesh_still_works(mesh, payload):
     bus.wait_idle()
     c = _run(store, scheduler, "paper", SMALL, 1, 4, ["rapas"])
     assert c["status"] == "done"
+
+
+# -- the dynamic world (issue 9): walkers, occlusion, clutter, shadowing, fading -------------------------
+
+DYNAMIC_SMALL = {"steps": 30, "n_train": 200, "n_targets": 8}
+
+
+def _results_without_timing(results: dict) -> dict:
+    out = json.loads(json.dumps(results))
+    out.pop("steps_per_second", None)
+    out["pod"].pop("train_seconds", None)
+    return out
+
+
+def test_dynamic_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
+    """Walkers' per-step truth travels on the truth plane, is stored with each test and scores
+    DR_t exactly as ``run_test`` does in process."""
+    from services.orchestrator.api.views import trace_public
+    from services.orchestrator.simulate import run_test, train_pod
+    from services.sensors.world import SimulatedPlatform
+
+    _, store, scheduler = mesh
+    algorithms = ["ra2vipas", "rapas", "ravipas", "sweep"]
+    scenario = build_scenario("dynamic", DYNAMIC_SMALL)
+    c = _run(store, scheduler, "dynamic", DYNAMIC_SMALL, 3, 5, algorithms)
+    assert c["status"] == "done", c["error"]
+    expected = run_campaign("dynamic", scenario, 3, 5, algorithms)
+    assert _results_without_timing(c["results"]) == _results_without_timing(expected)
+    pod = train_pod(scenario, 5).model
+    walked = 0
+    for row in store.episode_rows(c["id"]):
+        outcome = run_test(scenario, 5, row["test_index"], row["algorithm"], pod)
+        assert row["hits"] == [int(h) for h in outcome.hits] and row["chosen"] == outcome.chosen
+        truth = SimulatedPlatform(scenario, 5, row["test_index"]).truth
+        bearings, ranges = truth.walker_truth()
+        assert [t["index"] for t in row["trajectories"]] == truth.walkers.tolist()
+        for k, t in enumerate(row["trajectories"]):
+            assert t["bearings_rad"] == bearings[:, k].tolist() and t["ranges_m"] == ranges[:, k].tolist()
+        trace = trace_public(row, scenario.rf_period_s)
+        moving = [tg for tg in trace.targets if tg.bearings_rad is not None]
+        assert [tg.index for tg in moving] == truth.walkers.tolist()
+        assert all(len(tg.bearings_rad) == len(tg.ranges_m) == scenario.steps for tg in moving)
+        walked += len(moving)
+    assert walked == 4 * len(algorithms) * 3  # half of the 8 targets walk in every test
+
+
+def test_no_truth_reaches_the_controller_or_the_learner_in_the_dynamic_world(mesh):
+    """Measurements and training streams carry RSSI values and sorted box bearings only: no
+    identity, range, POD, occlusion flag or clutter label."""
+    import threading
+
+    from services.protocol.messages import TrainingRequest, training_job_id
+
+    bus, store, scheduler = mesh
+    _run(store, scheduler, "dynamic", DYNAMIC_SMALL, 1, 3, ["ra2vipas"])
+    seen = 0
+    for key, payload in bus.published:
+        if key == keys.measurement("rig-1"):
+            m = json.loads(payload)
+            assert set(m) == {"episode_id", "step", "pan_rad", "rf", "frames"}
+            assert set(m["rf"]) == {"iso_rssi_dbm", "dir_rssi_dbm"}
+            assert all(set(f) == {"box_bearings_rad"} and f["box_bearings_rad"] == sorted(f["box_bearings_rad"]) for f in m["frames"])
+            seen += 1
+    assert seen == DYNAMIC_SMALL["steps"]
+    scenario = build_scenario("dynamic", DYNAMIC_SMALL)
+    done, replies = threading.Event(), []
+    request = TrainingRequest(job_id=training_job_id(scenario, 3), scenario=scenario, seed=3)
+    bus.query(keys.training("rig-1"), dump(request), 30.0, lambda r: (replies.extend(r), done.set()))
+    assert done.wait(30.0) and replies and replies[0].ok
+    stream = json.loads(replies[0].payload)
+    assert set(stream) == {"job_id", "samples"} and len(stream["samples"]) == DYNAMIC_SMALL["n_train"]
+    for sample in stream["samples"]:
+        assert set(sample) == {"index", "iso_rssi_dbm", "frames"}
+        assert all(set(f) == {"box_bearings_rad"} for f in sample["frames"])

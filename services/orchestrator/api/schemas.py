@@ -162,9 +162,11 @@ class OutcomePage(BaseModel):
 
 class TargetPublic(BaseModel):
     index: int
-    bearing_rad: float
-    range_m: float
+    bearing_rad: float = Field(description="gamma_i at step 0 (always, for a static target)")
+    range_m: float = Field(description="d_i at step 0")
     is_tx: bool
+    bearings_rad: Optional[list[float]] = Field(None, description="walking targets only: gamma_i at every step")
+    ranges_m: Optional[list[float]] = Field(None, description="walking targets only: d_i at every step")
 
 
 class TraceStep(BaseModel):

@@ -64,7 +64,8 @@ def outcome_public(row: dict[str, Any], rf_period_s: float) -> OutcomePublic:
 
 
 def trace_public(row: dict[str, Any], rf_period_s: float) -> TracePublic:
-    """Per step of a finished test: pan angle, reward, gamma_hat_t, î_t and whether it hit."""
+    """Per step of a finished test: pan angle, reward, gamma_hat_t, î_t and whether it hit; the
+    targets at step 0 and, for those that walk, their bearing and range at every step."""
     latencies = row.get("latencies") or []
     steps = [
         TraceStep(step=t, time_s=round((t + 1) * rf_period_s, 10), pan_rad=row["pans"][t], reward=row["rewards"][t],
@@ -72,7 +73,10 @@ def trace_public(row: dict[str, Any], rf_period_s: float) -> TracePublic:
                   latency_ms=latencies[t] if t < len(latencies) else None)
         for t in range(len(row["estimates"]))
     ]
-    targets = [TargetPublic(index=i, bearing_rad=b, range_m=r, is_tx=i == row["tx_index"])
+    walks = {t["index"]: t for t in row.get("trajectories") or []}
+    targets = [TargetPublic(index=i, bearing_rad=b, range_m=r, is_tx=i == row["tx_index"],
+                            bearings_rad=walks[i]["bearings_rad"] if i in walks else None,
+                            ranges_m=walks[i]["ranges_m"] if i in walks else None)
                for i, (b, r) in enumerate(zip(row["bearings"], row["ranges"]))]
     return TracePublic(campaign_id=row["campaign_id"], test_index=row["test_index"], algorithm=row["algorithm"], rig=row["rig"],
                        attempt=row["attempt"], tx_index=row["tx_index"], targets=targets, steps=steps)
