@@ -7,6 +7,7 @@ gate file before drawing (it runs in the renderer process, so it must be importa
 
 from __future__ import annotations
 
+import asyncio
 import functools
 import os
 import signal
@@ -22,11 +23,13 @@ from pathlib import Path
 
 import httpx
 import pytest
+from fastapi import HTTPException
 
 from services.orchestrator import plots
 from services.orchestrator.api.app import create_app
-from services.orchestrator.api.render import PlotKey
+from services.orchestrator.api.render import FigureSource, PlotKey, PlotRenderer, Saturated
 from services.orchestrator.settings import OrchestratorSettings
+from services.protocol.scenario import build_scenario
 from tests.api.live import SMALL, LiveAPI
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -199,6 +202,17 @@ def test_a_saturated_pool_answers_503_with_retry_after_and_identical_requests_sh
         assert http.get(f"{base}/2/ra2vipas/plot", params={"format": "svg"}).status_code == 200
 
 
+def test_renderers_run_at_the_lowest_cpu_priority(server, campaign):
+    renderer = server.app.state.renderer
+    with server.client() as http:
+        assert http.get(f"/campaigns/{campaign}/plots/dr").status_code == 200
+    pids = renderer.pids()
+    assert pids
+    for pid in pids:
+        assert os.getpriority(os.PRIO_PROCESS, pid) == 19
+        assert os.sched_getscheduler(pid) == os.SCHED_IDLE
+
+
 def test_a_killed_renderer_is_replaced(server, campaign):
     renderer = server.app.state.renderer
     with server.client() as http:
@@ -219,6 +233,56 @@ def test_a_killed_renderer_is_replaced(server, campaign):
         wait_until(drawn, "a figure after the renderer was killed")
     assert renderer.stats.restarts >= 1
     assert renderer.pids() and not set(renderer.pids()) & set(old)
+
+
+def pod_job(fmt: str = "png") -> plots.PlotJob:
+    return plots.PlotJob("pod", fmt, {"scenario": build_scenario("paper").model_dump(mode="json"),
+                                      "model": {"rssi_grid_dbm": [-60.0, -20.0], "mean": [0.1, 0.9], "std": [0.1, 0.1]},
+                                      "truth": None, "title": "t"})
+
+
+def test_a_saturated_renderer_refuses_before_reading_and_a_failed_read_reaches_every_waiter(tmp_path):
+    gate = tmp_path / "gate"
+
+    async def scenario() -> None:
+        renderer = PlotRenderer(1, capacity=1, render=functools.partial(gated_draw, str(gate))).start()
+        reads: list[str] = []
+        release = asyncio.Event()
+
+        async def read_pod() -> FigureSource:
+            reads.append("pod")
+            return FigureSource(pod_job())
+
+        async def read_missing() -> FigureSource:
+            reads.append("missing")
+            await release.wait()
+            raise HTTPException(404, "no campaign 'x'")
+
+        try:
+            drawing = asyncio.create_task(renderer.figure(PlotKey("c", "pod", "png"), read_pod))
+            while renderer.stats.renders < 1:
+                await asyncio.sleep(0.01)
+            with pytest.raises(Saturated) as refused:
+                await renderer.figure(PlotKey("c", "pod", "svg"), read_pod)
+            assert refused.value.retry_after >= 1 and reads == ["pod"], "a refused request must not read the store"
+            gate.touch()
+            assert (await drawing).startswith(PNG_MAGIC)
+
+            first = asyncio.create_task(renderer.figure(PlotKey("x", "dr", "png"), read_missing))
+            second = asyncio.create_task(renderer.figure(PlotKey("x", "dr", "png"), read_missing))
+            while renderer.stats.shared < 1:
+                await asyncio.sleep(0.01)
+            release.set()
+            for task in (first, second):
+                with pytest.raises(HTTPException) as missing:
+                    await task
+                assert missing.value.status_code == 404
+            assert reads == ["pod", "missing"] and renderer.in_flight() == 0 and renderer.stats.renders == 1
+        finally:
+            gate.touch()
+            renderer.close()
+
+    asyncio.run(scenario())
 
 
 def test_plot_routes_document_the_503_and_its_retry_after_header():
@@ -266,7 +330,7 @@ def _ignore_errors(fn, *args):
 CHILD = textwrap.dedent("""
     import asyncio, sys
     from services.orchestrator import plots
-    from services.orchestrator.api.render import PlotKey, PlotRenderer
+    from services.orchestrator.api.render import FigureSource, PlotKey, PlotRenderer
     from services.protocol.scenario import build_scenario
 
     async def main():
@@ -274,7 +338,10 @@ CHILD = textwrap.dedent("""
         job = plots.PlotJob("pod", "png", {"scenario": build_scenario("paper").model_dump(mode="json"),
                                            "model": {"rssi_grid_dbm": [-60.0, -20.0], "mean": [0.1, 0.9], "std": [0.1, 0.1]},
                                            "truth": None, "title": "t"})
-        await renderer.render_figure(PlotKey("c", "pod", "png"), job, epoch=renderer.epoch)
+        async def read():
+            return FigureSource(job)
+
+        await renderer.figure(PlotKey("c", "pod", "png"), read)
         print(renderer.pids()[0], flush=True)
         await asyncio.sleep(600)
 

@@ -5,9 +5,9 @@ process stalled every route and the scheduler that runs in the same process (iss
 
 * **Renderer processes.** ``PlotRenderer`` owns a ``ProcessPoolExecutor`` of ``workers``
   processes (``OrchestratorSettings.plot_workers``, env ``RA2VIPAS_PLOT_WORKERS``), started with
-  ``spawn`` (the API process runs Zenoh's threads, so forking it is unsafe), niced to 19 so
-  they only take CPU that the services leave idle, and exiting by themselves if the API
-  process dies. A renderer that dies is replaced on the next request.
+  ``spawn`` (the API process runs Zenoh's threads, so forking it is unsafe), at nice 19 and
+  under ``SCHED_IDLE`` so they only take CPU that the services leave idle, and exiting by
+  themselves if the API process dies. A renderer that dies is replaced on the next request.
 * **Bounded.** At most ``capacity`` distinct renders are running or queued (two per worker by
   default); one more raises ``Saturated`` and the route answers 503 with ``Retry-After``
   instead of queueing. Concurrent requests for the same figure share one render.
@@ -46,10 +46,10 @@ import multiprocessing
 import os
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
-from typing import Any, Callable, NamedTuple
+from typing import Any, Awaitable, Callable, NamedTuple
 
 import cachetools
 from fastapi import HTTPException, Request, Response, status
@@ -114,12 +114,18 @@ class RenderStats:
 # -- in the renderer processes ---------------------------------------------------------------------
 
 def _init_renderer(parent_pid: int, niceness: int) -> None:
-    """Renderer start-up: lower the priority, exit with the API process, import matplotlib now
-    rather than during the first render."""
+    """Renderer start-up: the lowest CPU priority (nice 19, and Linux's SCHED_IDLE policy where
+    available: run only on a core nothing else wants), exit with the API process, and import
+    matplotlib's canvases now rather than during the first render."""
     try:
         os.nice(max(0, niceness - os.nice(0)))
     except OSError:
         pass
+    if niceness >= NICENESS and hasattr(os, "SCHED_IDLE"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        except OSError:
+            pass
     threading.Thread(target=_exit_with_parent, args=(parent_pid,), name="renderer-parent-watch", daemon=True).start()
     from matplotlib.backends import backend_agg, backend_svg  # noqa: F401  (the two formats' canvases)
 
@@ -144,7 +150,7 @@ class PlotRenderer:
 
     ``render`` is the function a renderer process runs on a ``PlotJob`` (module-level, so it
     can be pickled); ``start`` creates the pool (its processes start on first use) and
-    ``close`` stops them. ``render_figure`` must be awaited on one event loop; ``cached`` and
+    ``close`` stops them. ``figure`` must be awaited on one event loop; ``cached`` and
     ``invalidate`` may be called from any thread.
     """
 
@@ -164,6 +170,7 @@ class PlotRenderer:
         self._inflight: dict[PlotKey, asyncio.Future] = {}  # what identical requests can share
         self._busy = 0  # renders submitted and not finished (what ``capacity`` bounds)
         self._epoch = 0  # bumped by every invalidation: a render that started before one is not stored
+        self._tasks: set[asyncio.Task] = set()
         self._render_s = 0.5  # moving average of one render's duration in a renderer
         self._executor: ProcessPoolExecutor | None = None
 
@@ -190,11 +197,6 @@ class PlotRenderer:
         return [pid for pid, p in dict(getattr(ex, "_processes", None) or {}).items() if p.is_alive()]
 
     # -- cache --------------------------------------------------------------------------------
-    @property
-    def epoch(self) -> int:
-        """Read it before reading a figure's data from the store; pass it to ``render_figure``."""
-        return self._epoch
-
     def cached(self, key: PlotKey) -> bytes | None:
         with self._lock:
             data = self._cache.get(key)
@@ -208,7 +210,7 @@ class PlotRenderer:
             return len(self._cache), int(self._cache.currsize)
 
     def in_flight(self) -> int:
-        """Renders running or queued."""
+        """Figures being read from the store, queued or being drawn (what ``capacity`` bounds)."""
         with self._lock:
             return self._busy
 
@@ -225,14 +227,19 @@ class PlotRenderer:
             return len(stale)
 
     # -- rendering ----------------------------------------------------------------------------
-    async def render_figure(self, key: PlotKey, job: plots.PlotJob, *, epoch: int, cacheable: bool = True) -> bytes:
-        """The figure's bytes: from the cache, from an identical render in flight, or from a new
-        render in the pool.
+    async def figure(self, key: PlotKey, read: Callable[[], Awaitable[FigureSource]]) -> bytes:
+        """The figure's bytes: from the cache, from an identical request in flight, or read with
+        ``read()`` and drawn in the pool.
+
+        In that order, and the first two without touching the store: a request that finds the
+        renderers saturated is refused before it reads anything, so a flood of plot requests
+        costs one dictionary look-up each. What ``read()`` raises (e.g. a 404) is raised to
+        every request waiting for that figure.
 
         Raises
         ------
         Saturated
-            ``capacity`` renders are already running or queued.
+            ``capacity`` figures are already being read, queued or drawn.
         RendererUnavailable
             The pool is closed, or the renderer died during this render.
         """
@@ -249,32 +256,71 @@ class PlotRenderer:
                 if self._busy >= self.capacity:
                     self.stats.rejected += 1
                     retry = self.retry_after()
-                    raise Saturated(retry, f"the figure renderers are busy ({self._busy} renders running or queued, "
+                    raise Saturated(retry, f"the figure renderers are busy ({self._busy} figures in progress, "
                                            f"{self.workers} renderer{'s' if self.workers > 1 else ''}): retry in {retry} s")
-                future = self._submit(job, loop)
-                self.stats.renders += 1
                 self._busy += 1
-                self._inflight[key] = future
-                future.add_done_callback(functools.partial(self._finished, key, epoch, cacheable, self._executor))
+                future = self._inflight[key] = loop.create_future()
+                # its own task: a client that disconnects cancels its request, not the render others wait for
+                task = loop.create_task(self._produce(key, read, future, self._epoch))
+                self._tasks.add(task)
+                task.add_done_callback(self._tasks.discard)
+        return await asyncio.shield(future)
+
+    async def _produce(self, key: PlotKey, read: Callable[[], Awaitable[FigureSource]], future: asyncio.Future,
+                       epoch: int) -> None:
+        source = None
+        executor = None
         try:
-            data, _seconds = await asyncio.shield(future)
-        except BrokenProcessPool:
-            raise RendererUnavailable("a figure renderer stopped during this render; it was restarted, retry") from None
-        return data
+            source = await read()
+            with self._lock:
+                executor = self._executor
+                cf = self._submit(source.job)
+                self.stats.renders += 1
+            data, seconds = await asyncio.wrap_future(cf)
+        except BaseException as err:  # noqa: BLE001 - handed to every waiter
+            with self._lock:
+                self._busy -= 1
+                if self._inflight.get(key) is future:
+                    del self._inflight[key]
+                if isinstance(err, BrokenProcessPool):
+                    self.stats.failures += 1
+                    self._restart(executor)
+                    err = RendererUnavailable("a figure renderer stopped during this render; it was restarted, retry")
+                elif source is not None:
+                    self.stats.failures += 1
+            if isinstance(err, asyncio.CancelledError):  # the event loop is stopping
+                future.cancel()
+                raise
+            if not future.done():
+                future.set_exception(err)
+                future.exception()  # retrieved: nobody may be waiting any more
+            return
+        with self._lock:
+            self._busy -= 1
+            if self._inflight.get(key) is future:
+                del self._inflight[key]
+            self._render_s = 0.8 * self._render_s + 0.2 * seconds
+            if source.cacheable and epoch == self._epoch:
+                try:
+                    self._cache[key] = data
+                except ValueError:  # larger than the whole cache
+                    pass
+        if not future.done():
+            future.set_result(data)
 
     def retry_after(self) -> int:
         """Seconds until the queue has drained at the current render speed (at least 1)."""
         return max(1, min(RETRY_AFTER_MAX_S, math.ceil(self._render_s * self.capacity / self.workers)))
 
-    def _submit(self, job: plots.PlotJob, loop: asyncio.AbstractEventLoop) -> asyncio.Future:
+    def _submit(self, job: plots.PlotJob) -> Future:
+        """Send a job to the pool (called with the lock held)."""
         if self._executor is None:
             raise RendererUnavailable("the figure renderers are stopped")
         try:
-            cf = self._executor.submit(_timed, self.render, job)
+            return self._executor.submit(_timed, self.render, job)
         except BrokenProcessPool:  # a renderer died since the last render: replace the pool once
             self._restart(self._executor)
-            cf = self._executor.submit(_timed, self.render, job)
-        return asyncio.wrap_future(cf, loop=loop)
+            return self._executor.submit(_timed, self.render, job)
 
     def _restart(self, broken: ProcessPoolExecutor | None) -> None:
         """Replace a broken pool (called with the lock held)."""
@@ -283,28 +329,6 @@ class PlotRenderer:
         self._executor = self._new_executor()
         self.stats.restarts += 1
         broken.shutdown(wait=False, cancel_futures=True)
-
-    def _finished(self, key: PlotKey, epoch: int, cacheable: bool, executor: ProcessPoolExecutor | None,
-                  future: asyncio.Future) -> None:
-        with self._lock:
-            self._busy -= 1
-            if self._inflight.get(key) is future:
-                del self._inflight[key]
-            if future.cancelled():
-                return
-            err = future.exception()
-            if err is not None:
-                self.stats.failures += 1
-                if isinstance(err, BrokenProcessPool):
-                    self._restart(executor)
-                return
-            data, seconds = future.result()
-            self._render_s = 0.8 * self._render_s + 0.2 * seconds
-            if cacheable and epoch == self._epoch:
-                try:
-                    self._cache[key] = data
-                except ValueError:  # larger than the whole cache
-                    pass
 
 
 def _stop_executor(ex: ProcessPoolExecutor, timeout: float) -> None:
@@ -335,22 +359,17 @@ def get_renderer(request: Request) -> PlotRenderer:
 
 
 async def serve_figure(request: Request, key: PlotKey, read: Callable[[], FigureSource]) -> Response:
-    """The figure ``key`` as a response: from the cache without touching the store, else
-    ``read()`` (run in a worker thread; raises the route's 404/409) and a render.
+    """The figure ``key`` as a response (``PlotRenderer.figure``); ``read`` runs in a worker
+    thread only when the figure must be drawn, and raises the route's 404/409.
 
     Raises 503 with ``Retry-After`` when the renderers are saturated.
     """
-    renderer = get_renderer(request)
-    data = renderer.cached(key)
-    if data is None:
-        epoch = renderer.epoch
-        source = await run_in_threadpool(read)
-        try:
-            data = await renderer.render_figure(key, source.job, epoch=epoch, cacheable=source.cacheable)
-        except Saturated as err:
-            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(err), headers={"Retry-After": str(err.retry_after)}) from None
-        except RendererUnavailable as err:
-            raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(err), headers={"Retry-After": "1"}) from None
+    try:
+        data = await get_renderer(request).figure(key, functools.partial(run_in_threadpool, read))
+    except Saturated as err:
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(err), headers={"Retry-After": str(err.retry_after)}) from None
+    except RendererUnavailable as err:
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(err), headers={"Retry-After": "1"}) from None
     return Response(data, media_type=plots.MEDIA_TYPES[key.fmt])
 
 
