@@ -170,6 +170,7 @@ def bench_mesh(
 
 PLOT_TARGETS = {"read_p99_ms": 200.0, "slowdown_pct": 10.0}
 READ_PAUSE_S = 0.05  # each reader's pause between two requests
+DRAIN_S = 3.0  # after a run with plot load: the renders still queued (at most a few) finish
 
 
 def _plot_urls(campaigns: list[dict]) -> dict[str, list[str]]:
@@ -289,14 +290,18 @@ def _cpu_seconds(pids: dict[str, list[int]]) -> dict[str, float]:
     return out
 
 
-def _children_of(pid: int) -> list[int]:
+def _renderers_of(pid: int) -> list[int]:
+    """The figure renderer processes of the orchestrator ``pid`` (its multiprocessing children)."""
     found = []
     for entry in os.listdir("/proc"):
         if entry.isdigit():
             try:
                 with open(f"/proc/{entry}/stat") as f:
-                    if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
-                        found.append(int(entry))
+                    parent = int(f.read().rsplit(")", 1)[1].split()[1])
+                if parent == pid:
+                    with open(f"/proc/{entry}/cmdline", "rb") as f:
+                        if b"spawn_main" in f.read():
+                            found.append(int(entry))
             except (OSError, IndexError, ValueError):
                 pass
     return found
@@ -325,8 +330,11 @@ def bench_plots(
     <= 10 %). Every process is stopped afterwards.
     """
     import multiprocessing
+    import queue
     import statistics as stats
     import tempfile
+
+    import httpx
 
     from cli.stack import Stack, StackConfig, StackError, free_port
 
@@ -334,7 +342,7 @@ def bench_plots(
     algorithms = ["ra2vipas", "rapas", "ravipas"]
     body = {"preset": "paper", "tests": tests, "seed": seed, "algorithms": algorithms}
     report: dict = {"benchmark": "plots", "rigs": rigs, "plot_clients": clients, "readers": readers,
-                    "plot_workers": os.environ.get("RA2VIPAS_PLOT_WORKERS") or "default", "retry_cap_s": retry_cap,
+                    "retry_cap_s": retry_cap,
                     "campaign": {**body, "repeats": repeats}, "targets": PLOT_TARGETS}
     ctx = multiprocessing.get_context("spawn")
     load = None
@@ -344,8 +352,6 @@ def bench_plots(
         try:
             stack.start()
             api = stack.api_url
-            import httpx
-
             finished = []
             for i in range(fixtures):
                 _, _, cid = _run_campaign_id(api, {**body, "tests": fixture_tests, "seed": 100 + i}, 1800)
@@ -355,8 +361,9 @@ def bench_plots(
             warm = httpx.get(f"{api}{urls['dr'][0]}", timeout=120)  # the first request starts the renderer process
             if warm.status_code != 200:
                 raise RuntimeError(f"the first figure failed: {warm.status_code} {warm.text[:200]}")
-            read_paths = ["/campaigns", f"/campaigns/{finished[0]['id']}", f"/campaigns/{finished[0]['id']}/results", "/health"]
             orchestrator = next(c.proc.pid for c in stack.children if c.name == "orchestrator")
+            report["renderer_processes"] = len(_renderers_of(orchestrator))
+            read_paths = ["/campaigns", f"/campaigns/{finished[0]['id']}", f"/campaigns/{finished[0]['id']}/results", "/health"]
             groups = {"rigs": [c.proc.pid for c in stack.children if c.name.startswith(("sensors", "controller"))],
                       "orchestrator": [orchestrator]}
 
@@ -372,16 +379,20 @@ def bench_plots(
                             if not ready.wait(60):
                                 raise RuntimeError("the plot clients did not start")
                             time.sleep(1.0)  # let the load settle before the campaign starts
-                        pids = {**groups, "renderers": _children_of(orchestrator),
+                        pids = {**groups, "renderers": _renderers_of(orchestrator),
                                 "plot_clients": [load.pid] if loaded else []}
                         cpu0 = _cpu_seconds(pids)
                         results, wall = _run_campaign(api, body, 1800)
-                        cpu1 = _cpu_seconds({**pids, "renderers": _children_of(orchestrator)})
+                        cpu1 = _cpu_seconds({**pids, "renderers": _renderers_of(orchestrator)})
                         if loaded:
                             stop.set()
-                            plot_stats = out.get(timeout=180)
+                            try:
+                                plot_stats = out.get(timeout=180)
+                            except queue.Empty:
+                                raise RuntimeError("the plot clients did not report") from None
                             load.join(30)
                             load = None
+                            time.sleep(DRAIN_S)  # renders still queued finish before the next run
                     lat = [ms for ms, status in reading.samples if status == 200]
                     errors = sum(1 for _, status in reading.samples if status != 200)
                     run = {"steps_per_second": results["steps_per_second"], "wall_seconds": round(wall, 2),
@@ -393,7 +404,7 @@ def bench_plots(
                     if loaded:
                         run["plots"] = plot_stats
                     runs["with_plots" if loaded else "without_plots"].append(run)
-        except (StackError, TimeoutError, RuntimeError) as err:
+        except (StackError, TimeoutError, RuntimeError, httpx.HTTPError) as err:
             fail(f"bench plots: {err}")
         finally:
             if load is not None and load.is_alive():
