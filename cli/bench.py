@@ -185,25 +185,29 @@ def _plot_urls(campaigns: list[dict]) -> dict[str, list[str]]:
     return urls
 
 
-def _plot_load(api: str, urls: dict[str, list[str]], clients: int, seed: int, retry_cap_s: float, ready, stop, out) -> None:
-    """A process of ``clients`` concurrent plot clients (asyncio + httpx): each picks a figure
-    kind, then one of its figures, at random, asks for it, and asks again as soon as it has the
-    answer; after a 503 it waits ``Retry-After`` seconds (at most ``retry_cap_s``)."""
+def _plot_load(api: str, urls: dict[str, list[str]], clients: int, seed: int, retry_cap_s: float, niceness: int,
+               ready, stop, out) -> None:
+    """A process of ``clients`` concurrent plot clients (asyncio + httpx) at ``niceness``: each
+    picks a figure kind, then one of its figures, at random, asks for it, and asks again as soon
+    as it has the answer; after a 503 it waits ``Retry-After`` seconds (at most ``retry_cap_s``)."""
     import asyncio
     import random
 
     import httpx
 
+    if niceness:
+        os.nice(niceness)
+
     async def main() -> dict:
         counts: dict[str, int] = {}
         ok_ms: list[float] = []
-        limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
-        async with httpx.AsyncClient(base_url=api, timeout=120.0, limits=limits) as http:
 
-            async def client(i: int) -> None:
-                rng = random.Random(seed * 1000 + i)
+        async def client(i: int) -> None:
+            rng = random.Random(seed * 1000 + i)
+            # one connection per client, as 50 separate users would have
+            async with httpx.AsyncClient(base_url=api, timeout=120.0) as http:
                 while True:
-                    url = rng.choice(urls[rng.choice(sorted(urls))])
+                    url = rng.choice(urls[rng.choice(kinds)])
                     started = time.perf_counter()
                     try:
                         r = await http.get(url)
@@ -217,15 +221,16 @@ def _plot_load(api: str, urls: dict[str, list[str]], clients: int, seed: int, re
                     elif r.status_code == 503:
                         await asyncio.sleep(min(retry_cap_s, float(r.headers.get("retry-after") or 1)))
 
-            tasks = [asyncio.create_task(client(i)) for i in range(clients)]
-            started = time.perf_counter()
-            ready.set()
-            while not stop.is_set():
-                await asyncio.sleep(0.05)
-            seconds = time.perf_counter() - started
-            for t in tasks:
-                t.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
+        kinds = sorted(urls)
+        tasks = [asyncio.create_task(client(i)) for i in range(clients)]
+        started = time.perf_counter()
+        ready.set()
+        while not stop.is_set():
+            await asyncio.sleep(0.05)
+        seconds = time.perf_counter() - started
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
         requests = sum(counts.values())
         return {"clients": clients, "seconds": round(seconds, 2), "requests": requests,
                 "requests_per_second": round(requests / seconds, 1) if seconds else None, "status": counts,
@@ -310,14 +315,20 @@ def _renderers_of(pid: int) -> list[int]:
 @app.command("plots")
 def bench_plots(
     clients: Annotated[int, typer.Option(min=1, max=500, help="Concurrent plot clients.")] = 50,
-    readers: Annotated[int, typer.Option(min=1, max=64, help=f"Clients reading non-plot routes (each pauses {READ_PAUSE_S} s between requests).")] = 4,
-    tests: Annotated[int, typer.Option(min=1, max=1000, help="Tests of the measured campaign (paper preset, ra2vipas, rapas, ravipas).")] = 50,
+    readers: Annotated[int, typer.Option(min=1, max=64, help="Clients reading non-plot routes, each pausing "
+                                                             f"{READ_PAUSE_S} s between requests.")] = 4,
+    tests: Annotated[int, typer.Option(min=1, max=1000, help="Tests of the measured campaign (paper preset, "
+                                                             "ra2vipas, rapas, ravipas).")] = 50,
     seed: Annotated[int, typer.Option(min=0, help="Seed of the measured campaign.")] = 1,
-    repeats: Annotated[int, typer.Option(min=1, max=10, help="Runs of the campaign without and with plot load, alternating.")] = 2,
+    repeats: Annotated[int, typer.Option(min=1, max=10, help="Runs of the campaign without and with plot load, "
+                                                             "alternating.")] = 3,
     fixtures: Annotated[int, typer.Option(min=1, max=10, help="Finished campaigns whose figures the plot clients ask for.")] = 2,
     fixture_tests: Annotated[int, typer.Option(min=1, max=1000, help="Tests of each finished campaign.")] = 20,
     rigs: Annotated[int, typer.Option(min=0, max=16, help="Rigs (0: one per CPU core).")] = 0,
-    retry_cap: Annotated[float, typer.Option(min=0.0, max=60.0, help="Longest wait of a plot client after a 503 (it honours Retry-After up to this).")] = 1.0,
+    retry_cap: Annotated[float, typer.Option(min=0.0, max=60.0, help="Longest wait of a plot client after a 503 "
+                                                                     "(it honours Retry-After up to this).")] = 1.0,
+    client_nice: Annotated[int, typer.Option(min=0, max=19, help="Niceness of the plot clients' process (0: they compete "
+                                                                 "for the CPU like the tester's clients did).")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Plots under load: start a local stack, finish FIXTURES campaigns, then run the paper
@@ -342,7 +353,7 @@ def bench_plots(
     algorithms = ["ra2vipas", "rapas", "ravipas"]
     body = {"preset": "paper", "tests": tests, "seed": seed, "algorithms": algorithms}
     report: dict = {"benchmark": "plots", "rigs": rigs, "plot_clients": clients, "readers": readers,
-                    "retry_cap_s": retry_cap,
+                    "retry_cap_s": retry_cap, "client_nice": client_nice,
                     "campaign": {**body, "repeats": repeats}, "targets": PLOT_TARGETS}
     ctx = multiprocessing.get_context("spawn")
     load = None
@@ -373,8 +384,8 @@ def bench_plots(
                     ready, stop, out = ctx.Event(), ctx.Event(), ctx.Queue()
                     with _Readers(api, read_paths, readers) as reading:
                         if loaded:
-                            load = ctx.Process(target=_plot_load, args=(api, urls, clients, seed, retry_cap, ready, stop, out),
-                                               name="plot-clients", daemon=True)
+                            load = ctx.Process(target=_plot_load, name="plot-clients", daemon=True,
+                                               args=(api, urls, clients, seed, retry_cap, client_nice, ready, stop, out))
                             load.start()
                             if not ready.wait(60):
                                 raise RuntimeError("the plot clients did not start")

@@ -146,7 +146,8 @@ def test_deleting_a_campaign_evicts_its_figures_and_only_its(server, campaign):
         for path in ("/plots/dr", "/plots/pod", "/tests/0/rapas/plot"):
             assert http.get(f"/campaigns/{doomed}{path}").status_code == 200
         assert http.get(f"/campaigns/{campaign}/plots/dr").status_code == 200
-        doomed_keys = [PlotKey(doomed, "dr", "png"), PlotKey(doomed, "pod", "png"), PlotKey(doomed, "episode", "png", (0, "rapas"))]
+        doomed_keys = [PlotKey(doomed, "dr", "png"), PlotKey(doomed, "pod", "png"),
+                       PlotKey(doomed, "episode", "png", (0, "rapas"))]
         assert all(renderer.cached(k) is not None for k in doomed_keys)
         figures, size = renderer.cache_size()
         assert http.delete(f"/campaigns/{doomed}").status_code == 204

@@ -367,7 +367,8 @@ async def serve_figure(request: Request, key: PlotKey, read: Callable[[], Figure
     try:
         data = await get_renderer(request).figure(key, functools.partial(run_in_threadpool, read))
     except Saturated as err:
-        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(err), headers={"Retry-After": str(err.retry_after)}) from None
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(err),
+                            headers={"Retry-After": str(err.retry_after)}) from None
     except RendererUnavailable as err:
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(err), headers={"Retry-After": "1"}) from None
     return Response(data, media_type=plots.MEDIA_TYPES[key.fmt])

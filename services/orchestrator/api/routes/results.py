@@ -80,7 +80,8 @@ async def pod_plot(campaign_id: str, request: Request,
         artifacts = store.pod_artifacts(campaign_id)
         campaign = get_campaign(campaign_id, store)
         if not artifacts or artifacts["model"] is None:
-            raise HTTPException(status.HTTP_409_CONFLICT, f"campaign {campaign['id']} has no POD model yet ({campaign['status']})")
+            raise HTTPException(status.HTTP_409_CONFLICT,
+                                f"campaign {campaign['id']} has no POD model yet ({campaign['status']})")
         r2 = campaign["pod_r2"]
         title = f"POD regression, {campaign['preset']} seed {campaign['seed']}" + ("" if r2 is None else f": R² {r2:.3f}")
         job = plots.PlotJob("pod", kind, {"scenario": campaign["scenario"], "model": artifacts["model"],
