@@ -168,7 +168,7 @@ class PlotRenderer:
         self._cache: cachetools.LRUCache = cachetools.LRUCache(maxsize=cache_bytes, getsizeof=len)
         self._lock = threading.Lock()
         self._inflight: dict[PlotKey, asyncio.Future] = {}  # what identical requests can share
-        self._busy = 0  # renders submitted and not finished (what ``capacity`` bounds)
+        self._busy = 0  # figures being read, queued or drawn (what ``capacity`` bounds)
         self._epoch = 0  # bumped by every invalidation: a render that started before one is not stored
         self._tasks: set[asyncio.Task] = set()
         self._render_s = 0.5  # moving average of one render's duration in a renderer
