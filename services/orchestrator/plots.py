@@ -6,7 +6,9 @@
   the estimate gamma_hat_t over time.
 
 Figures are built on ``matplotlib.figure.Figure`` (never pyplot, whose global state is not
-thread-safe) and rendered one at a time under a lock: the API renders from worker threads.
+thread-safe) and rendered one at a time under a lock (``draw``), for callers that render from
+threads. The API never draws in its own process: it sends a ``PlotJob`` (plain data) to the
+renderer processes of ``services.orchestrator.api.render``, which call ``draw_job``.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ import io
 import math
 import os
 import threading
-from typing import Any, Callable
+from dataclasses import dataclass
+from typing import Any, Callable, Literal
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -183,6 +186,43 @@ def draw(build: Callable[[], Figure], fmt: str = "png") -> bytes:
     uses shared caches)."""
     with _RENDER_LOCK:
         return render(build(), fmt)
+
+
+PlotKind = Literal["dr", "pod", "episode"]
+
+
+@dataclass(frozen=True)
+class PlotJob:
+    """One figure to draw, as plain picklable data (what a renderer process receives).
+
+    ``data`` by ``kind``:
+
+    * ``"dr"``: ``results`` (the results object of a finished campaign);
+    * ``"pod"``: ``scenario`` (Scenario as JSON data), ``model`` (PODModel as JSON data),
+      ``truth`` (``{"rssi_dbm", "pod"}`` or None), ``title``;
+    * ``"episode"``: ``scenario`` and ``episode`` (a finished episode row).
+    """
+
+    kind: PlotKind
+    fmt: str
+    data: dict[str, Any]
+
+
+def build_figure(job: PlotJob) -> Figure:
+    """The figure a job describes."""
+    d = job.data
+    if job.kind == "dr":
+        return dr_figure(d["results"])
+    if job.kind == "pod":
+        return pod_figure(Scenario.model_validate(d["scenario"]), d["model"], d["truth"], d.get("title", ""))
+    if job.kind == "episode":
+        return episode_figure(Scenario.model_validate(d["scenario"]), d["episode"])
+    raise ValueError(f"unknown figure kind {job.kind!r}")
+
+
+def draw_job(job: PlotJob) -> bytes:
+    """Build and render the figure of ``job`` (PNG or SVG bytes)."""
+    return draw(lambda: build_figure(job), job.fmt)
 
 
 def write_dr_plot(results: dict[str, Any], path: str) -> None:

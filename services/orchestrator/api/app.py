@@ -1,8 +1,8 @@
 """``create_app(settings)``: the orchestrator's FastAPI application.
 
 The lifespan opens the store and the bus (a Zenoh session unless a bus factory is given, as
-tests do), starts the scheduler, and closes all three on shutdown. OpenAPI at ``/docs`` and
-``/openapi.json``.
+tests do), starts the scheduler and the figure renderers (``api.render``), and closes all
+four on shutdown. OpenAPI at ``/docs`` and ``/openapi.json``.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from fastapi.exceptions import RequestValidationError
 
 from services.orchestrator.api.errors import responses, storage_fault, validation_error
 from services.orchestrator.api.limits import MAX_BODY_BYTES, BodySizeLimit
+from services.orchestrator.api.render import PlotRenderer
 from services.orchestrator.api.routes import campaigns, catalog, events, health, results, tests
 from services.orchestrator.scheduler import Scheduler
 from services.orchestrator.settings import OrchestratorSettings
@@ -43,6 +44,8 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
         else:
             bus = bus_factory()
         scheduler = Scheduler(bus, store, window=settings.window, name=settings.name)
+        renderer = PlotRenderer(settings.plot_workers).start()
+        app.state.renderer = renderer
         app.state.settings = settings
         app.state.store = store
         app.state.bus = bus
@@ -52,6 +55,7 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
             yield
         finally:
             app.state.bus_open = False
+            renderer.close()
             scheduler.close()
             bus.close()
             store.close()

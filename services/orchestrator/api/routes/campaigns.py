@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Optional
 
-from fastapi import APIRouter, HTTPException, Query, Response, status
+from fastapi import APIRouter, HTTPException, Query, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 
 from services.orchestrator.api.deps import Authorized, CampaignDep, SchedulerDep, StoreDep
@@ -83,7 +83,7 @@ def cancel_campaign(campaign: CampaignDep, store: StoreDep, scheduler: Scheduler
 
 @router.delete("/{campaign_id}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response, dependencies=[Authorized],
                responses=responses(401, 404, 409, e409="the campaign is still queued, training or running; cancel it first"))
-def delete_campaign(campaign: CampaignDep, store: StoreDep) -> Response:
+def delete_campaign(campaign: CampaignDep, store: StoreDep, request: Request) -> Response:
     """Delete a finished (done, failed or cancelled) campaign and every test it recorded."""
     try:
         deleted = store.delete_campaign(campaign["id"])
@@ -91,4 +91,5 @@ def delete_campaign(campaign: CampaignDep, store: StoreDep) -> Response:
         raise HTTPException(status.HTTP_409_CONFLICT, str(err)) from None
     if not deleted:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {campaign['id']!r}")
+    request.app.state.renderer.invalidate(campaign["id"])  # its cached figures
     return Response(status_code=status.HTTP_204_NO_CONTENT)
