@@ -169,7 +169,7 @@ def _lbeta(a: float, b: float) -> float:
 
 
 @njit(cache=True, inline="always")
-def pod_evidence(k, n, alpha, beta, alpha0, beta0):
+def pod_evidence(k, n, alpha, beta, alpha0, beta0, outlier):
     """log of the Bayes factor of k detections in n frames for "this target is the Tx" (its POD
     ~ Beta(alpha, beta), predicted from the iso RSSI) against "it is another target" (its POD ~
     Beta(alpha0, beta0)): a ratio of beta-binomial marginals, so the binomial label noise p(1-p)/n
@@ -177,30 +177,87 @@ def pod_evidence(k, n, alpha, beta, alpha0, beta0):
     if n <= 0.0:
         return 0.0
     k = min(max(k, 0.0), n)
-    return (_lbeta(k + alpha, n - k + beta) - _lbeta(alpha, beta)) - (_lbeta(k + alpha0, n - k + beta0) - _lbeta(alpha0, beta0))
+    log_bf = (_lbeta(k + alpha, n - k + beta) - _lbeta(alpha, beta)) - (_lbeta(k + alpha0, n - k + beta0) - _lbeta(alpha0, beta0))
+    # robust: with probability ``outlier`` the POD model says nothing about this Tx (shadowing,
+    # a body in front of it, a detector that differs from the one trained): log((1-e) BF + e)
+    if outlier <= 0.0:
+        return log_bf
+    if log_bf > 0.0:
+        return log_bf + math.log((1.0 - outlier) + outlier * math.exp(-log_bf))
+    return math.log((1.0 - outlier) * math.exp(log_bf) + outlier)
+
+
+@njit(cache=True, inline="always")
+def _smeared(l_rf, grid_step, rf_weight, mean, sd):
+    """log of sum_g N(g; mean, sd^2) exp(rf_weight l_RF(g)) dg and the g maximising the integrand."""
+    M = l_rf.size
+    pos = ((mean + math.pi) / grid_step) % M
+    half = min(int(4.0 * sd / grid_step) + 1, M // 2)
+    centre = int(math.floor(pos + 0.5)) % M
+    shift = pos - math.floor(pos + 0.5)
+    best = -1e300
+    arg = centre
+    for d in range(-half, half + 1):
+        off = (d - shift) * grid_step
+        v = rf_weight * l_rf[(centre + d) % M] - 0.5 * off * off / (sd * sd)
+        if v > best:
+            best = v
+            arg = (centre + d) % M
+    total = 0.0
+    for d in range(-half, half + 1):
+        off = (d - shift) * grid_step
+        total += math.exp(rf_weight * l_rf[(centre + d) % M] - 0.5 * off * off / (sd * sd) - best)
+    return best + math.log(total * grid_step / (math.sqrt(TWO_PI) * sd)), -math.pi + arg * grid_step
 
 
 @njit(cache=True)
-def track_logpost(l_rf, grid_step, rf_weight, bearings, detections, frames, alpha, beta, alpha0, beta0, out):
-    """Unnormalised log-posterior of "track i is the Tx": rf_weight * l_RF(gamma_i) (linear
-    interpolation on the periodic grid) plus ``pod_evidence`` of its detection counts."""
-    M = l_rf.size
-    for i in range(bearings.size):
-        pos = ((bearings[i] + math.pi) / grid_step) % M
-        lo = int(math.floor(pos)) % M
-        frac = pos - math.floor(pos)
-        l = l_rf[lo] * (1.0 - frac) + l_rf[(lo + 1) % M] * frac
-        out[i] = rf_weight * l + pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0)
+def track_logpost(l_rf, track_rf, grid_step, rf_weight, means, sds, weights, detections, frames, alpha, beta, alpha0, beta0,
+                  outlier, out, where):
+    """Unnormalised log-posterior of "track i is the Tx" and where that Tx is now.
+
+    A track's bearing is a mixture (its IMM models: ``means``, ``sds``, ``weights``, shape
+    (n, 2)). A component known to a grid step is scored by the track's own l_RF
+    (``track_rf[i]``, which may follow its trajectory); a wider one integrates rf_weight * l_RF
+    over its bearing uncertainty (a walker the camera has not seen for a while may be anywhere
+    near its prediction: Rx(dir) says where). ``where[i]`` is the bearing of the track's most
+    probable component (the maximiser of its integrand for a wide one). Plus ``pod_evidence``
+    of its detection counts."""
+    for i in range(means.shape[0]):
+        top = -1e300
+        comp = np.empty(2)
+        spot = np.empty(2)
+        for a in range(2):
+            if weights[i, a] <= 1e-12:
+                comp[a] = -1e300
+                spot[a] = means[i, a]
+                continue
+            if sds[i, a] < grid_step:
+                comp[a] = rf_weight * track_rf[i]
+                spot[a] = means[i, a]
+            else:
+                comp[a], spot[a] = _smeared(l_rf, grid_step, rf_weight, means[i, a], sds[i, a])
+            comp[a] += math.log(weights[i, a])
+            top = max(top, comp[a])
+        rf = top + math.log(math.exp(comp[0] - top) + math.exp(comp[1] - top))
+        where[i] = spot[0] if comp[0] >= comp[1] else spot[1]
+        out[i] = rf + pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
     return out
 
 
 @njit(cache=True)
-def missed_logdensity(l_rf, rf_weight, view_frames, alpha, beta, log_prior, out):
-    """Log-posterior of "the Tx is a target never detected, at grid bearing gamma": rf_weight *
-    l_RF(gamma) + log P(no detection in the n_view(gamma) frames that looked there | the Tx's
-    POD ~ Beta(alpha, beta)) + the log prior of an undetected target in that grid cell."""
+def missed_logdensity(l_rf, rf_weight, view_frames, recent_frames, walks, alpha, beta, log_prior, out):
+    """Log-posterior of "the Tx is a target not detected (where it is now), at grid bearing
+    gamma": rf_weight * l_RF(gamma) + log P(no detection in the frames that looked there | the
+    Tx's POD ~ Beta(alpha, beta)) + the log prior of such a target in that grid cell. A Tx that
+    stands was missed in every frame ever taken there (``view_frames``); one that walks only in
+    the recent ones (``recent_frames``, discounted): mixed with probability ``walks``."""
+    lb = _lbeta(alpha, beta)
     for j in range(l_rf.size):
-        out[j] = rf_weight * l_rf[j] + (_lbeta(alpha, view_frames[j] + beta) - _lbeta(alpha, beta)) + log_prior
+        stand = _lbeta(alpha, view_frames[j] + beta) - lb
+        walk = _lbeta(alpha, recent_frames[j] + beta) - lb
+        top = max(stand, walk)
+        miss = top + math.log((1.0 - walks) * math.exp(stand - top) + walks * math.exp(walk - top))
+        out[j] = rf_weight * l_rf[j] + miss + log_prior
     return out
 
 

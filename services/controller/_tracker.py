@@ -160,17 +160,18 @@ def _cluster_step(boxes_abs, counts, sigma2):
 @njit(cache=True)
 def tracker_step(pan, boxes_rel, counts, step, n, prm,
                  x, P, mu, bearing, var, omega, k, nfr, nbox, det_steps, born, confirmed, misses, together,
-                 pans, frames_per_pan, clutter, view_grid):
+                 pans, frames_per_pan, clutter, view_grid, ids, next_id):
     """One step of the tracker; returns the new number of tracks.
 
     ``boxes_rel``: all box bearings of the step relative to the optical axis, frame by frame,
-    ``counts[f]`` boxes in frame f. ``clutter`` = [boxes of tentative tracks that were looked at
-    again and not seen (false boxes), frames]: their ratio over the FoV width estimates the
-    detector's clutter density. ``misses``: frames in view since a track's last detection.
+    ``counts[f]`` boxes in frame f. ``clutter`` = [boxes that would start a new track where the
+    camera already knows the targets, frames (times the explored share of the field of
+    view)]: their ratio over the FoV width estimates the detector's clutter density. ``misses``: frames in view since a track's last detection.
     ``view_grid``: frames the camera had taken of each bearing before this step, on a uniform
     grid over [-pi, pi) (where the camera has not looked, new targets are expected).
     ``pans``/``frames_per_pan``: the pan history including this step (a new track's past frames
-    in view are counted, so its detection rate is not biased by its birth).
+    in view are counted, so its detection rate is not biased by its birth). ``ids``: a stable
+    id per track (``next_id[0]`` is the next one to give out).
     """
     capacity = bearing.size
     nu = counts.size
@@ -192,7 +193,7 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
         boxes_abs[j] = _wrap(pan + boxes_rel[j])
     cmean, ccnt, cframes = _cluster_step(boxes_abs, counts, sigma2)
     n_cl = cmean.size
-    density_clutter = clutter[0] / max(clutter[1], 1e-9) / (2.0 * max(prm[COUNT_LIMIT], 1e-3))
+    density_clutter = clutter[0] / max(clutter[1], 1e-9) / (2.0 * max(prm[COUNT_LIMIT], 1e-3)) if clutter[1] >= 20.0 else 0.0
     G = view_grid.size
     log_new = np.empty(n_cl)
     for q in range(n_cl):
@@ -240,6 +241,7 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
                     frames_hit[i] += 1.0
     # 3. IMM update with the mean of the track's cluster
     lik = np.zeros(2)
+    real = np.zeros(capacity)
     measured = np.zeros(capacity, dtype=np.bool_)
     for q in range(n_cl):
         if owner[q] >= 0:
@@ -254,21 +256,33 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
         if q >= 0:
             z = cmean[q]
             R = sigma2 / ccnt[q]
+            # probabilistic data association (Bar-Shalom & Tse 1975): a lone box may be a false
+            # one (clutter density lam per rad); more boxes at one spot in one step hardly are
+            lam = density_clutter if ccnt[q] < 1.5 else 0.0
+            dens = 0.0
+            for a in range(2):
+                S = P[i, a, 0, 0] + R
+                v = _wrap(z - x[i, a, 0])
+                lik[a] = math.exp(-0.5 * v * v / S) / math.sqrt(TWO_PI * S)
+                dens += pred_c[i, a] * lik[a]
+            w = dens / (dens + lam) if dens + lam > 0.0 else 0.0  # P(the cluster is this target's)
+            real[i] = w
             for a in range(2):
                 v = _wrap(z - x[i, a, 0])
                 S = P[i, a, 0, 0] + R
                 K0 = P[i, a, 0, 0] / S
                 K1 = P[i, a, 1, 0] / S
-                x[i, a, 0] = _wrap(x[i, a, 0] + K0 * v)
-                x[i, a, 1] += K1 * v
+                x[i, a, 0] = _wrap(x[i, a, 0] + w * K0 * v)
+                x[i, a, 1] += w * K1 * v
                 p00, p01, p10, p11 = P[i, a, 0, 0], P[i, a, 0, 1], P[i, a, 1, 0], P[i, a, 1, 1]
-                P[i, a, 0, 0] = p00 - K0 * p00
-                P[i, a, 0, 1] = p01 - K0 * p01
-                P[i, a, 1, 0] = p10 - K1 * p00
-                P[i, a, 1, 1] = p11 - K1 * p01
-                lik[a] = math.exp(-0.5 * v * v / S) / math.sqrt(TWO_PI * S)
-            s0 = pred_c[i, 0] * lik[0]
-            s1 = pred_c[i, 1] * lik[1]
+                # PDA covariance: the updated one if real, the predicted one if not, plus the spread
+                spread = w * (1.0 - w) * v * v
+                P[i, a, 0, 0] = p00 - w * K0 * p00 + spread * K0 * K0
+                P[i, a, 0, 1] = p01 - w * K0 * p01 + spread * K0 * K1
+                P[i, a, 1, 0] = p10 - w * K1 * p00 + spread * K1 * K0
+                P[i, a, 1, 1] = p11 - w * K1 * p01 + spread * K1 * K1
+            s0 = pred_c[i, 0] * (lik[0] + lam)
+            s1 = pred_c[i, 1] * (lik[1] + lam)
             tot = s0 + s1
             if tot > 1e-300:
                 mu[i, 0] = s0 / tot
@@ -276,8 +290,8 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
             else:
                 mu[i, 0] = pred_c[i, 0]
                 mu[i, 1] = pred_c[i, 1]
-            nbox[i] += ccnt[q]
-            det_steps[i] += 1.0
+            nbox[i] += w * ccnt[q]
+            det_steps[i] += w
         else:
             mu[i, 0] = pred_c[i, 0]
             mu[i, 1] = pred_c[i, 1]
@@ -296,7 +310,23 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
                     if hit_in[i, fr] and hit_in[j, fr]:
                         both += 1.0
                 together[i, j] += both
-    clutter[1] += nu
+    # clutter: boxes that open a new track where the camera has looked long enough to know the
+    # targets (a clean detector hardly does that; a cluttered one keeps doing it), per frame and
+    # per radian of well-explored field of view
+    explored_cells = 0
+    fov_cells = 0
+    for cell in range(G):
+        b_cell = -math.pi + TWO_PI * (cell + 0.5) / G
+        if abs(_wrap(b_cell - pan)) <= prm[COUNT_LIMIT]:
+            fov_cells += 1
+            if view_grid[cell] >= 3.0 * nu:
+                explored_cells += 1
+    for q in range(n_cl):
+        if owner[q] < 0:
+            cell = int(((cmean[q] + math.pi) / TWO_PI) * G) % G
+            if view_grid[cell] >= 3.0 * nu:
+                clutter[0] += ccnt[q]
+    clutter[1] += nu * explored_cells / max(fov_cells, 1)
     # 4. detection counts (a walker's are discounted: its POD changes with its range); a step in
     # which a track may be hidden behind another one counts only if it was detected
     for i in range(n):
@@ -312,7 +342,7 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
                 break
         if hidden and frames_hit[i] == 0.0:  # a miss while another target stands in front may be occlusion
             continue
-        k[i] += frames_hit[i]
+        k[i] += real[i] * frames_hit[i]
         nfr[i] += nu
         misses[i] = 0.0 if frames_hit[i] > 0.0 else misses[i] + nu
     # 5. births: the clusters no track took
@@ -343,6 +373,8 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
         born[n] = step
         confirmed[n] = False
         misses[n] = 0.0
+        ids[n] = next_id[0]
+        next_id[0] += 1
         inview = abs(_wrap(g - pan)) <= prm[COUNT_LIMIT]
         k[n] = distinct if inview else 0.0
         seen_frames = 0.0
@@ -359,22 +391,33 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
             together[j, n] = both
         together[n, n] = 0.0
         n += 1
-    # 6. confirmation: two steps with a detection, or, while the detector has not been caught
-    # inventing boxes, the first box
-    density = clutter[0] / max(clutter[1], 1e-9) / (2.0 * max(prm[COUNT_LIMIT], 1e-3))
-    clean = density * 6.0 * prm[SIGMA_B] < 0.01
+    # 6. confirmation: a track is a target once its detections stand out from what clutter
+    # alone would put in its gate (a log-likelihood ratio of its detection counts, k frames with
+    # a box out of n, against the clutter rate q there); while the detector has not been caught
+    # inventing boxes, at once
+    q_gate = min(density_clutter * 2.0 * math.sqrt(gate2) * prm[SIGMA_B], 0.5)
+    clean = q_gate < 0.005
+    evidence = np.zeros(n)
     for i in range(n):
-        if not confirmed[i] and (det_steps[i] >= 2.0 or clean):
+        kk = min(max(k[i], 0.0), nfr[i])
+        if q_gate > 0.0 and nfr[i] > 0.0:
+            p_hat = max(kk / nfr[i], q_gate)
+            evidence[i] = kk * math.log(p_hat / q_gate)
+            if nfr[i] > kk:
+                evidence[i] += (nfr[i] - kk) * math.log(max(1.0 - p_hat, 1e-12) / (1.0 - q_gate))
+        else:
+            evidence[i] = 1e9
+        if not confirmed[i] and (clean or (det_steps[i] >= 2.0 and evidence[i] >= 4.0)):
             confirmed[i] = True
     # 7. merges (one target split in two: close, (almost) never seen in the same frame) and
-    # deletions: a tentative track looked at again for two steps and not seen (a false box:
-    # counted as clutter), a walker whose bearing is lost
+    # deletions: a tentative track looked at again for two steps and not seen (a false box), a
+    # track whose detections, after many frames, are no more than clutter would give, a walker
+    # whose bearing is lost
     i = 0
     while i < n:
         false_box = not confirmed[i] and misses[i] >= 2.0 * nu
-        if false_box:
-            clutter[0] += nbox[i]
-        drop = false_box or (math.sqrt(var[i]) > prm[MAX_SD] and mu[i, 1] > 0.5)
+        only_clutter = not clean and nfr[i] >= 20.0 * nu and evidence[i] < 0.0
+        drop = false_box or only_clutter or (math.sqrt(var[i]) > prm[MAX_SD] and mu[i, 1] > 0.5)
         if not drop:
             for j in range(n):
                 # same target: within 4 box sigmas, and (almost) never detected in the same frame
@@ -414,6 +457,7 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
                 born[i] = born[last]
                 confirmed[i] = confirmed[last]
                 misses[i] = misses[last]
+                ids[i] = ids[last]
                 for q in range(n):
                     together[i, q] = together[last, q]
                     together[q, i] = together[q, last]

@@ -46,7 +46,7 @@ from enum import Enum
 import numpy as np
 
 from services.controller import _kernels
-from services.controller.circle_gp import LobeGP
+from services.controller.circle_gp import LobeGP, RecentLobe
 from services.controller.grid import CircleGrid
 from services.controller.tracks import BearingTracker, wrap
 from services.protocol.measurements import StepMeasurement
@@ -83,9 +83,16 @@ class ControllerSettings:
     rf_weight: float = 2.0  # tempering of the RF profile log-likelihood l_RF
     pod_floor_std: float = 0.08  # misspecification of the POD model, added to its predictive std
     null_pod_prior: tuple[float, float] = (1.0, 1.0)  # Beta prior of a non-Tx target's POD
+    pod_outlier: float = 0.0  # probability that the POD model says nothing about the Tx (robust evidence)
     missed_prior_per_rad: float = 5.0  # prior density of "the Tx is a target the camera never detected"
     answer_window_rad: float = math.radians(2.0)  # posterior mass within this of the answer is its confidence
     confidence_calibration: tuple[tuple[str, float, float], ...] = ()  # (algorithm, A, B): sigmoid(A logit(raw) + B)
+    # -- a Tx that walks
+    rf_memory_s: float = 1.5  # memory of the recent-lobe fit
+    tx_walk_prior: float = 0.3  # prior probability that the Tx walks
+    walk_penalty: float = 2.0  # nats the recent lobe must gain to count as motion
+    probe_rf_peaks: bool = False
+    mass_in_acquisition: bool = True
 
     def __post_init__(self) -> None:
         if self.beta < 0:
@@ -176,9 +183,16 @@ class Controller:
             residual_length_scale=cfg.residual_length_scale_rad,
             residual_var=cfg.residual_std_db**2, capacity=max(sensors.steps, 1),
         )
+        self.recent = RecentLobe(self.circle, noise_var=sigma**2, lobe_width=cfg.lobe_width_rad,
+                                 lobe_sign=1 if sensors.rssi_grows_with_alignment else -1, memory_s=cfg.rf_memory_s,
+                                 rf_period_s=sensors.rf_period_s)
+        self._iso_prev: float | None = None
+        self._iso_diff_sq = 0.0
+        self.tx_walks = 0.0  # probability that the Tx walks, from Rx(dir)
         self.tracks = BearingTracker(sensors.fov_half_angle_rad, sensors.box_bearing_noise_rad, sensors.rf_period_s)
         self.warmup = cfg.warmup_steps if cfg.warmup_steps is not None else math.ceil(math.pi / sensors.fov_half_angle_rad)
         self._view_frames = np.zeros(self.grid.size)  # frames in which each grid bearing was in view
+        self._view_recent = np.zeros(self.grid.size)  # the same, discounted over the recent-lobe memory
         self._missed_buffer = np.empty(self.grid.size)
         self._iso_sum = 0.0
         self._iso_sq = 0.0
@@ -200,11 +214,20 @@ class Controller:
         if self.uses_camera:
             self.tracks.update(s, m.frames, self._view_frames)
         self._view_frames[self.circle.window(s, self.tracks.count_limit)] += len(m.frames)
+        self._view_recent *= self.recent.forget
+        self._view_recent[self.circle.window(s, self.tracks.count_limit)] += len(m.frames)
+        if self._iso_prev is not None:
+            self._iso_diff_sq += (m.rf.iso_rssi_dbm - self._iso_prev) ** 2
+        self._iso_prev = m.rf.iso_rssi_dbm
         if self.uses_radio:
             self.rf.add(s, m.rf.dir_rssi_dbm)
-            l_rf, amplitude, offset = self.rf.lobe_fit()
-            best = int(np.argmax(l_rf))
+            self.recent.add(s, m.rf.dir_rssi_dbm)
+            if self.uses_camera:
+                self.recent.follow(self.tracks.ids.tolist(), self.tracks.bearing.tolist())
+            l_static, amplitude, offset = self.rf.lobe_fit()
+            best = int(np.argmax(l_static))
             lobe = (best, float(amplitude[best]), float(offset[best]))
+            l_rf = self._rf_loglik(l_static, best)
         else:
             l_rf, lobe = self._flat, None
         l_tracks, l_missed = self._beliefs(l_rf)
@@ -220,6 +243,48 @@ class Controller:
         var = max(self._iso_sq / self._n - mean * mean, 0.0)
         sigma = math.sqrt(var * self._n / (self._n - 1)) if self._n > 2 else self.pod.rf_noise_db
         return mean, max(sigma, 0.1)
+
+    def _noise_correlation(self) -> float:
+        """rho, the lag-1 correlation of the RSSI noise, from Rx(iso): for AR(1) noise,
+        Var(z_t - z_t-1) = 2 sigma^2 (1 - rho). A walking Tx's drift reads as correlation, which
+        only makes the RF evidence count less."""
+        if self._n < 10:
+            return 0.0
+        _, sigma = self._iso_mean_and_std()
+        rho = 1.0 - (self._iso_diff_sq / (self._n - 1)) / (2.0 * sigma * sigma)
+        return min(max(rho, 0.0), 0.95)
+
+    def _rf_loglik(self, l_static: np.ndarray, best: int) -> np.ndarray:
+        """l_RF over the lobe centre now: a mixture of "the Tx stands" (the lobe fitted to every
+        sample) and "the Tx walks" (the lobe fitted to recent samples, ``RecentLobe``), weighted
+        by how much better the recent samples fit a lobe elsewhere than where all samples put it
+        (a generalised likelihood ratio, less a penalty for the freedom to move). Both are
+        scaled by (1 - rho) / (1 + rho), the share of independent information in AR(1) noise,
+        and normalised over the circle (so a track's walking score is on the same footing)."""
+        cfg = self.settings
+        rho = self._noise_correlation()
+        self._kappa = kappa = (1.0 - rho) / (1.0 + rho)
+        l_recent = self.recent.profile()
+        moved = float(l_recent.max() - l_recent[best]) * kappa
+        prior = cfg.tx_walk_prior
+        logit = math.log(prior / (1.0 - prior)) + moved - cfg.walk_penalty
+        self.tx_walks = 1.0 / (1.0 + math.exp(-min(max(logit, -50.0), 50.0)))
+        stand = kappa * l_static
+        walk = kappa * l_recent
+        self._stand_rf = stand - np.logaddexp.reduce(stand)
+        self._walk_norm = float(np.logaddexp.reduce(walk))
+        walk = walk - self._walk_norm
+        self._log_stand, self._log_walk = math.log(max(1.0 - self.tx_walks, 1e-300)), math.log(max(self.tx_walks, 1e-300))
+        return np.logaddexp(self._log_stand + self._stand_rf, self._log_walk + walk)
+
+    def _track_rf(self) -> np.ndarray:
+        """l_RF of each confirmed track: standing where it is (the all-sample lobe at its
+        bearing), or walking as the track did (the recent lobe along its trajectory), mixed as
+        in ``_rf_loglik``."""
+        tracks = self.tracks
+        stand = self.circle.interp(self._stand_rf, tracks.bearing)
+        walk = self._kappa * self.recent.follow_profile(tracks.ids.tolist()) - self._walk_norm
+        return np.logaddexp(self._log_stand + stand, self._log_walk + walk)
 
     def _beliefs(self, l_rf: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Unnormalised log-posteriors of the hypotheses "the Tx is track i" and "the Tx is a
@@ -241,10 +306,14 @@ class Controller:
         alpha, beta = _beta_of(p_hat, var)
         a0, b0 = cfg.null_pod_prior
         l_tracks = np.empty(len(self.tracks))
+        self._track_where = np.empty(len(self.tracks))
         if len(self.tracks):
-            _kernels.track_logpost(l_rf, self.circle.step, cfg.rf_weight, self.tracks.bearing, self.tracks.detections,
-                                   self.tracks.frames_in_view, alpha, beta, a0, b0, l_tracks)
-        l_missed = _kernels.missed_logdensity(l_rf, cfg.rf_weight, self._view_frames, alpha, beta,
+            track_rf = self._track_rf() if self.uses_radio else np.zeros(len(self.tracks))
+            means, sds, weights = self.tracks.components()
+            _kernels.track_logpost(l_rf, track_rf, self.circle.step, cfg.rf_weight, means, sds, weights,
+                                   self.tracks.detections, self.tracks.frames_in_view, alpha, beta, a0, b0, cfg.pod_outlier, l_tracks,
+                                   self._track_where)
+        l_missed = _kernels.missed_logdensity(l_rf, cfg.rf_weight, self._view_frames, self._view_recent, self.tx_walks, alpha, beta,
                                               math.log(cfg.missed_prior_per_rad * self.circle.step), self._missed_buffer)
         return l_tracks, l_missed
 
@@ -275,7 +344,7 @@ class Controller:
         missed_mass = _arc_mass(post_missed, j, half)
         if post.size and (float(post.max()) >= missed_mass or not self.uses_radio):  # without Rx(dir), "missed" names no bearing
             i = int(np.argmax(post))
-            estimate = float(self.tracks.bearing[i])
+            estimate = float(self._track_where[i])
             return estimate, float(post[i]) + _arc_mass(post_missed, self.circle.nearest(estimate), half), post
         if not self._n:
             return self.first_pan(), 0.0, post
@@ -327,18 +396,21 @@ class Controller:
         if lobe is not None and self._n:
             j, A, c = lobe
             mean, sd = self.rf.posterior(j, A, c)
+            if self.tx_walks > 0.5:  # a walking Tx is where the recent samples put it
+                mean = self.recent.mean()
+                _, A, c = self.recent.best_
         else:
             A, c = 0.0, 0.0
             mean = sd = self._flat
         bearings = self.tracks.bearing if post.size else np.empty(0)
         arg = _kernels.acquire(mean, c, A, sd, math.sqrt(cfg.beta), bearings, post if post.size else np.empty(0),
                                self._view_frames, 2.0 * sensors.frames_per_rf, self.circle.step, self.tracks.count_limit,
-                               self.uses_camera)
+                               self.uses_camera and cfg.mass_in_acquisition)
         return float(self.grid[arg]), False
 
     def _probe(self, l_rf: np.ndarray, l_tracks: np.ndarray) -> float:
         """The pan where the two leading hypotheses' lobes differ most, on alternating sides."""
-        if l_tracks.size >= 2:
+        if l_tracks.size >= 2 and not self.settings.probe_rf_peaks:
             top = np.argsort(-l_tracks)[:2]
             g1, g2 = self.tracks.bearing[top[0]], self.tracks.bearing[top[1]]
         else:

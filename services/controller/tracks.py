@@ -108,6 +108,8 @@ class BearingTracker:
         self._born = np.zeros(C, dtype=np.int64)
         self._confirmed = np.zeros(C, dtype=np.bool_)
         self._misses = np.zeros(C)
+        self._ids = np.zeros(C, dtype=np.int64)
+        self._next_id = np.zeros(1, dtype=np.int64)
         self._own_views = np.zeros(360)
         self._cells = -np.pi + 2.0 * np.pi * np.arange(360) / 360
         self._together = np.zeros((C, C))
@@ -127,12 +129,23 @@ class BearingTracker:
         return self._bearing[self._view]
 
     @property
+    def ids(self) -> np.ndarray:
+        """A stable id per track (kept while the track lives, never reused)."""
+        return self._ids[self._view]
+
+    @property
     def bearing_sd(self) -> np.ndarray:
         return np.sqrt(self._var[self._view])
 
     @property
     def angular_velocity(self) -> np.ndarray:
         return self._omega[self._view]
+
+    def components(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each track's bearing as its IMM mixture: means, standard deviations and weights of the
+        (standing, walking) models, each of shape (n, 2)."""
+        v = self._view
+        return self._x[v, :, 0], np.sqrt(np.maximum(self._P[v, :, 0, 0], 0.0)), self._mu[v]
 
     @property
     def walking(self) -> np.ndarray:
@@ -185,7 +198,7 @@ class BearingTracker:
             float(pan), boxes, counts, self._n_pans - 1, self._n, self._prm, self._x, self._P, self._mu, self._bearing, self._var,
             self._omega, self._k, self._n_frames, self._nbox, self._det_steps, self._born, self._confirmed, self._misses, self._together,
             self._pans[: self._n_pans], self._frames_per_pan[: self._n_pans], self._clutter,
-            self._own_views if view_grid is None else view_grid,
+            self._own_views if view_grid is None else view_grid, self._ids, self._next_id,
         )
         if view_grid is None:
             cells = np.abs((self._cells - pan + np.pi) % (2.0 * np.pi) - np.pi) <= self.count_limit
