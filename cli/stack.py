@@ -105,7 +105,7 @@ class Stack:
             "RA2VIPAS_LOG_LEVEL": cfg.log_level,
             "PYTHONUNBUFFERED": "1",
         })
-        py = [sys.executable, "-m", "cli.main"]
+        py = [sys.executable, "-m", "ra2vipas.cli.main"]
         specs = [("router", [*py, "router", "--listen", endpoint], {"RA2VIPAS_ZENOH_CONNECT": ""})]
         specs.append(("learner", [*py, "learner"], {}))
         for i in range(1, cfg.rigs + 1):

@@ -1,4 +1,4 @@
-"""Compiled step of the bearing-only multi-target tracker (``services.controller.tracks``).
+"""Compiled step of the bearing-only multi-target tracker (``ra2vipas.services.controller.tracks``).
 
 Per track, an interacting-multiple-model (IMM) filter over the state x = (gamma, omega) —
 bearing and angular velocity — with two models: *standing* (omega = 0, a tiny bearing random

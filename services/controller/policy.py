@@ -45,12 +45,12 @@ from enum import Enum
 
 import numpy as np
 
-from services.controller import _kernels
-from services.controller.circle_gp import LobeGP, RecentLobe
-from services.controller.grid import CircleGrid
-from services.controller.tracks import BearingTracker, wrap
-from services.protocol.measurements import StepMeasurement
-from services.protocol.pod import PODModel
+from ra2vipas.services.controller import _kernels
+from ra2vipas.services.controller.circle_gp import LobeGP, RecentLobe
+from ra2vipas.services.controller.grid import CircleGrid
+from ra2vipas.services.controller.tracks import BearingTracker, wrap
+from ra2vipas.services.protocol.measurements import StepMeasurement
+from ra2vipas.services.protocol.pod import PODModel
 
 
 class Algorithm(str, Enum):
@@ -465,7 +465,7 @@ def sensor_config_from_scenario(scenario) -> SensorConfig:
     Only properties of the platform itself: timing, camera geometry and detector accuracy,
     the receiver's reporting convention. Nothing about targets or the Tx.
     """
-    from services.protocol.scenario import AntennaModel
+    from ra2vipas.services.protocol.scenario import AntennaModel
 
     return SensorConfig(
         steps=scenario.steps,

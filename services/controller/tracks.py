@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.controller import _tracker
+from ra2vipas.services.controller import _tracker
 
 
 def wrap(angle):
@@ -60,7 +60,7 @@ class BearingTracker:
 
     Why not a tracking library (e.g. Stone Soup)? A control step must cost well under a
     millisecond with dozens of tracks and hundreds of boxes; the whole step here is one
-    compiled function (``services.controller._tracker``), with standard, cited algorithms.
+    compiled function (``ra2vipas.services.controller._tracker``), with standard, cited algorithms.
 
     Parameters
     ----------

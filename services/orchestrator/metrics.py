@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from services.protocol.messages import EpisodeTruth
+    from ra2vipas.services.protocol.messages import EpisodeTruth
 
 Z95 = 1.959963984540054
 

@@ -22,9 +22,9 @@ import math
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from services.protocol.scenario import AntennaModel, Scenario
-from services.sensors import physics
-from services.sensors.world import SimulatedPlatform
+from ra2vipas.services.protocol.scenario import AntennaModel, Scenario
+from ra2vipas.services.sensors import physics
+from ra2vipas.services.sensors.world import SimulatedPlatform
 
 
 def sweep_pans(scenario: Scenario) -> np.ndarray:

@@ -8,7 +8,7 @@
 Figures are built on ``matplotlib.figure.Figure`` (never pyplot, whose global state is not
 thread-safe) and rendered one at a time under a lock (``draw``), for callers that render from
 threads. The API never draws in its own process: it sends a ``PlotJob`` (plain data) to the
-renderer processes of ``services.orchestrator.api.render``, which call ``draw_job``.
+renderer processes of ``ra2vipas.services.orchestrator.api.render``, which call ``draw_job``.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from typing import Any, Callable, Literal
 import numpy as np
 from matplotlib.figure import Figure
 
-from services.protocol.scenario import Scenario
-from services.sensors import physics
+from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.sensors import physics
 
 LABELS = {"ra2vipas": "Ra²ViPAS", "rapas": "RaPAS", "ravipas": "RaViPAS", "sweep": "sweep (non-active)"}
 FORMATS = ("png", "svg")

@@ -4,7 +4,7 @@ that walk, bodies that occlude each other, false boxes, shadowing and correlated
 (each off unless its scenario parameter turns it on).
 
 Two things come out of here and must never be mixed: *measurements*
-(``services.protocol.measurements``), which is all the controller and learner see, and
+(``ra2vipas.services.protocol.measurements``), which is all the controller and learner see, and
 *ground truth* (``GroundTruth``, ``TrainingTruth``), which only the scoring code reads.
 
 Every random draw comes from a generator derived from the campaign seed and the test index
@@ -22,10 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
-from services.protocol.messages import EpisodeTruth, TargetTrajectory
-from services.protocol.scenario import Placement, Scenario, ScenarioError
-from services.sensors import physics
+from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
+from ra2vipas.services.protocol.messages import EpisodeTruth, TargetTrajectory
+from ra2vipas.services.protocol.scenario import Placement, Scenario, ScenarioError
+from ra2vipas.services.sensors import physics
 
 _TEST_STREAM = 0
 _TRAINING_STREAM = 1

@@ -10,8 +10,8 @@ import time
 import httpx
 import pytest
 
-from services.protocol import keys
-from services.protocol.messages import EpisodeStop
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import EpisodeStop
 from tests.api.live import SMALL, LiveAPI
 
 SLOW = {**SMALL, "steps": 100}  # realtime: 10 s per test on the wall clock
@@ -143,7 +143,7 @@ def test_a_finished_campaign_can_be_deleted_with_its_tests(mesh, http):
 def test_the_cap_on_progress_streams_is_exact_under_a_burst(mesh, http):
     """66 streams were admitted under the old count-in-the-generator cap of 64; the cap holds
     when every request arrives at once, and a place frees when a stream closes."""
-    from services.orchestrator.api.routes.events import MAX_STREAMS
+    from ra2vipas.services.orchestrator.api.routes.events import MAX_STREAMS
 
     cid = start_running(mesh, http)
     extra = 6

@@ -31,7 +31,7 @@ def processes_with(marker: str) -> list[int]:
 def test_bench_plots_reports_read_p99_and_slowdown_and_leaves_nothing_behind():
     marker = f"PLOTS_BENCH_TEST={uuid.uuid4().hex}"
     env = {**os.environ, "PYTHONPATH": str(ROOT), marker.split("=")[0]: marker.split("=")[1]}
-    proc = subprocess.run([sys.executable, "-m", "cli.main", "bench", "plots", "--clients", "6", "--readers", "1", "--tests", "2",
+    proc = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "bench", "plots", "--clients", "6", "--readers", "1", "--tests", "2",
                            "--fixtures", "1", "--fixture-tests", "2", "--repeats", "1", "--rigs", "1", "--json"],
                           capture_output=True, text=True, timeout=600, env=env, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr

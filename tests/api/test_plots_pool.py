@@ -25,11 +25,11 @@ import httpx
 import pytest
 from fastapi import HTTPException
 
-from services.orchestrator import plots
-from services.orchestrator.api.app import create_app
-from services.orchestrator.api.render import FigureSource, PlotKey, PlotRenderer, Saturated
-from services.orchestrator.settings import OrchestratorSettings
-from services.protocol.scenario import build_scenario
+from ra2vipas.services.orchestrator import plots
+from ra2vipas.services.orchestrator.api.app import create_app
+from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, PlotRenderer, Saturated
+from ra2vipas.services.orchestrator.settings import OrchestratorSettings
+from ra2vipas.services.protocol.scenario import build_scenario
 from tests.api.live import SMALL, LiveAPI
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -330,9 +330,9 @@ def _ignore_errors(fn, *args):
 
 CHILD = textwrap.dedent("""
     import asyncio, sys
-    from services.orchestrator import plots
-    from services.orchestrator.api.render import FigureSource, PlotKey, PlotRenderer
-    from services.protocol.scenario import build_scenario
+    from ra2vipas.services.orchestrator import plots
+    from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, PlotRenderer
+    from ra2vipas.services.protocol.scenario import build_scenario
 
     async def main():
         renderer = PlotRenderer(1).start()

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import pytest
 
-from services.controller.node import ControllerNode
-from services.orchestrator.simulate import run_campaign
-from services.orchestrator.storage import Store
-from services.protocol.scenario import build_scenario
-from services.sensors.node import SensorsNode
+from ra2vipas.services.controller.node import ControllerNode
+from ra2vipas.services.orchestrator.simulate import run_campaign
+from ra2vipas.services.orchestrator.storage import Store
+from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.sensors.node import SensorsNode
 from tests.api.live import SMALL, LiveAPI
 from tests.conftest import untimed
 

@@ -85,10 +85,10 @@ def environment(service: dict) -> dict[str, str]:
 
 def ra2vipas_argv(service: dict) -> list[str]:
     """The service's command as an argv for this interpreter: ``ra2vipas X ...`` ->
-    ``python -m cli.main X ...``."""
+    ``python -m ra2vipas.cli.main X ...``."""
     command = service["command"]
     assert isinstance(command, list) and command[0] == "ra2vipas", f"expected ['ra2vipas', ...], got {command!r}"
-    return [sys.executable, "-m", "cli.main", *command[1:]]
+    return [sys.executable, "-m", "ra2vipas.cli.main", *command[1:]]
 
 
 def our_services(compose: dict) -> dict[str, dict]:

@@ -19,9 +19,9 @@ import pytest
 import typer
 import zenoh
 
-from services.orchestrator.settings import OrchestratorSettings
-from services.protocol.keys import check_chunk
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.services.orchestrator.settings import OrchestratorSettings
+from ra2vipas.services.protocol.keys import check_chunk
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 from tests.deploy.compose import (
     COMPOSE_SCHEMA, ROOT, TLS_OVERRIDE_FILE, InterpolationError, environment, interpolate, load, merge, our_services,
 )
@@ -63,7 +63,7 @@ ORCHESTRATOR_VARS = string_constants(ROOT / "services/orchestrator/settings.py")
 def click_command(args: list[str]):
     """The Click command ``ra2vipas ARGS`` runs (Typer's own copy of Click), its name and its
     own arguments."""
-    from cli.main import app
+    from ra2vipas.cli.main import app
 
     cmd = typer.main.get_command(app)
     name = "ra2vipas"
@@ -210,9 +210,9 @@ def test_the_image_installs_the_project():
     assert lines[0] == "FROM python:3.11-slim"
     copied = {part.rstrip("/") for ln in lines if ln.startswith("COPY") for part in ln.split()[1:-1]}
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    packages = {p.rstrip("*") for p in project["tool"]["setuptools"]["packages"]["find"]["include"]}
+    packages = set(project["tool"]["setuptools"]["package-dir"].values())  # the folders the packages come from
     assert packages | {"pyproject.toml", project["project"]["readme"]} <= copied, f"the image must get {sorted(packages)} and the project files"
     assert any("pip install ." in ln for ln in lines)
     ignored = {ln.strip() for ln in (ROOT / ".dockerignore").read_text().splitlines()}
     assert {".git", ".venv"} <= ignored
-    assert not ({"services", "cli", "pyproject.toml", "README.md"} & ignored)
+    assert not ({"ra2vipas", "services", "cli", "pyproject.toml", "README.md"} & ignored)

@@ -13,10 +13,10 @@ import httpx
 import pytest
 import zenoh
 
-from services.orchestrator.simulate import run_campaign
-from services.protocol import keys
-from services.protocol.messages import Command, EpisodeResult, EpisodeStart, EpisodeTruth, Measurement
-from services.protocol.scenario import build_scenario
+from ra2vipas.services.orchestrator.simulate import run_campaign
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import Command, EpisodeResult, EpisodeStart, EpisodeTruth, Measurement
+from ra2vipas.services.protocol.scenario import build_scenario
 from tests.integration.conftest import Procs, alive, children_of, start_stack, stop_stack
 
 VALID = {

@@ -12,7 +12,7 @@ import sys
 import httpx
 import pytest
 
-from cli.stack import free_port
+from ra2vipas.cli.stack import free_port
 from tests.integration.conftest import ROOT, Procs, alive, children_of, wait_for_line
 from tests.conftest import untimed
 
@@ -33,7 +33,7 @@ def stack(tmp_path_factory):
 
 
 def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+    return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
 
 
 

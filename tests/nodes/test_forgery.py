@@ -9,16 +9,16 @@ from __future__ import annotations
 import re
 import threading
 
-from services.controller.node import ControllerNode
-from services.learner.node import LearnerNode
-from services.orchestrator.scheduler import Scheduler
-from services.orchestrator.simulate import run_campaign
-from services.orchestrator.storage import Store
-from services.protocol import keys
-from services.protocol.messages import EpisodeResult, EpisodeStart, EpisodeTruth, dump
-from services.protocol.scenario import build_scenario
-from services.sensors.node import SensorsNode
-from services.transport.bus import MemoryBus
+from ra2vipas.services.controller.node import ControllerNode
+from ra2vipas.services.learner.node import LearnerNode
+from ra2vipas.services.orchestrator.scheduler import Scheduler
+from ra2vipas.services.orchestrator.simulate import run_campaign
+from ra2vipas.services.orchestrator.storage import Store
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import EpisodeResult, EpisodeStart, EpisodeTruth, dump
+from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.sensors.node import SensorsNode
+from ra2vipas.services.transport.bus import MemoryBus
 from tests.conftest import untimed
 from tests.nodes.test_mesh_in_memory import SMALL, _run, settle
 

@@ -7,16 +7,16 @@ import time
 
 import pytest
 
-from services.controller.node import ControllerNode
-from services.learner.node import LearnerNode
-from services.orchestrator.scheduler import Scheduler
-from services.orchestrator.simulate import run_campaign
-from services.orchestrator.storage import Store
-from services.protocol import keys
-from services.protocol.messages import Command, EpisodeStart, Measurement, dump
-from services.protocol.scenario import build_scenario
-from services.sensors.node import SensorsNode
-from services.transport.bus import MemoryBus
+from ra2vipas.services.controller.node import ControllerNode
+from ra2vipas.services.learner.node import LearnerNode
+from ra2vipas.services.orchestrator.scheduler import Scheduler
+from ra2vipas.services.orchestrator.simulate import run_campaign
+from ra2vipas.services.orchestrator.storage import Store
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import Command, EpisodeStart, Measurement, dump
+from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.sensors.node import SensorsNode
+from ra2vipas.services.transport.bus import MemoryBus
 from tests.conftest import untimed
 
 SMALL = {"steps": 25, "n_train": 200, "n_targets": 8}
@@ -139,9 +139,9 @@ def _results_without_timing(results: dict) -> dict:
 def test_dynamic_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
     """Walkers' per-step truth travels on the truth plane, is stored with each test and scores
     DR_t exactly as ``run_test`` does in process."""
-    from services.orchestrator.api.views import trace_public
-    from services.orchestrator.simulate import run_test, train_pod
-    from services.sensors.world import SimulatedPlatform
+    from ra2vipas.services.orchestrator.api.views import trace_public
+    from ra2vipas.services.orchestrator.simulate import run_test, train_pod
+    from ra2vipas.services.sensors.world import SimulatedPlatform
 
     _, store, scheduler = mesh
     algorithms = ["ra2vipas", "rapas", "ravipas", "sweep"]
@@ -173,7 +173,7 @@ def test_no_truth_reaches_the_controller_or_the_learner_in_the_dynamic_world(mes
     identity, range, POD, occlusion flag or clutter label."""
     import threading
 
-    from services.protocol.messages import TrainingRequest, training_job_id
+    from ra2vipas.services.protocol.messages import TrainingRequest, training_job_id
 
     bus, store, scheduler = mesh
     _run(store, scheduler, "dynamic", DYNAMIC_SMALL, 1, 3, ["ra2vipas"])

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from services.orchestrator.metrics import truth_bearings
-from services.protocol.messages import EpisodeTruth, dump
-from services.protocol.scenario import MAX_TRUTH_WALKER_STEPS, ScenarioError, build_scenario
-from services.sensors import physics
-from services.sensors.world import (
+from ra2vipas.services.orchestrator.metrics import truth_bearings
+from ra2vipas.services.protocol.messages import EpisodeTruth, dump
+from ra2vipas.services.protocol.scenario import MAX_TRUTH_WALKER_STEPS, ScenarioError, build_scenario
+from ra2vipas.services.sensors import physics
+from ra2vipas.services.sensors.world import (
     GroundTruth,
     SimulatedPlatform,
     TrainingEpisode,

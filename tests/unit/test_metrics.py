@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from services.orchestrator.metrics import Z95, associate, score_test, summarize_algorithm, time_to_level, wilson_interval
+from ra2vipas.services.orchestrator.metrics import Z95, associate, score_test, summarize_algorithm, time_to_level, wilson_interval
 
 D = math.radians
 
@@ -140,8 +140,8 @@ def test_per_step_bearings_across_the_wrap_and_of_an_episode_that_ended_early():
 
 
 def test_truth_bearings_reads_trajectories_and_refuses_inconsistent_truth():
-    from services.orchestrator.metrics import truth_bearings
-    from services.protocol.messages import EpisodeTruth, TargetTrajectory
+    from ra2vipas.services.orchestrator.metrics import truth_bearings
+    from ra2vipas.services.protocol.messages import EpisodeTruth, TargetTrajectory
 
     base = dict(episode_id="e", bearings_rad=(0.1, 0.2, 0.3), ranges_m=(1.0, 2.0, 3.0), tx_index=1)
     v1 = EpisodeTruth(**base)  # a node that sends no trajectories: a static world

@@ -9,7 +9,7 @@ import pydantic
 from pydantic import ValidationError
 import pytest
 
-from services.protocol.scenario import (
+from ra2vipas.services.protocol.scenario import (
     PRESETS,
     AntennaModel,
     Placement,

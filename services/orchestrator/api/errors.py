@@ -15,8 +15,8 @@ from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from services.orchestrator.api.schemas import ErrorPublic
-from services.orchestrator.storage import StorageFault
+from ra2vipas.services.orchestrator.api.schemas import ErrorPublic
+from ra2vipas.services.orchestrator.storage import StorageFault
 
 _WHERE = ("body", "query", "path", "header", "cookie")
 MAX_LISTED = 5

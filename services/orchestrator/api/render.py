@@ -55,9 +55,9 @@ import cachetools
 from fastapi import HTTPException, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
-from services.orchestrator import plots
-from services.orchestrator.api.errors import responses
-from services.orchestrator.api.negotiate import IMAGE_CONTENT
+from ra2vipas.services.orchestrator import plots
+from ra2vipas.services.orchestrator.api.errors import responses
+from ra2vipas.services.orchestrator.api.negotiate import IMAGE_CONTENT
 
 CACHE_BYTES = 64 * 1024 * 1024  # rendered figures kept in memory (a PNG is ~50-150 kB, an SVG up to ~1 MB)
 NICENESS = 19  # renderer processes: the lowest priority, so a campaign's services get the cores first

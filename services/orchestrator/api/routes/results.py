@@ -1,6 +1,6 @@
 """/campaigns/{id}/results (JSON or CSV) and the campaign-level figures: DR curves (paper
 Fig. 4) and the learned POD (paper Fig. 3), drawn by the renderer processes and cached
-(``services.orchestrator.api.render``)."""
+(``ra2vipas.services.orchestrator.api.render``)."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ from typing import Annotated, Any, Optional
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response, status
 
-from services.orchestrator import plots
-from services.orchestrator.api.deps import CampaignDep, get_campaign
-from services.orchestrator.api.errors import responses
-from services.orchestrator.api.export import write_results_csv
-from services.orchestrator.api.negotiate import ImageFormat, ResultsFormat, image_format, results_format
-from services.orchestrator.api.render import FigureSource, PlotKey, plot_responses, serve_figure
-from services.orchestrator.api.schemas import ResultsPublic
+from ra2vipas.services.orchestrator import plots
+from ra2vipas.services.orchestrator.api.deps import CampaignDep, get_campaign
+from ra2vipas.services.orchestrator.api.errors import responses
+from ra2vipas.services.orchestrator.api.export import write_results_csv
+from ra2vipas.services.orchestrator.api.negotiate import ImageFormat, ResultsFormat, image_format, results_format
+from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, plot_responses, serve_figure
+from ra2vipas.services.orchestrator.api.schemas import ResultsPublic
 
 router = APIRouter(prefix="/campaigns/{campaign_id}", tags=["results"])
 

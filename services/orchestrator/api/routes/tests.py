@@ -6,15 +6,15 @@ from typing import Annotated, Any, Optional
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
 
-from services.orchestrator import plots
-from services.orchestrator.api.deps import CampaignDep, StoreDep, get_campaign
-from services.orchestrator.api.errors import responses
-from services.orchestrator.api.negotiate import ImageFormat, image_format
-from services.orchestrator.api.render import FigureSource, PlotKey, plot_responses, serve_figure
-from services.orchestrator.api.schemas import (
+from ra2vipas.services.orchestrator import plots
+from ra2vipas.services.orchestrator.api.deps import CampaignDep, StoreDep, get_campaign
+from ra2vipas.services.orchestrator.api.errors import responses
+from ra2vipas.services.orchestrator.api.negotiate import ImageFormat, image_format
+from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, plot_responses, serve_figure
+from ra2vipas.services.orchestrator.api.schemas import (
     MAX_OFFSET, MAX_PAGE, MAX_TESTS, AlgorithmName, EpisodeStatus, OutcomePage, TracePublic,
 )
-from services.orchestrator.api.views import outcome_public, trace_public
+from ra2vipas.services.orchestrator.api.views import outcome_public, trace_public
 
 router = APIRouter(prefix="/campaigns/{campaign_id}/tests", tags=["tests"])
 
