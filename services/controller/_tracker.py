@@ -310,7 +310,7 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
                     if hit_in[i, fr] and hit_in[j, fr]:
                         both += 1.0
                 together[i, j] += both
-    # clutter: boxes that open a new track where the camera has looked long enough to know the
+    # clutter: boxes that no confirmed track explains, where the camera has looked long enough to know the
     # targets (a clean detector hardly does that; a cluttered one keeps doing it), per frame and
     # per radian of well-explored field of view
     explored_cells = 0
@@ -322,7 +322,7 @@ def tracker_step(pan, boxes_rel, counts, step, n, prm,
             if view_grid[cell] >= 3.0 * nu:
                 explored_cells += 1
     for q in range(n_cl):
-        if owner[q] < 0:
+        if owner[q] < 0 or not confirmed[owner[q]]:
             cell = int(((cmean[q] + math.pi) / TWO_PI) * G) % G
             if view_grid[cell] >= 3.0 * nu:
                 clutter[0] += ccnt[q]

@@ -49,30 +49,52 @@ def oracle_choice(scenario: Scenario, seed: int, test_index: int) -> tuple[int, 
     for t, pan in enumerate(pans):
         m = platform.sense(t, float(pan))
         z[t], z[T + t] = m.rf.iso_rssi_dbm, m.rf.dir_rssi_dbm
-    noise = _ar1_covariance(T, sc.rf_noise_db, physics.fading_coefficient(sc))
-    positions = np.stack([truth.positions_at(t) for t in range(T)])  # (T, N, 2)
+    noise = cho_factor(_ar1_covariance(T, sc.rf_noise_db, physics.fading_coefficient(sc)), lower=True)
+    logdet_noise = 2.0 * float(np.log(np.diag(noise[0])).sum())
+    walkers = set(truth.walkers.tolist()) if not truth.static else set()
+    positions = np.stack([truth.positions_at(t) for t in range(T)]) if walkers else None
     best, best_ll = 0, -np.inf
     for i in range(sc.n_targets):
-        path = positions[:, i, :]
+        if i in walkers:
+            path = positions[:, i, :]
+        else:
+            path = np.repeat(truth.positions_m[i][None, :], T, axis=0)
         d = np.hypot(path[:, 0], path[:, 1])
         gamma = np.arctan2(path[:, 1], path[:, 0])
         g = physics.path_loss_dbm(sc, d)
         delta = pans - gamma
-        mean = np.concatenate([g, _dir_mean(sc, g, delta)])
-        cov = np.zeros((2 * T, 2 * T))
-        cov[:T, :T] = noise
-        cov[T:, T:] = noise
-        if sc.shadowing_db > 0.0:
+        r = z - np.concatenate([g, _dir_mean(sc, g, delta)])
+        w = physics.attenuation(sc, delta) if sc.antenna_model is AntennaModel.paper else np.ones(T)
+        if sc.shadowing_db > 0.0 and i in walkers:  # S along a path: full covariance
             K = sc.shadowing_db**2 * np.exp(-np.hypot(*(path[:, None, :] - path[None, :, :]).transpose(2, 0, 1)) / sc.shadowing_corr_m)
-            w = physics.attenuation(sc, delta) if sc.antenna_model is AntennaModel.paper else np.ones(T)
             B = np.concatenate([np.eye(T), np.diag(w)])
-            cov += B @ K @ B.T
-        r = z - mean
-        factor = cho_factor(cov + 1e-9 * np.eye(2 * T), lower=True)
-        ll = -0.5 * float(r @ cho_solve(factor, r)) - float(np.log(np.diag(factor[0])).sum())
+            cov = B @ K @ B.T
+            cov[:T, :T] += noise_matrix(noise)
+            cov[T:, T:] += noise_matrix(noise)
+            factor = cho_factor(cov + 1e-9 * np.eye(2 * T), lower=True)
+            ll = -0.5 * float(r @ cho_solve(factor, r)) - float(np.log(np.diag(factor[0])).sum())
+        else:  # a standing Tx: S is one number, a rank-one term (Sherman-Morrison, matrix determinant lemma)
+            ri = cho_solve(noise, r[:T]), cho_solve(noise, r[T:])
+            quad = float(r[:T] @ ri[0] + r[T:] @ ri[1])
+            logdet = 2.0 * logdet_noise
+            if sc.shadowing_db > 0.0:
+                b = (np.ones(T), w)
+                bi = cho_solve(noise, b[0]), cho_solve(noise, b[1])
+                s2 = sc.shadowing_db**2
+                btb = float(b[0] @ bi[0] + b[1] @ bi[1])
+                btr = float(b[0] @ ri[0] + b[1] @ ri[1])
+                quad -= s2 * btr * btr / (1.0 + s2 * btb)
+                logdet += math.log1p(s2 * btb)
+            ll = -0.5 * quad - 0.5 * logdet
         if ll > best_ll:
             best, best_ll = i, ll
     return best, truth.tx_index
+
+
+def noise_matrix(factor) -> np.ndarray:
+    """The covariance back from its Cholesky factor."""
+    L = np.tril(factor[0])
+    return L @ L.T
 
 
 def _dir_mean(sc: Scenario, g: np.ndarray, delta: np.ndarray) -> np.ndarray:

@@ -44,8 +44,8 @@ from typing import Any, Callable
 import numpy as np
 
 from ra2vipas.services.learner.pod import predict, r2_score
-from ra2vipas.services.orchestrator.metrics import associate, score_test, truth_bearings
-from ra2vipas.services.orchestrator.simulate import TestOutcome, TrainedPOD, summarize
+from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
+from ra2vipas.services.orchestrator.simulate import TestOutcome, TrainedPOD, held, summarize
 from ra2vipas.services.orchestrator.storage import EpisodeKey, StorageFault, Store
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
@@ -96,6 +96,7 @@ class _Run:
     running_since: float | None = None
     model_attempts: int = 0
     model_retry_at: float | None = None
+    stop_confidence: float = 0.0
 
 
 @dataclass
@@ -272,7 +273,7 @@ class Scheduler:
         if c is None or c["status"] not in ("queued", "training", "running"):
             return
         scenario = Scenario.model_validate(c["scenario"])
-        run = _Run(id=cid, scenario=scenario, seed=c["seed"], mode=Mode(c["mode"]))
+        run = _Run(id=cid, scenario=scenario, seed=c["seed"], mode=Mode(c["mode"]), stop_confidence=c.get("stop_confidence") or 0.0)
         if c["pod_job"] is not None:  # resumed after a restart: the model was already trained and scored
             run.pod = TrainedPOD(model=None, r2=c["pod_r2"], train_seconds=c["pod_train_seconds"] or 0.0)
             self._go_now(run)
@@ -390,7 +391,7 @@ class Scheduler:
                 rig.in_flight.add(eid)
                 self.bus.publish(keys.episode_control(rig_name), dump(EpisodeStart(
                     episode_id=eid, campaign_id=key.campaign_id, test_index=key.test_index, algorithm=key.algorithm,
-                    seed=run.seed, scenario=run.scenario, mode=run.mode)))
+                    seed=run.seed, scenario=run.scenario, mode=run.mode, stop_confidence=run.stop_confidence)))
 
     def _next_episode(self, allow_realtime: bool) -> tuple[_Run, EpisodeKey] | None:
         for cid in list(self._order):
@@ -468,25 +469,30 @@ class Scheduler:
             self._drop_flight(eid)
             return
         res, truth = flight.result, flight.truth
-        bearings = truth_bearings(truth, run.scenario.steps)  # (N,), or (steps, N) when targets walk
-        if len(res.estimates_rad) != run.scenario.steps or bearings is None:
-            log.warning("episode %s: inconsistent result (%d estimates for %d steps); rerun", eid, len(res.estimates_rad),
-                        run.scenario.steps)
+        steps = run.scenario.steps
+        bearings = truth_bearings(truth, steps)  # (N,), or (steps, N) when targets walk
+        decided = res.decided_step
+        expected = steps if decided is None else decided + 1
+        if (len(res.estimates_rad) != expected or expected > steps or bearings is None
+                or (decided is not None and run.stop_confidence <= 0.0)
+                or (res.confidences and len(res.confidences) != expected)):
+            log.warning("episode %s: inconsistent result (%d estimates for %d steps); rerun", eid, len(res.estimates_rad), steps)
             self._requeue(eid, count_attempt=True, reason="inconsistent result")
             return
-        estimates = np.asarray(res.estimates_rad)
-        hits, in_fov = score_test(estimates, bearings, truth.tx_index, run.scenario.fov_half_angle_rad)
+        hits, in_fov, chosen = score_episode(np.asarray(res.estimates_rad), bearings, truth.tx_index,
+                                             run.scenario.fov_half_angle_rad, steps, decided)
         record = dict(
             hits=[bool(h) for h in hits], in_fov=[bool(f) for f in in_fov], estimates=list(res.estimates_rad),
-            pans=list(res.pans_rad), rewards=list(res.rewards), chosen=[int(i) for i in associate(estimates, bearings)],
+            pans=list(res.pans_rad), rewards=list(res.rewards), chosen=[int(i) for i in chosen],
             tx_index=truth.tx_index, bearings=list(truth.bearings_rad), ranges=list(truth.ranges_m),
             latencies=list(flight.timing.latencies_ms) if flight.timing else None,
             trajectories=[t.model_dump(mode="json") for t in truth.trajectories] or None,
+            confidences=list(res.confidences) or None, decided_step=decided,
         )
 
         def save() -> None:
             self.store.finish_episode(flight.key, **record)  # records nothing if the test is already recorded
-            self._drop_flight(eid)
+            self._drop_flight(eid, stop_reason="decided early" if decided is not None else None)  # the sensors forget it
             if run.id in self.runs:
                 self._dispatch()
                 self._maybe_finish(run)
@@ -509,14 +515,16 @@ class Scheduler:
             return
         rows = self.store.episode_rows(run.id)
         outcomes: dict[str, list[TestOutcome]] = {a: [] for a in c["algorithms"]}
+        steps = run.scenario.steps
         for row in rows:
             outcomes[row["algorithm"]].append(TestOutcome(
                 algorithm=row["algorithm"], test_index=row["test_index"], hits=[bool(h) for h in row["hits"]],
-                in_fov=[bool(f) for f in row["in_fov"]]))
+                in_fov=[bool(f) for f in row["in_fov"]], confidences=held(row.get("confidences") or [], steps),
+                decided_step=row.get("decided_step")))
         finished = time.time()
         elapsed = finished - (run.running_since or finished)
-        sps = (len(rows) * run.scenario.steps / elapsed) if elapsed > 0 else None
-        results = summarize(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, outcomes, sps)
+        sps = (sum(len(row["estimates"]) for row in rows) / elapsed) if elapsed > 0 else None
+        results = summarize(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, outcomes, sps, run.stop_confidence)
         latencies = [v for row in rows for v in (row.get("latencies") or [])]
         if latencies:
             results["latency_ms"] = {"p50": round(float(np.percentile(latencies, 50)), 4), "p99": round(float(np.percentile(latencies, 99)), 4)}

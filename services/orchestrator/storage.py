@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Iterator
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -86,6 +86,13 @@ _MIGRATIONS: dict[int, str] = {
     3: """
     ALTER TABLE episodes ADD COLUMN trajectories TEXT
     """,
+    # 4: confidence and early decision (issue 9): the campaign's stop_confidence (0 = off), each
+    #    episode's per-step confidences (as the controller sent them) and the step it decided at.
+    4: """
+    ALTER TABLE campaigns ADD COLUMN stop_confidence REAL NOT NULL DEFAULT 0;
+    ALTER TABLE episodes ADD COLUMN confidences TEXT;
+    ALTER TABLE episodes ADD COLUMN decided_step INTEGER
+    """,
 }
 
 ACTIVE = ("queued", "training", "running")
@@ -96,7 +103,7 @@ EPISODE_STATES = ("pending", "running", "done", "cancelled")
 # lists leave out the results object too.
 _LIST_COLUMNS = (
     "id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at, started_at, finished_at,"
-    " pod_job, pod_r2, pod_train_seconds, error, steps_per_second"
+    " pod_job, pod_r2, pod_train_seconds, error, steps_per_second, stop_confidence"
 )
 _CAMPAIGN_COLUMNS = _LIST_COLUMNS + ", results"
 
@@ -291,15 +298,16 @@ class Store:
 
     # -- campaigns --------------------------------------------------------------------------
     def create_campaign(self, *, preset: str, overrides: dict, scenario: dict, algorithms: list[str], tests: int,
-                        seed: int, mode: str, name: str | None = None) -> str:
+                        seed: int, mode: str, name: str | None = None, stop_confidence: float = 0.0) -> str:
         """Insert a campaign and all its pending episodes in one transaction; return its id."""
         cid = uuid.uuid4().hex[:12]
         now = time.time()
         with self.transaction() as db:
             db.execute(
-                "INSERT INTO campaigns(id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?)",
-                (cid, name, preset, json.dumps(overrides), json.dumps(scenario), json.dumps(algorithms), tests, seed, mode, now),
+                "INSERT INTO campaigns(id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at,"
+                " stop_confidence) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?, ?)",
+                (cid, name, preset, json.dumps(overrides), json.dumps(scenario), json.dumps(algorithms), tests, seed, mode, now,
+                 stop_confidence),
             )
             db.executemany(
                 "INSERT INTO episodes(campaign_id, test_index, algorithm, status) VALUES (?, ?, ?, 'pending')",
@@ -428,19 +436,22 @@ class Store:
 
     def finish_episode(self, key: EpisodeKey, *, hits: list[bool], in_fov: list[bool], estimates: list[float], pans: list[float],
                        rewards: list[float], chosen: list[int], tx_index: int, bearings: list[float], ranges: list[float],
-                       latencies: list[float] | None, trajectories: list[dict] | None = None) -> bool:
+                       latencies: list[float] | None, trajectories: list[dict] | None = None,
+                       confidences: list[float] | None = None, decided_step: int | None = None) -> bool:
         """Record a finished test in one transaction; False if it was already recorded (no
         duplicate) or its campaign was cancelled. ``bearings``/``ranges`` are the targets at
-        step 0; ``trajectories`` the walking ones' per-step truth, if any."""
+        step 0; ``trajectories`` the walking ones' per-step truth, if any; ``confidences`` the
+        controller's per step (None from a v1 controller); ``decided_step`` an early decision."""
         with self.transaction() as db:
             cur = db.execute(
                 "UPDATE episodes SET status='done', hits=?, in_fov=?, estimates=?, pans=?, rewards=?, chosen=?, tx_index=?,"
-                " bearings=?, ranges=?, latencies=?, trajectories=?, finished_at=?"
+                " bearings=?, ranges=?, latencies=?, trajectories=?, confidences=?, decided_step=?, finished_at=?"
                 " WHERE campaign_id=? AND test_index=? AND algorithm=? AND status IN ('pending', 'running')",
                 (json.dumps([int(h) for h in hits]), json.dumps([int(f) for f in in_fov]), json.dumps(estimates), json.dumps(pans),
                  json.dumps(rewards), json.dumps(chosen), tx_index, json.dumps(bearings), json.dumps(ranges),
                  None if latencies is None else json.dumps(latencies),
-                 None if trajectories is None else json.dumps(trajectories, separators=(",", ":")), time.time(),
+                 None if trajectories is None else json.dumps(trajectories, separators=(",", ":")),
+                 None if confidences is None else json.dumps(confidences), decided_step, time.time(),
                  key.campaign_id, key.test_index, key.algorithm))
             return cur.rowcount == 1
 
@@ -463,7 +474,8 @@ class Store:
             total = db.execute(f"SELECT COUNT(*) FROM episodes{clause}", args).fetchone()[0]
             rows = db.execute(
                 "SELECT test_index, algorithm, status, rig, attempt, tx_index, hits, json_extract(chosen, '$[#-1]') AS final_choice,"
-                " json_extract(in_fov, '$[#-1]') AS final_in_fov, json_extract(estimates, '$[#-1]') AS final_estimate"
+                " json_extract(in_fov, '$[#-1]') AS final_in_fov, json_extract(estimates, '$[#-1]') AS final_estimate,"
+                " json_extract(confidences, '$[#-1]') AS final_confidence, decided_step"
                 f" FROM episodes{clause} ORDER BY test_index, algorithm LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
         return [_episode_dict(r) for r in rows], total
 
@@ -492,7 +504,8 @@ def _campaign_dict(row: sqlite3.Row, counts: dict[str, int]) -> dict[str, Any]:
 
 def _episode_dict(row: sqlite3.Row) -> dict[str, Any]:
     d = dict(row)
-    for k in ("hits", "in_fov", "estimates", "pans", "rewards", "chosen", "bearings", "ranges", "latencies", "trajectories"):
+    for k in ("hits", "in_fov", "estimates", "pans", "rewards", "chosen", "bearings", "ranges", "latencies", "trajectories",
+              "confidences"):
         if d.get(k) is not None:
             d[k] = json.loads(d[k])
     return d

@@ -27,7 +27,9 @@ def test_results_carry_dr_curves_with_wilson_bands(http, done_campaign):
         assert len(block["dr"]) == len(block["dr_ci95"]) == steps
         assert all(lo <= dr <= hi for dr, (lo, hi) in zip(block["dr"], block["dr_ci95"]))
         assert block["dr_final"] == block["dr"][-1] and block["ci95"] == block["dr_ci95"][-1]
-        assert set(block) == {"dr", "dr_final", "ci95", "dr_ci95", "time_to_dr90_s", "in_fov_final"}
+        assert set(block) == {"dr", "dr_final", "ci95", "dr_ci95", "time_to_dr90_s", "in_fov_final", "calibration"}
+        assert set(block["calibration"]) == {"ece_final", "ece_all", "confidence_final", "reliability"}
+        assert 0.0 <= block["calibration"]["ece_final"] <= 1.0
 
 
 def test_csv_export_by_query_or_accept_reproduces_the_campaign_from_the_file_alone(http, done_campaign):
@@ -97,7 +99,7 @@ def test_trace_of_a_test_the_campaign_does_not_have(http, done_campaign, path, c
     assert r.status_code == code, r.text
 
 
-@pytest.mark.parametrize("path", ["/plots/dr", "/plots/pod", "/tests/1/rapas/plot"])
+@pytest.mark.parametrize("path", ["/plots/dr", "/plots/pod", "/plots/reliability", "/tests/1/rapas/plot"])
 def test_figures_render_as_png_and_svg(http, done_campaign, path):
     url = f"/campaigns/{done_campaign['id']}{path}"
     png = http.get(url)

@@ -32,7 +32,7 @@ def finish(store: Store, key: EpisodeKey) -> bool:
 def test_the_database_is_in_wal_mode_at_the_current_schema_version(tmp_path, store):
     db = sqlite3.connect(tmp_path / "s.db")
     assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
-    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == str(storage.SCHEMA_VERSION) == "3"
+    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == str(storage.SCHEMA_VERSION) == "4"
     db.close()
 
 
@@ -46,14 +46,14 @@ def test_a_version_1_database_is_migrated_and_keeps_its_campaigns(tmp_path):
     db.close()
     s = Store(str(path))
     try:
-        assert s.campaign("old")["status"] == "done"
+        assert s.campaign("old")["status"] == "done" and s.campaign("old")["stop_confidence"] == 0
         assert s.pod_artifacts("old") == {"model": None, "truth": None}
         s.set_pod_artifacts("old", model={"mean": [0.5]}, truth={"rssi_dbm": [-40.0], "pod": [0.5]})
         assert s.pod_artifacts("old")["truth"]["pod"] == [0.5]
     finally:
         s.close()
     db = sqlite3.connect(path)
-    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == "3"
+    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == "4"
     db.close()
 
 

@@ -13,7 +13,7 @@ from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol import keys
-from ra2vipas.services.protocol.messages import Command, EpisodeStart, Measurement, dump
+from ra2vipas.services.protocol.messages import Command, EpisodeStart, EpisodeStop, Measurement, dump
 from ra2vipas.services.protocol.scenario import build_scenario
 from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
@@ -36,10 +36,10 @@ def mesh(tmp_path):
     store.close()
 
 
-def _run(store, scheduler, preset, overrides, tests, seed, algorithms, mode="fast", timeout=120.0):
+def _run(store, scheduler, preset, overrides, tests, seed, algorithms, mode="fast", timeout=120.0, stop_confidence=0.0):
     scenario = build_scenario(preset, overrides)
     cid = store.create_campaign(preset=preset, overrides=overrides, scenario=scenario.model_dump(mode="json"),
-                                algorithms=algorithms, tests=tests, seed=seed, mode=mode)
+                                algorithms=algorithms, tests=tests, seed=seed, mode=mode, stop_confidence=stop_confidence)
     scheduler.submit(cid)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -196,3 +196,26 @@ def test_no_truth_reaches_the_controller_or_the_learner_in_the_dynamic_world(mes
     for sample in stream["samples"]:
         assert set(sample) == {"index", "iso_rssi_dbm", "frames"}
         assert all(set(f) == {"box_bearings_rad"} for f in sample["frames"])
+
+
+def test_early_decisions_over_the_bus_equal_the_in_process_simulation(mesh):
+    """With stop_confidence, a controller ends an episode at its first confident step; the
+    orchestrator scores the held answer, tells the rig to drop the episode, and the results
+    (DR, calibration, decision) equal the in-process campaign's value for value."""
+    bus, store, scheduler = mesh
+    algorithms = ["ra2vipas", "rapas"]
+    c = _run(store, scheduler, "paper", SMALL, 4, 11, algorithms, stop_confidence=0.9)
+    assert c["status"] == "done", c["error"]
+    expected = run_campaign("paper", build_scenario("paper", SMALL), 4, 11, algorithms, stop_confidence=0.9)
+    assert untimed(c["results"]) == untimed(expected)
+    assert c["results"]["stop_confidence"] == 0.9 and all("decision" in b for b in c["results"]["algorithms"].values())
+    rows = store.episode_rows(c["id"])
+    decided = [r for r in rows if r["decided_step"] is not None]
+    assert decided, "no episode decided early: the test would prove nothing"
+    for r in decided:
+        assert len(r["estimates"]) == r["decided_step"] + 1 < SMALL["steps"] and len(r["hits"]) == SMALL["steps"]
+        assert r["confidences"][-1] >= 0.9 > max(r["confidences"][:-1], default=0.0)
+    settle(bus, scheduler.loop)
+    stops = {EpisodeStop.model_validate_json(p).episode_id for k, p in bus.published
+             if k == keys.episode_control("rig-1") and b'"decided early"' in p}
+    assert len(stops) == len(decided)

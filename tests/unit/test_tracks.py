@@ -143,3 +143,60 @@ def test_edge_of_view_detections_are_not_counted():
     p_tilde, n = tr.detection_rate()
     assert len(tr) == 1
     assert n[0] == 0 and p_tilde[0] == 0.0
+
+
+# -- targets that move (issue 9) ------------------------------------------------------------------
+
+def test_a_crossing_pair_is_followed_without_swapping():
+    """Two people cross in front of the camera at the same angular speed in opposite
+    directions; each track keeps following the person it started on."""
+    rng = np.random.default_rng(11)
+    tr = BearingTracker(FOV, SIGMA, 0.1)
+    steps = 60
+    a = np.radians(np.linspace(20.0, 40.0, steps))  # walks left
+    b = np.radians(np.linspace(40.0, 20.0, steps))  # walks right; they meet at step ~30
+    pan = math.radians(30.0)
+    ids = None
+    for t in range(steps):
+        tr.update(pan, _frames(rng, [a[t] - pan, b[t] - pan], [0.8, 0.8]))
+        if t == 10:
+            assert len(tr) == 2
+            ids = {int(tr.ids[int(np.argmin(np.abs(physics.wrap(tr.bearing - g))))]): name for name, g in (("a", a[t]), ("b", b[t]))}
+            assert len(ids) == 2
+    final = dict(zip(tr.ids.tolist(), tr.bearing.tolist()))
+    assert set(ids) <= set(final), "a track was lost at the crossing"
+    for tid, name in ids.items():
+        truth = (a if name == "a" else b)[-1]
+        assert angle_error(final[tid], truth) < math.radians(1.0), f"track of {name} ended at {math.degrees(final[tid]):.1f} deg"
+    assert all(w > 0.5 for w in tr.walking)  # both are recognised as walkers
+
+
+def test_a_standing_target_keeps_a_sharp_bearing_while_out_of_view():
+    rng = np.random.default_rng(12)
+    tr = BearingTracker(FOV, SIGMA, 0.1)
+    _observe(tr, rng, [0.3], [0.7], np.full(20, 0.3))
+    before = float(tr.bearing[0])
+    _observe(tr, rng, [0.3], [0.7], np.full(60, math.pi))  # 6 s looking the other way
+    assert tr.walking[0] < 0.2 and angle_error(float(tr.bearing[0]), before) < 1e-4
+    _observe(tr, rng, [0.3], [0.7], np.full(5, 0.3))
+    assert len(tr) == 1  # found again, not a new target
+
+
+def test_a_lone_false_box_does_not_become_a_target_in_a_cluttered_scene():
+    """With clutter (false boxes uniform over the field of view, every frame), boxes that do not
+    come back where the camera looks again are not targets; a real target is."""
+    rng = np.random.default_rng(13)
+    tr = BearingTracker(FOV, math.radians(1.0), 0.1)
+    target = 0.1
+    for t in range(150):
+        pan = 0.0
+        frames = []
+        for _ in range(10):
+            boxes = list(rng.uniform(-FOV, FOV, rng.poisson(0.3)))
+            if rng.random() < 0.6:
+                boxes.append(target - pan + rng.normal(0, math.radians(1.0)))
+            frames.append(CameraFrame(box_bearings_rad=tuple(sorted(boxes))))
+        tr.update(pan, tuple(frames))
+    assert tr.clutter_density == pytest.approx(0.3 * 10 / 10 / (2 * tr.count_limit), rel=0.5)  # ~0.38 false boxes / frame / rad
+    assert any(angle_error(b, target) < math.radians(0.5) for b in tr.bearing)
+    assert len(tr) <= 3, f"{len(tr)} tracks from one target and clutter"

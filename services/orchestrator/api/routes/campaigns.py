@@ -37,7 +37,7 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
     overrides = {name: resolved[name] for name in body.overrides}  # stored with the scenario's types (3 -> 3.0)
     cid = store.create_campaign(
         preset=body.preset, overrides=overrides, scenario=resolved, algorithms=algorithms,
-        tests=body.tests, seed=body.seed, mode=body.mode, name=body.name,
+        tests=body.tests, seed=body.seed, mode=body.mode, name=body.name, stop_confidence=body.stop_confidence,
     )
     scheduler.submit(cid)
     response.headers["Location"] = f"/campaigns/{cid}"

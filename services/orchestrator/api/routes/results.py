@@ -63,6 +63,22 @@ async def dr_plot(campaign_id: str, request: Request,
     return await serve_figure(request, PlotKey(campaign_id, "dr", kind), read)
 
 
+@router.get("/plots/reliability", response_class=Response, responses=plot_responses(NOT_DONE))
+async def reliability_plot(campaign_id: str, request: Request,
+                           fmt: Annotated[Optional[ImageFormat], Query(alias="format", description="png (default) or svg")] = None
+                           ) -> Response:
+    """Reliability diagram of every algorithm's final confidence: the share of final answers
+    that were the Tx against the confidence given to them (10 bins), ECE in the legend."""
+    kind = image_format(request, fmt)
+    store = request.app.state.store
+
+    def read() -> FigureSource:
+        results = finished_results(get_campaign(campaign_id, store))
+        return FigureSource(plots.PlotJob("reliability", kind, {"results": results}))
+
+    return await serve_figure(request, PlotKey(campaign_id, "reliability", kind), read)
+
+
 @router.get("/plots/pod", response_class=Response, responses=plot_responses("the POD model is not trained yet (or was not kept)"))
 async def pod_plot(campaign_id: str, request: Request,
                    fmt: Annotated[Optional[ImageFormat], Query(alias="format", description="png (default) or svg")] = None) -> Response:
