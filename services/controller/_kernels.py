@@ -245,7 +245,7 @@ def track_logpost(l_rf, track_rf, grid_step, rf_weight, means, sds, weights, det
 
 
 @njit(cache=True)
-def missed_logdensity(l_rf, rf_weight, view_frames, recent_frames, walks, alpha, beta, log_prior, out):
+def missed_logdensity(l_rf, rf_weight, view_frames, recent_frames, walks, alpha, beta, log_prior, outlier, out):
     """Log-posterior of "the Tx is a target not detected (where it is now), at grid bearing
     gamma": rf_weight * l_RF(gamma) + log P(no detection in the frames that looked there | the
     Tx's POD ~ Beta(alpha, beta)) + the log prior of such a target in that grid cell. A Tx that
@@ -257,6 +257,8 @@ def missed_logdensity(l_rf, rf_weight, view_frames, recent_frames, walks, alpha,
         walk = _lbeta(alpha, recent_frames[j] + beta) - lb
         top = max(stand, walk)
         miss = top + math.log((1.0 - walks) * math.exp(stand - top) + walks * math.exp(walk - top))
+        if outlier > 0.0:  # robust, as ``pod_evidence``: hidden behind someone, or the POD model is off
+            miss = math.log((1.0 - outlier) * math.exp(miss) + outlier)
         out[j] = rf_weight * l_rf[j] + miss + log_prior
     return out
 
