@@ -303,14 +303,15 @@ async def campaign_live(request: Request, campaign_id: CampaignId) -> StreamingR
 
 @router.get("/ui/campaigns/{campaign_id}/pod.json")
 def campaign_pod(request: Request, campaign_id: CampaignId) -> JSONResponse:
-    """The POD figure's data (``data.pod_series``); 409 until the model is stored."""
+    """The POD figure's data (``data.pod_series``, ``ready: true``), or ``{"ready": false}``
+    until the learned model is stored (the page asks again when the campaign moves on)."""
     store = _store(request)
     artifacts = store.pod_artifacts(campaign_id)
     row = _campaign_or_404(store, campaign_id)
     if not artifacts or artifacts["model"] is None:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"campaign {campaign_id} has no POD model yet ({row['status']})")
+        return JSONResponse({"ready": False, "status": row["status"]})
     series = data.pod_series(row["scenario"], artifacts["model"], artifacts["truth"])
-    return JSONResponse({**series, "r2": row["pod_r2"]})
+    return JSONResponse({"ready": True, **series, "r2": row["pod_r2"]})
 
 
 @router.get("/ui/campaigns/{campaign_id}/tests/{test_index}/{algorithm}", response_class=HTMLResponse)

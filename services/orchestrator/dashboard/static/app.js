@@ -224,7 +224,7 @@
       state.podLoading = false;
       if (!r.ok) return;
       const d = await r.json();
-      if (!document.body.contains(el) || state.pod) return;
+      if (!d.ready || !document.body.contains(el) || state.pod) return;
       state.pod = podChart(el, $("#pod-legend", page), d);
       $("#pod-pending", page).textContent = "";
     }).catch(() => { state.podLoading = false; });
@@ -246,7 +246,9 @@
       const err = $("#campaign-error", page);
       err.hidden = !p.error;
       err.textContent = p.error || "";
-      if (p.pod.r2 !== null) loadPod(state, page);
+      if (p.status !== state.lastStatus || p.pod.r2 !== state.lastR2) loadPod(state, page);  // the model is stored as training ends
+      state.lastStatus = p.status;
+      state.lastR2 = p.pod.r2;
       if (FINISHED.includes(p.status)) {
         source.close();
         state.source = null;
