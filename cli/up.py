@@ -40,6 +40,7 @@ def up(
         except StackError as err:
             fail(str(err))
         print(f"ra2vipas up: API on {stack.api_url} (rigs: {rigs}, database: {db}, logs: {stack.log_dir}); Ctrl-C to stop", flush=True)
+        print(f"ra2vipas up: dashboard on {stack.api_url}/", flush=True)
         while not stop.wait(0.5):
             dead = stack.watch()
             if dead is not None and not stop.is_set():

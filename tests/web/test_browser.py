@@ -7,8 +7,10 @@ page, phone width and the keyboard; no console errors anywhere (``conftest.watch
 from __future__ import annotations
 
 import re
+import threading
 import time
 
+import httpx
 import pytest
 
 from tests.web.conftest import PHONE, TOKEN
@@ -24,6 +26,24 @@ def wait_until(predicate, timeout: float = 60.0, every: float = 0.2, what: str =
             return value
         time.sleep(every)
     raise AssertionError(f"{what} not met within {timeout} s")
+
+
+def next_line_with(proc, needle: str, timeout: float) -> str:
+    """The next line of the process's output that contains ``needle`` (read by a thread: the
+    line may already sit in the pipe reader's buffer, where a select() would not see it)."""
+    found: list[str] = []
+
+    def read() -> None:
+        for line in proc.stdout:
+            if needle in line:
+                found.append(line)
+                return
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    reader.join(timeout)
+    assert found, f"{needle!r} not printed within {timeout} s"
+    return found[0]
 
 
 def wait_done(api, cid: str, timeout: float = 180.0) -> dict:
@@ -47,6 +67,14 @@ def enter_token(page) -> None:
     page.fill("#token-input", TOKEN)
     page.click("#token-form button[type=submit]")
     dialog.wait_for(state="hidden")
+
+
+def test_up_prints_the_dashboard_address(stack):
+    line = next_line_with(stack["up"], "dashboard on", 10)
+    url = re.search(r"dashboard on (http://[0-9.:]+/)", line).group(1)
+    assert url == stack["api"] + "/"
+    page = httpx.get(url, timeout=10)
+    assert page.status_code == 200 and "<h1>Campaigns</h1>" in page.text
 
 
 def test_home_page_lists_campaigns_with_their_final_dr(watched, done_campaign, screenshots):
