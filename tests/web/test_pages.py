@@ -53,7 +53,8 @@ def test_every_page_answers_and_unknown_campaigns_are_404(http, campaign):
                  "/ui/new/parameters?preset=paper-uniform"):
         r = http.get(path)
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/html"), path
-    assert http.get("/ui/campaigns/nope").status_code == 404
+    missing = http.get("/ui/campaigns/nope")
+    assert missing.status_code == 404 and "no campaign &#39;nope&#39;" in missing.text and missing.headers["content-type"].startswith("text/html")
     assert http.get(f"/ui/campaigns/{cid}/tests/99/rapas").status_code == 404
     assert http.get(f"/ui/campaigns/{cid}/tests/0/ravipas").status_code == 404  # not one of its algorithms
     assert http.get("/?status=bogus").status_code == 422

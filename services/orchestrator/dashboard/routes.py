@@ -115,6 +115,13 @@ def _page(request: Request, template: str, title: str, nav: str, **context: Any)
         request=request, title=title, nav=nav, auth_required=bool(settings.token), has_studies=_has_studies(request), **context))
 
 
+def _not_found(request: Request, err: HTTPException) -> HTMLResponse:
+    """A page (not JSON) for a person who followed a stale link."""
+    response = _page(request, "error.html", "Not found", "", message=err.detail)
+    response.status_code = err.status_code
+    return response
+
+
 def _fragment(request: Request, template: str, **context: Any) -> str:
     return templates.get_template(template).render(request=request, **context)
 
@@ -243,7 +250,10 @@ def campaign_page(request: Request, campaign_id: CampaignId, missed: bool = Fals
                   sort_algorithm: Annotated[Optional[str], Query(max_length=16)] = None, order: Literal["asc", "desc"] = "asc",
                   offset: Annotated[int, Query(ge=0, le=MAX_TESTS * 4)] = 0) -> HTMLResponse:
     store = _store(request)
-    row = _campaign_or_404(store, campaign_id)
+    try:
+        row = _campaign_or_404(store, campaign_id)
+    except HTTPException as err:
+        return _not_found(request, err)
     c = campaign_public(row, storage_fault=store.fault)
     results = row["results"] if row["status"] == "done" else None
     context: dict[str, Any] = {
@@ -327,9 +337,12 @@ def campaign_pod(request: Request, campaign_id: CampaignId) -> JSONResponse:
 def episode_page(request: Request, campaign_id: CampaignId, test_index: Annotated[int, PathParam(ge=0, le=MAX_TESTS - 1)],
                  algorithm: Annotated[str, PathParam(max_length=16)]) -> HTMLResponse:
     store = _store(request)
-    row = _campaign_or_404(store, campaign_id)
-    if algorithm not in ALGORITHM_NAMES or algorithm not in row["algorithms"] or test_index >= row["tests"]:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"campaign {campaign_id} has no test {test_index} of {algorithm}")
+    try:
+        row = _campaign_or_404(store, campaign_id)
+        if algorithm not in ALGORITHM_NAMES or algorithm not in row["algorithms"] or test_index >= row["tests"]:
+            raise HTTPException(status.HTTP_404_NOT_FOUND, f"campaign {campaign_id} has no test {test_index} of {algorithm}")
+    except HTTPException as err:
+        return _not_found(request, err)
     episode = store.episode(campaign_id, test_index, algorithm)
     ready = episode is not None and episode["status"] == "done"
     return _page(request, "episode.html", f"test {test_index}, {data.label(algorithm)}", "campaigns",

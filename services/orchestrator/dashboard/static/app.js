@@ -249,6 +249,7 @@
       if (p.status !== state.lastStatus || p.pod.r2 !== state.lastR2) loadPod(state, page);  // the model is stored as training ends
       state.lastStatus = p.status;
       state.lastR2 = p.pod.r2;
+      refreshTests(state, page);
       if (FINISHED.includes(p.status)) {
         source.close();
         state.source = null;
@@ -263,6 +264,14 @@
       else state.dr = drChart($("#dr-chart", page), $("#dr-legend", page), d);
     });
     source.addEventListener("deleted", () => { source.close(); toast("This campaign was deleted.", "bad"); });
+  }
+
+  function refreshTests(state, page) {
+    // the per-test table follows the run (every 5 s at most, the same filter and page), unless the user is in it
+    const holder = $("#tests", page), current = $("#tests-state", page);
+    if (!holder || !current || holder.contains(document.activeElement) || Date.now() - (state.testsAt || 0) < 5000) return;
+    state.testsAt = Date.now();
+    htmx.ajax("GET", current.dataset.url, { target: holder, swap: "innerHTML" });
   }
 
   function refreshCampaign() {
