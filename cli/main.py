@@ -12,7 +12,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMB
 
 import typer  # noqa: E402
 
-from cli import bench, campaign, presets, protocol, services  # noqa: E402
+from cli import bench, campaign, presets, protocol, security, services  # noqa: E402
 from cli.rig import rig  # noqa: E402
 from cli.rigs import rigs  # noqa: E402
 from cli.simulate import simulate  # noqa: E402
@@ -31,6 +31,7 @@ app.command("rigs")(rigs)
 app.add_typer(presets.app, name="presets")
 app.add_typer(bench.app, name="bench")
 app.add_typer(protocol.app, name="protocol")
+app.add_typer(security.app, name="security")
 for _name in ("sensors", "controller", "learner", "orchestrator", "router"):
     app.command(_name)(getattr(services, _name))
 app.command("rig")(rig)
