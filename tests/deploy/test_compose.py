@@ -222,3 +222,25 @@ def test_the_image_installs_the_project():
     ignored = {ln.strip() for ln in (ROOT / ".dockerignore").read_text().splitlines()}
     assert {".git", ".venv"} <= ignored
     assert not ({"services", "cli", "pyproject.toml", "README.md"} & ignored)
+
+
+def test_the_secured_deployment_names_every_rig_and_gives_each_service_only_its_own_secrets():
+    compose = interpolate(variants()[SECURED], VARS)
+    services = compose["services"]
+    router = services["router"]
+    command = router["command"]
+    assert command[command.index("-c") + 1] == "/run/secrets/router.json5" and "router.json5" in router["secrets"]
+    assert [c for c in command if c.startswith("--listen") or c.startswith("tls/")] == ["--listen", "tls/0.0.0.0:7447"]
+    for replicated in ("rig", "sensors", "controller"):  # replicas cannot hold one identity each
+        assert services[replicated]["deploy"]["replicas"] == 0
+    running = {name: svc for name, svc in our_services(compose).items() if svc.get("deploy", {}).get("replicas", 1) != 0}
+    assert set(running) == {"orchestrator", "learner", "rig-1", "rig-2", "robot-1-sensors", "robot-1-controller"}
+    for name, svc in running.items():
+        env = environment(svc)
+        user = env["RA2VIPAS_ZENOH_USER"]
+        assert env["RA2VIPAS_ZENOH_TLS_MTLS"] == "true" and env["RA2VIPAS_ZENOH_CONNECT"] == "tls/router:7447"
+        assert sorted(svc["secrets"]) == sorted(["ca.pem", f"{user}.pem", f"{user}.key", f"{user}.password"]), name
+        if "RA2VIPAS_RIG" in env:
+            assert user in (env["RA2VIPAS_RIG"], f"{env['RA2VIPAS_RIG']}.{svc['command'][1]}")
+    assert environment(services["orchestrator"])["RA2VIPAS_EXPECT_RIGS"] == "3"
+    assert all(s["file"].startswith("./secrets/") for s in compose["secrets"].values())
