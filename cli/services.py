@@ -143,7 +143,7 @@ def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: C
     from services.transport.runtime import configure_logging, wait_for_shutdown_signal
 
     configure_logging(log_level)
-    _yield_cpu()
+    _claim_cpu()  # every message between clients passes through the router: it is on the control loop's path
     settings = zenoh_settings("router", connect, listen, zenoh_config)  # no listen endpoint anywhere: 127.0.0.1:7447
     import json
 
@@ -163,8 +163,9 @@ def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: C
 
 
 def _claim_cpu() -> None:
-    """Sensors and controllers close the control loop: where allowed (root, CAP_SYS_NICE) they
-    run at a higher priority so a busy machine delays their replies less."""
+    """Sensors and controllers close the control loop, and a router carries their messages when
+    they are its clients: where allowed (root, CAP_SYS_NICE) they run at a higher priority so
+    a busy machine delays their replies less."""
     try:
         os.nice(-5)
     except OSError:
@@ -172,7 +173,7 @@ def _claim_cpu() -> None:
 
 
 def _yield_cpu(increment: int = 5) -> None:
-    """Bookkeeping services (orchestrator, learner, router) run at a lower priority so that on a
+    """Bookkeeping services (orchestrator, learner) run at a lower priority so that on a
     small machine the sensors and controllers, whose latency matters, get the cores first."""
     try:
         os.nice(increment)

@@ -7,13 +7,15 @@ Everything listens on 127.0.0.1 only: the router and the API. The services are Z
 talking directly would save a hop, but a peer mesh whose links are authenticated sometimes
 misses a link between two peers, and the router does not carry their traffic then (seen as
 a learner the orchestrator never sees); a client has one link, to the router, which carries
-everything. Unless ``insecure``, the stack has its own Zenoh
-credentials, made up when it starts: a random user name and password in a file only its
-owner can read (0600, in a private 0700 directory), which every service of the stack both
-presents and requires (Zenoh user/password authentication), so a process without that file
-(another local user's, or one in another network namespace) cannot open a session with any
-of the stack's endpoints. The credentials reach the children as file paths in their
-environment, never on a command line or in a log; the directory is removed by ``stop()``.
+everything.
+
+Unless ``insecure``, the stack has its own Zenoh credentials, made up when it starts: a
+random user name and password in files only their owner can read (0600, in a private 0700
+directory), which every service of the stack presents and the router requires (Zenoh
+user/password authentication), so a process without them (another local user's, or one in
+another network namespace) cannot open a session with the stack. The credentials reach the
+children as file paths in their environment, never on a command line or in a log; the
+directory is removed by ``stop()``.
 
 Children get ``PR_SET_PDEATHSIG`` so they die with their parent even if it is killed with
 SIGKILL; ``stop()`` sends SIGTERM, waits, then SIGKILLs stragglers, and reaps every pid it
