@@ -45,13 +45,13 @@ def up(
             stack.start()
         except StackError as err:
             fail(str(err))
-        print(f"ra2vipas up: API on {stack.api_url} (rigs: {rigs}, database: {db}, logs: {stack.log_dir}); Ctrl-C to stop", flush=True)
         if stack.credentials is not None:
-            print(f"ra2vipas up: Zenoh router on {stack.router_endpoint}, closed to processes without its credentials; "
-                  f"join with the environment in {stack.credentials.env_file}", flush=True)
+            zenoh_info = (f"Zenoh router {stack.router_endpoint}, closed to processes without its credentials "
+                          f"(join with the environment in {stack.credentials.env_file})")
         else:
-            print(f"ra2vipas up: Zenoh router on {stack.router_endpoint}, without credentials (--insecure): any local process may join",
-                  flush=True)
+            zenoh_info = f"Zenoh router {stack.router_endpoint} without credentials (--insecure): any local process may join"
+        print(f"ra2vipas up: API on {stack.api_url} (rigs: {rigs}, database: {db}, logs: {stack.log_dir}); {zenoh_info}; "
+              "Ctrl-C to stop", flush=True)  # one line: scripts wait for it
         while not stop.wait(0.5):
             dead = stack.watch()
             if dead is not None and not stop.is_set():

@@ -25,7 +25,7 @@ from services.protocol import keys
 from services.transport.zenoh_config import ZenohSettings
 from tests.deploy.conftest import ROOT, clean_env
 from tests.deploy.netns import NetnsError, destroy_namespace, ip, remove_stale_namespaces
-from tests.integration.conftest import Procs, children_of, stack_zenoh_env, start_stack, stop_stack, wait_for_line
+from tests.integration.conftest import Procs, children_of, stack_zenoh_env, start_stack, stop_stack
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
@@ -73,7 +73,6 @@ def rogue(endpoint: str, mode: str = "client", **security) -> zenoh.Session:
 def stack(tmp_path_factory):
     registry = Procs()
     state = start_stack(registry, tmp_path_factory.mktemp("loopback"), rigs=1)
-    state["zenoh_line"] = wait_for_line(state["up"], "Zenoh router on", 10)
     state["env"] = stack_zenoh_env(state["up"].pid)
     state["router"] = state["env"]["RA2VIPAS_ZENOH_CONNECT"]
     state["pids"] = [state["up"].pid, *children_of(state["up"].pid)]
@@ -113,7 +112,8 @@ def test_the_credentials_are_private_and_never_on_a_command_line_or_in_a_log(sta
     assert stat.S_IMODE(directory.stat().st_mode) == 0o700
     for f in directory.iterdir():
         assert stat.S_IMODE(f.stat().st_mode) == 0o600, f
-    assert str(directory / "zenoh.env") in stack["zenoh_line"]
+    assert f"Zenoh router {stack['router']}, closed to processes without its credentials" in stack["line"]
+    assert str(directory / "zenoh.env") in stack["line"]
     password = password_file.read_text().strip()
     assert len(password) >= 32
     for pid in stack["pids"]:
@@ -229,9 +229,8 @@ def test_an_insecure_stack_is_open_to_any_local_process(tmp_path):
     registry = Procs()
     state = start_stack(registry, tmp_path, "--insecure", rigs=1)
     try:
-        line = wait_for_line(state["up"], "Zenoh router on", 10)
-        assert "without credentials (--insecure)" in line
-        endpoint = re.search(r"(tcp/127\.0\.0\.1:\d+)", line).group(1)
+        assert "without credentials (--insecure)" in state["line"]
+        endpoint = re.search(r"Zenoh router (tcp/127\.0\.0\.1:\d+)", state["line"]).group(1)
         with rogue(endpoint) as intruder:
             assert intruder.info.routers_zid()
             assert keys.alive("sensors", "rig-1") in alive_keys(intruder, keys.alive("sensors", "rig-1"))

@@ -93,7 +93,7 @@ def wait_for_line(proc: subprocess.Popen, needle: str, timeout: float) -> str:
 
 def start_stack(registry: Procs, tmp: Path, *extra: str, rigs: int = 2) -> dict:
     """``ra2vipas up`` with its database and logs under ``tmp``; returns api, the up process,
-    the database path and the log directory once the API is ready."""
+    the database path, the log directory and the line ``up`` printed once the API is ready."""
     import re
 
     from cli.stack import free_port
@@ -101,7 +101,7 @@ def start_stack(registry: Procs, tmp: Path, *extra: str, rigs: int = 2) -> dict:
     up = registry.start("up", "--rigs", str(rigs), "--port", str(free_port()), "--db", str(tmp / "stack.db"),
                         "--log-dir", str(tmp / "logs"), *extra)
     line = wait_for_line(up, "API on http://", 120)
-    return {"api": re.search(r"(http://[0-9.:]+)", line).group(1), "up": up, "db": tmp / "stack.db", "logs": tmp / "logs"}
+    return {"api": re.search(r"(http://[0-9.:]+)", line).group(1), "up": up, "db": tmp / "stack.db", "logs": tmp / "logs", "line": line}
 
 
 def stack_zenoh_env(up_pid: int) -> dict[str, str]:
