@@ -26,7 +26,7 @@ USER ra2vipas
 WORKDIR /home/ra2vipas
 # Compile the controller's numba kernels once, at build time, into the image's cache: a rig
 # container is ready seconds after it starts.
-RUN python -c "from services.controller.node import warm_up; warm_up()"
+RUN python -c "from ra2vipas.services.controller.node import warm_up; warm_up()"
 
 EXPOSE 8080
 CMD ["ra2vipas", "--help"]

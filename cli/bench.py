@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from cli.output import EXIT_USAGE, fail, print_json, stdout
+from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stdout
 
 app = typer.Typer(help="Speed benchmarks (print JSON with --json).", no_args_is_help=True)
 
@@ -31,14 +31,14 @@ def bench_step(
     Reports the median and p99 over all steps and over the last step of each test (when the
     controller holds n_test = 120 samples). Target: median <= 1 ms.
     """
-    from services.controller.policy import ALGORITHMS
+    from ra2vipas.services.controller.policy import ALGORITHMS
 
     if algorithm not in ALGORITHMS:
         fail(f"unknown algorithm {algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
-    from services.controller.policy import Controller, sensor_config_from_scenario
-    from services.orchestrator.simulate import train_pod
-    from services.protocol.scenario import build_scenario
-    from services.sensors.world import SimulatedPlatform
+    from ra2vipas.services.controller.policy import Controller, sensor_config_from_scenario
+    from ra2vipas.services.orchestrator.simulate import train_pod
+    from ra2vipas.services.protocol.scenario import build_scenario
+    from ra2vipas.services.sensors.world import SimulatedPlatform
 
     scenario = build_scenario("paper")
     pod = train_pod(scenario, seed)
@@ -112,7 +112,7 @@ def bench_mesh(
     import os
     import tempfile
 
-    from cli.stack import Stack, StackConfig, StackError, free_port
+    from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
 
     rigs = rigs or max(1, min(os.cpu_count() or 1, 16))
     algorithms = ["ra2vipas", "rapas", "ravipas"]

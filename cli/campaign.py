@@ -13,13 +13,13 @@ from typing import Annotated, Optional
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from cli.client import DEFAULT_API, ApiOpt, Client, JsonOpt, TokenOpt
-from cli.output import (
+from ra2vipas.cli.client import DEFAULT_API, ApiOpt, Client, JsonOpt, TokenOpt
+from ra2vipas.cli.output import (
     EXIT_FAILED, EXIT_USAGE, campaign_tables, campaigns_table, emit_results, fail, outcomes_table, print_json, print_results, stderr, stdout,
     trace_table, write_file,
 )
-from services.protocol.messages import ALGORITHMS
-from services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
+from ra2vipas.services.protocol.messages import ALGORITHMS
+from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
 app = typer.Typer(help="Start, watch and read campaigns on a running stack (see `ra2vipas up`).", no_args_is_help=True)
 
@@ -76,7 +76,7 @@ def start(
     With --embedded the stack runs inside this command: the quickest way to run the paper
     campaign on a laptop (`make campaign`).
     """
-    from cli.simulate import parse_algorithms
+    from ra2vipas.cli.simulate import parse_algorithms
 
     if plot is not None and not plot.lower().endswith((".png", ".svg")):
         fail(f"--plot expects a .png or .svg file name, got {plot!r}", EXIT_USAGE)
@@ -113,7 +113,7 @@ def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: boo
     import os
     import signal
 
-    from cli.stack import Stack, StackConfig, StackError, free_port
+    from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
 
     rigs = rigs or max(1, min(os.cpu_count() or 1, 16))
     stack = Stack(StackConfig(rigs=rigs, port=free_port(), db_path=db, log_level="WARNING", insecure=insecure))

@@ -11,7 +11,7 @@ from typing import Annotated, Any, Iterator, Optional
 import httpx
 import typer
 
-from cli.output import EXIT_FAILED, EXIT_USAGE, fail
+from ra2vipas.cli.output import EXIT_FAILED, EXIT_USAGE, fail
 
 DEFAULT_API = "http://127.0.0.1:8080"
 

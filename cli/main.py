@@ -12,11 +12,11 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMB
 
 import typer  # noqa: E402
 
-from cli import bench, campaign, presets, protocol, security, services  # noqa: E402
-from cli.rig import rig  # noqa: E402
-from cli.rigs import rigs  # noqa: E402
-from cli.simulate import simulate  # noqa: E402
-from cli.up import up  # noqa: E402
+from ra2vipas.cli import bench, campaign, presets, protocol, security, services  # noqa: E402
+from ra2vipas.cli.rig import rig  # noqa: E402
+from ra2vipas.cli.rigs import rigs  # noqa: E402
+from ra2vipas.cli.simulate import simulate  # noqa: E402
+from ra2vipas.cli.up import up  # noqa: E402
 
 app = typer.Typer(
     name="ra2vipas",

@@ -79,7 +79,7 @@ def dr_table(results: dict[str, Any]) -> Table:
 def emit_results(results: dict[str, Any], plot: str | None, as_json: bool) -> None:
     """Write the DR plot if asked, then print the results: one JSON line, or the table."""
     if plot:
-        from services.orchestrator.plots import write_dr_plot
+        from ra2vipas.services.orchestrator.plots import write_dr_plot
 
         try:
             write_dr_plot(results, plot)

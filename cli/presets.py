@@ -7,9 +7,9 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from cli.output import EXIT_FAILED, fail, print_json, stdout
-from services.orchestrator.presets import preset_object, preset_summaries
-from services.protocol.scenario import PRESETS, ScenarioError
+from ra2vipas.cli.output import EXIT_FAILED, fail, print_json, stdout
+from ra2vipas.services.orchestrator.presets import preset_object, preset_summaries
+from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError
 
 app = typer.Typer(help="Scenario presets and their parameters (the same as GET /presets; no server needed).", no_args_is_help=True)
 

@@ -8,14 +8,14 @@ from typing import Annotated
 
 import typer
 
-from cli.output import fail
+from ra2vipas.cli.output import fail
 
 app = typer.Typer(help="The wire protocol (key expressions and message schemas).", no_args_is_help=True)
 
 
 def schema_documents() -> dict[str, dict]:
     """File name -> JSON Schema of every wire message."""
-    from services.protocol.messages import WIRE_MESSAGES, episode_control_adapter
+    from ra2vipas.services.protocol.messages import WIRE_MESSAGES, episode_control_adapter
 
     docs = {f"{m.__name__}.json": m.model_json_schema() for m in WIRE_MESSAGES}
     docs["EpisodeControl.json"] = episode_control_adapter.json_schema()

@@ -26,9 +26,9 @@ from typing import Annotated, Optional
 
 import typer
 
-from cli.output import EXIT_USAGE, fail
-from cli.services import ConfigOpt, ConnectOpt, ListenOpt, LogOpt, ModeOpt, zenoh_settings
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.cli.output import EXIT_USAGE, fail
+from ra2vipas.cli.services import ConfigOpt, ConnectOpt, ListenOpt, LogOpt, ModeOpt, zenoh_settings
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
 log = logging.getLogger("ra2vipas")
 
@@ -59,12 +59,12 @@ def rig(
     zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO",
 ) -> None:
     """Run one rig, its simulated sensors and its Ra²ViPAS controller, in one process."""
-    from services.controller.node import ControllerNode
-    from services.controller.policy import ControllerSettings
-    from services.protocol.keys import check_chunk
-    from services.sensors.node import SensorsNode
-    from services.transport.runtime import configure_logging, wait_for_shutdown_signal
-    from services.transport.zenoh_bus import ZenohBus
+    from ra2vipas.services.controller.node import ControllerNode
+    from ra2vipas.services.controller.policy import ControllerSettings
+    from ra2vipas.services.protocol.keys import check_chunk
+    from ra2vipas.services.sensors.node import SensorsNode
+    from ra2vipas.services.transport.runtime import configure_logging, wait_for_shutdown_signal
+    from ra2vipas.services.transport.zenoh_bus import ZenohBus
 
     configure_logging(log_level)
     name = rig or rig_name_from_host(socket.gethostname())

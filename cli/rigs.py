@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from cli.client import DEFAULT_API, ApiOpt, Client, JsonOpt, TokenOpt
-from cli.output import print_json, rigs_table, stdout
+from ra2vipas.cli.client import DEFAULT_API, ApiOpt, Client, JsonOpt, TokenOpt
+from ra2vipas.cli.output import print_json, rigs_table, stdout
 
 
 def rigs(as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None) -> None:

@@ -43,7 +43,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from cli.output import EXIT_USAGE, fail, print_json, stderr
+from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stderr
 
 app = typer.Typer(help="Credentials, certificates and Zenoh access control for a secured deployment.", no_args_is_help=True)
 
@@ -54,7 +54,7 @@ COMPOSE_FILE = "docker-compose.rigs.yml"
 
 
 def _split_names(value: str, what: str) -> list[str]:
-    from services.protocol.keys import check_chunk
+    from ra2vipas.services.protocol.keys import check_chunk
 
     names = [v.strip() for v in value.split(",") if v.strip()]
     for name in names:
@@ -240,7 +240,7 @@ def init(
     and Zenoh configuration with the access control, per-service env files and the compose
     services of the rigs, for a deployment whose every link is mutual TLS and whose every
     service may touch only its own keys (docs/deployment.md)."""
-    from services.transport.acl import AclError, access_control, standard_identities
+    from ra2vipas.services.transport.acl import AclError, access_control, standard_identities
 
     rig_names = _split_names(rigs, "rig")
     split_names = _split_names(split_rigs, "rig")

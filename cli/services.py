@@ -16,8 +16,8 @@ from typing import Annotated, Callable, Optional
 
 import typer
 
-from cli.output import EXIT_USAGE, fail
-from services.transport.zenoh_config import ZenohSettings, ZenohSettingsError
+from ra2vipas.cli.output import EXIT_USAGE, fail
+from ra2vipas.services.transport.zenoh_config import ZenohSettings, ZenohSettingsError
 
 log = logging.getLogger("ra2vipas")
 
@@ -38,8 +38,8 @@ def zenoh_settings(mode, connect, listen, config) -> ZenohSettings:
 
 def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
     """Open the Zenoh session, build the node on it, serve until SIGINT/SIGTERM, close both."""
-    from services.transport.runtime import wait_for_shutdown_signal
-    from services.transport.zenoh_bus import ZenohBus
+    from ra2vipas.services.transport.runtime import wait_for_shutdown_signal
+    from ra2vipas.services.transport.zenoh_bus import ZenohBus
 
     try:
         bus = ZenohBus(zenoh)
@@ -63,9 +63,9 @@ def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
 def sensors(rig: RigOpt = "rig-1", mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
             zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
     """Run a rig's simulated sensors: the world, the camera detector, Rx(iso) and Rx(dir)."""
-    from services.protocol.keys import check_chunk
-    from services.sensors.node import SensorsNode
-    from services.transport.runtime import configure_logging
+    from ra2vipas.services.protocol.keys import check_chunk
+    from ra2vipas.services.sensors.node import SensorsNode
+    from ra2vipas.services.transport.runtime import configure_logging
 
     configure_logging(log_level)
     _check_rig(rig, check_chunk)
@@ -77,10 +77,10 @@ def controller(rig: RigOpt = "rig-1", beta: Annotated[float, typer.Option(min=0.
                mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
                zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
     """Run a rig's Ra²ViPAS controller: measurements in, pan commands out."""
-    from services.controller.node import ControllerNode
-    from services.controller.policy import ControllerSettings
-    from services.protocol.keys import check_chunk
-    from services.transport.runtime import configure_logging
+    from ra2vipas.services.controller.node import ControllerNode
+    from ra2vipas.services.controller.policy import ControllerSettings
+    from ra2vipas.services.protocol.keys import check_chunk
+    from ra2vipas.services.transport.runtime import configure_logging
 
     configure_logging(log_level)
     _check_rig(rig, check_chunk)
@@ -94,9 +94,9 @@ def learner(name: Annotated[str, typer.Option("--name", envvar="RA2VIPAS_LEARNER
             mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
             zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
     """Run the POD learner: trains p_hat_D(r) once per scenario and seed, serves it."""
-    from services.learner.node import LearnerNode
-    from services.protocol.keys import check_chunk
-    from services.transport.runtime import configure_logging
+    from ra2vipas.services.learner.node import LearnerNode
+    from ra2vipas.services.protocol.keys import check_chunk
+    from ra2vipas.services.transport.runtime import configure_logging
 
     configure_logging(log_level)
     _check_rig(name, check_chunk, "learner name")
@@ -117,9 +117,9 @@ def orchestrator(
     """Run the orchestrator: schedules campaigns over the rigs, stores results, serves the REST API."""
     import uvicorn
 
-    from services.orchestrator.api.app import create_app
-    from services.orchestrator.settings import OrchestratorSettings
-    from services.transport.runtime import configure_logging
+    from ra2vipas.services.orchestrator.api.app import create_app
+    from ra2vipas.services.orchestrator.settings import OrchestratorSettings
+    from ra2vipas.services.transport.runtime import configure_logging
 
     configure_logging(log_level)
     _yield_cpu()
@@ -140,7 +140,7 @@ def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: C
     """Run a standalone Zenoh router (Python) for hosts without the official zenohd binary.
     Without --listen it listens on tcp/127.0.0.1:7447 only: give e.g. --listen tcp/0.0.0.0:7447
     to accept other machines."""
-    from services.transport.runtime import configure_logging, wait_for_shutdown_signal
+    from ra2vipas.services.transport.runtime import configure_logging, wait_for_shutdown_signal
 
     configure_logging(log_level)
     _claim_cpu()  # every message between clients passes through the router: it is on the control loop's path

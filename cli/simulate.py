@@ -7,9 +7,9 @@ from typing import Annotated, Optional
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from cli.output import EXIT_USAGE, emit_results, fail, stderr
-from services.protocol.messages import ALGORITHMS
-from services.protocol.scenario import PRESETS, ScenarioError, build_scenario, parse_overrides
+from ra2vipas.cli.output import EXIT_USAGE, emit_results, fail, stderr
+from ra2vipas.services.protocol.messages import ALGORITHMS
+from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, build_scenario, parse_overrides
 
 
 def parse_algorithms(value: str | None) -> list[str]:
@@ -48,7 +48,7 @@ def simulate(
     if plot is not None and not plot.lower().endswith((".png", ".svg")):
         fail(f"--plot expects a .png or .svg file name, got {plot!r}", EXIT_USAGE)
 
-    from services.orchestrator.simulate import run_campaign
+    from ra2vipas.services.orchestrator.simulate import run_campaign
 
     total = tests * len(names)
     with Progress(

@@ -176,7 +176,7 @@ class Stack:
             base_env.update(self.credentials.env())
             _write_private(self.credentials.env_file, "".join(f"{k}={v}\n" for k, v in {
                 "RA2VIPAS_ZENOH_MODE": "client", "RA2VIPAS_ZENOH_CONNECT": endpoint, **self.credentials.env()}.items()))
-        py = [sys.executable, "-m", "cli.main"]
+        py = [sys.executable, "-m", "ra2vipas.cli.main"]
         specs = [("router", [*py, "router", "--listen", endpoint], {"RA2VIPAS_ZENOH_CONNECT": "", "RA2VIPAS_ZENOH_LISTEN": ""})]
         specs.append(("learner", [*py, "learner"], {}))
         for i in range(1, cfg.rigs + 1):

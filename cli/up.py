@@ -9,8 +9,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from cli.output import fail
-from cli.stack import Stack, StackConfig, StackError
+from ra2vipas.cli.output import fail
+from ra2vipas.cli.stack import Stack, StackConfig, StackError
 
 
 def up(

@@ -12,11 +12,11 @@ import math
 import numpy as np
 import pytest
 
-from services.controller.policy import Controller, ControllerSettings, sensor_config_from_scenario
-from services.orchestrator.simulate import TrainedPOD, train_pod
-from services.protocol.scenario import Scenario, build_scenario
-from services.sensors import physics
-from services.sensors.world import GroundTruth, SimulatedPlatform
+from ra2vipas.services.controller.policy import Controller, ControllerSettings, sensor_config_from_scenario
+from ra2vipas.services.orchestrator.simulate import TrainedPOD, train_pod
+from ra2vipas.services.protocol.scenario import Scenario, build_scenario
+from ra2vipas.services.sensors import physics
+from ra2vipas.services.sensors.world import GroundTruth, SimulatedPlatform
 
 SMALL = {"steps": 40, "n_train": 300}
 

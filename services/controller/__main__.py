@@ -1,8 +1,8 @@
-"""`python -m services.controller`: the same as `ra2vipas controller`."""
+"""`python -m ra2vipas.services.controller`: the same as `ra2vipas controller`."""
 
 import typer
 
-from cli.services import controller
+from ra2vipas.cli.services import controller
 
 if __name__ == "__main__":
     typer.run(controller)

@@ -25,8 +25,8 @@ import math
 
 import numpy as np
 
-from services.controller import _kernels
-from services.controller.grid import CircleGrid
+from ra2vipas.services.controller import _kernels
+from ra2vipas.services.controller.grid import CircleGrid
 
 
 def circular_kernel(a: np.ndarray, b: np.ndarray, length_scale: float, signal_var: float = 1.0) -> np.ndarray:

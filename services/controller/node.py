@@ -17,15 +17,15 @@ import logging
 import threading
 from dataclasses import dataclass, field
 
-from services.controller.policy import Controller, ControllerSettings, sensor_config_from_scenario
-from services.protocol import keys
-from services.protocol.messages import (
+from ra2vipas.services.controller.policy import Controller, ControllerSettings, sensor_config_from_scenario
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import (
     Command, EpisodeResult, EpisodeStart, EpisodeStop, Measurement, Mode, PODRequest, PODResponse, dump,
     episode_control_adapter, training_job_id,
 )
-from services.protocol.pod import PODModel
-from services.transport.bus import Bus, Reply, undeclare_all
-from services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
+from ra2vipas.services.protocol.pod import PODModel
+from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
+from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +46,8 @@ class _Episode:
 def warm_up() -> None:
     """Run a few controller steps on synthetic data so compiled kernels are loaded (or
     compiled) before the node accepts episodes: the first real step must not take seconds."""
-    from services.protocol.measurements import CameraFrame, RFSample, StepMeasurement
-    from services.protocol.scenario import Scenario
+    from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement
+    from ra2vipas.services.protocol.scenario import Scenario
 
     sc = Scenario(steps=14)  # past the warm-up sweep, so UCB and probe kernels are loaded too
     model = PODModel(rssi_grid_dbm=(-60.0, -20.0), mean=(0.0, 0.5), std=(0.1, 0.1), rf_noise_db=3.0, n_train=2, frames_per_rf=sc.frames_per_rf)

@@ -44,12 +44,12 @@ from enum import Enum
 
 import numpy as np
 
-from services.controller import _kernels
-from services.controller.circle_gp import LobeGP
-from services.controller.grid import CircleGrid
-from services.controller.tracks import DetectionTracker, wrap
-from services.protocol.measurements import StepMeasurement
-from services.protocol.pod import PODModel
+from ra2vipas.services.controller import _kernels
+from ra2vipas.services.controller.circle_gp import LobeGP
+from ra2vipas.services.controller.grid import CircleGrid
+from ra2vipas.services.controller.tracks import DetectionTracker, wrap
+from ra2vipas.services.protocol.measurements import StepMeasurement
+from ra2vipas.services.protocol.pod import PODModel
 
 
 class Algorithm(str, Enum):
@@ -312,7 +312,7 @@ def sensor_config_from_scenario(scenario) -> SensorConfig:
     Only properties of the platform itself: timing, camera geometry and detector accuracy,
     the receiver's reporting convention. Nothing about targets or the Tx.
     """
-    from services.protocol.scenario import AntennaModel
+    from ra2vipas.services.protocol.scenario import AntennaModel
 
     return SensorConfig(
         steps=scenario.steps,

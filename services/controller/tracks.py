@@ -12,7 +12,7 @@ For each track the tracker counts the frames in which it was well inside the fie
 POD (paper eq. 9) without ever knowing which target it is.
 
 The per-frame assignment is a small loop over boxes and tracks run thousands of times per
-second; it is compiled with numba (``services.controller._kernels``).
+second; it is compiled with numba (``ra2vipas.services.controller._kernels``).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from services.controller import _kernels
+from ra2vipas.services.controller import _kernels
 
 
 def wrap(angle):

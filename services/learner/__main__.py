@@ -1,8 +1,8 @@
-"""`python -m services.learner`: the same as `ra2vipas learner`."""
+"""`python -m ra2vipas.services.learner`: the same as `ra2vipas learner`."""
 
 import typer
 
-from cli.services import learner
+from ra2vipas.cli.services import learner
 
 if __name__ == "__main__":
     typer.run(learner)

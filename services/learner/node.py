@@ -2,7 +2,7 @@
 
 ``model/pod`` is a queryable. A ``PODRequest`` names a scenario and a seed; the learner
 looks up its cache, or asks a rig's sensors to run the training episode
-(``data/*/training`` query), fits ``p_hat_D(r)`` (``services.learner.pod``) and caches
+(``data/*/training`` query), fits ``p_hat_D(r)`` (``ra2vipas.services.learner.pod``) and caches
 the result. Concurrent requests for the same model wait for one training. Training is
 deterministic in (scenario, seed), so a restarted learner retrains the identical model; with
 ``cache_dir`` set, models also survive restarts on disk.
@@ -17,11 +17,11 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from services.learner.pod import LearnerSettings, fit_pod
-from services.protocol import keys
-from services.protocol.messages import ErrorReply, PODRequest, PODResponse, TrainingRequest, TrainingStream, decode, dump, training_job_id
-from services.transport.bus import Bus, QueryError, Reply, undeclare_all
-from services.transport.runtime import first_valid_reply
+from ra2vipas.services.learner.pod import LearnerSettings, fit_pod
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import ErrorReply, PODRequest, PODResponse, TrainingRequest, TrainingStream, decode, dump, training_job_id
+from ra2vipas.services.transport.bus import Bus, QueryError, Reply, undeclare_all
+from ra2vipas.services.transport.runtime import first_valid_reply
 
 log = logging.getLogger(__name__)
 

@@ -39,8 +39,8 @@ from scipy.special import gammaln
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern
 
-from services.protocol.measurements import TrainingSample
-from services.protocol.pod import PODModel
+from ra2vipas.services.protocol.measurements import TrainingSample
+from ra2vipas.services.protocol.pod import PODModel
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,8 @@
-"""`python -m services.orchestrator`: the same as `ra2vipas orchestrator`."""
+"""`python -m ra2vipas.services.orchestrator`: the same as `ra2vipas orchestrator`."""
 
 import typer
 
-from cli.services import orchestrator
+from ra2vipas.cli.services import orchestrator
 
 if __name__ == "__main__":
     typer.run(orchestrator)

@@ -20,8 +20,8 @@ from typing import Any, Callable
 import numpy as np
 from matplotlib.figure import Figure
 
-from services.protocol.scenario import Scenario
-from services.sensors import physics
+from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.sensors import physics
 
 LABELS = {"ra2vipas": "Ra²ViPAS", "rapas": "RaPAS", "ravipas": "RaViPAS", "sweep": "sweep (non-active)"}
 FORMATS = ("png", "svg")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from services.protocol.scenario import PRESET_DESCRIPTIONS, PRESETS, Scenario, build_scenario, field_range
+from ra2vipas.services.protocol.scenario import PRESET_DESCRIPTIONS, PRESETS, Scenario, build_scenario, field_range
 
 
 def preset_summaries() -> list[dict[str, str]]:

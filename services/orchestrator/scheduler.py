@@ -30,18 +30,18 @@ from typing import Any
 
 import numpy as np
 
-from services.learner.pod import predict, r2_score
-from services.orchestrator.metrics import associate, score_test
-from services.orchestrator.simulate import TestOutcome, TrainedPOD, summarize
-from services.orchestrator.storage import EpisodeKey, Store
-from services.protocol import keys
-from services.protocol.messages import (
+from ra2vipas.services.learner.pod import predict, r2_score
+from ra2vipas.services.orchestrator.metrics import associate, score_test
+from ra2vipas.services.orchestrator.simulate import TestOutcome, TrainedPOD, summarize
+from ra2vipas.services.orchestrator.storage import EpisodeKey, Store
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import (
     EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Mode, PODRequest, PODResponse,
     TrainingRequest, TrainingTruth, dump,
 )
-from services.protocol.scenario import Scenario
-from services.transport.bus import Bus, Reply, undeclare_all
-from services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
+from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
+from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
 
 @dataclass(frozen=True)

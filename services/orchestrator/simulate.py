@@ -14,12 +14,12 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from services.controller.policy import ALGORITHMS, Controller, ControllerSettings, sensor_config_from_scenario
-from services.learner.pod import LearnedPOD, LearnerSettings, fit_pod, predict, r2_score
-from services.orchestrator.metrics import score_test, summarize_algorithm
-from services.protocol.pod import PODModel
-from services.protocol.scenario import Scenario
-from services.sensors.world import SimulatedPlatform, TrainingEpisode
+from ra2vipas.services.controller.policy import ALGORITHMS, Controller, ControllerSettings, sensor_config_from_scenario
+from ra2vipas.services.learner.pod import LearnedPOD, LearnerSettings, fit_pod, predict, r2_score
+from ra2vipas.services.orchestrator.metrics import score_test, summarize_algorithm
+from ra2vipas.services.protocol.pod import PODModel
+from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = 
 def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod_model: PODModel,
              settings: ControllerSettings | None = None) -> TestOutcome:
     """One episode: the platform senses, the controller decides, n_test times."""
-    from services.orchestrator.metrics import associate
+    from ra2vipas.services.orchestrator.metrics import associate
 
     platform = SimulatedPlatform(scenario, seed, test_index)
     controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod_model, settings)

@@ -3,7 +3,7 @@
 These models carry measurements exactly as real hardware produces them: two RSSI values
 per RF sample and, per camera frame, the bearings of the detector's boxes relative to the
 optical axis. No target identity, range, POD or Tx flag exists in any of them; the
-simulator's ground truth travels separately (``services.sensors.world.GroundTruth``).
+simulator's ground truth travels separately (``ra2vipas.services.sensors.world.GroundTruth``).
 
 Angles are radians, positive counter-clockwise (the paper's frame F_0); RSSI is dBm.
 """

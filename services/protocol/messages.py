@@ -1,4 +1,4 @@
-"""Wire messages: the JSON payloads that travel on the keys of ``services.protocol.keys``.
+"""Wire messages: the JSON payloads that travel on the keys of ``ra2vipas.services.protocol.keys``.
 
 Every payload is a JSON object (Zenoh encoding ``application/json``) validated by one of
 these pydantic models; ``ra2vipas protocol schemas OUTDIR`` writes their JSON Schemas
@@ -15,9 +15,9 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
-from services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
-from services.protocol.pod import PODModel
-from services.protocol.scenario import Scenario
+from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
+from ra2vipas.services.protocol.pod import PODModel
+from ra2vipas.services.protocol.scenario import Scenario
 
 MAX_STEPS = 10000
 

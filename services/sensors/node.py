@@ -21,14 +21,14 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from services.protocol import keys
-from services.protocol.messages import (
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import (
     Command, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Measurement, Mode, TrainingRequest,
     TrainingStream, TrainingTruth, decode, dump, episode_control_adapter,
 )
-from services.sensors.world import SimulatedPlatform, TrainingEpisode
-from services.transport.bus import Bus, QueryError, undeclare_all
-from services.transport.runtime import EventLoop, decode_or_drop
+from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode
+from ra2vipas.services.transport.bus import Bus, QueryError, undeclare_all
+from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from services.protocol.scenario import AntennaModel, Scenario
+from ra2vipas.services.protocol.scenario import AntennaModel, Scenario
 
 
 def wrap(angle: np.ndarray | float) -> np.ndarray | float:

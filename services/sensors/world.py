@@ -2,7 +2,7 @@
 receivers (paper Sec. II, Table I).
 
 Two things come out of here and must never be mixed: *measurements*
-(``services.protocol.measurements``), which is all the controller and learner see, and
+(``ra2vipas.services.protocol.measurements``), which is all the controller and learner see, and
 *ground truth* (``GroundTruth``, ``TrainingTruth``), which only the scoring code reads.
 
 Every random draw comes from a generator derived from the campaign seed and the test index
@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
-from services.protocol.scenario import Placement, Scenario, ScenarioError
-from services.sensors import physics
+from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
+from ra2vipas.services.protocol.scenario import Placement, Scenario, ScenarioError
+from ra2vipas.services.sensors import physics
 
 _TEST_STREAM = 0
 _TRAINING_STREAM = 1

@@ -20,7 +20,7 @@ that wildcard, and a rig's rules, which name only its own keys, can never subscr
 another rig's traffic.
 
 Per role (``{rig}`` the identity's rig, ``{name}`` its instance name; keys from
-``services.protocol.keys``):
+``ra2vipas.services.protocol.keys``):
 
 =============  ===============================================================================
 role           may
@@ -50,7 +50,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from services.protocol import keys
+from ra2vipas.services.protocol import keys
 
 ROLES = ("orchestrator", "learner", "sensors", "controller", "rig", "operator")
 RIG_ROLES = ("sensors", "controller", "rig")

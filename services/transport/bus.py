@@ -6,7 +6,7 @@ sends queries, and announces or watches liveliness through a ``Bus``. ``ZenohBus
 process so node logic is tested without a network (the dora-rs "fake node" idea).
 
 Callbacks may be called from any thread; nodes hand events to their own single worker thread
-(``services.transport.runtime.EventLoop``) so their state needs no locks.
+(``ra2vipas.services.transport.runtime.EventLoop``) so their state needs no locks.
 """
 
 from __future__ import annotations

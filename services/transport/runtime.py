@@ -10,7 +10,7 @@ import sys
 import threading
 from typing import Any, Callable, Iterable
 
-from services.protocol.messages import decode, error_text
+from ra2vipas.services.protocol.messages import decode, error_text
 
 log = logging.getLogger(__name__)
 

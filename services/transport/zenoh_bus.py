@@ -14,8 +14,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import zenoh
 
-from services.transport.bus import AliveCallback, Callback, QueryError, QueryHandler, RepliesCallback, Reply
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.services.transport.bus import AliveCallback, Callback, QueryError, QueryHandler, RepliesCallback, Reply
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
 log = logging.getLogger(__name__)
 

@@ -15,12 +15,12 @@ from pathlib import Path
 import httpx
 import uvicorn
 
-from services.controller.node import ControllerNode
-from services.learner.node import LearnerNode
-from services.orchestrator.api.app import create_app
-from services.orchestrator.settings import OrchestratorSettings
-from services.sensors.node import SensorsNode
-from services.transport.bus import MemoryBus
+from ra2vipas.services.controller.node import ControllerNode
+from ra2vipas.services.learner.node import LearnerNode
+from ra2vipas.services.orchestrator.api.app import create_app
+from ra2vipas.services.orchestrator.settings import OrchestratorSettings
+from ra2vipas.services.sensors.node import SensorsNode
+from ra2vipas.services.transport.bus import MemoryBus
 
 # A scenario small enough that a campaign of a few tests takes about a second.
 SMALL = {"steps": 20, "n_train": 200, "n_targets": 8}

@@ -9,9 +9,9 @@ import re
 import httpx
 import pytest
 
-from services.controller.policy import ALGORITHMS
-from services.orchestrator.api.schemas import ALGORITHM_NAMES
-from services.protocol.scenario import Scenario, build_scenario
+from ra2vipas.services.controller.policy import ALGORITHMS
+from ra2vipas.services.orchestrator.api.schemas import ALGORITHM_NAMES
+from ra2vipas.services.protocol.scenario import Scenario, build_scenario
 from tests.api.live import SMALL
 
 

@@ -10,8 +10,8 @@ import time
 import httpx
 import pytest
 
-from services.protocol import keys
-from services.protocol.messages import EpisodeStop
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import EpisodeStop
 from tests.api.live import SMALL, LiveAPI
 
 SLOW = {**SMALL, "steps": 100}  # realtime: 10 s per test on the wall clock

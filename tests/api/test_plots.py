@@ -8,9 +8,9 @@ import threading
 import numpy as np
 import pytest
 
-from services.orchestrator import plots
-from services.protocol.scenario import build_scenario
-from services.sensors import physics
+from ra2vipas.services.orchestrator import plots
+from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.sensors import physics
 
 SCENARIO = build_scenario("paper", {"steps": 30})
 

@@ -7,9 +7,9 @@ import math
 
 import pytest
 
-from services.orchestrator.api.export import read_results_csv
-from services.orchestrator.simulate import run_campaign
-from services.protocol.scenario import Scenario
+from ra2vipas.services.orchestrator.api.export import read_results_csv
+from ra2vipas.services.orchestrator.simulate import run_campaign
+from ra2vipas.services.protocol.scenario import Scenario
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

@@ -19,9 +19,9 @@ from schemathesis.checks import (
     status_code_conformance,
 )
 
-from services.orchestrator.api.app import create_app
-from services.orchestrator.api.schemas import CampaignProgress
-from services.orchestrator.settings import OrchestratorSettings
+from ra2vipas.services.orchestrator.api.app import create_app
+from ra2vipas.services.orchestrator.api.schemas import CampaignProgress
+from ra2vipas.services.orchestrator.settings import OrchestratorSettings
 from tests.api.live import SMALL, LiveAPI
 
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_headers_conformance,

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.orchestrator.settings import OrchestratorSettings
+from ra2vipas.services.orchestrator.settings import OrchestratorSettings
 from tests.api.conftest import TOKEN
 
 BODY = {"overrides": {"steps": 10, "n_train": 100}, "algorithms": ["rapas"], "tests": 1}

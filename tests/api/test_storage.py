@@ -8,8 +8,8 @@ import sqlite3
 
 import pytest
 
-from services.orchestrator import storage
-from services.orchestrator.storage import CampaignActiveError, EpisodeKey, Store, StoreError
+from ra2vipas.services.orchestrator import storage
+from ra2vipas.services.orchestrator.storage import CampaignActiveError, EpisodeKey, Store, StoreError
 
 
 @pytest.fixture()

@@ -14,11 +14,11 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def ra2vipas(*args: str, env: dict | None = None, timeout: float = 120, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    """Run ``python -m cli.main ARGS`` with RA2VIPAS_API/RA2VIPAS_TOKEN unset unless given."""
+    """Run ``python -m ra2vipas.cli.main ARGS`` with RA2VIPAS_API/RA2VIPAS_TOKEN unset unless given."""
     full_env = {k: v for k, v in os.environ.items() if k not in ("RA2VIPAS_API", "RA2VIPAS_TOKEN")}
     full_env.update(env or {})
     full_env["PYTHONPATH"] = str(ROOT)
-    return subprocess.run([sys.executable, "-m", "cli.main", *args], capture_output=True, text=True, timeout=timeout,
+    return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", *args], capture_output=True, text=True, timeout=timeout,
                           env=full_env, cwd=cwd or ROOT)
 
 

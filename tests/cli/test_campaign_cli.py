@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from services.orchestrator.api.export import read_results_csv
+from ra2vipas.services.orchestrator.api.export import read_results_csv
 from tests.api.live import SMALL
 from tests.cli.conftest import TOKEN, one_error_line, ra2vipas
 

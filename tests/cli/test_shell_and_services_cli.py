@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from cli.stack import free_port
+from ra2vipas.cli.stack import free_port
 from tests.cli.conftest import ROOT, ra2vipas
 
 SCRIPT = Path(sys.executable).parent / "ra2vipas"
@@ -53,7 +53,7 @@ def test_presets_list_and_show_need_no_server():
 @pytest.fixture()
 def orchestrator_process(tmp_path):
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "orchestrator", "--port", str(port), "--db", str(tmp_path / "o.db"),
+    proc = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", "orchestrator", "--port", str(port), "--db", str(tmp_path / "o.db"),
                              "--token", "flag-token", "--expect-rigs", "0", "--log-level", "WARNING"],
                             cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env={k: v for k, v in os.environ.items() if k != "RA2VIPAS_TOKEN"})

@@ -8,14 +8,14 @@ import sys
 
 import pytest
 
-from services.orchestrator.simulate import run_campaign
-from services.protocol.scenario import build_scenario
+from ra2vipas.services.orchestrator.simulate import run_campaign
+from ra2vipas.services.protocol.scenario import build_scenario
 
 SMALL = ["--set", "steps=20", "--set", "n_train=200", "--set", "n_targets=8"]
 
 
 def ra2vipas(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *args], capture_output=True, text=True, timeout=timeout)
+    return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", *args], capture_output=True, text=True, timeout=timeout)
 
 
 def test_simulate_json_is_the_last_stdout_line_with_the_documented_shape():
@@ -110,6 +110,6 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
 
 
 def _ra2vipas_processes() -> set[int]:
-    out = subprocess.run(["pgrep", "-f", "cli.main|ra2vipas (up|router|sensors|controller|learner|orchestrator|rig)"],
+    out = subprocess.run(["pgrep", "-f", "ra2vipas.cli.main|ra2vipas (up|router|sensors|controller|learner|orchestrator|rig)"],
                          capture_output=True, text=True).stdout
     return {int(p) for p in out.split()}

@@ -18,10 +18,10 @@ import time
 
 import zenoh
 
-from services.protocol import keys
-from services.protocol.messages import EpisodeResult, EpisodeStop, EpisodeTruth, dump, episode_control_adapter
-from services.transport.runtime import wait_for_shutdown_signal
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import EpisodeResult, EpisodeStop, EpisodeTruth, dump, episode_control_adapter
+from ra2vipas.services.transport.runtime import wait_for_shutdown_signal
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
 FAKE_TOKENS = [("sensors", "evil"), ("controller", "evil"), ("sensors", "rig-2"), ("controller", "rig-2"),
                ("learner", "evil"), ("orchestrator", "evil")]

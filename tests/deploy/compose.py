@@ -54,8 +54,8 @@ def interpolate(value, env: dict):
 def generated_rigs(rigs: tuple[str, ...] = ("rig-1", "rig-2"), split_rigs: tuple[str, ...] = ("robot-1",)) -> dict:
     """The ``docker-compose.rigs.yml`` that ``ra2vipas security init --rigs ... --split-rigs ...``
     writes into ./secrets (the same function writes it)."""
-    from cli.security import compose_services
-    from services.transport.acl import standard_identities
+    from ra2vipas.cli.security import compose_services
+    from ra2vipas.services.transport.acl import standard_identities
 
     return yaml.safe_load(compose_services(standard_identities(list(rigs), list(split_rigs)), "./secrets"))
 
@@ -94,10 +94,10 @@ def environment(service: dict) -> dict[str, str]:
 
 def ra2vipas_argv(service: dict) -> list[str]:
     """The service's command as an argv for this interpreter: ``ra2vipas X ...`` ->
-    ``python -m cli.main X ...``."""
+    ``python -m ra2vipas.cli.main X ...``."""
     command = service["command"]
     assert isinstance(command, list) and command[0] == "ra2vipas", f"expected ['ra2vipas', ...], got {command!r}"
-    return [sys.executable, "-m", "cli.main", *command[1:]]
+    return [sys.executable, "-m", "ra2vipas.cli.main", *command[1:]]
 
 
 def our_services(compose: dict) -> dict[str, dict]:

@@ -56,7 +56,7 @@ class Services:
         self.started: list[Service] = []
 
     def start(self, name: str, argv: list[str], env: dict[str, str], prefix: list[str] | None = None) -> Service:
-        """Run ``prefix + argv`` (e.g. ``ip netns exec NS`` + a ``python -m cli.main`` line)."""
+        """Run ``prefix + argv`` (e.g. ``ip netns exec NS`` + a ``python -m ra2vipas.cli.main`` line)."""
         log = self.log_dir / f"{name}.log"
         with open(log, "ab", buffering=0) as out:
             proc = subprocess.Popen([*(prefix or []), *argv], cwd=ROOT, env=env, stdin=subprocess.DEVNULL, stdout=out,
@@ -66,7 +66,7 @@ class Services:
         return service
 
     def start_cli(self, name: str, *args: str, env: dict[str, str], prefix: list[str] | None = None) -> Service:
-        return self.start(name, [sys.executable, "-m", "cli.main", *args], env, prefix)
+        return self.start(name, [sys.executable, "-m", "ra2vipas.cli.main", *args], env, prefix)
 
     def tails(self) -> str:
         return "\n".join(s.tail() for s in self.started)

@@ -19,9 +19,9 @@ import pytest
 import typer
 import zenoh
 
-from services.orchestrator.settings import OrchestratorSettings
-from services.protocol.keys import check_chunk
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.services.orchestrator.settings import OrchestratorSettings
+from ra2vipas.services.protocol.keys import check_chunk
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 from tests.deploy.compose import (
     COMPOSE_SCHEMA, ROOT, TLS_OVERRIDE_FILE, InterpolationError, environment, generated_rigs, interpolate, load, merge, our_services,
 )
@@ -66,7 +66,7 @@ ORCHESTRATOR_VARS = string_constants(ROOT / "services/orchestrator/settings.py")
 def click_command(args: list[str]):
     """The Click command ``ra2vipas ARGS`` runs (Typer's own copy of Click), its name and its
     own arguments."""
-    from cli.main import app
+    from ra2vipas.cli.main import app
 
     cmd = typer.main.get_command(app)
     name = "ra2vipas"

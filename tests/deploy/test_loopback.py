@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services.protocol import keys
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 from tests.deploy.conftest import ROOT, clean_env
 from tests.deploy.netns import NetnsError, destroy_namespace, ip, remove_stale_namespaces
 from tests.integration.conftest import Procs, children_of, stack_zenoh_env, start_stack, stop_stack
@@ -186,7 +186,7 @@ def other_namespace():
 
 PROBE = """
 import socket, sys, zenoh
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 host, ports = sys.argv[1], [int(p) for p in sys.argv[2].split(",")]
 for port in ports:
     try:

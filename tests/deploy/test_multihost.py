@@ -184,7 +184,7 @@ def untimed(results: dict) -> dict:
 
 
 def simulate(args: list[str]) -> dict:
-    r = subprocess.run([sys.executable, "-m", "cli.main", "simulate", *args, "--json"], capture_output=True, text=True,
+    r = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "simulate", *args, "--json"], capture_output=True, text=True,
                        timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -240,7 +240,7 @@ def test_the_hosts_reach_each_other_only_through_the_router(mesh):
 
 def test_a_campaign_across_four_hosts_equals_simulate(mesh):
     _, args = body_and_args(tests=2, seed=3, algorithms=["ra2vipas", "rapas", "ravipas", "sweep"], steps=30)
-    run = subprocess.run([sys.executable, "-m", "cli.main", "campaign", "start", "--api", mesh.api, *args, "--wait", "--json"],
+    run = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "campaign", "start", "--api", mesh.api, *args, "--wait", "--json"],
                          capture_output=True, text=True, timeout=300, cwd=ROOT, env=clean_env({"RA2VIPAS_TOKEN": TOKEN}))
     assert run.returncode == 0, f"{run.stderr}\n{mesh.diagnostics()}"
     results = json.loads(run.stdout.strip().splitlines()[-1])

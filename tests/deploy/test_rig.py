@@ -16,9 +16,9 @@ import httpx
 import pytest
 import zenoh
 
-from cli.rig import controller_settings, rig_name_from_host
-from services.protocol import keys
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.cli.rig import controller_settings, rig_name_from_host
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 from tests.deploy.compose import environment, interpolate, load, ra2vipas_argv
 from tests.deploy.conftest import ROOT, clean_env, free_port, wait_port
 
@@ -85,10 +85,10 @@ def test_the_compose_deployment_on_one_host_runs_a_campaign_through_a_rig(procs,
 
     args = ["--preset", "paper", "--tests", "2", "--seed", "4", "--algorithms", "ra2vipas,sweep",
             "--set", "steps=20", "--set", "n_train=200", "--set", "n_targets=8"]
-    mesh = subprocess.run([sys.executable, "-m", "cli.main", "campaign", "start", "--api", api, *args, "--wait", "--json"],
+    mesh = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "campaign", "start", "--api", api, *args, "--wait", "--json"],
                           capture_output=True, text=True, timeout=300, cwd=ROOT, env=clean_env({"RA2VIPAS_TOKEN": TOKEN}))
     assert mesh.returncode == 0, f"{mesh.stderr}\n{procs.tails()}"
-    sim = subprocess.run([sys.executable, "-m", "cli.main", "simulate", *args, "--json"], capture_output=True, text=True,
+    sim = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "simulate", *args, "--json"], capture_output=True, text=True,
                          timeout=300, cwd=ROOT)
     assert sim.returncode == 0, sim.stderr
     got, want = (json.loads(p.stdout.strip().splitlines()[-1]) for p in (mesh, sim))

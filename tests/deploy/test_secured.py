@@ -24,8 +24,8 @@ import httpx
 import pytest
 import zenoh
 
-from services.protocol import keys
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 from tests.deploy.conftest import ROOT, Service, Services, clean_env, free_port, wait_port
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
@@ -94,7 +94,7 @@ class Deployment:
 @pytest.fixture(scope="module")
 def deployment(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("secured")
-    init = subprocess.run([sys.executable, "-m", "cli.main", "security", "init", "--rigs", "rig-1,rig-2", "--split-rigs", "robot-1",
+    init = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "security", "init", "--rigs", "rig-1,rig-2", "--split-rigs", "robot-1",
                            "--out", str(tmp / "secrets"), "--router-host", "127.0.0.1", "--json"],
                           capture_output=True, text=True, timeout=120, cwd=ROOT, env=clean_env())
     assert init.returncode == 0, init.stderr
@@ -214,7 +214,7 @@ def campaign_args(tests: int, seed: int, algorithms: str) -> list[str]:
 
 
 def run(*args: str) -> dict:
-    r = subprocess.run([sys.executable, "-m", "cli.main", *args, "--json"], capture_output=True, text=True, timeout=300, cwd=ROOT,
+    r = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", *args, "--json"], capture_output=True, text=True, timeout=300, cwd=ROOT,
                        env=clean_env({"RA2VIPAS_TOKEN": TOKEN}))
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout.strip().splitlines()[-1])

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services.protocol import keys
-from services.transport.zenoh_config import (
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.transport.zenoh_config import (
     AUTH_DICTIONARY, AUTH_PASSWORD, AUTH_USER, TLS_CONNECT_CERT, TLS_CONNECT_KEY, TLS_LISTEN_CERT, TLS_LISTEN_KEY, TLS_MTLS,
     TLS_ROOT_CA, TLS_VERIFY_NAME, ZenohSettings, ZenohSettingsError,
 )

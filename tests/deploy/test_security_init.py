@@ -16,16 +16,16 @@ from cryptography import x509
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
-from cli.security import compose_services
-from services.transport.acl import access_control, standard_identities
-from services.transport.zenoh_config import ZenohSettings
+from ra2vipas.cli.security import compose_services
+from ra2vipas.services.transport.acl import access_control, standard_identities
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 from tests.deploy.conftest import ROOT, clean_env
 
 USERS = ["orchestrator", "learner", "rig-1", "rig-2", "robot-1.sensors", "robot-1.controller", "lab"]
 
 
 def init(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", "security", "init", *args], capture_output=True, text=True, timeout=120,
+    return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "security", "init", *args], capture_output=True, text=True, timeout=120,
                           cwd=cwd, env=clean_env({"PYTHONPATH": str(ROOT)}))
 
 

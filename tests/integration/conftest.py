@@ -45,7 +45,7 @@ class Procs:
 
     def start(self, *args: str, env: dict | None = None, **kw) -> subprocess.Popen:
         full_env = {**os.environ, **(env or {})}
-        p = subprocess.Popen([sys.executable, "-m", "cli.main", *args], cwd=ROOT, env=full_env, start_new_session=True,
+        p = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", *args], cwd=ROOT, env=full_env, start_new_session=True,
                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
         self.procs.append(p)
         return p
@@ -96,7 +96,7 @@ def start_stack(registry: Procs, tmp: Path, *extra: str, rigs: int = 2) -> dict:
     the database path, the log directory and the line ``up`` printed once the API is ready."""
     import re
 
-    from cli.stack import free_port
+    from ra2vipas.cli.stack import free_port
 
     up = registry.start("up", "--rigs", str(rigs), "--port", str(free_port()), "--db", str(tmp / "stack.db"),
                         "--log-dir", str(tmp / "logs"), *extra)
@@ -120,7 +120,7 @@ def stack_zenoh_session(up_pid: int):
     """A Zenoh client session on the stack, with its credentials (close it)."""
     import zenoh
 
-    from services.transport.zenoh_config import ZenohSettings
+    from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
     return zenoh.open(ZenohSettings.from_sources(env=stack_zenoh_env(up_pid)).to_zenoh())
 

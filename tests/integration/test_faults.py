@@ -14,8 +14,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.orchestrator.simulate import run_campaign
-from services.protocol.scenario import build_scenario
+from ra2vipas.services.orchestrator.simulate import run_campaign
+from ra2vipas.services.protocol.scenario import build_scenario
 from tests.integration.conftest import Procs, alive, children_of, start_stack, stop_stack
 
 ALGORITHMS = ["ra2vipas", "rapas"]

@@ -11,10 +11,10 @@ import time
 import httpx
 import pytest
 
-from services.orchestrator.simulate import run_campaign
-from services.protocol import keys
-from services.protocol.messages import Command, EpisodeResult, EpisodeStart, EpisodeTruth, Measurement
-from services.protocol.scenario import build_scenario
+from ra2vipas.services.orchestrator.simulate import run_campaign
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import Command, EpisodeResult, EpisodeStart, EpisodeTruth, Measurement
+from ra2vipas.services.protocol.scenario import build_scenario
 from tests.integration.conftest import Procs, alive, children_of, stack_zenoh_session, start_stack, stop_stack
 
 VALID = {

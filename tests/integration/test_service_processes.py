@@ -9,8 +9,8 @@ import time
 import pytest
 import zenoh
 
-from cli.stack import free_port
-from services.protocol import keys
+from ra2vipas.cli.stack import free_port
+from ra2vipas.services.protocol import keys
 from tests.integration.conftest import wait_for_line
 
 SERVICES = {

@@ -12,7 +12,7 @@ import sys
 import httpx
 import pytest
 
-from cli.stack import free_port
+from ra2vipas.cli.stack import free_port
 from tests.integration.conftest import ROOT, Procs, alive, children_of, wait_for_line
 
 SMALL = ["--set", "steps=30", "--set", "n_train=250", "--set", "n_targets=10"]
@@ -32,7 +32,7 @@ def stack(tmp_path_factory):
 
 
 def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+    return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
 
 
 def untimed(results: dict) -> dict:

@@ -8,14 +8,14 @@ import time
 
 import zenoh
 
-from services.controller.node import ControllerNode
-from services.learner.node import LearnerNode
-from services.orchestrator.scheduler import Scheduler
-from services.orchestrator.storage import Store
-from services.protocol.scenario import build_scenario
-from services.sensors.node import SensorsNode
-from services.transport.acl import EGRESS, INGRESS, access_control, standard_identities
-from services.transport.bus import MemoryBus
+from ra2vipas.services.controller.node import ControllerNode
+from ra2vipas.services.learner.node import LearnerNode
+from ra2vipas.services.orchestrator.scheduler import Scheduler
+from ra2vipas.services.orchestrator.storage import Store
+from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.sensors.node import SensorsNode
+from ra2vipas.services.transport.acl import EGRESS, INGRESS, access_control, standard_identities
+from ra2vipas.services.transport.bus import MemoryBus
 from tests.unit.test_acl import allowed
 
 

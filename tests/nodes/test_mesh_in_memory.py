@@ -7,16 +7,16 @@ import time
 
 import pytest
 
-from services.controller.node import ControllerNode
-from services.learner.node import LearnerNode
-from services.orchestrator.scheduler import Scheduler
-from services.orchestrator.simulate import run_campaign
-from services.orchestrator.storage import Store
-from services.protocol import keys
-from services.protocol.messages import Command, EpisodeStart, Measurement, dump
-from services.protocol.scenario import build_scenario
-from services.sensors.node import SensorsNode
-from services.transport.bus import MemoryBus
+from ra2vipas.services.controller.node import ControllerNode
+from ra2vipas.services.learner.node import LearnerNode
+from ra2vipas.services.orchestrator.scheduler import Scheduler
+from ra2vipas.services.orchestrator.simulate import run_campaign
+from ra2vipas.services.orchestrator.storage import Store
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import Command, EpisodeStart, Measurement, dump
+from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.sensors.node import SensorsNode
+from ra2vipas.services.transport.bus import MemoryBus
 
 SMALL = {"steps": 25, "n_train": 200, "n_targets": 8}
 

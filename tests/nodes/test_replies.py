@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from services.protocol.messages import ErrorReply, PODRequest, TrainingRequest, dump
-from services.protocol.scenario import build_scenario
-from services.transport.bus import Reply
-from services.transport.runtime import first_valid_reply
+from ra2vipas.services.protocol.messages import ErrorReply, PODRequest, TrainingRequest, dump
+from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.transport.bus import Reply
+from ra2vipas.services.transport.runtime import first_valid_reply
 
 
 def _request(job: str) -> bytes:

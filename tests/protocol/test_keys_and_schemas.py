@@ -10,13 +10,13 @@ import pytest
 import zenoh
 from pydantic import ValidationError
 
-from cli.protocol import schema_documents
-from services.protocol import keys
-from services.protocol.messages import (
+from ra2vipas.cli.protocol import schema_documents
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import (
     Command, EpisodeResult, EpisodeStart, Measurement, PODRequest, TrainingRequest, WIRE_MESSAGES, episode_control_adapter,
     training_job_id,
 )
-from services.protocol.scenario import build_scenario
+from ra2vipas.services.protocol.scenario import build_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
 RIG = "rig-7"

@@ -8,8 +8,8 @@ import json
 import pytest
 import zenoh
 
-from services.protocol import keys
-from services.transport.acl import (
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.transport.acl import (
     EGRESS, INGRESS, LIVELINESS_SUBSCRIBER, MESSAGES, PUT, QUERY, QUERYABLE, REPLY, SUBSCRIBE, TOKEN, AclError, Identity,
     access_control, grants, standard_identities,
 )

@@ -9,9 +9,9 @@ import pytest
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, ExpSineSquared
 
-from services.controller.circle_gp import LobeGP, circular_kernel
-from services.controller.policy import ControllerSettings
-from services.sensors import physics
+from ra2vipas.services.controller.circle_gp import LobeGP, circular_kernel
+from ra2vipas.services.controller.policy import ControllerSettings
+from ra2vipas.services.sensors import physics
 from tests.conftest import angle_error, make_platform, polar_positions, small_scenario, sweep_pans
 
 # -- kernel --------------------------------------------------------------------------------------------

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from services.controller.circle_gp import circular_kernel
-from services.controller.grid import CircleGrid
+from ra2vipas.services.controller.circle_gp import circular_kernel
+from ra2vipas.services.controller.grid import CircleGrid
 
 
 @pytest.mark.parametrize("points", [36, 360, 720])

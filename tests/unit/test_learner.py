@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from services.learner.pod import (
+from ra2vipas.services.learner.pod import (
     LearnedPOD,
     detection_counts,
     fit_diffusion,
@@ -18,11 +18,11 @@ from services.learner.pod import (
     predict,
     r2_score,
 )
-from services.protocol.measurements import CameraFrame, TrainingSample
-from services.protocol.pod import PODModel
-from services.protocol.scenario import build_scenario
-from services.sensors import physics
-from services.sensors.world import TrainingEpisode
+from ra2vipas.services.protocol.measurements import CameraFrame, TrainingSample
+from ra2vipas.services.protocol.pod import PODModel
+from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.sensors import physics
+from ra2vipas.services.sensors.world import TrainingEpisode
 
 
 @pytest.fixture(scope="module")
@@ -171,7 +171,7 @@ def test_fit_diffusion_recovers_walk_and_noise():
 def test_kalman_likelihood_is_the_gaussian_likelihood():
     """With constant diffusion (b = 0), the local-level model's likelihood is that of
     z ~ N(z_0 1, C), C_ij = 10 R + q min(i, j) + R delta_ij (the filter starts at z_0, var 10 R)."""
-    from services.learner.pod import _kalman_loglik
+    from ra2vipas.services.learner.pod import _kalman_loglik
 
     rng = np.random.default_rng(2)
     n, q, R = 12, 0.7, 2.0

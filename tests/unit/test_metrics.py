@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from services.orchestrator.metrics import Z95, associate, score_test, summarize_algorithm, time_to_level, wilson_interval
+from ra2vipas.services.orchestrator.metrics import Z95, associate, score_test, summarize_algorithm, time_to_level, wilson_interval
 
 D = math.radians
 

@@ -13,8 +13,8 @@ import numpy as np
 import pydantic
 import pytest
 
-import services
-from services.controller.policy import (
+import ra2vipas.services as services
+from ra2vipas.services.controller.policy import (
     ALGORITHMS,
     Controller,
     ControllerSettings,
@@ -22,12 +22,12 @@ from services.controller.policy import (
     SensorConfig,
     sensor_config_from_scenario,
 )
-from services.learner.pod import predict
-from services.orchestrator.metrics import associate
-from services.orchestrator.simulate import run_test
-from services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
-from services.sensors import physics
-from services.sensors.world import SimulatedPlatform
+from ra2vipas.services.learner.pod import predict
+from ra2vipas.services.orchestrator.metrics import associate
+from ra2vipas.services.orchestrator.simulate import run_test
+from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
+from ra2vipas.services.sensors import physics
+from ra2vipas.services.sensors.world import SimulatedPlatform
 from tests.conftest import (
     angle_error,
     make_platform,
@@ -120,8 +120,8 @@ def _imports(path: pathlib.Path) -> set[str]:
 
 
 @pytest.mark.parametrize("package, allowed", [
-    ("controller", ("services.protocol", "services.controller")),
-    ("learner", ("services.protocol", "services.learner")),
+    ("controller", ("ra2vipas.services.protocol", "ra2vipas.services.controller")),
+    ("learner", ("ra2vipas.services.protocol", "ra2vipas.services.learner")),
 ])
 def test_controller_and_learner_never_import_the_simulator(package, allowed):
     """Domain modules import only the protocol and their own package (never zenoh); the thin
@@ -130,10 +130,10 @@ def test_controller_and_learner_never_import_the_simulator(package, allowed):
     assert files
     adapters = {"node.py", "__main__.py"}
     for path in files:
-        ok = allowed + (("services.transport", "cli.services") if path.name in adapters else ())
+        ok = allowed + (("ra2vipas.services.transport", "ra2vipas.cli.services") if path.name in adapters else ())
         for name in _imports(path):
-            assert not name.startswith("services.sensors"), f"{path.name} imports {name}"
-            assert not name.startswith("services.orchestrator"), f"{path.name} imports {name}"
+            assert not name.startswith("ra2vipas.services.sensors"), f"{path.name} imports {name}"
+            assert not name.startswith("ra2vipas.services.orchestrator"), f"{path.name} imports {name}"
             if path.name not in adapters:
                 assert not name.startswith("zenoh"), f"domain module {path.name} imports {name}"
             if name.startswith(("services", "cli")):
@@ -141,8 +141,8 @@ def test_controller_and_learner_never_import_the_simulator(package, allowed):
 
 
 def test_controller_and_learner_load_without_the_simulator():
-    code = ("import sys, services.controller.policy, services.learner.pod; "
-            "print(sorted(m for m in sys.modules if m.startswith(('services.sensors', 'services.orchestrator'))))")
+    code = ("import sys, ra2vipas.services.controller.policy, ra2vipas.services.learner.pod; "
+            "print(sorted(m for m in sys.modules if m.startswith(('ra2vipas.services.sensors', 'ra2vipas.services.orchestrator'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SERVICES.parent)
     assert out.stdout.strip() == "[]"
 

@@ -7,7 +7,7 @@ import math
 import pydantic
 import pytest
 
-from services.protocol.scenario import (
+from ra2vipas.services.protocol.scenario import (
     PRESETS,
     AntennaModel,
     Placement,

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from services.controller.tracks import DetectionTracker
-from services.protocol.measurements import CameraFrame
-from services.sensors import physics
+from ra2vipas.services.controller.tracks import DetectionTracker
+from ra2vipas.services.protocol.measurements import CameraFrame
+from ra2vipas.services.sensors import physics
 from tests.conftest import angle_error, make_platform, polar_positions, small_scenario
 
 FOV = math.pi / 8

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from services.protocol.measurements import CameraFrame, StepMeasurement, TrainingSample
-from services.protocol.scenario import ScenarioError, build_scenario
-from services.sensors import physics
-from services.sensors.world import (
+from ra2vipas.services.protocol.measurements import CameraFrame, StepMeasurement, TrainingSample
+from ra2vipas.services.protocol.scenario import ScenarioError, build_scenario
+from ra2vipas.services.sensors import physics
+from ra2vipas.services.sensors.world import (
     SimulatedPlatform,
     TrainingEpisode,
     episode_streams,
@@ -350,7 +350,7 @@ def test_training_episode_is_seeded():
 
 @pytest.mark.parametrize("model", ["paper", "db-gain"])
 def test_scalar_directional_rssi_equals_the_array_version(model):
-    from services.sensors import physics
+    from ra2vipas.services.sensors import physics
 
     sc = build_scenario("paper", {"antenna_model": model})
     g = float(physics.path_loss_dbm(sc, 2.7))

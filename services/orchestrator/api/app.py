@@ -13,13 +13,13 @@ from typing import Callable
 from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
 
-from services.orchestrator.api.errors import responses, validation_error
-from services.orchestrator.api.limits import MAX_BODY_BYTES, BodySizeLimit
-from services.orchestrator.api.routes import campaigns, catalog, events, health, results, tests
-from services.orchestrator.scheduler import Scheduler
-from services.orchestrator.settings import OrchestratorSettings
-from services.orchestrator.storage import Store
-from services.transport.bus import Bus
+from ra2vipas.services.orchestrator.api.errors import responses, validation_error
+from ra2vipas.services.orchestrator.api.limits import MAX_BODY_BYTES, BodySizeLimit
+from ra2vipas.services.orchestrator.api.routes import campaigns, catalog, events, health, results, tests
+from ra2vipas.services.orchestrator.scheduler import Scheduler
+from ra2vipas.services.orchestrator.settings import OrchestratorSettings
+from ra2vipas.services.orchestrator.storage import Store
+from ra2vipas.services.transport.bus import Bus
 
 DESCRIPTION = """
 Run Monte Carlo campaigns of transmitter discovery (Ra²ViPAS and its baselines) on the rigs of
@@ -37,7 +37,7 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
     async def lifespan(app: FastAPI):
         store = Store(settings.db_path)
         if bus_factory is None:
-            from services.transport.zenoh_bus import ZenohBus
+            from ra2vipas.services.transport.zenoh_bus import ZenohBus
 
             bus = ZenohBus(settings.zenoh)
         else:

@@ -9,9 +9,9 @@ from typing import Annotated, Any, Optional
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from services.orchestrator.scheduler import Scheduler
-from services.orchestrator.settings import OrchestratorSettings
-from services.orchestrator.storage import Store
+from ra2vipas.services.orchestrator.scheduler import Scheduler
+from ra2vipas.services.orchestrator.settings import OrchestratorSettings
+from ra2vipas.services.orchestrator.storage import Store
 
 _bearer = HTTPBearer(auto_error=False, description="Required by state-changing requests when the server has a token (RA2VIPAS_TOKEN).")
 

@@ -15,7 +15,7 @@ from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from services.orchestrator.api.schemas import ErrorPublic
+from ra2vipas.services.orchestrator.api.schemas import ErrorPublic
 
 _WHERE = ("body", "query", "path", "header", "cookie")
 MAX_LISTED = 5

@@ -10,7 +10,7 @@ from typing import Annotated, Any, Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StringConstraints
 
-from services.protocol.messages import ALGORITHMS, AlgorithmName
+from ra2vipas.services.protocol.messages import ALGORITHMS, AlgorithmName
 
 MAX_TESTS = 10000
 MAX_OVERRIDES = 64

@@ -7,12 +7,12 @@ from typing import Any
 
 import numpy as np
 
-from services.orchestrator.api.schemas import (
+from ra2vipas.services.orchestrator.api.schemas import (
     CampaignProgress, CampaignPublic, OutcomePublic, PODSummary, Progress, RigPublic, RigsPublic, TargetPublic, TracePublic,
     TraceStep,
 )
-from services.orchestrator.metrics import time_to_level
-from services.orchestrator.storage import ACTIVE
+from ra2vipas.services.orchestrator.metrics import time_to_level
+from ra2vipas.services.orchestrator.storage import ACTIVE
 
 
 def campaign_progress(row: dict[str, Any]) -> CampaignProgress:

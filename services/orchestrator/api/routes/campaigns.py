@@ -7,12 +7,12 @@ from typing import Annotated, Optional
 from fastapi import APIRouter, HTTPException, Query, Response, status
 from fastapi.exceptions import RequestValidationError
 
-from services.orchestrator.api.deps import Authorized, CampaignDep, SchedulerDep, StoreDep
-from services.orchestrator.api.errors import responses
-from services.orchestrator.api.schemas import MAX_OFFSET, MAX_PAGE, CampaignCreate, CampaignPage, CampaignPublic, CampaignStatus
-from services.orchestrator.api.views import campaign_public
-from services.orchestrator.storage import CampaignActiveError
-from services.protocol.scenario import ScenarioError, build_scenario
+from ra2vipas.services.orchestrator.api.deps import Authorized, CampaignDep, SchedulerDep, StoreDep
+from ra2vipas.services.orchestrator.api.errors import responses
+from ra2vipas.services.orchestrator.api.schemas import MAX_OFFSET, MAX_PAGE, CampaignCreate, CampaignPage, CampaignPublic, CampaignStatus
+from ra2vipas.services.orchestrator.api.views import campaign_public
+from ra2vipas.services.orchestrator.storage import CampaignActiveError
+from ra2vipas.services.protocol.scenario import ScenarioError, build_scenario
 
 router = APIRouter(prefix="/campaigns", tags=["campaigns"])
 

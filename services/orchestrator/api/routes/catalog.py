@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, status
 
-from services.orchestrator.api.deps import SchedulerDep
-from services.orchestrator.api.errors import responses
-from services.orchestrator.api.schemas import PresetPublic, PresetSummary, RigsPublic
-from services.orchestrator.api.views import rigs_public
-from services.orchestrator.presets import preset_object, preset_summaries
-from services.protocol.scenario import PRESETS
+from ra2vipas.services.orchestrator.api.deps import SchedulerDep
+from ra2vipas.services.orchestrator.api.errors import responses
+from ra2vipas.services.orchestrator.api.schemas import PresetPublic, PresetSummary, RigsPublic
+from ra2vipas.services.orchestrator.api.views import rigs_public
+from ra2vipas.services.orchestrator.presets import preset_object, preset_summaries
+from ra2vipas.services.protocol.scenario import PRESETS
 
 router = APIRouter(tags=["presets and rigs"])
 

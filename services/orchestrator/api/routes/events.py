@@ -17,11 +17,11 @@ from fastapi import APIRouter, HTTPException, Query, Request, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
-from services.orchestrator.api.deps import CampaignDep, StoreDep
-from services.orchestrator.api.errors import responses
-from services.orchestrator.api.schemas import CampaignProgress
-from services.orchestrator.api.views import campaign_progress
-from services.orchestrator.storage import FINISHED, Store
+from ra2vipas.services.orchestrator.api.deps import CampaignDep, StoreDep
+from ra2vipas.services.orchestrator.api.errors import responses
+from ra2vipas.services.orchestrator.api.schemas import CampaignProgress
+from ra2vipas.services.orchestrator.api.views import campaign_progress
+from ra2vipas.services.orchestrator.storage import FINISHED, Store
 
 router = APIRouter(prefix="/campaigns/{campaign_id}", tags=["campaigns"])
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response, status
 
-from services.orchestrator.api.deps import SchedulerDep, SettingsDep, StoreDep
-from services.orchestrator.api.schemas import Health
+from ra2vipas.services.orchestrator.api.deps import SchedulerDep, SettingsDep, StoreDep
+from ra2vipas.services.orchestrator.api.schemas import Health
 
 router = APIRouter(tags=["health"])
 

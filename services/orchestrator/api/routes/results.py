@@ -8,13 +8,13 @@ from typing import Annotated, Any, Optional
 from fastapi import APIRouter, HTTPException, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
-from services.orchestrator import plots
-from services.orchestrator.api.deps import CampaignDep, StoreDep
-from services.orchestrator.api.errors import responses
-from services.orchestrator.api.export import write_results_csv
-from services.orchestrator.api.negotiate import IMAGE_CONTENT, ImageFormat, ResultsFormat, image_format, results_format
-from services.orchestrator.api.schemas import ResultsPublic
-from services.protocol.scenario import Scenario
+from ra2vipas.services.orchestrator import plots
+from ra2vipas.services.orchestrator.api.deps import CampaignDep, StoreDep
+from ra2vipas.services.orchestrator.api.errors import responses
+from ra2vipas.services.orchestrator.api.export import write_results_csv
+from ra2vipas.services.orchestrator.api.negotiate import IMAGE_CONTENT, ImageFormat, ResultsFormat, image_format, results_format
+from ra2vipas.services.orchestrator.api.schemas import ResultsPublic
+from ra2vipas.services.protocol.scenario import Scenario
 
 router = APIRouter(prefix="/campaigns/{campaign_id}", tags=["results"])
 

@@ -7,15 +7,15 @@ from typing import Annotated, Any, Optional
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
-from services.orchestrator import plots
-from services.orchestrator.api.deps import CampaignDep, StoreDep
-from services.orchestrator.api.errors import responses
-from services.orchestrator.api.negotiate import IMAGE_CONTENT, ImageFormat, image_format
-from services.orchestrator.api.schemas import (
+from ra2vipas.services.orchestrator import plots
+from ra2vipas.services.orchestrator.api.deps import CampaignDep, StoreDep
+from ra2vipas.services.orchestrator.api.errors import responses
+from ra2vipas.services.orchestrator.api.negotiate import IMAGE_CONTENT, ImageFormat, image_format
+from ra2vipas.services.orchestrator.api.schemas import (
     MAX_OFFSET, MAX_PAGE, MAX_TESTS, AlgorithmName, EpisodeStatus, OutcomePage, TracePublic,
 )
-from services.orchestrator.api.views import outcome_public, trace_public
-from services.protocol.scenario import Scenario
+from ra2vipas.services.orchestrator.api.views import outcome_public, trace_public
+from ra2vipas.services.protocol.scenario import Scenario
 
 router = APIRouter(prefix="/campaigns/{campaign_id}/tests", tags=["tests"])
 
