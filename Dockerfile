@@ -14,6 +14,7 @@ ENV PYTHONUNBUFFERED=1 \
 
 WORKDIR /src
 COPY pyproject.toml README.md ./
+COPY ra2vipas ./ra2vipas
 COPY services ./services
 COPY cli ./cli
 RUN pip install . \

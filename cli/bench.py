@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
-from typing import Annotated
+from typing import Annotated, Optional
 
 import typer
 
@@ -77,6 +78,12 @@ def bench_step(
 
 
 def _run_campaign(api: str, body: dict, timeout: float, poll: float = 0.1) -> tuple[dict, float]:
+    results, wall, _ = _run_campaign_id(api, body, timeout, poll)
+    return results, wall
+
+
+def _run_campaign_id(api: str, body: dict, timeout: float, poll: float = 0.1) -> tuple[dict, float, str]:
+    """Start a campaign, wait until it is done; its results, wall time and id."""
     import httpx
 
     started = time.perf_counter()
@@ -90,7 +97,7 @@ def _run_campaign(api: str, body: dict, timeout: float, poll: float = 0.1) -> tu
     wall = time.perf_counter() - started
     if c["status"] != "done":
         raise RuntimeError(f"campaign {c['id']} {c['status']}: {c.get('error')}")
-    return httpx.get(f"{api}/campaigns/{c['id']}/results", timeout=30).json(), wall
+    return httpx.get(f"{api}/campaigns/{c['id']}/results", timeout=30).json(), wall, c["id"]
 
 
 @app.command("mesh")
@@ -157,3 +164,350 @@ def bench_mesh(
         lat = report["latency_ms"] or {}
         stdout.print(f"mesh ({rigs} rigs): {report['steps_per_second']} control steps/s in fast mode (target 2200); "
                      f"realtime sample->command latency p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms (target p99 <= 5)")
+
+
+# -- bench plots ---------------------------------------------------------------------------------
+
+PLOT_TARGETS = {"read_p99_ms": 200.0, "slowdown_pct": 10.0}
+READ_PAUSE_S = 0.05  # each reader's pause between two requests
+DRAIN_S = 3.0  # after a run with plot load: the renders still queued (at most a few) finish
+
+
+def _plot_urls(campaigns: list[dict]) -> dict[str, list[str]]:
+    """Every figure of the finished ``campaigns``, by kind, in both formats."""
+    urls: dict[str, list[str]] = {"dr": [], "pod": [], "episode": []}
+    for c in campaigns:
+        for fmt in ("png", "svg"):
+            urls["dr"].append(f"/campaigns/{c['id']}/plots/dr?format={fmt}")
+            urls["pod"].append(f"/campaigns/{c['id']}/plots/pod?format={fmt}")
+            urls["episode"] += [f"/campaigns/{c['id']}/tests/{k}/{a}/plot?format={fmt}"
+                                for k in range(c["tests"]) for a in c["algorithms"]]
+    return urls
+
+
+def _plot_load(api: str, urls: dict[str, list[str]], clients: int, seed: int, retry_cap_s: float, niceness: int,
+               ready, stop, out) -> None:
+    """A process of ``clients`` concurrent plot clients (asyncio + httpx) at ``niceness``: each
+    picks a figure kind, then one of its figures, at random, asks for it, and asks again as soon
+    as it has the answer; after a 503 it waits ``Retry-After`` seconds (at most ``retry_cap_s``)."""
+    import asyncio
+    import random
+
+    import httpx
+
+    if niceness:
+        os.nice(niceness)
+
+    async def main() -> dict:
+        counts: dict[str, int] = {}
+        ok_ms: list[float] = []
+
+        async def client(i: int) -> None:
+            rng = random.Random(seed * 1000 + i)
+            # one connection per client, as 50 separate users would have
+            async with httpx.AsyncClient(base_url=api, timeout=120.0) as http:
+                while True:
+                    url = rng.choice(urls[rng.choice(kinds)])
+                    started = time.perf_counter()
+                    try:
+                        r = await http.get(url)
+                    except httpx.HTTPError:
+                        counts["error"] = counts.get("error", 0) + 1
+                        await asyncio.sleep(0.1)
+                        continue
+                    counts[str(r.status_code)] = counts.get(str(r.status_code), 0) + 1
+                    if r.status_code == 200:
+                        ok_ms.append((time.perf_counter() - started) * 1e3)
+                    elif r.status_code == 503:
+                        await asyncio.sleep(min(retry_cap_s, float(r.headers.get("retry-after") or 1)))
+
+        kinds = sorted(urls)
+        tasks = [asyncio.create_task(client(i)) for i in range(clients)]
+        started = time.perf_counter()
+        ready.set()
+        while not stop.is_set():
+            await asyncio.sleep(0.05)
+        seconds = time.perf_counter() - started
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        requests = sum(counts.values())
+        return {"clients": clients, "seconds": round(seconds, 2), "requests": requests,
+                "requests_per_second": round(requests / seconds, 1) if seconds else None, "status": counts,
+                "ok_p50_ms": round(_percentile(ok_ms, 50), 1) if ok_ms else None,
+                "ok_p99_ms": round(_percentile(ok_ms, 99), 1) if ok_ms else None}
+
+    out.put(asyncio.run(main()))
+
+
+class _Readers:
+    """``n`` threads reading the API's non-plot routes in turn, recording each latency."""
+
+    def __init__(self, api: str, paths: list[str], n: int) -> None:
+        import threading
+
+        self.api, self.paths, self.n = api, paths, n
+        self.stop_event = threading.Event()
+        self.samples: list[tuple[float, int]] = []
+        self.threads = [threading.Thread(target=self._run, args=(i,), daemon=True) for i in range(n)]
+
+    def _run(self, i: int) -> None:
+        import httpx
+
+        with httpx.Client(base_url=self.api, timeout=120.0) as http:
+            k = i
+            while not self.stop_event.is_set():
+                path = self.paths[k % len(self.paths)]
+                k += 1
+                started = time.perf_counter()
+                try:
+                    status = http.get(path).status_code
+                except httpx.HTTPError:
+                    status = 0
+                self.samples.append(((time.perf_counter() - started) * 1e3, status))
+                self.stop_event.wait(READ_PAUSE_S)
+
+    def __enter__(self) -> "_Readers":
+        for t in self.threads:
+            t.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop_event.set()
+        for t in self.threads:
+            t.join(130.0)
+
+
+def _cpu_seconds(pids: dict[str, list[int]]) -> dict[str, float]:
+    """CPU time (user + system) used so far by each named group of processes (Linux /proc)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    out: dict[str, float] = {}
+    for name, group in pids.items():
+        total = 0
+        for pid in group:
+            try:
+                with open(f"/proc/{pid}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+                total += int(fields[11]) + int(fields[12])
+            except (OSError, IndexError, ValueError):
+                pass
+        out[name] = total / tick
+    return out
+
+
+def _renderers_of(pid: int) -> list[int]:
+    """The figure renderer processes of the orchestrator ``pid`` (its multiprocessing children)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    parent = int(f.read().rsplit(")", 1)[1].split()[1])
+                if parent == pid:
+                    with open(f"/proc/{entry}/cmdline", "rb") as f:
+                        if b"spawn_main" in f.read():
+                            found.append(int(entry))
+            except (OSError, IndexError, ValueError):
+                pass
+    return found
+
+
+@app.command("plots")
+def bench_plots(
+    clients: Annotated[int, typer.Option(min=1, max=500, help="Concurrent plot clients.")] = 50,
+    readers: Annotated[int, typer.Option(min=1, max=64, help="Clients reading non-plot routes, each pausing "
+                                                             f"{READ_PAUSE_S} s between requests.")] = 4,
+    tests: Annotated[int, typer.Option(min=1, max=1000, help="Tests of the measured campaign (paper preset, "
+                                                             "ra2vipas, rapas, ravipas).")] = 50,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the measured campaign.")] = 1,
+    repeats: Annotated[int, typer.Option(min=1, max=10, help="Runs of the campaign without and with plot load, "
+                                                             "alternating.")] = 3,
+    fixtures: Annotated[int, typer.Option(min=1, max=10, help="Finished campaigns whose figures the plot clients ask for.")] = 2,
+    fixture_tests: Annotated[int, typer.Option(min=1, max=1000, help="Tests of each finished campaign.")] = 20,
+    rigs: Annotated[int, typer.Option(min=0, max=16, help="Rigs (0: one per CPU core).")] = 0,
+    retry_cap: Annotated[float, typer.Option(min=0.0, max=60.0, help="Longest wait of a plot client after a 503 "
+                                                                     "(it honours Retry-After up to this).")] = 1.0,
+    client_nice: Annotated[int, typer.Option(min=0, max=19, help="Niceness of the plot clients' process (0: they compete "
+                                                                 "for the CPU like the tester's clients did).")] = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
+) -> None:
+    """Plots under load: start a local stack, finish FIXTURES campaigns, then run the paper
+    campaign REPEATS times without and with CLIENTS plot clients asking for those campaigns'
+    figures (DR, POD and every episode, PNG and SVG: most are not cached yet), while READERS
+    clients read /campaigns, /campaigns/{id}, /campaigns/{id}/results and /health.
+
+    Reports the p99 latency of those reads under plot load (target <= 200 ms) and how much the
+    plot load slows the campaign: median control steps/s without over with, minus 1 (target
+    <= 10 %). Every process is stopped afterwards.
+    """
+    import multiprocessing
+    import queue
+    import statistics as stats
+    import tempfile
+
+    import httpx
+
+    from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
+
+    rigs = rigs or max(1, min(os.cpu_count() or 1, 16))
+    algorithms = ["ra2vipas", "rapas", "ravipas"]
+    body = {"preset": "paper", "tests": tests, "seed": seed, "algorithms": algorithms}
+    report: dict = {"benchmark": "plots", "rigs": rigs, "plot_clients": clients, "readers": readers,
+                    "retry_cap_s": retry_cap, "client_nice": client_nice,
+                    "campaign": {**body, "repeats": repeats}, "targets": PLOT_TARGETS}
+    ctx = multiprocessing.get_context("spawn")
+    load = None
+    with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
+        stack = Stack(StackConfig(rigs=rigs, port=free_port(), db_path=os.path.join(tmp, "plots.db"),
+                                  log_dir=os.path.join(tmp, "logs"), log_level="WARNING"))
+        try:
+            stack.start()
+            api = stack.api_url
+            finished = []
+            for i in range(fixtures):
+                _, _, cid = _run_campaign_id(api, {**body, "tests": fixture_tests, "seed": 100 + i}, 1800)
+                finished.append({"id": cid, "tests": fixture_tests, "algorithms": algorithms})
+            urls = _plot_urls(finished)
+            report["figures"] = {k: len(v) for k, v in urls.items()}
+            warm = httpx.get(f"{api}{urls['dr'][0]}", timeout=120)  # the first request starts the renderer process
+            if warm.status_code != 200:
+                raise RuntimeError(f"the first figure failed: {warm.status_code} {warm.text[:200]}")
+            orchestrator = next(c.proc.pid for c in stack.children if c.name == "orchestrator")
+            report["renderer_processes"] = len(_renderers_of(orchestrator))
+            read_paths = ["/campaigns", f"/campaigns/{finished[0]['id']}", f"/campaigns/{finished[0]['id']}/results", "/health"]
+            groups = {"rigs": [c.proc.pid for c in stack.children if c.name.startswith(("sensors", "controller"))],
+                      "orchestrator": [orchestrator]}
+
+            runs: dict[str, list[dict]] = {"without_plots": [], "with_plots": []}
+            for _ in range(repeats):
+                for loaded in (False, True):
+                    ready, stop, out = ctx.Event(), ctx.Event(), ctx.Queue()
+                    with _Readers(api, read_paths, readers) as reading:
+                        if loaded:
+                            load = ctx.Process(target=_plot_load, name="plot-clients", daemon=True,
+                                               args=(api, urls, clients, seed, retry_cap, client_nice, ready, stop, out))
+                            load.start()
+                            if not ready.wait(60):
+                                raise RuntimeError("the plot clients did not start")
+                            time.sleep(1.0)  # let the load settle before the campaign starts
+                        pids = {**groups, "renderers": _renderers_of(orchestrator),
+                                "plot_clients": [load.pid] if loaded else []}
+                        cpu0 = _cpu_seconds(pids)
+                        results, wall = _run_campaign(api, body, 1800)
+                        cpu1 = _cpu_seconds({**pids, "renderers": _renderers_of(orchestrator)})
+                        if loaded:
+                            stop.set()
+                            try:
+                                plot_stats = out.get(timeout=180)
+                            except queue.Empty:
+                                raise RuntimeError("the plot clients did not report") from None
+                            load.join(30)
+                            load = None
+                            time.sleep(DRAIN_S)  # renders still queued finish before the next run
+                    lat = [ms for ms, status in reading.samples if status == 200]
+                    errors = sum(1 for _, status in reading.samples if status != 200)
+                    run = {"steps_per_second": results["steps_per_second"], "wall_seconds": round(wall, 2),
+                           "reads": len(reading.samples), "read_errors": errors,
+                           "read_p50_ms": round(_percentile(lat, 50), 1) if lat else None,
+                           "read_p99_ms": round(_percentile(lat, 99), 1) if lat else None,
+                           "cpu_seconds": {k: round(cpu1[k] - cpu0.get(k, 0.0), 2) for k in cpu1},
+                           "_lat": lat}
+                    if loaded:
+                        run["plots"] = plot_stats
+                    runs["with_plots" if loaded else "without_plots"].append(run)
+        except (StackError, TimeoutError, RuntimeError, httpx.HTTPError) as err:
+            fail(f"bench plots: {err}")
+        finally:
+            if load is not None and load.is_alive():
+                load.terminate()
+                load.join(10)
+            stack.stop()
+
+    def summary(group: list[dict]) -> dict:
+        lat = [ms for r in group for ms in r.pop("_lat")]
+        return {"steps_per_second": stats.median(r["steps_per_second"] for r in group),
+                "read_p50_ms": round(_percentile(lat, 50), 1) if lat else None,
+                "read_p99_ms": round(_percentile(lat, 99), 1) if lat else None,
+                "reads": len(lat), "runs": group}
+
+    base, loaded_ = summary(runs["without_plots"]), summary(runs["with_plots"])
+    slowdown = (base["steps_per_second"] / loaded_["steps_per_second"] - 1.0) * 100.0
+    report.update({
+        "read_p99_ms": loaded_["read_p99_ms"],
+        "slowdown_pct": round(slowdown, 1),
+        "met": {"read_p99_ms": loaded_["read_p99_ms"] is not None and loaded_["read_p99_ms"] <= PLOT_TARGETS["read_p99_ms"],
+                "slowdown_pct": slowdown <= PLOT_TARGETS["slowdown_pct"]},
+        "without_plots": base, "with_plots": loaded_,
+    })
+    if as_json:
+        print_json(report)
+    else:
+        stdout.print(f"non-plot reads under {clients} plot clients: p99 {report['read_p99_ms']} ms (target <= 200; "
+                     f"{base['read_p99_ms']} ms without plots); campaign {base['steps_per_second']} -> "
+                     f"{loaded_['steps_per_second']} control steps/s: slowdown {report['slowdown_pct']} % (target <= 10)")
+
+
+@app.command("robustness")
+def bench_robustness(
+    tests: Annotated[int, typer.Option(min=2, max=10000, help="Paired tests per scenario.")] = 200,
+    seed: Annotated[int, typer.Option(min=0, help="Campaign seed of every scenario.")] = 1,
+    scenario: Annotated[Optional[list[str]], typer.Option("--scenario", help="Run only these scenarios (repeatable; default: all).")] = None,
+    workers: Annotated[int, typer.Option(min=0, max=256, help="Worker processes (0: one per CPU core).")] = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
+) -> None:
+    """Every algorithm on a spread of worlds (placement, crowds, noise, antenna shapes and
+    models, fields of view, frame rates, clutter, walkers), paired test by test, beside the
+    oracle reference (the Bayes-MAP choice given the true model, the true trajectories and a
+    sweep's measurements: a bound, never a controller input).
+
+    Per scenario: final DR of each algorithm with its Wilson 95 % interval, the paired
+    difference Ra²ViPAS - best single cue with its 95 % interval (requirement: upper bound >= 0),
+    and Ra²ViPAS / oracle. Takes minutes: ~17 scenarios x 200 tests x 4 algorithms.
+    """
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from ra2vipas.cli.output import stderr
+    from ra2vipas.services.orchestrator import robustness
+
+    try:
+        with Progress(TextColumn("[bold]robustness[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("tests"), TimeElapsedColumn(),
+                      console=stderr, transient=True) as bar:
+            task = bar.add_task("tests", total=tests * len(scenario or robustness.SCENARIOS))
+            report = robustness.run(tests, seed, scenario, workers or None, lambda done, total: bar.update(task, completed=done))
+    except ValueError as err:
+        fail(str(err), EXIT_USAGE)
+    if as_json:
+        print_json(report)
+        return
+    from rich.table import Table
+
+    table = Table(title=f"Robustness: {tests} paired tests per scenario, seed {seed}; DR at the horizon")
+    for col in ("scenario", *robustness.ALGORITHMS, "oracle", "Ra²ViPAS - best cue [95% CI]", "Ra²ViPAS/oracle"):
+        table.add_column(col, justify="left" if col == "scenario" else "right")
+    for name, s in report["scenarios"].items():
+        lo, hi = s["difference_ci95"]
+        table.add_row(name, *(f"{s['dr'][a]:.3f}" for a in (*robustness.ALGORITHMS, "oracle")),
+                      f"{s['difference']:+.3f} [{lo:+.3f}, {hi:+.3f}] vs {s['best_single_cue']}" + ("" if s["not_worse"] else " ✗"),
+                      "—" if s["ra2vipas_over_oracle"] is None else f"{s['ra2vipas_over_oracle']:.3f}")
+    stdout.print(table)
+
+
+@app.command("calibrate")
+def bench_calibrate(
+    tests: Annotated[int, typer.Option(min=2, max=10000, help="Tests per scenario.")] = 40,
+    seed: Annotated[int, typer.Option(min=0, help="Seed (use one no benchmark uses).")] = 1001,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
+) -> None:
+    """Refit the controllers' confidence maps (Platt scaling with how likely the Tx walks as a
+    covariate) on a mix of simulated scenarios, and print them with the expected calibration
+    error before and after. The shipped maps (services/controller/policy.py TUNING) come from
+    `ra2vipas bench calibrate --tests 40 --seed 1001`."""
+    from ra2vipas.cli.output import stderr
+    from ra2vipas.services.orchestrator.calibration import calibrate
+
+    report = calibrate(("ra2vipas", "rapas", "ravipas", "sweep"), tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"))
+    if as_json:
+        print_json(report)
+    else:
+        for name, a in report["algorithms"].items():
+            stdout.print(f"{name}: A {a['A']}, B {a['B']}, C {a['C']}; ECE {a['ece_raw']} -> {a['ece_fitted']} over {a['samples']} steps")

@@ -60,6 +60,7 @@ def start(
     overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help="Override a scenario parameter (repeatable).")] = None,
     mode: Annotated[str, typer.Option(help="fast (lockstep, as fast as possible) or realtime (one sample every T_RF).", autocompletion=_complete(("fast", "realtime")))] = "fast",
     name: Annotated[Optional[str], typer.Option(help="A label for the campaign.")] = None,
+    stop_confidence: Annotated[float, typer.Option("--stop-confidence", min=0.0, max=0.999999, help="End each episode at the first step whose confidence reaches this, its answer final (0: off); the results then report accuracy and time to decision.")] = 0.0,
     wait: Annotated[bool, typer.Option("--wait", help="Show progress until it finishes, then print the DR table.")] = False,
     plot: Annotated[Optional[str], typer.Option(metavar="FILE", help="With --wait: also write the DR curves to FILE (.png or .svg).")] = None,
     embedded: Annotated[bool, typer.Option("--embedded", help="Start a local stack (Zenoh router, services, SQLite file) just for this campaign and stop it afterwards; implies --wait.")] = False,
@@ -89,6 +90,8 @@ def start(
         fail(f"--mode must be fast or realtime, got {mode!r}", EXIT_USAGE)
     if name:
         body["name"] = name
+    if stop_confidence > 0.0:
+        body["stop_confidence"] = stop_confidence
     if embedded:
         _run_embedded(body, db, rigs, plot, as_json, insecure)
         return
@@ -281,7 +284,7 @@ def export(
 @app.command("plot")
 def plot(
     campaign_id: IdArg,
-    kind: Annotated[str, typer.Option("--kind", "-k", help="dr: DR curves (Fig. 4); pod: learned POD (Fig. 3); episode: one test (needs --test and --algorithm).", autocompletion=_complete(("dr", "pod", "episode")))] = "dr",
+    kind: Annotated[str, typer.Option("--kind", "-k", help="dr: DR curves (Fig. 4); pod: learned POD (Fig. 3); reliability: calibration of the final confidences; episode: one test (needs --test and --algorithm).", autocompletion=_complete(("dr", "pod", "reliability", "episode")))] = "dr",
     test: Annotated[Optional[int], typer.Option("--test", min=0, max=9999, help="With --kind episode: the test index.")] = None,
     algorithm: Annotated[Optional[str], typer.Option(help="With --kind episode: the algorithm.", autocompletion=_complete(ALGORITHMS))] = None,
     output: Annotated[Optional[str], typer.Option("--output", "-o", metavar="FILE", help="PNG or SVG file (default: campaign-ID-KIND.png).")] = None,
@@ -292,14 +295,14 @@ def plot(
     if not output.lower().endswith((".png", ".svg")):
         fail(f"--output expects a .png or .svg file name, got {output!r}", EXIT_USAGE)
     fmt = "svg" if output.lower().endswith(".svg") else "png"
-    if kind in ("dr", "pod"):
+    if kind in ("dr", "pod", "reliability"):
         path = f"/campaigns/{campaign_id}/plots/{kind}"
     elif kind == "episode":
         if test is None or algorithm is None:
             fail("--kind episode needs --test K and --algorithm NAME", EXIT_USAGE)
         path = f"/campaigns/{campaign_id}/tests/{test}/{algorithm}/plot"
     else:
-        fail(f"--kind must be dr, pod or episode, got {kind!r}", EXIT_USAGE)
+        fail(f"--kind must be dr, pod, reliability or episode, got {kind!r}", EXIT_USAGE)
     r = Client(api, token).response("GET", path, params={"format": fmt})
     write_file(r.content, output)
     print(f"{kind} plot written to {output}")

@@ -76,6 +76,33 @@ def dr_table(results: dict[str, Any]) -> Table:
     return table
 
 
+def confidence_table(results: dict[str, Any]) -> Table | None:
+    """Calibration (and early decision) per algorithm, when the results carry them."""
+    blocks = results["algorithms"]
+    if not any("calibration" in b or "decision" in b for b in blocks.values()):
+        return None
+    decided = any("decision" in b for b in blocks.values())
+    title = "Confidence: calibration" + (f" and decision at {results.get('stop_confidence')}" if decided else "")
+    table = Table(title=title)
+    table.add_column("algorithm", no_wrap=True)
+    for col in ("mean conf.", "ECE final", "ECE all") + (("accuracy", "95% CI", "median", "p90", "undecided") if decided else ()):
+        table.add_column(col, justify="right")
+
+    def f(v: Any, fmt: str = "{:.3f}") -> str:
+        return "—" if v is None else fmt.format(v)
+
+    for name, b in blocks.items():
+        cal = b.get("calibration") or {}
+        row = [name, f(cal.get("confidence_final")), f(cal.get("ece_final")), f(cal.get("ece_all"))]
+        if decided:
+            d = b.get("decision") or {}
+            lo, hi = d.get("accuracy_ci95") or (None, None)
+            row += [f(d.get("accuracy")), "—" if lo is None else f"{lo:.3f}–{hi:.3f}", f(d.get("median_s"), "{:g} s"),
+                    f(d.get("p90_s"), "{:g} s"), f(d.get("undecided"))]
+        table.add_row(*row)
+    return table
+
+
 def emit_results(results: dict[str, Any], plot: str | None, as_json: bool) -> None:
     """Write the DR plot if asked, then print the results: one JSON line, or the table."""
     if plot:
@@ -95,6 +122,9 @@ def emit_results(results: dict[str, Any], plot: str | None, as_json: bool) -> No
 
 def print_results(results: dict[str, Any]) -> None:
     stdout.print(dr_table(results))
+    confidence = confidence_table(results)
+    if confidence is not None:
+        stdout.print(confidence)
     pod = results["pod"]
     line = f"POD regression R² {pod['r2']:.4f} (trained in {pod['train_seconds']:.2f} s)"
     if results.get("steps_per_second"):

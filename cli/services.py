@@ -122,7 +122,9 @@ def orchestrator(
     from ra2vipas.services.transport.runtime import configure_logging
 
     configure_logging(log_level)
-    _yield_cpu()
+    # not niced like the learner and router: the API's latency matters (issue 14: at nice 5, any
+    # nice-0 process on a busy 2-core machine pushed the read p99 past 1 s); figures are drawn by
+    # its renderer processes at nice 19 instead
     settings = OrchestratorSettings.from_sources(host=host, port=port, db_path=db, window=window, expect_rigs=expect_rigs,
                                                  token=token, zenoh=zenoh_settings(mode, connect, listen, zenoh_config))
     server = uvicorn.Server(uvicorn.Config(create_app(settings), host=settings.host, port=settings.port, log_level=log_level.lower(),
@@ -173,7 +175,7 @@ def _claim_cpu() -> None:
 
 
 def _yield_cpu(increment: int = 5) -> None:
-    """Bookkeeping services (orchestrator, learner) run at a lower priority so that on a
+    """Bookkeeping services (learner, router) run at a lower priority so that on a
     small machine the sensors and controllers, whose latency matters, get the cores first."""
     try:
         os.nice(increment)

@@ -32,8 +32,10 @@ def simulate(
     seed: Annotated[int, typer.Option(min=0, help="Campaign seed; fixes every random draw of every test.")] = 1,
     algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of: " + ", ".join(ALGORITHMS) + " (default: all).")] = None,
     overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help="Override a scenario parameter, e.g. --set n_targets=30 (repeatable; see `ra2vipas presets show paper`).")] = None,
+    stop_confidence: Annotated[float, typer.Option("--stop-confidence", min=0.0, max=0.999999, help="End each episode at the first step whose confidence reaches this, its answer final (0: off); the results then report accuracy and time to decision.")] = 0.0,
     as_json: Annotated[bool, typer.Option("--json", help="Print the results object as one JSON line (last line of stdout).")] = False,
     plot: Annotated[Optional[str], typer.Option(metavar="FILE", help="Write the DR curves with 95% bands to FILE (.png or .svg).")] = None,
+    reliability_plot: Annotated[Optional[str], typer.Option("--reliability-plot", metavar="FILE", help="Write the reliability diagram of the final confidences to FILE (.png or .svg).")] = None,
 ) -> None:
     """Run the Monte Carlo campaign in-process and print the discovery-rate table.
 
@@ -45,8 +47,9 @@ def simulate(
         scenario = build_scenario(preset, parse_overrides(overrides or []))
     except ScenarioError as err:
         fail(str(err), EXIT_USAGE)
-    if plot is not None and not plot.lower().endswith((".png", ".svg")):
-        fail(f"--plot expects a .png or .svg file name, got {plot!r}", EXIT_USAGE)
+    for option, value in (("--plot", plot), ("--reliability-plot", reliability_plot)):
+        if value is not None and not value.lower().endswith((".png", ".svg")):
+            fail(f"{option} expects a .png or .svg file name, got {value!r}", EXIT_USAGE)
 
     from ra2vipas.services.orchestrator.simulate import run_campaign
 
@@ -57,7 +60,15 @@ def simulate(
     ) as bar:
         task = bar.add_task("episodes", total=total)
         try:
-            results = run_campaign(preset, scenario, tests, seed, names, progress=lambda done, _: bar.update(task, completed=done))
+            results = run_campaign(preset, scenario, tests, seed, names, progress=lambda done, _: bar.update(task, completed=done),
+                                   stop_confidence=stop_confidence)
         except ScenarioError as err:
             fail(str(err))
+    if reliability_plot:
+        from ra2vipas.services.orchestrator.plots import write_reliability_plot
+
+        try:
+            write_reliability_plot(results, reliability_plot)
+        except OSError as err:
+            fail(f"cannot write {reliability_plot}: {err.strerror or err}")
     emit_results(results, plot, as_json)

@@ -162,8 +162,10 @@ class Stack:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         router_port = cfg.router_port or free_port()
         endpoint = self.router_endpoint = f"tcp/127.0.0.1:{router_port}"
-        # the stack sets its own RA2VIPAS_* variables; the API token is the one the user's is kept
-        base_env = {k: v for k, v in os.environ.items() if not k.startswith("RA2VIPAS_") or k == "RA2VIPAS_TOKEN"}
+        # the stack sets its own RA2VIPAS_* variables; the API token and the orchestrator's figure
+        # renderer count are the user's
+        base_env = {k: v for k, v in os.environ.items()
+                    if not k.startswith("RA2VIPAS_") or k in ("RA2VIPAS_TOKEN", "RA2VIPAS_PLOT_WORKERS")}
         base_env.update({
             "RA2VIPAS_ZENOH_MODE": cfg.zenoh_mode,
             "RA2VIPAS_ZENOH_CONNECT": endpoint,

@@ -21,6 +21,18 @@ from ra2vipas.services.sensors.world import GroundTruth, SimulatedPlatform
 SMALL = {"steps": 40, "n_train": 300}
 
 
+def untimed(results: dict) -> dict:
+    """A results object without what depends on the wall clock (speeds, latencies, training
+    time), so two runs of the same campaign compare equal value for value."""
+    import json
+
+    out = json.loads(json.dumps(results))
+    out.pop("steps_per_second", None)
+    out.pop("latency_ms", None)
+    out["pod"].pop("train_seconds", None)
+    return out
+
+
 def small_scenario(preset: str = "paper", **overrides) -> Scenario:
     """A paper scenario shortened for the unit suite (40 steps, 300 training samples)."""
     return build_scenario(preset, {**SMALL, **overrides})
@@ -36,18 +48,11 @@ def polar_positions(ranges_m, bearings_deg) -> np.ndarray:
 def make_platform(scenario: Scenario, positions_m, tx_index: int, seed: int = 0, test_index: int = 0) -> SimulatedPlatform:
     """A ``SimulatedPlatform`` whose world is the given layout instead of a random draw.
 
-    Sets exactly the attributes ``SimulatedPlatform.__init__`` derives from its ground truth;
-    the noise streams stay those of (seed, test_index).
+    The noise streams stay those of (seed, test_index); if the scenario makes targets walk,
+    the walkers and their trajectories are drawn from that test's walk stream.
     """
-    platform = SimulatedPlatform(scenario, seed, test_index)
-    truth = GroundTruth(positions_m=np.asarray(positions_m, dtype=float).reshape(-1, 2), tx_index=int(tx_index))
-    platform.truth = truth
-    platform._bearings = truth.bearings_rad
-    platform._pod = physics.pod(scenario, truth.ranges_m)
-    platform._tx_range = truth.tx_range_m
-    platform._tx_bearing = truth.tx_bearing_rad
-    platform._iso_mean = float(physics.path_loss_dbm(scenario, truth.tx_range_m))
-    return platform
+    layout = GroundTruth(positions_m=np.asarray(positions_m, dtype=float).reshape(-1, 2), tx_index=int(tx_index))
+    return SimulatedPlatform(scenario, seed, test_index, layout=layout)
 
 
 def angle_error(a: float, b: float) -> float:

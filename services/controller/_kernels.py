@@ -163,40 +163,123 @@ def lobe_profile(hh, ho, hu, oo, ou, uu, sign, loglik, amplitude, offset):
     return best
 
 
-@njit(cache=True)
-def track_loglik(l_rf, grid_step, bearings, detections, frames, p_hat, var_model, out):
-    """l(i) = l_RF(gamma_i) + l_D(i) per track, written into ``out`` (see ``Controller``).
+@njit(cache=True, inline="always")
+def _lbeta(a: float, b: float) -> float:
+    return math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)
 
-    l_D(i) = log N(p~_i; p_hat, v_i), v_i = var_model + (p~_i (1 - p~_i) + 0.02) / n_i, is 0 for a
-    track never counted in view; l_RF is interpolated linearly on the periodic grid.
-    """
+
+@njit(cache=True, inline="always")
+def pod_evidence(k, n, alpha, beta, alpha0, beta0, outlier):
+    """log of the Bayes factor of k detections in n frames for "this target is the Tx" (its POD
+    ~ Beta(alpha, beta), predicted from the iso RSSI) against "it is another target" (its POD ~
+    Beta(alpha0, beta0)): a ratio of beta-binomial marginals, so the binomial label noise p(1-p)/n
+    (paper eq. 21) and the POD model's own uncertainty are both in it and it stays bounded."""
+    if n <= 0.0:
+        return 0.0
+    k = min(max(k, 0.0), n)
+    log_bf = (_lbeta(k + alpha, n - k + beta) - _lbeta(alpha, beta)) - (_lbeta(k + alpha0, n - k + beta0) - _lbeta(alpha0, beta0))
+    # robust: with probability ``outlier`` the POD model says nothing about this Tx (shadowing,
+    # a body in front of it, a detector that differs from the one trained): log((1-e) BF + e)
+    if outlier <= 0.0:
+        return log_bf
+    if log_bf > 0.0:
+        return log_bf + math.log((1.0 - outlier) + outlier * math.exp(-log_bf))
+    return math.log((1.0 - outlier) * math.exp(log_bf) + outlier)
+
+
+@njit(cache=True, inline="always")
+def _smeared(l_rf, grid_step, rf_weight, mean, sd):
+    """log of sum_g N(g; mean, sd^2) exp(rf_weight l_RF(g)) dg and the g maximising the integrand."""
     M = l_rf.size
-    for i in range(bearings.size):
-        n = frames[i]
-        if n > 0:
-            p = min(max(detections[i] / n, 0.0), 1.0)
-            var = var_model + (p * (1.0 - p) + 0.02) / n
-            l_d = -0.5 * (p - p_hat) ** 2 / var - 0.5 * math.log(TWO_PI * var)
-        else:
-            l_d = 0.0
-        pos = ((bearings[i] + math.pi) / grid_step) % M
-        lo = int(math.floor(pos)) % M
-        frac = pos - math.floor(pos)
-        out[i] = l_rf[lo] * (1.0 - frac) + l_rf[(lo + 1) % M] * frac + l_d
+    pos = ((mean + math.pi) / grid_step) % M
+    half = min(int(4.0 * sd / grid_step) + 1, M // 2)
+    centre = int(math.floor(pos + 0.5)) % M
+    shift = pos - math.floor(pos + 0.5)
+    best = -1e300
+    arg = centre
+    for d in range(-half, half + 1):
+        off = (d - shift) * grid_step
+        v = rf_weight * l_rf[(centre + d) % M] - 0.5 * off * off / (sd * sd)
+        if v > best:
+            best = v
+            arg = (centre + d) % M
+    total = 0.0
+    for d in range(-half, half + 1):
+        off = (d - shift) * grid_step
+        total += math.exp(rf_weight * l_rf[(centre + d) % M] - 0.5 * off * off / (sd * sd) - best)
+    return best + math.log(total * grid_step / (math.sqrt(TWO_PI) * sd)), -math.pi + arg * grid_step
+
+
+@njit(cache=True)
+def track_logpost(l_rf, track_rf, grid_step, rf_weight, means, sds, weights, detections, frames, alpha, beta, alpha0, beta0,
+                  outlier, out, where):
+    """Unnormalised log-posterior of "track i is the Tx" and where that Tx is now.
+
+    A track's bearing is a mixture (its IMM models: ``means``, ``sds``, ``weights``, shape
+    (n, 2)). A component known to a grid step is scored by the track's own l_RF
+    (``track_rf[i]``, which may follow its trajectory); a wider one integrates rf_weight * l_RF
+    over its bearing uncertainty (a walker the camera has not seen for a while may be anywhere
+    near its prediction: Rx(dir) says where). ``where[i]`` is the bearing of the track's most
+    probable component (the maximiser of its integrand for a wide one). Plus ``pod_evidence``
+    of its detection counts."""
+    M = l_rf.size
+    wide_best = -1e300
+    wide_at = 0.0
+    comp = np.empty(2)
+    spot = np.empty(2)
+    for i in range(means.shape[0]):
+        top = -1e300
+        for a in range(2):
+            if weights[i, a] <= 1e-3:  # a model this unlikely moves nothing (and costs a window of work)
+                comp[a] = -1e300
+                spot[a] = means[i, a]
+                continue
+            if sds[i, a] < grid_step:
+                comp[a] = rf_weight * track_rf[i]
+                spot[a] = means[i, a]
+            elif sds[i, a] > 1.0:  # lost: anywhere on the circle, as far as the track can tell
+                if wide_best < -1e299:
+                    total = 0.0
+                    top_j = 0
+                    for j in range(M):
+                        if l_rf[j] > l_rf[top_j]:
+                            top_j = j
+                    for j in range(M):
+                        total += math.exp(rf_weight * (l_rf[j] - l_rf[top_j]))
+                    wide_best = rf_weight * l_rf[top_j] + math.log(total / M)
+                    wide_at = -math.pi + top_j * grid_step
+                comp[a] = wide_best
+                spot[a] = wide_at
+            else:
+                comp[a], spot[a] = _smeared(l_rf, grid_step, rf_weight, means[i, a], sds[i, a])
+            comp[a] += math.log(weights[i, a])
+            top = max(top, comp[a])
+        if top <= -1e299:  # both models negligible (cannot happen with weights summing to 1)
+            comp[0] = rf_weight * track_rf[i]
+            top = comp[0]
+        rf = top + math.log(math.exp(comp[0] - top) + math.exp(comp[1] - top))
+        where[i] = spot[0] if comp[0] >= comp[1] else spot[1]
+        out[i] = rf + pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
     return out
 
 
 @njit(cache=True)
-def best_missed(l_rf, view_frames, log_miss):
-    """max and argmax over the grid of l_RF(gamma) + n_view(gamma) log(1 - p_hat)."""
-    best = -1e300
-    arg = 0
+def missed_logdensity(l_rf, rf_weight, miss_stand, miss_walk, walks, log_prior, outlier, out):
+    """Log-posterior of "the Tx is a target not detected (where it is now), at grid bearing
+    gamma": rf_weight * l_RF(gamma) + log P(no detection in the frames that looked there | the
+    Tx's POD) + the log prior of such a target in that grid cell. A Tx that stands was missed
+    in every frame ever taken there (``miss_stand``), one that walks only in the recent ones
+    (``miss_walk``): mixed with probability ``walks``; with probability ``outlier`` the miss
+    says nothing (hidden behind someone, or the POD model is off)."""
     for j in range(l_rf.size):
-        v = l_rf[j] + view_frames[j] * log_miss
-        if v > best:
-            best = v
-            arg = j
-    return best, arg
+        stand = miss_stand[j]
+        walk = miss_walk[j]
+        top = max(stand, walk)
+        miss = top + math.log((1.0 - walks) * math.exp(stand - top) + walks * math.exp(walk - top))
+        if outlier > 0.0:
+            miss = math.log((1.0 - outlier) * math.exp(miss) + outlier)
+        out[j] = rf_weight * l_rf[j] + miss + log_prior
+    return out
 
 
 @njit(cache=True)

@@ -22,6 +22,7 @@ control step costs O(n M) for n samples and M grid points, never an O(n^3) refit
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 
@@ -166,3 +167,95 @@ class LobeGP:
         return float(_kernels.lobe_mean_at(s, self.x_[:n], self._Li[:n, :n], self._u[:n], self._o[:n],
                                            np.ascontiguousarray(self._H[:n, centre_index]), float(self.grid[centre_index]),
                                            A, c, self.lobe_width, self.residual_length_scale, self.residual_var))
+
+
+class RecentLobe:
+    """Rx(dir)'s lobe fitted to recent samples only: for a Tx that walks.
+
+    The same model as ``LobeGP`` without the residual GP (white noise), each sample weighted by
+    lambda^(age) with lambda = exp(-T_RF / tau): recursive weighted least squares with a
+    forgetting factor (Ljung & Soederstroem 1983), kept as discounted sufficient statistics per
+    candidate centre on the grid, so a step costs O(M). The profile log-likelihood over the
+    centre then says where the Tx is *now*, not where it was on average.
+    """
+
+    def __init__(self, grid: CircleGrid, noise_var: float, lobe_width: float, lobe_sign: int, memory_s: float,
+                 rf_period_s: float) -> None:
+        self.circle = grid
+        self.noise_var = float(noise_var)
+        self.lobe_width = float(lobe_width)
+        self.lobe_sign = 1 if lobe_sign >= 0 else -1
+        self.forget = math.exp(-rf_period_s / memory_s)
+        M = grid.size
+        self._hh, self._h, self._hz = np.zeros(M), np.zeros(M), np.zeros(M)
+        self._w = self._z = self._zz = 0.0
+        # the recent samples (weights beyond exp(-6) dropped), to start a new track's statistics
+        self._recent: deque = deque(maxlen=max(1, int(math.ceil(6.0 * memory_s / rf_period_s))))
+        self._stats = np.zeros((0, 3))  # per followed track: discounted (sum h^2, sum h, sum h z)
+        self._rows: dict[int, int] = {}  # track id -> row of _stats
+
+    def add(self, s: float, z: float) -> None:
+        """Add the sample z taken at pan s; older samples weigh lambda less each step. O(M)."""
+        lam = self.forget
+        h = self.circle.kernel_row(s, self.lobe_width)
+        self._hh *= lam
+        self._hh += h * h
+        self._h *= lam
+        self._h += h
+        self._hz *= lam
+        self._hz += h * z
+        self._w = lam * self._w + 1.0
+        self._z = lam * self._z + z
+        self._zz = lam * self._zz + z * z
+        self._recent.append((s, z))
+
+    def follow(self, ids, bearings) -> None:
+        """Update, after ``add``, the statistics of "the lobe follows track id": its centre was the
+        track's bearing when each sample was taken (a track met for the first time is taken to
+        have stood where it is over the recent samples). Tracks no longer listed are forgotten."""
+        lam = self.forget
+        s, z = self._recent[-1]
+        g = np.asarray(bearings, dtype=float)
+        inv_w2 = 1.0 / (self.lobe_width * self.lobe_width)
+        a = np.sin(0.5 * (s - g))
+        h = np.exp(-2.0 * a * a * inv_w2)
+        rows = np.fromiter((self._rows.get(tid, -1) for tid in ids), dtype=np.int64, count=len(ids))
+        stats = np.empty((len(ids), 3))
+        old = rows >= 0
+        stats[old] = lam * self._stats[rows[old]] + np.stack([h[old] * h[old], h[old], h[old] * z], axis=1)
+        new = np.flatnonzero(~old)
+        if new.size:  # backfill over the recent samples, newest first
+            past = np.asarray(self._recent, dtype=float)[::-1]  # (R, 2): pan, z
+            w = lam ** np.arange(past.shape[0])
+            ah = np.sin(0.5 * (past[:, 0][:, None] - g[new][None, :]))
+            hh = np.exp(-2.0 * ah * ah * inv_w2)  # (R, len(new))
+            stats[new] = np.stack([w @ (hh * hh), w @ hh, (w * past[:, 1]) @ hh], axis=1)
+        self._stats = stats
+        self._rows = {tid: j for j, tid in enumerate(ids)}
+
+    def follow_profile(self, ids) -> np.ndarray:
+        """Profile log-likelihood of "the lobe followed track id" for each id (see ``follow``)."""
+        stats = self._stats[[self._rows[tid] for tid in ids]].reshape(-1, 3)
+        n = stats.shape[0]
+        loglik, A, c = np.empty(n), np.empty(n), np.empty(n)
+        if n:
+            inv = 1.0 / self.noise_var
+            _kernels.lobe_profile(stats[:, 0] * inv, stats[:, 1] * inv, stats[:, 2] * inv, self._w * inv, self._z * inv,
+                                  self._zz * inv, float(self.lobe_sign), loglik, A, c)
+        return loglik
+
+    def profile(self) -> np.ndarray:
+        """Profile log-likelihood over the grid of lobe centres (white noise of ``noise_var``);
+        the best fit's centre index, amplitude and offset are kept in ``best_``."""
+        M = self.circle.size
+        loglik, A, c = np.empty(M), np.empty(M), np.empty(M)
+        inv = 1.0 / self.noise_var
+        j = _kernels.lobe_profile(self._hh * inv, self._h * inv, self._hz * inv, self._w * inv, self._z * inv, self._zz * inv,
+                                  float(self.lobe_sign), loglik, A, c)
+        self.best_ = (int(j), float(A[j]), float(c[j]))
+        return loglik
+
+    def mean(self) -> np.ndarray:
+        """The best recent lobe over the grid of pans, c + A h(s - gamma)."""
+        j, A, c = self.best_
+        return c + A * self.circle.kernel_row(float(self.circle.angles[j]), self.lobe_width)

@@ -5,7 +5,8 @@
   ``Controller`` and sends the step-0 ``Command`` with the initial pan angle;
 * ``data/<rig>/measurement``: each ``Measurement`` of step t goes through
   ``Controller.step``; the node answers with the ``Command`` for step t+1, or, after the last
-  step, publishes the episode's ``EpisodeResult`` on the result plane.
+  step (or the first whose confidence reaches ``EpisodeStart.stop_confidence``: an early,
+  final decision), publishes the episode's ``EpisodeResult`` on the result plane.
 
 Only measurements reach the controller: it subscribes to nothing on the truth plane.
 Many episodes may be in flight at once; each has its own ``Controller``.
@@ -41,6 +42,7 @@ class _Episode:
     estimates: list[float] = field(default_factory=list)
     pans: list[float] = field(default_factory=list)
     rewards: list[float] = field(default_factory=list)
+    confidences: list[float] = field(default_factory=list)
 
 
 def warm_up() -> None:
@@ -150,14 +152,18 @@ class ControllerNode:
         ep.estimates.append(decision.estimate_rad)
         ep.pans.append(m.pan_rad)
         ep.rewards.append(decision.reward)
+        ep.confidences.append(decision.confidence)
         ep.next_step = m.step + 1
-        if ep.next_step < sc.steps:
+        stop = ep.start.stop_confidence
+        decided = stop > 0.0 and decision.confidence >= stop
+        if ep.next_step < sc.steps and not decided:
             command = dump(Command(episode_id=m.episode_id, step=ep.next_step, pan_rad=decision.next_pan_rad))
             self.bus.publish(self._command_key, command, express=ep.start.mode is Mode.realtime)
             return
         self.episodes.pop(m.episode_id, None)
         self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(
-            episode_id=m.episode_id, rig=self.rig, estimates_rad=tuple(ep.estimates), pans_rad=tuple(ep.pans), rewards=tuple(ep.rewards))))
+            episode_id=m.episode_id, rig=self.rig, estimates_rad=tuple(ep.estimates), pans_rad=tuple(ep.pans), rewards=tuple(ep.rewards),
+            confidences=tuple(ep.confidences), decided_step=m.step if decided else None)))
 
     def close(self) -> None:
         undeclare_all(self._handles)

@@ -1,27 +1,23 @@
-"""Turning the detector's anonymous boxes into static targets with detection statistics.
+"""Turning the detector's anonymous boxes into targets in bearing, with detection statistics.
 
 The camera reports, per frame, the bearings of its boxes relative to the optical axis and
-nothing else. Targets do not move during a test (paper Sec. II), so the controller clusters
-box bearings into *tracks*: each box goes to the nearest track within a gate, one box per
-track per frame (two boxes in one frame are two targets), nearest pairs first; a box that
-fits no track opens a new one. Two tracks that come close and have (almost) never been seen
-in the same frame are one target split by noise, and are merged.
-
-For each track the tracker counts the frames in which it was well inside the field of view
-(n_i) and the detections in those frames (k_i), so p~_i = k_i / n_i estimates that target's
-POD (paper eq. 9) without ever knowing which target it is.
-
-The per-frame assignment is a small loop over boxes and tracks run thousands of times per
-second; it is compiled with numba (``ra2vipas.services.controller._kernels``).
+nothing else: no identity, no range, no score, and in a cluttered scene some boxes are false
+and some targets are hidden behind others. People may walk. ``BearingTracker`` follows every
+target in bearing (a standing/walking IMM filter per track), associates each frame's boxes to
+tracks, confirms new tracks before exposing them, and counts for each track the frames in
+which it was well inside the field of view (n_i) and the detections in those frames (k_i), so
+p~_i = k_i / n_i estimates that target's POD (paper eq. 9) without ever knowing which target
+it is.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from ra2vipas.services.controller import _kernels
+from ra2vipas.services.controller import _tracker
 
 
 def wrap(angle):
@@ -31,63 +27,164 @@ def wrap(angle):
     return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
-class DetectionTracker:
-    """Static-target tracks built from per-frame box bearings.
+@dataclass(frozen=True)
+class TrackerSettings:
+    """Tuning of the bearing tracker (angles in radians, times in seconds).
+
+    ``q_walk`` is the spectral density of a walker's angular acceleration [rad^2/s^3] (a person
+    at 1 m/s, 3 m away, turning ~30 deg/s^0.5 has |d omega/dt| ~ 0.2 rad/s^2);
+    ``q_stand`` lets a standing target's bearing drift a little [rad^2/s]; ``p_switch`` is the
+    per-step probability of starting or stopping to walk; ``tau_walk`` the memory of a walker's
+    detection counts (its POD changes with its range); ``occlusion_rad`` how close two tracks
+    must be for a missing box to be blamed on occlusion rather than counted as a miss.
+    """
+
+    q_walk: float = 0.05
+    q_stand: float = 1e-8
+    p_switch: float = 0.002
+    gate_sigmas: float = 4.0
+    tau_walk_s: float = 3.0
+    omega0: float = 0.3
+    occlusion_rad: float = math.radians(3.0)
+    max_sd_rad: float = math.radians(60.0)
+
+
+class BearingTracker:
+    """Targets in bearing from anonymous per-frame boxes: an IMM filter per track (standing or
+    walking), global-nearest-neighbour association, birth with confirmation, deletion, and the
+    detection counts (k_i detections in n_i frames well inside the field of view) from which
+    p~_i = k_i / n_i estimates target i's POD (paper eq. 9) without knowing which target it is.
+
+    Only *confirmed* tracks are exposed (``bearing``, ``detections``, ``frames_in_view``, ...):
+    a box that a clutter-prone detector reports once does not become a target.
+
+    Why not a tracking library (e.g. Stone Soup)? A control step must cost well under a
+    millisecond with dozens of tracks and hundreds of boxes; the whole step here is one
+    compiled function (``ra2vipas.services.controller._tracker``), with standard, cited algorithms.
 
     Parameters
     ----------
     fov_half_angle : float
         Camera half field of view [rad].
     bearing_noise : float
-        Standard deviation of a box bearing [rad]; sets the gate, the merge distance and the
-        margin that keeps field-of-view edges out of the counts.
+        Standard deviation of a box bearing [rad].
+    rf_period_s : float
+        T_RF, the time between steps [s].
     capacity : int
-        Most tracks kept; boxes that would open more are ignored.
+        Most tracks kept.
     """
 
-    def __init__(self, fov_half_angle: float, bearing_noise: float, capacity: int = 512, max_pans: int = 100_000) -> None:
+    def __init__(self, fov_half_angle: float, bearing_noise: float, rf_period_s: float = 0.1, capacity: int = 256,
+                 max_pans: int = 100_000, settings: TrackerSettings | None = None) -> None:
+        cfg = settings or TrackerSettings()
         sigma = max(bearing_noise, 1e-4)
         self.count_limit = fov_half_angle - 2.0 * sigma
-        self.gate = 4.0 * sigma
-        self.merge_distance = 3.0 * sigma
         self.capacity = int(capacity)
-        self._bearing = np.zeros(self.capacity)
-        self._boxes = np.zeros(self.capacity)
-        self._detections = np.zeros(self.capacity)
-        self._frames_in_view = np.zeros(self.capacity)
-        self._together = np.zeros((self.capacity, self.capacity))
+        C = self.capacity
+        self._prm = np.zeros(12)
+        prm = self._prm
+        prm[_tracker.DT] = rf_period_s
+        prm[_tracker.SIGMA_B] = sigma
+        prm[_tracker.Q_STAND] = cfg.q_stand
+        prm[_tracker.Q_WALK] = cfg.q_walk
+        prm[_tracker.P_SWITCH] = cfg.p_switch
+        prm[_tracker.GATE2] = cfg.gate_sigmas**2
+        prm[_tracker.COUNT_LIMIT] = self.count_limit
+        prm[_tracker.OCCLUSION] = max(cfg.occlusion_rad, 4.0 * sigma)
+        prm[_tracker.TAU_WALK] = cfg.tau_walk_s
+        prm[_tracker.OMEGA0] = cfg.omega0
+        prm[_tracker.MAX_SD] = cfg.max_sd_rad
+        prm[_tracker.F_WALK] = 0.5
+        self._x = np.zeros((C, 2, 2))
+        self._P = np.zeros((C, 2, 2, 2))
+        self._mu = np.zeros((C, 2))
+        self._bearing = np.zeros(C)
+        self._var = np.zeros(C)
+        self._omega = np.zeros(C)
+        self._k = np.zeros(C)
+        self._n_frames = np.zeros(C)
+        self._nbox = np.zeros(C)
+        self._det_steps = np.zeros(C)
+        self._born = np.zeros(C, dtype=np.int64)
+        self._confirmed = np.zeros(C, dtype=np.bool_)
+        self._misses = np.zeros(C)
+        self._ids = np.zeros(C, dtype=np.int64)
+        self._next_id = np.zeros(1, dtype=np.int64)
+        self._own_views = np.zeros(360)
+        self._cells = -np.pi + 2.0 * np.pi * np.arange(360) / 360
+        self._together = np.zeros((C, C))
+        self._clutter = np.zeros(2)
         self._pans = np.zeros(max_pans)
         self._frames_per_pan = np.zeros(max_pans)
         self._n_pans = 0
         self._n = 0
+        self._view = np.arange(0)
 
     def __len__(self) -> int:
-        return self._n
+        return self._view.size
 
-    # read-only views of the live tracks
+    # read-only views of the confirmed tracks
     @property
     def bearing(self) -> np.ndarray:
-        return self._bearing[: self._n]
+        return self._bearing[self._view]
+
+    @property
+    def ids(self) -> np.ndarray:
+        """A stable id per track (kept while the track lives, never reused)."""
+        return self._ids[self._view]
+
+    @property
+    def bearing_sd(self) -> np.ndarray:
+        return np.sqrt(self._var[self._view])
+
+    @property
+    def angular_velocity(self) -> np.ndarray:
+        return self._omega[self._view]
+
+    def components(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each track's bearing as its IMM mixture: means, standard deviations and weights of the
+        (standing, walking) models, each of shape (n, 2)."""
+        v = self._view
+        return self._x[v, :, 0], np.sqrt(np.maximum(self._P[v, :, 0, 0], 0.0)), self._mu[v]
+
+    @property
+    def walking(self) -> np.ndarray:
+        """Probability that each track walks (the IMM's walking-model probability)."""
+        return self._mu[self._view, 1]
 
     @property
     def boxes(self) -> np.ndarray:
-        return self._boxes[: self._n]
+        return self._nbox[self._view]
 
     @property
     def detections(self) -> np.ndarray:
-        return self._detections[: self._n]
+        return self._k[self._view]
 
     @property
     def frames_in_view(self) -> np.ndarray:
-        return self._frames_in_view[: self._n]
+        return self._n_frames[self._view]
+
+    @property
+    def clutter_density(self) -> float:
+        """False boxes per frame per radian of the field of view: boxes of tentative tracks that
+        the camera looked at again and did not see, over every frame taken."""
+        return float(self._clutter[0] / max(self._clutter[1], 1e-9) / (2.0 * max(self.count_limit, 1e-3)))
+
+    def gate_width(self) -> np.ndarray:
+        """Width [rad] of each track's association window (for the chance that clutter falls in it)."""
+        return 2.0 * math.sqrt(self._prm[_tracker.GATE2]) * np.sqrt(self._var[self._view] + self._prm[_tracker.SIGMA_B] ** 2)
 
     def in_view(self, pan: float, bearings: np.ndarray | None = None) -> np.ndarray:
         """Mask of the tracks (or given bearings) well inside the field of view at ``pan``."""
         b = self.bearing if bearings is None else bearings
         return np.abs((b - pan + np.pi) % (2.0 * np.pi) - np.pi) <= self.count_limit
 
-    def update(self, pan: float, frames) -> None:
-        """Take the frames captured at pan angle ``pan`` (``CameraFrame`` objects)."""
+    def update(self, pan: float, frames, view_grid: np.ndarray | None = None) -> None:
+        """Take the frames captured at pan angle ``pan`` (``CameraFrame`` objects) during one step.
+
+        ``view_grid``: frames already taken of each bearing, on a uniform grid over [-pi, pi)
+        (where the camera has not looked, a box is more likely a new target); by default the
+        tracker keeps its own from the pans it was given."""
         nu = len(frames)
         if self._n_pans >= self._pans.size:
             raise ValueError("too many pans for this tracker")
@@ -97,13 +194,22 @@ class DetectionTracker:
         counts = np.fromiter((len(f.box_bearings_rad) for f in frames), dtype=np.int64, count=nu)
         total = int(counts.sum())
         boxes = np.fromiter((b for f in frames for b in f.box_bearings_rad), dtype=float, count=total)
-        self._n = _kernels.tracker_step(
-            float(pan), boxes, counts, self._bearing, self._boxes, self._detections, self._frames_in_view,
-            self._together, self._n, self._pans[: self._n_pans], self._frames_per_pan[: self._n_pans],
-            self.gate, self.merge_distance, self.count_limit,
+        self._n = _tracker.tracker_step(
+            float(pan), boxes, counts, self._n_pans - 1, self._n, self._prm, self._x, self._P, self._mu, self._bearing, self._var,
+            self._omega, self._k, self._n_frames, self._nbox, self._det_steps, self._born, self._confirmed, self._misses, self._together,
+            self._pans[: self._n_pans], self._frames_per_pan[: self._n_pans], self._clutter,
+            self._own_views if view_grid is None else view_grid, self._ids, self._next_id,
         )
+        if view_grid is None:
+            cells = np.abs((self._cells - pan + np.pi) % (2.0 * np.pi) - np.pi) <= self.count_limit
+            self._own_views[cells] += nu
+        self._view = np.flatnonzero(self._confirmed[: self._n])
+        # the share of walkers among well-observed tracks (Laplace's rule): a new track's prior
+        settled = self._det_steps[: self._n] >= 3.0
+        walkers = int(np.count_nonzero(self._mu[: self._n, 1][settled] > 0.5))
+        self._prm[_tracker.F_WALK] = min(max((1.0 + walkers) / (2.0 + int(settled.sum())), 0.02), 0.98)
 
     def detection_rate(self) -> tuple[np.ndarray, np.ndarray]:
-        """(p~_i, n_i): each track's empirical POD and the frames it rests on."""
+        """(p~_i, n_i): each track's empirical POD and the (discounted) frames it rests on."""
         n = self.frames_in_view
         return np.clip(self.detections / np.maximum(n, 1.0), 0.0, 1.0), n

@@ -64,15 +64,61 @@ class LearnedPOD:
 
 
 def detection_counts(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndarray, int]:
-    """(z_j, k_j, nu): iso RSSI, number of frames with at least one box, frames per sample."""
+    """(z_j, k_j, nu): iso RSSI, number of frames with a box of the Tx, frames per sample.
+
+    During training the camera looks at the Tx, so its boxes gather around the optical axis.
+    A detector that also reports false boxes (clutter) scatters them over the field of view: a
+    false box is not a detection of the Tx. ``training_clutter`` finds that out from the boxes
+    themselves; where there is clutter, only boxes inside the Tx's gate count, and the chance
+    that clutter alone puts a box there is corrected for by the fit (``fit_pod``).
+    """
     if not samples:
         raise ValueError("no training samples")
     nu = len(samples[0].frames)
     if nu == 0 or any(len(s.frames) != nu for s in samples):
         raise ValueError("every training sample must carry the same, non-zero number of frames")
     z = np.fromiter((s.iso_rssi_dbm for s in samples), dtype=float, count=len(samples))
-    k = np.fromiter((sum(1 for f in s.frames if f.box_bearings_rad) for s in samples), dtype=float, count=len(samples))
+    gate, _ = training_clutter(samples)
+    if gate is None:
+        k = np.fromiter((sum(1 for f in s.frames if f.box_bearings_rad) for s in samples), dtype=float, count=len(samples))
+    else:
+        k = np.fromiter((sum(1 for f in s.frames if any(abs(b) <= gate for b in f.box_bearings_rad)) for s in samples),
+                        dtype=float, count=len(samples))
     return z, k, nu
+
+
+def training_clutter(samples: list[TrainingSample]) -> tuple[float | None, float]:
+    """(gate, q): the half-width [rad] around the optical axis inside which a box counts as the
+    Tx's, and the probability that clutter alone puts a box inside it in a frame; (None, 0)
+    for a clean detector.
+
+    The Tx's boxes spread like a Gaussian around the axis (the detector's bearing noise) and
+    clutter spreads uniformly over the field of view (whose half-width is taken as the widest
+    box seen): a two-component mixture fitted by EM to the boxes' |bearing|. Where the clutter
+    component holds more than 0.01 boxes per frame (and boxes beyond 6 sigmas are seen), its
+    density gives q for the 4-sigma gate.
+    """
+    boxes = np.fromiter((b for s in samples for f in s.frames for b in f.box_bearings_rad), dtype=float)
+    frames = sum(len(s.frames) for s in samples)
+    if boxes.size < 20 or frames == 0:
+        return None, 0.0
+    a = np.abs(boxes)
+    half_fov = max(float(a.max()), 1e-6)
+    # |bearing| as a mixture: the Tx's half-normal of scale sigma (weight w) and clutter uniform
+    # on [0, half_fov]; EM from the inner boxes' spread
+    sigma = max(float(np.sqrt(np.mean(a[a <= np.quantile(a, 0.5)] ** 2))) * 2.0, 1e-5)
+    w = 0.9
+    for _ in range(50):
+        tx = w * np.sqrt(2.0 / math.pi) / sigma * np.exp(-0.5 * (a / sigma) ** 2)
+        resp = tx / (tx + (1.0 - w) / half_fov)
+        w = min(max(float(resp.mean()), 1e-6), 1.0 - 1e-9)
+        sigma = max(float(np.sqrt(np.sum(resp * a * a) / max(resp.sum(), 1e-12))), 1e-5)
+    false_per_frame = (1.0 - w) * boxes.size / frames
+    if false_per_frame <= 0.01 or (a > 6.0 * sigma).sum() / frames <= 0.01:
+        return None, 0.0
+    density = false_per_frame / (2.0 * half_fov)  # false boxes per frame per radian
+    gate = 4.0 * sigma
+    return gate, float(min(1.0 - math.exp(-density * 2.0 * gate), 0.5))
 
 
 # -- 1. latent RSSI walk ----------------------------------------------------------------------
@@ -239,6 +285,7 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
     cfg = settings or LearnerSettings()
     started = time.perf_counter()
     z, k, nu = detection_counts(samples)
+    _, q = training_clutter(samples)
     if z.size < 10:
         raise ValueError(f"need at least 10 training samples, got {z.size}")
     min_var = cfg.min_rf_noise_db**2
@@ -254,14 +301,17 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
     else:
         warped = grid.copy()
     u = (warped - warped.min()) / max(warped.max() - warped.min(), 1e-12)
-    y = k / nu
+    # a frame shows a box in the gate with probability p_obs = q + (1 - q) p_D: clutter
+    # corrected labels (q = 0 for a clean detector: the labels are the plain rates)
+    y = (k / nu - q) / (1.0 - q)
     f, theta, m0 = _fit_integral_gp(post, y, u, nu, cfg.restarts)
     std = np.full(grid.size, math.sqrt(theta[1]))
     for _ in range(cfg.em_iterations):
-        log_e = log_rssi + _binomial_loglik(k, nu, f)
+        log_e = log_rssi + _binomial_loglik(k, nu, q + (1.0 - q) * np.clip(f, 0.0, 1.0))
         e = np.exp(log_e - log_e.max(axis=1, keepdims=True))
         post = forward_backward(e, transition)
-        f, std = _gp_on_cells(u, post.T @ k, post.sum(axis=0) * nu, theta, m0)
+        trials = post.sum(axis=0) * nu
+        f, std = _gp_on_cells(u, np.clip(post.T @ k - q * trials, 0.0, None), trials * (1.0 - q), theta, m0)
 
     model = PODModel(
         rssi_grid_dbm=tuple(float(v) for v in grid),

@@ -1,7 +1,8 @@
 """Scoring: the discovery rate by the paper's association rule, and what we report beside it.
 
 * î_t = argmin_i |wrap(gamma_hat_t - gamma_i)| (paper eq. 11) and
-  DR_t = mean over tests of [î_t = i*] (eq. 28). This is the headline metric.
+  DR_t = mean over tests of [î_t = i*] (eq. 28). This is the headline metric. When targets
+  walk, gamma_i is the bearing of target i at step t (bearings of shape (T, N)).
 * The Wilson 95 % score interval of DR_t at every t.
 * Time to DR >= 0.9: the earliest time after which DR_t stays at or above 0.9 until the end.
 * "Tx in FoV at gamma_hat_t": the rate at which the true Tx would be inside the field of view
@@ -12,9 +13,12 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ra2vipas.services.protocol.messages import EpisodeTruth
 
 Z95 = 1.959963984540054
 
@@ -23,18 +27,126 @@ def wrap(angle):
     return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
+def _per_step(bearings_rad, steps: int) -> np.ndarray:
+    """Target bearings broadcastable to (T, N): static ones (N,) as one row, per-step ones
+    (T', N) with T' >= T cut to their first T rows (an episode that ended early)."""
+    b = np.asarray(bearings_rad, dtype=float)
+    if b.ndim == 1:
+        return b[None, :]
+    if b.ndim != 2 or b.shape[0] < steps:
+        raise ValueError(f"bearings must have shape (N,) or (T, N) with T >= {steps}, got {b.shape}")
+    return b[:steps]
+
+
 def associate(estimates_rad: np.ndarray, bearings_rad: np.ndarray) -> np.ndarray:
-    """î_t for every estimate (eq. 11): index of the target whose bearing is nearest."""
-    diff = np.abs(wrap(np.asarray(estimates_rad)[:, None] - np.asarray(bearings_rad)[None, :]))
+    """î_t for every estimate (eq. 11): index of the target whose bearing is nearest.
+
+    ``bearings_rad`` is (N,) for static targets or (T, N), the targets' bearings at each step t
+    of the T estimates (moving targets: the association at time t against the bearings at t).
+    """
+    est = np.asarray(estimates_rad, dtype=float)
+    diff = np.abs(wrap(est[:, None] - _per_step(bearings_rad, est.shape[0])))
     return np.argmin(diff, axis=1)
 
 
 def score_test(estimates_rad, bearings_rad, tx_index: int, fov_half_angle_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per step: whether the association picked the Tx, and whether the Tx is in the FoV at gamma_hat_t."""
+    """Per step: whether the association picked the Tx, and whether the Tx is in the FoV at
+    gamma_hat_t. ``bearings_rad``: (N,) static or (T, N) per step, as in ``associate``."""
     est = np.asarray(estimates_rad, dtype=float)
     hits = associate(est, bearings_rad) == tx_index
-    in_fov = np.abs(wrap(est - bearings_rad[tx_index])) <= fov_half_angle_rad
+    in_fov = np.abs(wrap(est - _per_step(bearings_rad, est.shape[0])[:, tx_index])) <= fov_half_angle_rad
     return hits, in_fov
+
+
+def score_episode(estimates_rad, bearings_rad, tx_index: int, fov_half_angle_rad: float, steps: int,
+                  decided_step: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per step of a whole test (``steps`` long): whether the association picked the Tx, whether
+    the Tx is in the FoV at gamma_hat_t, and î_t.
+
+    An episode that ended early with a decision at step d (``decided_step``; ``estimates_rad``
+    then holds d + 1 estimates) keeps its answer: the target it named at d is its answer at
+    every later step, so î_t = î_d, and the hit and in-FoV flags of step d hold to the end.
+    """
+    est = np.asarray(estimates_rad, dtype=float)
+    chosen = associate(est, bearings_rad)
+    hits, in_fov = score_test(est, bearings_rad, tx_index, fov_half_angle_rad)
+    if decided_step is not None and est.shape[0] < steps:
+        pad = steps - est.shape[0]
+        chosen = np.concatenate([chosen, np.full(pad, chosen[-1])])
+        hits = np.concatenate([hits, np.full(pad, hits[-1])])
+        in_fov = np.concatenate([in_fov, np.full(pad, in_fov[-1])])
+    return hits, in_fov, chosen
+
+
+def expected_calibration_error(confidence, correct, bins: int = 10) -> float | None:
+    """ECE: sum over equal-width confidence bins of (share of the samples in the bin) x |mean
+    confidence - accuracy| in it (Guo et al. 2017; 10 bins, the last one closed). None without
+    samples."""
+    conf = np.asarray(confidence, dtype=float).ravel()
+    ok = np.asarray(correct, dtype=float).ravel()
+    if conf.size == 0:
+        return None
+    idx = np.minimum((conf * bins).astype(int), bins - 1)
+    total = 0.0
+    for b in range(bins):
+        inside = idx == b
+        if inside.any():
+            total += inside.mean() * abs(conf[inside].mean() - ok[inside].mean())
+    return float(total)
+
+
+def reliability_bins(confidence, correct, bins: int = 10) -> list[dict[str, Any]]:
+    """The reliability diagram's data: per equal-width bin, its range, how many samples fell in
+    it, their mean confidence and their accuracy (None for an empty bin)."""
+    conf = np.asarray(confidence, dtype=float).ravel()
+    ok = np.asarray(correct, dtype=float).ravel()
+    idx = np.minimum((conf * bins).astype(int), bins - 1)
+    out = []
+    for b in range(bins):
+        inside = idx == b
+        n = int(inside.sum())
+        out.append({"lo": b / bins, "hi": (b + 1) / bins, "n": n,
+                    "confidence": round(float(conf[inside].mean()), 6) if n else None,
+                    "accuracy": round(float(ok[inside].mean()), 6) if n else None})
+    return out
+
+
+def decision_summary(final_hits, decided_steps, rf_period_s: float) -> dict[str, Any]:
+    """The early-decision block: accuracy of the final answers with its Wilson interval, the
+    median and 90th percentile of the time to decision (over the tests that decided), and the
+    share of tests still undecided at the horizon."""
+    hits = np.asarray(final_hits, dtype=float)
+    decided = [d for d in decided_steps if d is not None]
+    times = np.asarray([(d + 1) * rf_period_s for d in decided], dtype=float)
+    lo, hi = wilson_interval(float(hits.sum()), hits.size)
+    return {
+        "accuracy": round(float(hits.mean()), 6) if hits.size else None,
+        "accuracy_ci95": [round(lo, 6), round(hi, 6)],
+        "median_s": round(float(np.median(times)), 6) if times.size else None,
+        "p90_s": round(float(np.percentile(times, 90)), 6) if times.size else None,
+        "undecided": round(1.0 - len(decided) / hits.size, 6) if hits.size else None,
+    }
+
+
+def truth_bearings(truth: "EpisodeTruth", steps: int) -> np.ndarray | None:
+    """The bearings an episode is scored against, from its ``EpisodeTruth``: (N,) when it
+    carries no trajectories (a static world, or a v1 node), else (steps, N) with each walking
+    target's column taken from its trajectory. None if the truth is inconsistent (Tx or a
+    trajectory's index out of range, a repeated index, a trajectory not ``steps`` long)."""
+    n = len(truth.bearings_rad)
+    if not 0 <= truth.tx_index < n or len(truth.ranges_m) != n:
+        return None
+    static = np.asarray(truth.bearings_rad, dtype=float)
+    if not truth.trajectories:
+        return static
+    seen: set[int] = set()
+    out = np.repeat(static[None, :], steps, axis=0)
+    for tr in truth.trajectories:
+        if tr.index >= n or tr.index in seen or len(tr.bearings_rad) != steps or len(tr.ranges_m) != steps:
+            return None
+        seen.add(tr.index)
+        out[:, tr.index] = tr.bearings_rad
+    return out
 
 
 def wilson_interval(successes: float, trials: int, z: float = Z95) -> tuple[float, float]:
@@ -62,14 +174,30 @@ def time_to_level(dr: np.ndarray, level: float, rf_period_s: float) -> float | N
     return round((last + 2) * rf_period_s, 10)
 
 
-def summarize_algorithm(hits: np.ndarray, in_fov: np.ndarray, rf_period_s: float) -> dict[str, Any]:
-    """The per-algorithm block of the results object from per-test, per-step outcomes (tests, T)."""
+def summarize_algorithm(hits: np.ndarray, in_fov: np.ndarray, rf_period_s: float, confidences: np.ndarray | None = None,
+                        decided_steps: list | None = None) -> dict[str, Any]:
+    """The per-algorithm block of the results object from per-test, per-step outcomes (tests, T).
+
+    With per-step ``confidences`` (tests, T) it carries ``calibration``: the expected calibration
+    error of the final confidence against the final hit (``ece_final``) and of every step's
+    confidence against that step's hit (``ece_all``); with ``decided_steps`` (early decisions,
+    None for a test that did not decide) it carries ``decision`` (``decision_summary``).
+    """
     hits = np.asarray(hits, dtype=float)
     in_fov = np.asarray(in_fov, dtype=float)
     tests = hits.shape[0]
     successes = hits.sum(axis=0)
     dr = successes / tests
     bands = [wilson_interval(float(k), tests) for k in successes]
+    extra: dict[str, Any] = {}
+    if confidences is not None and np.size(confidences):
+        conf = np.asarray(confidences, dtype=float)
+        extra["calibration"] = {"ece_final": _rounded(expected_calibration_error(conf[:, -1], hits[:, -1])),
+                                "ece_all": _rounded(expected_calibration_error(conf, hits)),
+                                "confidence_final": round(float(conf[:, -1].mean()), 6),
+                                "reliability": reliability_bins(conf[:, -1], hits[:, -1])}
+    if decided_steps is not None:
+        extra["decision"] = decision_summary(hits[:, -1], decided_steps, rf_period_s)
     return {
         "dr": [round(float(v), 6) for v in dr],
         "dr_final": round(float(dr[-1]), 6),
@@ -77,4 +205,9 @@ def summarize_algorithm(hits: np.ndarray, in_fov: np.ndarray, rf_period_s: float
         "dr_ci95": [[round(lo, 6), round(hi, 6)] for lo, hi in bands],
         "time_to_dr90_s": time_to_level(dr, 0.9, rf_period_s),
         "in_fov_final": round(float(in_fov[:, -1].mean()), 6),
+        **extra,
     }
+
+
+def _rounded(value: float | None) -> float | None:
+    return None if value is None else round(value, 6)

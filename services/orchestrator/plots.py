@@ -6,7 +6,9 @@
   the estimate gamma_hat_t over time.
 
 Figures are built on ``matplotlib.figure.Figure`` (never pyplot, whose global state is not
-thread-safe) and rendered one at a time under a lock: the API renders from worker threads.
+thread-safe) and rendered one at a time under a lock (``draw``), for callers that render from
+threads. The API never draws in its own process: it sends a ``PlotJob`` (plain data) to the
+renderer processes of ``ra2vipas.services.orchestrator.api.render``, which call ``draw_job``.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ import io
 import math
 import os
 import threading
-from typing import Any, Callable
+from dataclasses import dataclass
+from typing import Any, Callable, Literal
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -53,6 +56,35 @@ def dr_figure(results: dict[str, Any]) -> Figure:
                  + ("" if r2 is None else f", POD R² {r2:.3f}"))
     ax.grid(True, linestyle=":", linewidth=0.6)
     ax.legend(loc="lower right", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def reliability_figure(results: dict[str, Any]) -> Figure:
+    """Reliability diagram of the final confidences: per bin, the share of final hits against
+    the mean confidence, one line per algorithm (the diagonal is perfect calibration); ECE in
+    the legend."""
+    fig = Figure(figsize=(5.6, 5.0), dpi=120)
+    ax = fig.subplots()
+    ax.plot([0, 1], [0, 1], color="0.6", linestyle=":", linewidth=1, label="perfectly calibrated")
+    for name, block in results["algorithms"].items():
+        cal = block.get("calibration")
+        if not cal:
+            continue
+        pts = [(b["confidence"], b["accuracy"], b["n"]) for b in cal.get("reliability", []) if b["n"]]
+        if not pts:
+            continue
+        x, y, n = zip(*pts)
+        line = ax.plot(x, y, marker="o", linewidth=1.5, label=f"{LABELS.get(name, name)} (ECE {cal['ece_final']:.3f})")[0]
+        total = sum(n)
+        ax.scatter(x, y, s=[20 + 300 * k / total for k in n], color=line.get_color(), alpha=0.35)
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.02)
+    ax.set_xlabel("confidence in the final answer")
+    ax.set_ylabel("share of final answers that are the Tx")
+    ax.set_title(f"{results['preset']}: {results['tests']} tests, seed {results['seed']}")
+    ax.grid(True, linestyle=":", linewidth=0.6)
+    ax.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     return fig
 
@@ -185,10 +217,55 @@ def draw(build: Callable[[], Figure], fmt: str = "png") -> bytes:
         return render(build(), fmt)
 
 
+PlotKind = Literal["dr", "pod", "episode", "reliability"]
+
+
+@dataclass(frozen=True)
+class PlotJob:
+    """One figure to draw, as plain picklable data (what a renderer process receives).
+
+    ``data`` by ``kind``:
+
+    * ``"dr"``, ``"reliability"``: ``results`` (the results object of a finished campaign);
+    * ``"pod"``: ``scenario`` (Scenario as JSON data), ``model`` (PODModel as JSON data),
+      ``truth`` (``{"rssi_dbm", "pod"}`` or None), ``title``;
+    * ``"episode"``: ``scenario`` and ``episode`` (a finished episode row).
+    """
+
+    kind: PlotKind
+    fmt: str
+    data: dict[str, Any]
+
+
+def build_figure(job: PlotJob) -> Figure:
+    """The figure a job describes."""
+    d = job.data
+    if job.kind == "dr":
+        return dr_figure(d["results"])
+    if job.kind == "reliability":
+        return reliability_figure(d["results"])
+    if job.kind == "pod":
+        return pod_figure(Scenario.model_validate(d["scenario"]), d["model"], d["truth"], d.get("title", ""))
+    if job.kind == "episode":
+        return episode_figure(Scenario.model_validate(d["scenario"]), d["episode"])
+    raise ValueError(f"unknown figure kind {job.kind!r}")
+
+
+def draw_job(job: PlotJob) -> bytes:
+    """Build and render the figure of ``job`` (PNG or SVG bytes)."""
+    return draw(lambda: build_figure(job), job.fmt)
+
+
 def write_dr_plot(results: dict[str, Any], path: str) -> None:
     """Write the DR figure to ``path``; the format follows the extension (.png or .svg)."""
     fmt = "svg" if str(path).lower().endswith(".svg") else "png"
     write_bytes(draw(lambda: dr_figure(results), fmt), path)
+
+
+def write_reliability_plot(results: dict[str, Any], path: str) -> None:
+    """Write the reliability diagram to ``path`` (.png or .svg)."""
+    fmt = "svg" if str(path).lower().endswith(".svg") else "png"
+    write_bytes(draw(lambda: reliability_figure(results), fmt), path)
 
 
 def write_bytes(data: bytes, path: str) -> None:

@@ -17,23 +17,36 @@ rig disappears, its unfinished episodes go back to the queue and are run again f
 elsewhere: every draw of test k depends only on (seed, k), so the rerun gives the result the
 lost run would have given, and ``finish_episode`` never records a test twice. On start, the
 scheduler resumes every campaign the database says is unfinished.
+
+Trust (defence in depth, beside Zenoh's access control): an episode id carries an
+unguessable nonce, and a result, truth or timing report is accepted only on the key of the
+rig its episode was assigned to, for the attempt in flight. Anything else is dropped and
+counted (``status()["rejected"]``, shown by ``/health``).
+
+Storage faults (disk full, read-only file system): a write that fails leaves the scheduler's
+memory as it was (a finished episode keeps its result until it is recorded, an episode that
+could not be marked running goes back to the queue), stops handing out new episodes, and is
+retried with exponential backoff; when the database takes writes again everything resumes by
+itself, with nothing lost or recorded twice. ``Store.fault`` says why meanwhile (``/health``
+is 503, campaigns show it in ``error``).
 """
 
 from __future__ import annotations
 
 import logging
+import secrets
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from ra2vipas.services.learner.pod import predict, r2_score
-from ra2vipas.services.orchestrator.metrics import associate, score_test
-from ra2vipas.services.orchestrator.simulate import TestOutcome, TrainedPOD, summarize
-from ra2vipas.services.orchestrator.storage import EpisodeKey, Store
+from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
+from ra2vipas.services.orchestrator.simulate import TestOutcome, TrainedPOD, held, summarize
+from ra2vipas.services.orchestrator.storage import EpisodeKey, StorageFault, Store
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
     EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Mode, PODRequest, PODResponse,
@@ -50,6 +63,12 @@ MODEL_TIMEOUT_S = 600.0
 MODEL_ATTEMPTS = 60  # retries (every 2-10 s) while no learner answers
 EPISODE_TIMEOUT_S = 60.0  # plus twice the test's duration in realtime mode
 TIMEOUT_CHECK_S = 2.0
+HEAL_BACKOFF_S = (1.0, 30.0)  # first and longest wait between retries of a failed database write
+
+REJECTIONS = ("malformed", "not_in_flight", "wrong_rig")
+"""Why a result-plane or truth-plane message was dropped: it did not validate; its episode id
+is not one in flight (a guess, a replay, or a late duplicate); it came on another rig's key
+(or names another rig) than the one the episode was assigned to."""
 
 
 @dataclass
@@ -61,6 +80,7 @@ class _Flight:
     result: EpisodeResult | None = None
     truth: EpisodeTruth | None = None
     timing: EpisodeTiming | None = None
+    saving: bool = False  # complete: being (or waiting to be) recorded
 
 
 @dataclass
@@ -76,6 +96,7 @@ class _Run:
     running_since: float | None = None
     model_attempts: int = 0
     model_retry_at: float | None = None
+    stop_confidence: float = 0.0
 
 
 @dataclass
@@ -92,7 +113,8 @@ class _Rig:
 class Scheduler:
     """Campaign execution over the bus; every method runs on ``self.loop``'s thread."""
 
-    def __init__(self, bus: Bus, store: Store, window: int = 8, name: str = "orchestrator") -> None:
+    def __init__(self, bus: Bus, store: Store, window: int = 8, name: str = "orchestrator",
+                 heal_backoff_s: tuple[float, float] = HEAL_BACKOFF_S, tick_s: float = TIMEOUT_CHECK_S) -> None:
         self.bus = bus
         self.store = store
         self.window = max(1, int(window))
@@ -101,25 +123,92 @@ class Scheduler:
         self.learners: set[str] = set()
         self.runs: dict[str, _Run] = {}
         self.flights: dict[str, _Flight] = {}
+        self.rejected: Counter = Counter({reason: 0 for reason in REJECTIONS})
         self._order: deque[str] = deque()  # campaigns in FIFO order
+        self._deferred: list[tuple[str, Callable[[], None]]] = []  # writes to retry once the database takes them
+        self._heal_backoff = heal_backoff_s
+        self._heal_wait = heal_backoff_s[0]
+        self._heal_at: float | None = None
+        self._resumed = False
         self._handles = [
             bus.watch_alive(keys.alive_all(), lambda k, up: self.loop.post(self._on_alive, k, up)),
-            bus.subscribe(keys.episode_result_all(), lambda _k, p: self.loop.post(self._on_result, p)),
-            bus.subscribe(keys.episode_truth_all(), lambda _k, p: self.loop.post(self._on_truth, p)),
-            bus.subscribe(keys.episode_timing_all(), lambda _k, p: self.loop.post(self._on_timing, p)),
+            bus.subscribe(keys.episode_result_all(), lambda k, p: self.loop.post(self._on_result, k, p)),
+            bus.subscribe(keys.episode_truth_all(), lambda k, p: self.loop.post(self._on_truth, k, p)),
+            bus.subscribe(keys.episode_timing_all(), lambda k, p: self.loop.post(self._on_timing, k, p)),
             bus.announce(keys.alive("orchestrator", keys.check_chunk(name, "name"))),
         ]
         self.loop.post(self._resume)
         self._stop = threading.Event()
+        self._tick_s = tick_s
         self._ticker = threading.Thread(target=self._tick, name="scheduler-timeouts", daemon=True)
         self._ticker.start()
 
     def _tick(self) -> None:
-        while not self._stop.wait(TIMEOUT_CHECK_S):
+        while not self._stop.wait(self._tick_s):
             self.loop.post(self._check_timeouts)
+            self.loop.post(self._heal)
+
+    # -- storage faults -------------------------------------------------------------------------
+    @property
+    def degraded(self) -> bool:
+        """Whether writes are waiting for the database (no new episodes are handed out meanwhile)."""
+        return bool(self._deferred) or not self._resumed
+
+    def _defer(self, what: str, op: Callable[[], None], err: StorageFault | None = None) -> None:
+        """Keep a write that failed (``op`` redoes it and what follows it, raising
+        ``StorageFault`` if the database still refuses) to retry with backoff, in order."""
+        if err is not None:
+            log.error("storage fault while %s: %s; retrying", what, err)
+        if all(w != what for w, _ in self._deferred):
+            self._deferred.append((what, op))
+        if self._heal_at is None:
+            self._heal_at = time.time() + self._heal_wait
+
+    def _attempt(self, what: str, op: Callable[[], None]) -> None:
+        """Run a write (``op``) now, or after the writes already waiting, so the database sees
+        them in the order they were asked for; a failure defers it."""
+        if self._deferred:
+            self._defer(what, op)
+            return
+        try:
+            op()
+        except StorageFault as err:
+            self._defer(what, op, err)
+
+    def _heal(self) -> None:
+        """Retry the deferred writes in order, with exponential backoff; resume when all pass.
+        A fault seen elsewhere (an API write) with nothing deferred is probed the same way, so
+        ``/health`` recovers by itself."""
+        if self._heal_at is None and self.store.fault is not None and self._resumed:
+            self._defer("checking the database", self.store.probe_write)
+        if self._heal_at is None or time.time() < self._heal_at:
+            return
+        try:
+            if not self.store.available:
+                self.store.reopen()
+            if not self._resumed:
+                self._resume()
+                if not self._resumed:
+                    raise StorageFault("resume deferred")
+            while self._deferred:
+                what, op = self._deferred[0]
+                op()
+                self._deferred.pop(0)
+        except StorageFault as err:
+            self._heal_wait = min(self._heal_wait * 2.0, self._heal_backoff[1])
+            self._heal_at = time.time() + self._heal_wait
+            log.warning("database still failing (%s); next retry in %.0f s", err, self._heal_wait)
+            return
+        log.info("database writable again: resuming")
+        self._heal_at = None
+        self._heal_wait = self._heal_backoff[0]
+        self._dispatch()
+        for run in list(self.runs.values()):
+            self._maybe_finish(run)
 
     def _check_timeouts(self) -> None:
-        """Requeue episodes unfinished far too long after they were sent (a lost message, a hung rig)."""
+        """Requeue episodes unfinished far too long after they were sent (a lost message, a hung
+        rig); an episode that finished and only waits for the database is not one."""
         now = time.time()
         for run in list(self.runs.values()):
             if run.model_retry_at is not None and now >= run.model_retry_at:
@@ -127,6 +216,8 @@ class Scheduler:
         for eid, flight in list(self.flights.items()):
             run = self.runs.get(flight.key.campaign_id)
             if run is None:
+                continue
+            if flight.result is not None and flight.truth is not None:
                 continue
             limit = EPISODE_TIMEOUT_S + (2.0 * run.scenario.steps * run.scenario.rf_period_s if run.mode is Mode.realtime else 0.0)
             if now - flight.started > limit:
@@ -151,27 +242,48 @@ class Scheduler:
 
     # -- campaign lifecycle ---------------------------------------------------------------------
     def _resume(self) -> None:
-        for c in self.store.active_campaigns():
-            reset = self.store.reset_running(c["id"])
-            if reset:
-                log.info("campaign %s: %d interrupted episodes requeued", c["id"], reset)
+        """Start every campaign the database says is unfinished (after a restart). If the
+        database cannot be read or written yet, the healer calls this again later."""
+        if self._resumed:
+            return
+        try:
+            active = self.store.active_campaigns()
+            for c in active:
+                reset = self.store.reset_running(c["id"])
+                if reset:
+                    log.info("campaign %s: %d interrupted episodes requeued", c["id"], reset)
+        except StorageFault as err:
+            log.error("cannot resume campaigns yet: %s; retrying", err)
+            if self._heal_at is None:
+                self._heal_at = time.time() + self._heal_wait
+            return
+        self._resumed = True
+        for c in active:
             self._start(c["id"])
 
     def _start(self, cid: str) -> None:
+        if cid in self.runs or not self._resumed:
+            return  # not resumed yet: _resume starts it (it is in the database as queued)
+        self._attempt(f"starting campaign {cid}", lambda: self._start_now(cid))
+
+    def _start_now(self, cid: str) -> None:
         if cid in self.runs:
             return
         c = self.store.campaign(cid)
         if c is None or c["status"] not in ("queued", "training", "running"):
             return
         scenario = Scenario.model_validate(c["scenario"])
-        run = _Run(id=cid, scenario=scenario, seed=c["seed"], mode=Mode(c["mode"]))
-        self.runs[cid] = run
-        self._order.append(cid)
+        run = _Run(id=cid, scenario=scenario, seed=c["seed"], mode=Mode(c["mode"]), stop_confidence=c.get("stop_confidence") or 0.0)
         if c["pod_job"] is not None:  # resumed after a restart: the model was already trained and scored
             run.pod = TrainedPOD(model=None, r2=c["pod_r2"], train_seconds=c["pod_train_seconds"] or 0.0)
-            self._go(run)
+            self._go_now(run)
+            self.runs[cid] = run
+            self._order.append(cid)
+            self._after_go(run)
             return
         self.store.set_campaign(cid, status="training", started_at=c["started_at"] or time.time())
+        self.runs[cid] = run
+        self._order.append(cid)
         self._request_model(run)
 
     def _request_model(self, run: _Run) -> None:
@@ -207,20 +319,31 @@ class Scheduler:
         if truth is not None:
             r2 = round(float(r2_score(np.asarray(truth.pod), predict(response.model, np.asarray(truth.rssi_dbm)))), 6)
             truth_data = {"rssi_dbm": list(truth.rssi_dbm), "pod": list(truth.pod)}
-        run.pod = TrainedPOD(model=response.model, r2=r2, train_seconds=response.train_seconds)
-        self.store.set_campaign(cid, pod_job=response.job_id, pod_r2=r2, pod_train_seconds=response.train_seconds)
-        self.store.set_pod_artifacts(cid, model=response.model.model_dump(mode="json"), truth=truth_data)
-        self._go(run)
 
-    def _go(self, run: _Run) -> None:
+        def record() -> None:
+            if cid not in self.runs:
+                return
+            self.store.set_pod_artifacts(cid, model=response.model.model_dump(mode="json"), truth=truth_data)
+            self.store.set_campaign(cid, pod_job=response.job_id, pod_r2=r2, pod_train_seconds=response.train_seconds)
+            run.pod = TrainedPOD(model=response.model, r2=r2, train_seconds=response.train_seconds)
+            self._go_now(run)
+            self._after_go(run)
+
+        self._attempt(f"recording the POD model of campaign {cid}", record)
+
+    def _go_now(self, run: _Run) -> None:
+        """Load the campaign's pending episodes and mark it running (raises ``StorageFault``)."""
         run.pending = deque(self.store.pending_episodes(run.id))
-        run.running_since = time.time()
         self.store.set_campaign(run.id, status="running")
+        run.running_since = time.time()
+
+    def _after_go(self, run: _Run) -> None:
         self._dispatch()
         self._maybe_finish(run)
 
     def _cancel(self, cid: str) -> None:
-        self.store.cancel_campaign(cid)  # no-op if it already finished (e.g. failed just before)
+        # a no-op if it already finished (e.g. failed just before, or the API cancelled it)
+        self._attempt(f"cancelling campaign {cid}", lambda: self.store.cancel_campaign(cid))
         run = self.runs.pop(cid, None)
         if cid in self._order:
             self._order.remove(cid)
@@ -233,13 +356,20 @@ class Scheduler:
 
     def _fail(self, run: _Run, error: str) -> None:
         log.error("campaign %s failed: %s", run.id, error)
-        self.store.set_campaign(run.id, status="failed", error=error[:2000], finished_at=time.time())
+
+        def record() -> None:
+            self.store.set_campaign(run.id, status="failed", error=error[:2000], finished_at=time.time())
+
+        self._attempt(f"recording the failure of campaign {run.id}", record)
         self._cancel(run.id)
 
     # -- dispatch -------------------------------------------------------------------------------
     def _dispatch(self) -> None:
         """Fill every live rig up to its window. A realtime episode runs alone on its rig: a
-        real platform can only point one way at a time."""
+        real platform can only point one way at a time. Nothing is handed out while database
+        writes are waiting: an episode is marked running before it is sent."""
+        if self.degraded:
+            return
         for rig_name in self.live_rigs():
             rig = self.rigs[rig_name]
             while len(rig.in_flight) < self.window:
@@ -249,14 +379,19 @@ class Scheduler:
                 if item is None:
                     break
                 run, key = item
-                attempt = self.store.attempt_of(key) + 1
-                eid = f"{key.campaign_id}.{key.test_index}.{key.algorithm}.{attempt}"
-                self.store.mark_running(key, rig_name, attempt)
+                try:
+                    attempt = self.store.attempt_of(key) + 1
+                    self.store.mark_running(key, rig_name, attempt)
+                except StorageFault as err:
+                    run.pending.appendleft(key)
+                    self._defer("handing out episodes", self.store.probe_write, err)
+                    return
+                eid = episode_id(key, attempt)
                 self.flights[eid] = _Flight(key=key, rig=rig_name, attempt=attempt, started=time.time())
                 rig.in_flight.add(eid)
                 self.bus.publish(keys.episode_control(rig_name), dump(EpisodeStart(
                     episode_id=eid, campaign_id=key.campaign_id, test_index=key.test_index, algorithm=key.algorithm,
-                    seed=run.seed, scenario=run.scenario, mode=run.mode)))
+                    seed=run.seed, scenario=run.scenario, mode=run.mode, stop_confidence=run.stop_confidence)))
 
     def _next_episode(self, allow_realtime: bool) -> tuple[_Run, EpisodeKey] | None:
         for cid in list(self._order):
@@ -274,83 +409,122 @@ class Scheduler:
         return run is not None and run.mode is Mode.realtime
 
     # -- results --------------------------------------------------------------------------------
-    def _on_result(self, payload: bytes) -> None:
-        msg = decode_or_drop(EpisodeResult, payload, "EpisodeResult", log)
+    def _accepted(self, schema, key: str, payload: bytes):
+        """The message and its flight if it validates, its episode is in flight and it came on
+        the key of the rig that episode was assigned to; else None after counting why."""
+        msg = decode_or_drop(schema, payload, schema.__name__, log)
         if msg is None:
-            return
+            self.rejected["malformed"] += 1
+            return None
         flight = self.flights.get(msg.episode_id)
         if flight is None:
+            self.rejected["not_in_flight"] += 1
+            log.debug("dropping %s of episode %s: not in flight", schema.__name__, msg.episode_id)
+            return None
+        if keys.rig_of(key) != flight.rig or getattr(msg, "rig", flight.rig) != flight.rig:
+            self.rejected["wrong_rig"] += 1
+            log.warning("dropping %s of episode %s on %s: that episode runs on rig %s", schema.__name__, msg.episode_id, key,
+                        flight.rig)
+            return None
+        return msg, flight
+
+    def _on_result(self, key: str, payload: bytes) -> None:
+        accepted = self._accepted(EpisodeResult, key, payload)
+        if accepted is None:
             return
+        msg, flight = accepted
         if msg.status == "failed":
             log.warning("episode %s failed on %s: %s", msg.episode_id, flight.rig, msg.error)
             self._requeue(msg.episode_id, count_attempt=True, reason=msg.error)
             return
-        flight.result = msg
+        if flight.result is None:
+            flight.result = msg
         self._complete(msg.episode_id)
 
-    def _on_truth(self, payload: bytes) -> None:
-        self._attach(EpisodeTruth, payload, "truth")
+    def _on_truth(self, key: str, payload: bytes) -> None:
+        self._attach(EpisodeTruth, key, payload, "truth")
 
-    def _on_timing(self, payload: bytes) -> None:
-        self._attach(EpisodeTiming, payload, "timing")
+    def _on_timing(self, key: str, payload: bytes) -> None:
+        self._attach(EpisodeTiming, key, payload, "timing")
 
-    def _attach(self, schema: type[EpisodeTruth] | type[EpisodeTiming], payload: bytes, part: str) -> None:
-        """Keep the episode's truth or timing report with its flight; complete it if that was
-        the last part missing."""
-        msg = decode_or_drop(schema, payload, schema.__name__, log)
-        if msg is None:
+    def _attach(self, schema: type[EpisodeTruth] | type[EpisodeTiming], key: str, payload: bytes, part: str) -> None:
+        """Keep the episode's truth or timing report with its flight (the first one that
+        arrives on the right key); complete it if that was the last part missing."""
+        accepted = self._accepted(schema, key, payload)
+        if accepted is None:
             return
-        flight = self.flights.get(msg.episode_id)
-        if flight is not None:
+        msg, flight = accepted
+        if getattr(flight, part) is None:
             setattr(flight, part, msg)
-            self._complete(msg.episode_id)
+        self._complete(msg.episode_id)
 
     def _complete(self, eid: str) -> None:
         flight = self.flights.get(eid)
         run = self.runs.get(flight.key.campaign_id) if flight else None
-        if flight is None or flight.result is None or flight.truth is None:
+        if flight is None or flight.result is None or flight.truth is None or flight.saving:
             return
         if run is not None and run.mode is Mode.realtime and flight.timing is None:
             return
-        steps = run.scenario.steps if run else len(flight.result.estimates_rad)
-        res, truth = flight.result, flight.truth
-        self._drop_flight(eid)
         if run is None:
+            self._drop_flight(eid)
             return
-        if len(res.estimates_rad) != steps or truth.tx_index >= len(truth.bearings_rad):
+        res, truth = flight.result, flight.truth
+        steps = run.scenario.steps
+        bearings = truth_bearings(truth, steps)  # (N,), or (steps, N) when targets walk
+        decided = res.decided_step
+        expected = steps if decided is None else decided + 1
+        if (len(res.estimates_rad) != expected or expected > steps or bearings is None
+                or (decided is not None and run.stop_confidence <= 0.0)
+                or (res.confidences and len(res.confidences) != expected)):
             log.warning("episode %s: inconsistent result (%d estimates for %d steps); rerun", eid, len(res.estimates_rad), steps)
-            self.store.mark_pending(flight.key)
-            run.pending.appendleft(flight.key)
-            self._dispatch()
+            self._requeue(eid, count_attempt=True, reason="inconsistent result")
             return
-        bearings = np.asarray(truth.bearings_rad)
-        estimates = np.asarray(res.estimates_rad)
-        hits, in_fov = score_test(estimates, bearings, truth.tx_index, run.scenario.fov_half_angle_rad)
-        self.store.finish_episode(
-            flight.key, hits=[bool(h) for h in hits], in_fov=[bool(f) for f in in_fov], estimates=list(res.estimates_rad),
-            pans=list(res.pans_rad), rewards=list(res.rewards), chosen=[int(i) for i in associate(estimates, bearings)],
+        hits, in_fov, chosen = score_episode(np.asarray(res.estimates_rad), bearings, truth.tx_index,
+                                             run.scenario.fov_half_angle_rad, steps, decided)
+        record = dict(
+            hits=[bool(h) for h in hits], in_fov=[bool(f) for f in in_fov], estimates=list(res.estimates_rad),
+            pans=list(res.pans_rad), rewards=list(res.rewards), chosen=[int(i) for i in chosen],
             tx_index=truth.tx_index, bearings=list(truth.bearings_rad), ranges=list(truth.ranges_m),
             latencies=list(flight.timing.latencies_ms) if flight.timing else None,
+            trajectories=[t.model_dump(mode="json") for t in truth.trajectories] or None,
+            confidences=list(res.confidences) or None, decided_step=decided,
         )
-        self._dispatch()
-        self._maybe_finish(run)
+
+        def save() -> None:
+            self.store.finish_episode(flight.key, **record)  # records nothing if the test is already recorded
+            self._drop_flight(eid, stop_reason="decided early" if decided is not None else None)  # the sensors forget it
+            if run.id in self.runs:
+                self._dispatch()
+                self._maybe_finish(run)
+
+        flight.saving = True  # a duplicate result must not record it twice meanwhile
+        self._attempt(f"recording episode {eid}", save)
 
     def _maybe_finish(self, run: _Run) -> None:
-        if run.pending or any(f.key.campaign_id == run.id for f in self.flights.values()):
+        if run.id not in self.runs or run.pending or any(f.key.campaign_id == run.id for f in self.flights.values()):
+            return
+        self._attempt(f"finishing campaign {run.id}", lambda: self._finish_now(run))
+
+    def _finish_now(self, run: _Run) -> None:
+        """Reduce a campaign whose every episode is recorded to its results object (raises
+        ``StorageFault``)."""
+        if run.id not in self.runs or run.pending or any(f.key.campaign_id == run.id for f in self.flights.values()):
             return
         c = self.store.campaign(run.id)
         if c is None or c["progress"]["done"] < c["progress"]["total"]:
             return
         rows = self.store.episode_rows(run.id)
         outcomes: dict[str, list[TestOutcome]] = {a: [] for a in c["algorithms"]}
+        steps = run.scenario.steps
         for row in rows:
             outcomes[row["algorithm"]].append(TestOutcome(
                 algorithm=row["algorithm"], test_index=row["test_index"], hits=[bool(h) for h in row["hits"]],
-                in_fov=[bool(f) for f in row["in_fov"]]))
+                in_fov=[bool(f) for f in row["in_fov"]], confidences=held(row.get("confidences") or [], steps),
+                decided_step=row.get("decided_step")))
         finished = time.time()
         elapsed = finished - (run.running_since or finished)
-        sps = (len(rows) * run.scenario.steps / elapsed) if elapsed > 0 else None
-        results = summarize(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, outcomes, sps)
+        sps = (sum(len(row["estimates"]) for row in rows) / elapsed) if elapsed > 0 else None
+        results = summarize(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, outcomes, sps, run.stop_confidence)
         latencies = [v for row in rows for v in (row.get("latencies") or [])]
         if latencies:
             results["latency_ms"] = {"p50": round(float(np.percentile(latencies, 50)), 4), "p99": round(float(np.percentile(latencies, 99)), 4)}
@@ -378,6 +552,9 @@ class Scheduler:
         if was_live and not rig.live:
             log.warning("rig %s lost (%s gone); requeueing %d episodes", name, role, len(rig.in_flight))
             for eid in list(rig.in_flight):
+                flight = self.flights.get(eid)
+                if flight is not None and flight.saving:
+                    continue  # finished: only waiting for the database
                 self._requeue(eid, count_attempt=False, reason=f"rig {name} lost")
         if rig.live:
             self._dispatch()
@@ -393,7 +570,10 @@ class Scheduler:
         if count_attempt and flight.attempt >= MAX_ATTEMPTS:
             self._fail(run, f"test {flight.key.test_index} ({flight.key.algorithm}) failed {flight.attempt} times: {reason}")
             return
-        self.store.mark_pending(flight.key)
+        try:
+            self.store.mark_pending(flight.key)
+        except StorageFault as err:  # harmless: the row stays 'running' and is handed out again from memory
+            log.warning("could not mark episode %s pending: %s", eid, err)
         run.pending.appendleft(flight.key)
         self._dispatch()
 
@@ -412,7 +592,15 @@ class Scheduler:
         return {
             "rigs": {name: {"sensors": st.sensors, "controller": st.controller, "in_flight": len(st.in_flight)} for name, st in list(self.rigs.items())},
             "learners": sorted(self.learners),
+            "rejected": dict(self.rejected),
+            "waiting_writes": len(self._deferred),
         }
+
+
+def episode_id(key: EpisodeKey, attempt: int) -> str:
+    """``campaign.test.algorithm.attempt.nonce``: readable, and unguessable thanks to the nonce
+    (64 random bits), so nobody can answer for an episode they were not sent."""
+    return f"{key.campaign_id}.{key.test_index}.{key.algorithm}.{attempt}.{secrets.token_hex(8)}"
 
 
 def _json(obj: Any) -> str:

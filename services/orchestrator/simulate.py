@@ -16,7 +16,7 @@ import numpy as np
 
 from ra2vipas.services.controller.policy import ALGORITHMS, Controller, ControllerSettings, sensor_config_from_scenario
 from ra2vipas.services.learner.pod import LearnedPOD, LearnerSettings, fit_pod, predict, r2_score
-from ra2vipas.services.orchestrator.metrics import score_test, summarize_algorithm
+from ra2vipas.services.orchestrator.metrics import score_episode, summarize_algorithm
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode
@@ -43,6 +43,8 @@ class TestOutcome:
     hits: list[bool] = field(default_factory=list)
     in_fov: list[bool] = field(default_factory=list)
     chosen: list[int] = field(default_factory=list)
+    confidences: list[float] = field(default_factory=list)  # per step of the whole test (held after a decision)
+    decided_step: int | None = None  # the step of an early decision (stop_confidence), if any
 
 
 def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = None) -> TrainedPOD:
@@ -54,10 +56,9 @@ def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = 
 
 
 def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod_model: PODModel,
-             settings: ControllerSettings | None = None) -> TestOutcome:
-    """One episode: the platform senses, the controller decides, n_test times."""
-    from ra2vipas.services.orchestrator.metrics import associate
-
+             settings: ControllerSettings | None = None, stop_confidence: float = 0.0) -> TestOutcome:
+    """One episode: the platform senses, the controller decides, n_test times, or until the
+    first step whose confidence reaches ``stop_confidence`` (> 0): that answer is final."""
     platform = SimulatedPlatform(scenario, seed, test_index)
     controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod_model, settings)
     outcome = TestOutcome(algorithm=algorithm, test_index=test_index)
@@ -68,25 +69,40 @@ def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod
         outcome.pans.append(pan)
         outcome.estimates.append(decision.estimate_rad)
         outcome.rewards.append(decision.reward)
+        outcome.confidences.append(decision.confidence)
         pan = decision.next_pan_rad
+        if stop_confidence > 0.0 and decision.confidence >= stop_confidence:
+            outcome.decided_step = t
+            break
     truth = platform.truth
-    hits, in_fov = score_test(np.asarray(outcome.estimates), truth.bearings_rad, truth.tx_index, scenario.fov_half_angle_rad)
+    bearings = truth.step_bearings_rad()  # (N,), or (T, N) when targets walk: DR_t against the bearings at t
+    hits, in_fov, chosen = score_episode(np.asarray(outcome.estimates), bearings, truth.tx_index, scenario.fov_half_angle_rad,
+                                         scenario.steps, outcome.decided_step)
     outcome.hits = [bool(h) for h in hits]
     outcome.in_fov = [bool(f) for f in in_fov]
-    outcome.chosen = [int(i) for i in associate(np.asarray(outcome.estimates), truth.bearings_rad)]
+    outcome.chosen = [int(i) for i in chosen]
+    outcome.confidences = held(outcome.confidences, scenario.steps)
     return outcome
 
 
+def held(values: list[float], steps: int) -> list[float]:
+    """A per-step series of an episode that may have ended early, its last value held to ``steps``."""
+    return list(values) + [values[-1]] * (steps - len(values)) if values else list(values)
+
+
 def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: TrainedPOD,
-              outcomes: dict[str, list[TestOutcome]], steps_per_second: float | None) -> dict[str, Any]:
+              outcomes: dict[str, list[TestOutcome]], steps_per_second: float | None,
+              stop_confidence: float = 0.0) -> dict[str, Any]:
     """The results object (same shape for ``simulate --json`` and the REST API)."""
     algorithms = {}
     for name, runs in outcomes.items():
         runs = sorted(runs, key=lambda o: o.test_index)
+        confidences = np.array([o.confidences for o in runs]) if runs and all(o.confidences for o in runs) else None
         algorithms[name] = summarize_algorithm(
-            np.array([o.hits for o in runs]), np.array([o.in_fov for o in runs]), scenario.rf_period_s
+            np.array([o.hits for o in runs]), np.array([o.in_fov for o in runs]), scenario.rf_period_s, confidences,
+            [o.decided_step for o in runs] if stop_confidence > 0.0 else None,
         )
-    return {
+    out = {
         "preset": preset,
         "scenario": scenario.model_dump(mode="json"),
         "tests": tests,
@@ -95,14 +111,18 @@ def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: Train
         "algorithms": algorithms,
         "steps_per_second": None if steps_per_second is None else round(steps_per_second, 1),
     }
+    if stop_confidence > 0.0:
+        out["stop_confidence"] = stop_confidence
+    return out
 
 
 def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = ALGORITHMS,
                  settings: ControllerSettings | None = None,
-                 progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                 progress: Callable[[int, int], None] | None = None, stop_confidence: float = 0.0) -> dict[str, Any]:
     """Train once, run tests x algorithms episodes, return the results object.
 
-    ``progress(done, total)`` is called after each episode.
+    ``progress(done, total)`` is called after each episode; ``stop_confidence`` > 0 ends each
+    episode at its first step that confident (its answer final) and adds ``decision`` blocks.
     """
     algorithms = list(algorithms)
     pod = train_pod(scenario, seed)
@@ -112,10 +132,11 @@ def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorit
     done = 0
     for k in range(tests):
         for a in algorithms:
-            outcomes[a].append(run_test(scenario, seed, k, a, pod.model, settings))
+            outcomes[a].append(run_test(scenario, seed, k, a, pod.model, settings, stop_confidence))
             done += 1
             if progress:
                 progress(done, total)
     elapsed = time.perf_counter() - started
-    steps_per_second = total * scenario.steps / elapsed if elapsed > 0 else None
-    return summarize(preset, scenario, tests, seed, pod, outcomes, steps_per_second)
+    steps_run = sum(len(o.estimates) for runs in outcomes.values() for o in runs)
+    steps_per_second = steps_run / elapsed if elapsed > 0 else None
+    return summarize(preset, scenario, tests, seed, pod, outcomes, steps_per_second, stop_confidence)

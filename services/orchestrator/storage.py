@@ -8,6 +8,12 @@ trace. The schema carries a version (``meta.schema_version``) and migrations run
 A campaign moves queued -> training -> running -> done | failed | cancelled; once it is
 finished its status never changes again (``set_campaign`` refuses), so a late result cannot
 turn a cancelled campaign into a done one.
+
+Storage faults (a full disk, a read-only file system, an I/O error) raise ``StorageFault``
+and are remembered in ``Store.fault`` until a write succeeds again, so the API can answer
+503 and ``/health`` can say why; a store that cannot even be opened (``Store(path,
+lazy=True)``) starts unavailable and ``reopen()`` tries again. Nothing is half-written: a
+failed transaction is rolled back whole.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Iterator
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 4
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -75,6 +81,18 @@ _MIGRATIONS: dict[int, str] = {
     ALTER TABLE campaigns ADD COLUMN pod_model TEXT;
     ALTER TABLE campaigns ADD COLUMN pod_truth TEXT
     """,
+    # 3: the walking targets' per-step truth of an episode (EpisodeTruth.trajectories:
+    #    [{"index", "bearings_rad": [...], "ranges_m": [...]}]); NULL for a static world.
+    3: """
+    ALTER TABLE episodes ADD COLUMN trajectories TEXT
+    """,
+    # 4: confidence and early decision (issue 9): the campaign's stop_confidence (0 = off), each
+    #    episode's per-step confidences (as the controller sent them) and the step it decided at.
+    4: """
+    ALTER TABLE campaigns ADD COLUMN stop_confidence REAL NOT NULL DEFAULT 0;
+    ALTER TABLE episodes ADD COLUMN confidences TEXT;
+    ALTER TABLE episodes ADD COLUMN decided_step INTEGER
+    """,
 }
 
 ACTIVE = ("queued", "training", "running")
@@ -85,13 +103,32 @@ EPISODE_STATES = ("pending", "running", "done", "cancelled")
 # lists leave out the results object too.
 _LIST_COLUMNS = (
     "id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at, started_at, finished_at,"
-    " pod_job, pod_r2, pod_train_seconds, error, steps_per_second"
+    " pod_job, pod_r2, pod_train_seconds, error, steps_per_second, stop_confidence"
 )
 _CAMPAIGN_COLUMNS = _LIST_COLUMNS + ", results"
 
 
 class StoreError(Exception):
     """A storage operation failed (e.g. the file cannot be opened or is from a newer version)."""
+
+
+class StorageFault(StoreError):
+    """The database cannot be read or written right now (disk full, read-only file system,
+    I/O error, file missing). Transient: retry later; nothing was half-written."""
+
+
+@dataclass(frozen=True)
+class Fault:
+    """The last storage fault: what failed, why, and since when (epoch seconds)."""
+
+    operation: str
+    cause: str
+    since: float
+
+    def describe(self) -> str:
+        """One line, e.g. ``not writable: database or disk is full (since 12:01:02)``."""
+        what = {"write": "not writable", "read": "not readable"}.get(self.operation, "unavailable")
+        return f"{what}: {self.cause} (since {time.strftime('%H:%M:%S', time.localtime(self.since))})"
 
 
 class CampaignActiveError(StoreError):
@@ -108,37 +145,133 @@ class EpisodeKey:
 class Store:
     """Thread-safe access to the campaign database (one connection, one lock)."""
 
-    def __init__(self, path: str) -> None:
+    def __init__(self, path: str, *, lazy: bool = False) -> None:
+        """Open (and migrate) the database at ``path``.
+
+        With ``lazy``, a database that cannot be opened now (read-only file system, I/O error)
+        leaves the store unavailable, with the reason in ``fault``, instead of raising; call
+        ``reopen()`` later. A file from a newer program version always raises.
+
+        Raises
+        ------
+        StoreError
+            The file cannot be opened (without ``lazy``), or its schema is newer than this program's.
+        """
         self.path = path
-        try:
-            self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None, timeout=30.0)
-        except sqlite3.Error as err:
-            raise StoreError(f"cannot open database {path!r}: {err}") from None
-        self._db.row_factory = sqlite3.Row
         self._lock = threading.RLock()
+        self._db: sqlite3.Connection | None = None
+        self.fault: Fault | None = None
+        try:
+            self.reopen()
+        except StorageFault:
+            if not lazy:
+                raise
+
+    @property
+    def available(self) -> bool:
+        """Whether the database is open."""
+        return self._db is not None
+
+    def reopen(self) -> None:
+        """Open the database if it is not open (after a fault at start-up).
+
+        Raises
+        ------
+        StorageFault
+            It still cannot be opened; ``fault`` says why.
+        """
         with self._lock:
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=NORMAL")
-            self._db.execute("PRAGMA foreign_keys=ON")
-            self._migrate()
+            if self._db is not None:
+                return
+            db = None
+            try:
+                db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=30.0)
+                db.row_factory = sqlite3.Row
+                db.execute("PRAGMA journal_mode=WAL")
+                db.execute("PRAGMA synchronous=NORMAL")
+                db.execute("PRAGMA foreign_keys=ON")
+                self._db = db
+                self._migrate()
+            except sqlite3.Error as err:
+                self._db = None
+                if db is not None:
+                    db.close()
+                self._record("open", err)
+                raise StorageFault(f"cannot open database {self.path!r}: {err}") from None
+            except StoreError:
+                self._db = None
+                db.close()
+                raise
+            self.fault = None
 
     # -- plumbing ---------------------------------------------------------------------------
+    def _record(self, operation: str, err: BaseException) -> None:
+        cause = str(err) or type(err).__name__
+        if self.fault is None or (self.fault.operation, self.fault.cause) != (operation, cause):
+            self.fault = Fault(operation=operation, cause=cause, since=time.time())
+
+    def _conn(self) -> sqlite3.Connection:
+        if self._db is None:
+            raise StorageFault(f"database {self.path!r} is not open: {self.fault.cause if self.fault else 'closed'}")
+        return self._db
+
     @contextmanager
     def transaction(self) -> Iterator[sqlite3.Connection]:
-        """BEGIN IMMEDIATE ... COMMIT, rolled back on any exception."""
+        """BEGIN IMMEDIATE ... COMMIT, rolled back whole on any exception.
+
+        Raises
+        ------
+        StorageFault
+            The database could not be written (``fault`` keeps why until a write succeeds).
+        """
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
+            db = self._conn()
             try:
-                yield self._db
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            else:
-                self._db.execute("COMMIT")
+                db.execute("BEGIN IMMEDIATE")
+                try:
+                    yield db
+                except BaseException:
+                    if db.in_transaction:  # SQLite may have rolled back by itself (e.g. disk full)
+                        db.execute("ROLLBACK")
+                    raise
+                db.execute("COMMIT")
+            except sqlite3.Error as err:
+                if db.in_transaction:
+                    try:
+                        db.execute("ROLLBACK")
+                    except sqlite3.Error:
+                        pass
+                self._record("write", err)
+                raise StorageFault(f"database {self.path!r} not writable: {err}") from None
+            self.fault = None
+
+    @contextmanager
+    def _reading(self) -> Iterator[sqlite3.Connection]:
+        """The connection for a read, under the lock; sqlite errors become ``StorageFault``."""
+        with self._lock:
+            db = self._conn()
+            try:
+                yield db
+            except sqlite3.Error as err:
+                self._record("read", err)
+                raise StorageFault(f"database {self.path!r} cannot be read: {err}") from None
+
+    def probe_write(self) -> None:
+        """A small write (a heartbeat row) that clears ``fault`` if the database is writable.
+
+        Raises
+        ------
+        StorageFault
+            It is not.
+        """
+        with self.transaction() as db:
+            db.execute("INSERT OR REPLACE INTO meta(key, value) VALUES ('heartbeat', ?)", (repr(time.time()),))
 
     def _migrate(self) -> None:
-        self._db.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
-        row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+        db = self._conn()
+        if db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='meta'").fetchone() is None:
+            db.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+        row = db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
         version = int(row[0]) if row else 0
         if version > SCHEMA_VERSION:
             raise StoreError(f"database {self.path!r} has schema version {version}, newer than this program's {SCHEMA_VERSION}")
@@ -149,28 +282,32 @@ class Store:
                 db.execute("INSERT OR REPLACE INTO meta(key, value) VALUES ('schema_version', ?)", (str(target),))
 
     def ping(self) -> bool:
+        """Whether the database is open and answers a read."""
         try:
-            with self._lock:
-                self._db.execute("SELECT 1").fetchone()
+            with self._reading() as db:
+                db.execute("SELECT 1").fetchone()
             return True
-        except sqlite3.Error:
+        except StorageFault:
             return False
 
     def close(self) -> None:
         with self._lock:
-            self._db.close()
+            if self._db is not None:
+                self._db.close()
+                self._db = None
 
     # -- campaigns --------------------------------------------------------------------------
     def create_campaign(self, *, preset: str, overrides: dict, scenario: dict, algorithms: list[str], tests: int,
-                        seed: int, mode: str, name: str | None = None) -> str:
+                        seed: int, mode: str, name: str | None = None, stop_confidence: float = 0.0) -> str:
         """Insert a campaign and all its pending episodes in one transaction; return its id."""
         cid = uuid.uuid4().hex[:12]
         now = time.time()
         with self.transaction() as db:
             db.execute(
-                "INSERT INTO campaigns(id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?)",
-                (cid, name, preset, json.dumps(overrides), json.dumps(scenario), json.dumps(algorithms), tests, seed, mode, now),
+                "INSERT INTO campaigns(id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at,"
+                " stop_confidence) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?, ?)",
+                (cid, name, preset, json.dumps(overrides), json.dumps(scenario), json.dumps(algorithms), tests, seed, mode, now,
+                 stop_confidence),
             )
             db.executemany(
                 "INSERT INTO episodes(campaign_id, test_index, algorithm, status) VALUES (?, ?, ?, 'pending')",
@@ -179,11 +316,11 @@ class Store:
         return cid
 
     def campaign(self, cid: str) -> dict[str, Any] | None:
-        with self._lock:
-            row = self._db.execute(f"SELECT {_CAMPAIGN_COLUMNS} FROM campaigns WHERE id=?", (cid,)).fetchone()
+        with self._reading() as db:
+            row = db.execute(f"SELECT {_CAMPAIGN_COLUMNS} FROM campaigns WHERE id=?", (cid,)).fetchone()
             if row is None:
                 return None
-            counts = dict(self._db.execute(
+            counts = dict(db.execute(
                 "SELECT status, COUNT(*) FROM episodes WHERE campaign_id=? GROUP BY status", (cid,)).fetchall())
         return _campaign_dict(row, counts)
 
@@ -191,22 +328,22 @@ class Store:
         """One page of campaigns (without their results objects), newest first, optionally
         filtered; and how many match in all."""
         clause, args = _where(status=status, preset=preset)
-        with self._lock:
-            total = self._db.execute(f"SELECT COUNT(*) FROM campaigns{clause}", args).fetchone()[0]
-            rows = self._db.execute(f"SELECT {_LIST_COLUMNS} FROM campaigns{clause} ORDER BY created_at DESC, id LIMIT ? OFFSET ?",
+        with self._reading() as db:
+            total = db.execute(f"SELECT COUNT(*) FROM campaigns{clause}", args).fetchone()[0]
+            rows = db.execute(f"SELECT {_LIST_COLUMNS} FROM campaigns{clause} ORDER BY created_at DESC, id LIMIT ? OFFSET ?",
                                     [*args, limit, offset]).fetchall()
             ids = [row["id"] for row in rows]
             counts: dict[str, dict[str, int]] = {i: {} for i in ids}
             if ids:
-                for cid, st, n in self._db.execute(
+                for cid, st, n in db.execute(
                         f"SELECT campaign_id, status, COUNT(*) FROM episodes WHERE campaign_id IN ({','.join('?' * len(ids))})"
                         " GROUP BY campaign_id, status", ids):
                     counts[cid][st] = n
         return [_campaign_dict(row, counts[row["id"]]) for row in rows], total
 
     def active_campaigns(self) -> list[dict[str, Any]]:
-        with self._lock:
-            ids = [r[0] for r in self._db.execute(
+        with self._reading() as db:
+            ids = [r[0] for r in db.execute(
                 f"SELECT id FROM campaigns WHERE status IN ({','.join('?' * len(ACTIVE))}) ORDER BY created_at, id", ACTIVE)]
         return [c for c in (self.campaign(i) for i in ids) if c]
 
@@ -262,16 +399,16 @@ class Store:
 
     def pod_artifacts(self, cid: str) -> dict[str, Any] | None:
         """``{"model": dict | None, "truth": dict | None}``; None if there is no such campaign."""
-        with self._lock:
-            row = self._db.execute("SELECT pod_model, pod_truth FROM campaigns WHERE id=?", (cid,)).fetchone()
+        with self._reading() as db:
+            row = db.execute("SELECT pod_model, pod_truth FROM campaigns WHERE id=?", (cid,)).fetchone()
         if row is None:
             return None
         return {"model": None if row[0] is None else json.loads(row[0]), "truth": None if row[1] is None else json.loads(row[1])}
 
     # -- episodes ---------------------------------------------------------------------------
     def pending_episodes(self, cid: str) -> list[EpisodeKey]:
-        with self._lock:
-            rows = self._db.execute(
+        with self._reading() as db:
+            rows = db.execute(
                 "SELECT test_index, algorithm FROM episodes WHERE campaign_id=? AND status='pending' ORDER BY test_index, rowid",
                 (cid,)).fetchall()
         return [EpisodeKey(cid, r[0], r[1]) for r in rows]
@@ -292,33 +429,38 @@ class Store:
                        (key.campaign_id, key.test_index, key.algorithm))
 
     def attempt_of(self, key: EpisodeKey) -> int:
-        with self._lock:
-            row = self._db.execute("SELECT attempt FROM episodes WHERE campaign_id=? AND test_index=? AND algorithm=?",
+        with self._reading() as db:
+            row = db.execute("SELECT attempt FROM episodes WHERE campaign_id=? AND test_index=? AND algorithm=?",
                                    (key.campaign_id, key.test_index, key.algorithm)).fetchone()
         return int(row[0]) if row else 0
 
     def finish_episode(self, key: EpisodeKey, *, hits: list[bool], in_fov: list[bool], estimates: list[float], pans: list[float],
                        rewards: list[float], chosen: list[int], tx_index: int, bearings: list[float], ranges: list[float],
-                       latencies: list[float] | None) -> bool:
+                       latencies: list[float] | None, trajectories: list[dict] | None = None,
+                       confidences: list[float] | None = None, decided_step: int | None = None) -> bool:
         """Record a finished test in one transaction; False if it was already recorded (no
-        duplicate) or its campaign was cancelled."""
+        duplicate) or its campaign was cancelled. ``bearings``/``ranges`` are the targets at
+        step 0; ``trajectories`` the walking ones' per-step truth, if any; ``confidences`` the
+        controller's per step (None from a v1 controller); ``decided_step`` an early decision."""
         with self.transaction() as db:
             cur = db.execute(
                 "UPDATE episodes SET status='done', hits=?, in_fov=?, estimates=?, pans=?, rewards=?, chosen=?, tx_index=?,"
-                " bearings=?, ranges=?, latencies=?, finished_at=?"
+                " bearings=?, ranges=?, latencies=?, trajectories=?, confidences=?, decided_step=?, finished_at=?"
                 " WHERE campaign_id=? AND test_index=? AND algorithm=? AND status IN ('pending', 'running')",
                 (json.dumps([int(h) for h in hits]), json.dumps([int(f) for f in in_fov]), json.dumps(estimates), json.dumps(pans),
                  json.dumps(rewards), json.dumps(chosen), tx_index, json.dumps(bearings), json.dumps(ranges),
-                 None if latencies is None else json.dumps(latencies), time.time(),
+                 None if latencies is None else json.dumps(latencies),
+                 None if trajectories is None else json.dumps(trajectories, separators=(",", ":")),
+                 None if confidences is None else json.dumps(confidences), decided_step, time.time(),
                  key.campaign_id, key.test_index, key.algorithm))
             return cur.rowcount == 1
 
     def episode_rows(self, cid: str, status: str | None = "done") -> list[dict[str, Any]]:
-        with self._lock:
+        with self._reading() as db:
             if status is None:
-                rows = self._db.execute("SELECT * FROM episodes WHERE campaign_id=? ORDER BY test_index, algorithm", (cid,)).fetchall()
+                rows = db.execute("SELECT * FROM episodes WHERE campaign_id=? ORDER BY test_index, algorithm", (cid,)).fetchall()
             else:
-                rows = self._db.execute("SELECT * FROM episodes WHERE campaign_id=? AND status=? ORDER BY test_index, algorithm", (cid, status)).fetchall()
+                rows = db.execute("SELECT * FROM episodes WHERE campaign_id=? AND status=? ORDER BY test_index, algorithm", (cid, status)).fetchall()
         return [_episode_dict(r) for r in rows]
 
     def episode_page(self, cid: str, *, algorithm: str | None = None, status: str | None = None, limit: int = 50,
@@ -328,17 +470,18 @@ class Store:
         last step's ``final_choice`` (î), ``final_in_fov`` and ``final_estimate`` (gamma_hat),
         not the whole trace."""
         clause, args = _where(campaign_id=cid, algorithm=algorithm, status=status)
-        with self._lock:
-            total = self._db.execute(f"SELECT COUNT(*) FROM episodes{clause}", args).fetchone()[0]
-            rows = self._db.execute(
+        with self._reading() as db:
+            total = db.execute(f"SELECT COUNT(*) FROM episodes{clause}", args).fetchone()[0]
+            rows = db.execute(
                 "SELECT test_index, algorithm, status, rig, attempt, tx_index, hits, json_extract(chosen, '$[#-1]') AS final_choice,"
-                " json_extract(in_fov, '$[#-1]') AS final_in_fov, json_extract(estimates, '$[#-1]') AS final_estimate"
+                " json_extract(in_fov, '$[#-1]') AS final_in_fov, json_extract(estimates, '$[#-1]') AS final_estimate,"
+                " json_extract(confidences, '$[#-1]') AS final_confidence, decided_step"
                 f" FROM episodes{clause} ORDER BY test_index, algorithm LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
         return [_episode_dict(r) for r in rows], total
 
     def episode(self, cid: str, test_index: int, algorithm: str) -> dict[str, Any] | None:
-        with self._lock:
-            row = self._db.execute("SELECT * FROM episodes WHERE campaign_id=? AND test_index=? AND algorithm=?", (cid, test_index, algorithm)).fetchone()
+        with self._reading() as db:
+            row = db.execute("SELECT * FROM episodes WHERE campaign_id=? AND test_index=? AND algorithm=?", (cid, test_index, algorithm)).fetchone()
         return None if row is None else _episode_dict(row)
 
 
@@ -361,7 +504,8 @@ def _campaign_dict(row: sqlite3.Row, counts: dict[str, int]) -> dict[str, Any]:
 
 def _episode_dict(row: sqlite3.Row) -> dict[str, Any]:
     d = dict(row)
-    for k in ("hits", "in_fov", "estimates", "pans", "rewards", "chosen", "bearings", "ranges", "latencies"):
+    for k in ("hits", "in_fov", "estimates", "pans", "rewards", "chosen", "bearings", "ranges", "latencies", "trajectories",
+              "confidences"):
         if d.get(k) is not None:
             d[k] = json.loads(d[k])
     return d

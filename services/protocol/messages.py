@@ -52,6 +52,8 @@ class EpisodeStart(_Message):
     seed: int = Field(ge=0, le=2**63 - 1)
     scenario: Scenario
     mode: Mode = Mode.fast
+    stop_confidence: float = Field(0.0, ge=0.0, lt=1.0, description="end the episode at the first step whose confidence "
+                                   "reaches this, its answer final (0: run every step); a v1 controller may ignore it")
 
 
 class EpisodeStop(_Message):
@@ -132,8 +134,12 @@ class EpisodeResult(_Message):
     """The controller's trace of one episode (controller -> orchestrator).
 
     ``estimates_rad[t]`` is gamma_hat_t after sample t; ``pans_rad[t]`` the pan angle sample t
-    was taken at; ``rewards[t]`` the fused objective there. ``status`` is ``failed`` with an
-    ``error`` if the controller could not run the episode.
+    was taken at; ``rewards[t]`` the fused objective there; ``confidences[t]`` the controller's
+    posterior probability that the target it names at t is the Tx (optional: a v1 controller
+    sends none). ``decided_step`` = d when the episode ended early at step d because its
+    confidence reached ``EpisodeStart.stop_confidence``: the lists then hold d + 1 values and the
+    answer of step d is final. ``status`` is ``failed`` with an ``error`` if the controller
+    could not run the episode.
     """
 
     episode_id: str = _ID
@@ -143,6 +149,8 @@ class EpisodeResult(_Message):
     estimates_rad: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
     pans_rad: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
     rewards: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
+    confidences: tuple[Annotated[float, Field(ge=0.0, le=1.0)], ...] = Field(default=(), max_length=MAX_STEPS)
+    decided_step: int | None = Field(default=None, ge=0, le=MAX_STEPS)
 
 
 class EpisodeTiming(_Message):
@@ -156,13 +164,28 @@ class EpisodeTiming(_Message):
 
 # -- truth plane -------------------------------------------------------------------------------
 
+class TargetTrajectory(_Message):
+    """Where one walking target was at every step of an episode (truth plane only)."""
+
+    index: int = Field(ge=0, le=999, description="i, the target's index in EpisodeTruth.bearings_rad")
+    bearings_rad: tuple[float, ...] = Field(min_length=1, max_length=MAX_STEPS, description="gamma_i at step t = 0 ... steps-1 [rad]")
+    ranges_m: tuple[float, ...] = Field(min_length=1, max_length=MAX_STEPS, description="d_i at step t [m]")
+
+
 class EpisodeTruth(_Message):
-    """Ground truth of a simulated episode, for scoring only (simulated sensors -> orchestrator)."""
+    """Ground truth of a simulated episode, for scoring only (simulated sensors -> orchestrator).
+
+    ``bearings_rad``/``ranges_m``: every target at step 0 (static targets stay there).
+    ``trajectories`` (optional, added in v1.1): one entry per *walking* target with its
+    bearing and range at every step; DR_t is then scored against the bearings at step t.
+    A node that sends none describes a static world.
+    """
 
     episode_id: str = _ID
     bearings_rad: tuple[float, ...] = Field(min_length=1, max_length=1000)
     ranges_m: tuple[float, ...] = Field(min_length=1, max_length=1000)
     tx_index: int = Field(ge=0)
+    trajectories: tuple[TargetTrajectory, ...] = Field(default=(), max_length=1000)
 
 
 class TrainingTruth(_Message):
@@ -177,7 +200,7 @@ class TrainingTruth(_Message):
 WIRE_MESSAGES: tuple[type[BaseModel], ...] = (
     EpisodeStart, EpisodeStop, Command, Measurement, TrainingRequest, TrainingStream,
     PODRequest, PODResponse, ErrorReply, EpisodeResult, EpisodeTiming, EpisodeTruth, TrainingTruth,
-    RFSample, CameraFrame, TrainingSample, PODModel, Scenario,
+    RFSample, CameraFrame, TrainingSample, TargetTrajectory, PODModel, Scenario,
 )
 
 

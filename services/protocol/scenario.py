@@ -1,5 +1,6 @@
-"""The scenario: every parameter of the paper's Table I (and of the authors' code) as one
-validated object, with the named presets users start from.
+"""The scenario: every parameter of the paper's Table I (and of the authors' code), plus the
+cluttered, dynamic world beyond it (walkers, occlusion, clutter, shadowing, fading; all off in
+the paper presets), as one validated object, with the named presets users start from.
 
 A scenario travels on the wire (the orchestrator sends it with each episode), so it lives in
 the protocol package and depends only on pydantic. Field names follow the paper's symbols;
@@ -9,11 +10,17 @@ that error messages quote.
 
 from __future__ import annotations
 
+import difflib
 import math
 from enum import Enum
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+MAX_TRUTH_WALKER_STEPS = 40_000
+"""The most walker-steps (walkers x steps) a scenario may have: each one is a bearing and a
+range in the episode's ground truth message, which must stay well under the 1 MiB payload
+limit (docs/protocol.md)."""
 
 
 class Placement(str, Enum):
@@ -83,6 +90,40 @@ class Scenario(BaseModel):
     pod_near_range_m: float = Field(2.5, ge=0.0, le=100.0, description="midpoint of the near logistic in p_D(d) (2.5 in eq. 22) [m]")
     box_bearing_noise_deg: float = Field(0.25, ge=0.0, le=10.0, description="std of the bearing of a detector box (not in the paper) [deg]")
     initial_pan_deg: float = Field(0.0, ge=-180.0, le=180.0, description="pan angle s_0 at the start of each test [deg]")
+    # -- a cluttered, dynamic world (not in the paper; every effect off by default) --------
+    walking_fraction: float = Field(0.0, ge=0.0, le=1.0, description="share of the N targets that walk, drawn at random per test, the Tx included in the draw (0 = all static)")
+    walk_speed_mps: float = Field(1.0, ge=0.0, le=10.0, description="v, walking speed; each walker's speed is uniform in [0.5, 1] x v [m/s]")
+    walk_turn_deg_per_s: float = Field(30.0, ge=0.0, le=720.0, description="sigma_theta, std of the walkers' Brownian heading: it changes by N(0, sigma_theta^2 T_RF) every T_RF [deg/sqrt(s)]")
+    body_width_m: float = Field(0.0, ge=0.0, le=5.0, description="w_b, every target is a disc of this width; a target more than half hidden behind a nearer one is not detected (0 = no occlusion) [m]")
+    clutter_rate: float = Field(0.0, ge=0.0, le=100.0, description="lambda_c, false boxes per frame, Poisson, uniform over the field of view [1/frame]")
+    shadowing_db: float = Field(0.0, ge=0.0, le=30.0, description="sigma_S, std of the log-normal shadowing of the Tx's signal, common to both receivers (0 = none) [dB]")
+    shadowing_corr_m: float = Field(2.0, gt=0.0, le=1000.0, description="d_corr, shadowing decorrelation distance: correlation exp(-Delta/d_corr) between Tx positions Delta apart (Gudmundson) [m]")
+    fading_corr_s: float = Field(0.0, ge=0.0, le=1000.0, description="tau, correlation time of the RSSI noise: AR(1) with lag-1 correlation exp(-T_RF/tau) on each receiver (0 = white) [s]")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _strict_numbers(cls, data: Any) -> Any:
+        """Numbers must be numbers: a string or a boolean is never coerced into an integer or a
+        number (the same rule for the CLI, the API and the wire), an integer parameter takes no
+        fraction, and -0.0 is 0.0 (so a parameter that must be positive refuses it, and one
+        that may be zero accepts it as zero)."""
+        if not isinstance(data, dict):
+            return data
+        out = dict(data)
+        for name, value in data.items():
+            info = cls.model_fields.get(name)
+            if info is None or info.annotation not in (int, float):
+                continue
+            wrong = isinstance(value, bool) or not isinstance(value, (int, float))
+            if not wrong and info.annotation is int and isinstance(value, float):
+                wrong = not value.is_integer()
+                if not wrong:
+                    out[name] = int(value)
+            if wrong:
+                raise ValueError(f"{name}: expected {field_range(name)}, got {value!r}")
+            if isinstance(value, float) and value == 0.0:
+                out[name] = 0.0  # -0.0 -> 0.0
+        return out
 
     @model_validator(mode="after")
     def _consistent(self) -> "Scenario":
@@ -99,9 +140,26 @@ class Scenario(BaseModel):
             raise ValueError(
                 f"tx_max_range_m ({self.tx_max_range_m}) must exceed min_target_range_m ({self.min_target_range_m})"
             )
+        walker_steps = self.n_walkers * self.steps
+        if walker_steps > MAX_TRUTH_WALKER_STEPS:
+            raise ValueError(
+                f"walking_fraction ({self.walking_fraction}) x n_targets ({self.n_targets}) gives {self.n_walkers} walkers"
+                f" x {self.steps} steps = {walker_steps} walker-steps of ground truth, more than the {MAX_TRUTH_WALKER_STEPS}"
+                " an episode's truth message can carry; lower steps, n_targets or walking_fraction"
+            )
         return self
 
+    # -- derived quantities ------------------------------------------------------------------
+    @property
+    def n_walkers(self) -> int:
+        """How many targets walk in each test: walking_fraction * N rounded half up."""
+        return int(math.floor(self.walking_fraction * self.n_targets + 0.5))
+
     # -- derived quantities in radians ------------------------------------------------------
+    @property
+    def walk_turn_rad_per_sqrt_s(self) -> float:
+        return math.radians(self.walk_turn_deg_per_s)
+
     @property
     def fov_half_angle_rad(self) -> float:
         return math.radians(self.fov_half_angle_deg)
@@ -123,12 +181,25 @@ class Scenario(BaseModel):
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
     "paper-uniform": {"placement": "uniform"},
+    "dynamic": {
+        "walking_fraction": 0.5,
+        "walk_speed_mps": 1.0,
+        "walk_turn_deg_per_s": 30.0,
+        "body_width_m": 0.5,
+        "clutter_rate": 0.3,
+        "shadowing_db": 4.0,
+        "shadowing_corr_m": 2.0,
+        "fading_corr_s": 0.5,
+        "box_bearing_noise_deg": 1.0,
+    },
 }
 """Named starting points: overrides applied on top of the field defaults (the paper's values)."""
 
 PRESET_DESCRIPTIONS: dict[str, str] = {
     "paper": "Table I of the paper with the authors' reference placement (Tx within 4 m, others' range differs by > 1 m)",
     "paper-uniform": "Table I of the paper with targets uniform in the square, no range constraint",
+    "dynamic": "a cluttered, dynamic world: paper placement at t=0, half the targets walk (1 m/s), 0.5 m bodies occlude,"
+               " 0.3 false boxes per frame, 4 dB shadowing (2 m), RSSI noise correlated over 0.5 s, 1 deg box noise",
 }
 
 
@@ -189,26 +260,59 @@ def build_scenario(preset: str = "paper", overrides: dict[str, Any] | None = Non
     values = {**PRESETS[preset], **(overrides or {})}
     for name in values:
         if name not in Scenario.model_fields:
-            raise ScenarioError(f"unknown scenario parameter {name!r}; known: {', '.join(Scenario.model_fields)}")
+            raise ScenarioError(f"unknown scenario parameter {name!r}{suggest_parameter(name)}; known: {', '.join(Scenario.model_fields)}")
     try:
         return Scenario.model_validate(values)
     except ValidationError as err:
         raise ScenarioError(_explain(err, values)) from None
 
 
-def parse_overrides(assignments: list[str] | tuple[str, ...]) -> dict[str, str]:
-    """Turn CLI ``NAME=VALUE`` strings into a dict (values stay strings; the model coerces).
+def suggest_parameter(name: str) -> str:
+    """`` (did you mean 'n_targets'?)`` for a misspelt parameter name, or ``""``."""
+    close = difflib.get_close_matches(name, list(Scenario.model_fields), n=1, cutoff=0.75)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def parse_value(name: str, text: str) -> Any:
+    """The typed value of a CLI ``NAME=VALUE``: an integer or a number for numeric parameters
+    (never coerced by the scenario itself), the text for the others.
 
     Raises
     ------
     ScenarioError
-        An assignment without ``=`` or with an empty name.
+        A numeric parameter whose text is not a number of its kind; an unknown parameter.
     """
-    out: dict[str, str] = {}
+    info = Scenario.model_fields.get(name)
+    if info is None:
+        raise ScenarioError(f"unknown scenario parameter {name!r}{suggest_parameter(name)}; known: {', '.join(Scenario.model_fields)}")
+    text = text.strip()
+    try:
+        if info.annotation is int:
+            return int(text)
+        if info.annotation is float:
+            value = float(text)
+            if not math.isfinite(value):
+                raise ValueError
+            return value
+    except ValueError:
+        raise ScenarioError(f"{name}: expected {field_range(name)}, got {text!r}") from None
+    return text
+
+
+def parse_overrides(assignments: list[str] | tuple[str, ...]) -> dict[str, Any]:
+    """Turn CLI ``NAME=VALUE`` strings into typed overrides (see ``parse_value``).
+
+    Raises
+    ------
+    ScenarioError
+        An assignment without ``=`` or with an empty name, an unknown parameter, or a value that
+        is not of the parameter's kind.
+    """
+    out: dict[str, Any] = {}
     for item in assignments:
         name, sep, value = item.partition("=")
         name = name.strip()
         if not sep or not name:
             raise ScenarioError(f"--set expects NAME=VALUE, got {item!r}")
-        out[name] = value.strip()
+        out[name] = parse_value(name, value)
     return out

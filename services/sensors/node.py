@@ -4,7 +4,8 @@ It plays the part real hardware will play, through exactly the messages a hardwa
 would use (docs/protocol.md):
 
 * ``control/<rig>/episode``: an ``EpisodeStart`` builds the simulated world of that test and
-  publishes its ground truth on the *truth* plane (for the orchestrator only);
+  publishes its ground truth on the *truth* plane (for the orchestrator only), with the
+  walkers' per-step trajectories when targets walk;
 * ``data/<rig>/command``: each ``Command(step, pan)`` is answered by the ``Measurement`` taken
   at that pan: immediately in ``fast`` mode (lockstep), or on the wall clock every T_RF in
   ``realtime`` mode, where the platform samples at the last commanded pan and the node
@@ -23,10 +24,10 @@ from dataclasses import dataclass, field
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Measurement, Mode, TrainingRequest,
+    Command, EpisodeStart, EpisodeStop, EpisodeTiming, Measurement, Mode, TrainingRequest,
     TrainingStream, TrainingTruth, decode, dump, episode_control_adapter,
 )
-from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode
+from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode, episode_truth
 from ra2vipas.services.transport.bus import Bus, QueryError, undeclare_all
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop
 
@@ -86,10 +87,7 @@ class SensorsNode:
         platform = SimulatedPlatform(msg.scenario, msg.seed, msg.test_index)
         self.episodes[msg.episode_id] = _Episode(start=msg, platform=platform, pan=msg.scenario.initial_pan_rad)
         self._finished.pop(msg.episode_id, None)
-        truth = platform.truth
-        self.bus.publish(keys.episode_truth(self.rig), dump(EpisodeTruth(
-            episode_id=msg.episode_id, bearings_rad=tuple(float(b) for b in truth.bearings_rad),
-            ranges_m=tuple(float(r) for r in truth.ranges_m), tx_index=truth.tx_index)))
+        self.bus.publish(keys.episode_truth(self.rig), dump(episode_truth(platform.truth, msg.episode_id)))
         for early in self._early.pop(msg.episode_id, []):
             self._on_command(early)
 

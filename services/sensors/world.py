@@ -1,5 +1,7 @@
 """The simulated world: targets around the platform, the camera's detector and the two
-receivers (paper Sec. II, Table I).
+receivers (paper Sec. II, Table I), and beyond the paper a cluttered, dynamic world: targets
+that walk, bodies that occlude each other, false boxes, shadowing and correlated RSSI noise
+(each off unless its scenario parameter turns it on).
 
 Two things come out of here and must never be mixed: *measurements*
 (``ra2vipas.services.protocol.measurements``), which is all the controller and learner see, and
@@ -7,17 +9,21 @@ Two things come out of here and must never be mixed: *measurements*
 
 Every random draw comes from a generator derived from the campaign seed and the test index
 with ``numpy.random.SeedSequence`` (``episode_streams``), so test k draws the same numbers
-whatever runs before, after or beside it.
+whatever runs before, after or beside it, and whatever pans the controller chooses: the
+walkers' trajectories, the occlusions, the shadowing along the Tx's path and the RSSI noise
+are fixed when the episode starts; only which targets fall in the field of view (and so how
+many camera draws a step consumes) depends on the pan.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
+from ra2vipas.services.protocol.messages import EpisodeTruth, TargetTrajectory
 from ra2vipas.services.protocol.scenario import Placement, Scenario, ScenarioError
 from ra2vipas.services.sensors import physics
 
@@ -25,18 +31,32 @@ _TEST_STREAM = 0
 _TRAINING_STREAM = 1
 _MAX_DRAWS = 100_000
 
+TRUTH_BEARING_DECIMALS = 5
+"""Walkers' per-step bearings in the ground truth are rounded to 1e-5 rad (0.0006 deg) so the
+``EpisodeTruth`` message stays small; scoring uses the rounded values on every path."""
+TRUTH_RANGE_DECIMALS = 3
+
 
 @dataclass(frozen=True)
 class Streams:
-    """Independent random generators of one episode."""
+    """Independent random generators of one episode.
+
+    SeedSequence children 0-2 (placement, rf, camera) are the paper world's and keep their
+    meaning; the dynamic world's draws come from further children (``spawn`` yields the same
+    first children whatever their number), so a scenario with those effects off draws exactly
+    what it drew before they existed.
+    """
 
     placement: np.random.Generator
     rf: np.random.Generator
     camera: np.random.Generator
+    walk: np.random.Generator  # which targets walk, their speeds and headings
+    clutter: np.random.Generator  # false boxes
+    shadowing: np.random.Generator  # the shadowing field
 
 
 def _streams(seed: int, key: tuple[int, ...]) -> Streams:
-    children = np.random.SeedSequence(entropy=seed, spawn_key=key).spawn(3)
+    children = np.random.SeedSequence(entropy=seed, spawn_key=key).spawn(6)
     return Streams(*(np.random.default_rng(c) for c in children))
 
 
@@ -56,19 +76,69 @@ def training_streams(seed: int) -> Streams:
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """The truth of one test, for scoring only (paper eqs. 7, 10)."""
+    """The truth of one test, for scoring only (paper eqs. 7, 10).
 
-    positions_m: np.ndarray  # (N, 2) target positions in F_0
+    ``positions_m`` are the targets' positions at step 0 (and always, for the static ones);
+    ``walkers`` lists the targets that walk and ``walker_positions_m[t, k]`` is where walker
+    ``walkers[k]`` stands during step t (the nu frames and the RF sample of step t).
+    """
+
+    positions_m: np.ndarray  # (N, 2) target positions in F_0 at step 0
     tx_index: int  # i*
+    walkers: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))  # (W,) sorted target indices
+    walker_positions_m: np.ndarray | None = None  # (T, W, 2)
 
     @property
     def ranges_m(self) -> np.ndarray:
+        """d_i at step 0."""
         return np.hypot(self.positions_m[:, 0], self.positions_m[:, 1])
 
     @property
     def bearings_rad(self) -> np.ndarray:
-        """gamma_i = atan2(p_y, p_x) (eq. 7)."""
+        """gamma_i = atan2(p_y, p_x) (eq. 7), at step 0."""
         return np.arctan2(self.positions_m[:, 1], self.positions_m[:, 0])
+
+    @property
+    def static(self) -> bool:
+        return self.walker_positions_m is None or self.walkers.size == 0
+
+    @property
+    def tx_walks(self) -> bool:
+        return not self.static and bool(np.any(self.walkers == self.tx_index))
+
+    def positions_at(self, step: int) -> np.ndarray:
+        """(N, 2) positions during step ``step``."""
+        if self.static:
+            return self.positions_m
+        p = self.positions_m.copy()
+        p[self.walkers] = self.walker_positions_m[min(step, self.walker_positions_m.shape[0] - 1)]
+        return p
+
+    def tx_positions_m(self, steps: int) -> np.ndarray:
+        """(steps, 2) the Tx's position at every step."""
+        if self.tx_walks:
+            k = int(np.flatnonzero(self.walkers == self.tx_index)[0])
+            return self.walker_positions_m[:steps, k]
+        return np.repeat(self.positions_m[self.tx_index][None, :], steps, axis=0)
+
+    def walker_truth(self) -> tuple[np.ndarray, np.ndarray]:
+        """The walkers' per-step bearings and ranges, (T, W) each, rounded as the truth
+        message carries them (``TRUTH_BEARING_DECIMALS``, ``TRUTH_RANGE_DECIMALS``)."""
+        if self.static:
+            return np.empty((0, 0)), np.empty((0, 0))
+        p = self.walker_positions_m
+        bearings = np.round(np.arctan2(p[..., 1], p[..., 0]), TRUTH_BEARING_DECIMALS)
+        ranges = np.round(np.hypot(p[..., 0], p[..., 1]), TRUTH_RANGE_DECIMALS)
+        return bearings, ranges
+
+    def step_bearings_rad(self) -> np.ndarray:
+        """What DR_t is scored against: gamma_i at every step, shape (T, N), the walkers'
+        columns rounded as in the truth message; (N,) for a static world."""
+        if self.static:
+            return self.bearings_rad
+        b = np.repeat(self.bearings_rad[None, :], self.walker_positions_m.shape[0], axis=0)
+        b[:, self.walkers] = self.walker_truth()[0]
+        return b
 
     @property
     def tx_bearing_rad(self) -> float:
@@ -112,23 +182,74 @@ def place_targets(sc: Scenario, rng: np.random.Generator) -> GroundTruth:
     return GroundTruth(positions_m=np.asarray(others, dtype=float).reshape(sc.n_targets, 2), tx_index=tx_index)
 
 
-def _frames(sc: Scenario, rng: np.random.Generator, rel_bearings: np.ndarray, p_detect: np.ndarray) -> tuple[CameraFrame, ...]:
-    """nu frames of Bernoulli detections (eq. 9) of the targets at ``rel_bearings``.
+def add_walkers(sc: Scenario, rng: np.random.Generator, truth: GroundTruth) -> GroundTruth:
+    """Choose the targets that walk, ``walking_fraction`` of them rounded half up (``sc.n_walkers``
+    for a drawn layout), uniformly at random with the Tx among the candidates, and draw their
+    trajectories over ``sc.steps`` steps from their step-0 positions (``physics.walk``). All
+    draws come from ``rng``; none when nobody walks."""
+    n = truth.positions_m.shape[0]
+    n_walk = int(math.floor(sc.walking_fraction * n + 0.5))
+    if n_walk == 0:
+        return truth
+    walkers = np.sort(rng.choice(n, size=n_walk, replace=False))
+    paths = physics.walk(sc, rng, truth.positions_m[walkers], sc.steps)
+    return GroundTruth(positions_m=truth.positions_m, tx_index=truth.tx_index, walkers=walkers, walker_positions_m=paths)
+
+
+def episode_truth(truth: GroundTruth, episode_id: str) -> EpisodeTruth:
+    """The truth-plane message of an episode: every target's bearing and range at step 0,
+    the Tx index and, per walker, its rounded per-step bearings and ranges."""
+    bearings, ranges = truth.walker_truth()
+    trajectories = tuple(
+        TargetTrajectory.model_construct(index=int(i), bearings_rad=tuple(bearings[:, k].tolist()), ranges_m=tuple(ranges[:, k].tolist()))
+        for k, i in enumerate(truth.walkers.tolist())
+    ) if not truth.static else ()
+    return EpisodeTruth(episode_id=episode_id, bearings_rad=tuple(float(b) for b in truth.bearings_rad),
+                        ranges_m=tuple(float(r) for r in truth.ranges_m), tx_index=truth.tx_index, trajectories=trajectories)
+
+
+def _clutter(sc: Scenario, rng: np.random.Generator) -> list[list[float]] | None:
+    """False boxes of the nu frames of one step: Poisson(``clutter_rate``) per frame, bearings
+    uniform over the field of view. None when clutter is off (nothing drawn)."""
+    if sc.clutter_rate <= 0.0:
+        return None
+    nu = sc.frames_per_rf
+    counts = rng.poisson(sc.clutter_rate, size=nu)
+    fov = sc.fov_half_angle_rad
+    boxes = rng.uniform(-fov, fov, size=int(counts.sum())).tolist()
+    out, lo = [], 0
+    for c in counts.tolist():
+        out.append(boxes[lo:lo + c])
+        lo += c
+    return out
+
+
+_EMPTY_FRAME = CameraFrame.model_construct(box_bearings_rad=())
+
+
+def _frame(boxes: list[float]) -> CameraFrame:
+    return CameraFrame.model_construct(box_bearings_rad=tuple(sorted(boxes))) if boxes else _EMPTY_FRAME
+
+
+def _frames(sc: Scenario, rng: np.random.Generator, rel_bearings: np.ndarray, p_detect: np.ndarray,
+            clutter: list[list[float]] | None = None) -> tuple[CameraFrame, ...]:
+    """nu frames of Bernoulli detections (eq. 9) of the targets at ``rel_bearings``, plus the
+    false boxes ``clutter`` (one list per frame).
 
     Each box reports its bearing with Gaussian noise; boxes are sorted by bearing so their
-    order carries no identity.
+    order carries no identity (and a false box looks like any other).
     """
     nu = sc.frames_per_rf
     n = rel_bearings.size
     if n == 0:
-        empty = CameraFrame.model_construct(box_bearings_rad=())
-        return (empty,) * nu
+        if clutter is None:
+            return (_EMPTY_FRAME,) * nu
+        return tuple(_frame(c) for c in clutter)
     hits = (rng.random((nu, n)) < p_detect).tolist()
     boxes = (rel_bearings + rng.normal(0.0, sc.box_bearing_noise_rad, size=(nu, n))).tolist()
-    return tuple(
-        CameraFrame.model_construct(box_bearings_rad=tuple(sorted(b for b, h in zip(row, hit) if h)))
-        for row, hit in zip(boxes, hits)
-    )
+    if clutter is None:
+        return tuple(_frame([b for b, h in zip(row, hit) if h]) for row, hit in zip(boxes, hits))
+    return tuple(_frame([b for b, h in zip(row, hit) if h] + extra) for row, hit, extra in zip(boxes, hits, clutter))
 
 
 class SimulatedPlatform:
@@ -137,30 +258,111 @@ class SimulatedPlatform:
     ``sense(step, pan)`` answers: the platform is at pan angle ``pan``; give me the RF sample
     and the nu frames (paper eqs. 8, 9). The ground truth is in ``truth`` and never in what
     ``sense`` returns.
+
+    The world of the test is drawn here, once: the layout (or ``layout``, a scripted one:
+    a ``GroundTruth`` whose walkers, if any, are used as given), the walkers and their
+    trajectories, who occludes whom at every step, and the shadowing along the Tx's path.
+    ``sense`` then only draws the RSSI noise (two values per step, whatever the pan) and the
+    camera's detections and false boxes.
     """
 
-    def __init__(self, scenario: Scenario, seed: int, test_index: int) -> None:
-        self.scenario = scenario
+    def __init__(self, scenario: Scenario, seed: int, test_index: int, layout: GroundTruth | None = None) -> None:
+        self.scenario = sc = scenario
         streams = episode_streams(seed, test_index)
-        self.truth = place_targets(scenario, streams.placement)
+        truth = place_targets(sc, streams.placement) if layout is None else layout
+        if truth.static:
+            truth = add_walkers(sc, streams.walk, truth)
+        self.truth = truth
         self._rf = streams.rf
         self._camera = streams.camera
-        self._bearings = self.truth.bearings_rad
-        self._pod = physics.pod(scenario, self.truth.ranges_m)
-        self._tx_range = self.truth.tx_range_m
-        self._tx_bearing = self.truth.tx_bearing_rad
-        self._iso_mean = float(physics.path_loss_dbm(scenario, self._tx_range))
-        self._fov = scenario.fov_half_angle_rad
+        self._clutter_rng = streams.clutter
+        self._fov = sc.fov_half_angle_rad
+        steps = sc.steps
+        # camera: bearings and p_D at step 0 (static targets keep them), walkers per step
+        self._bearings = truth.bearings_rad
+        self._pod = physics.pod(sc, truth.ranges_m)
+        self._walkers = truth.walkers if not truth.static else None
+        if self._walkers is not None:
+            wp = truth.walker_positions_m
+            self._walk_bearings = np.arctan2(wp[..., 1], wp[..., 0])
+            self._walk_pod = physics.pod(sc, np.hypot(wp[..., 0], wp[..., 1]))
+        # occlusion (eq. 10 failing): which targets are hidden, per step if anyone walks
+        self._visible = None
+        if sc.body_width_m > 0.0:
+            if self._walkers is None:
+                self._visible = ~physics.occluded(sc.body_width_m, self._bearings, truth.ranges_m)
+            else:
+                b = np.repeat(self._bearings[None, :], wp.shape[0], axis=0)
+                d = np.repeat(truth.ranges_m[None, :], wp.shape[0], axis=0)
+                b[:, self._walkers] = self._walk_bearings
+                d[:, self._walkers] = np.hypot(wp[..., 0], wp[..., 1])
+                self._visible = ~physics.occluded(sc.body_width_m, b, d)
+        # radio: the Tx's range and bearing, and the shadowing at its position (per step if it walks)
+        self._tx_range = truth.tx_range_m
+        self._tx_bearing = truth.tx_bearing_rad
+        self._iso_mean = float(physics.path_loss_dbm(sc, self._tx_range))
+        self._iso_means = self._tx_bearings = None
+        self.shadowing = None if sc.shadowing_db <= 0.0 else physics.ShadowingField(sc.shadowing_db, sc.shadowing_corr_m, streams.shadowing)
+        """The test's shadowing field S(p) [dB] (truth, None when off)."""
+        if truth.tx_walks or self.shadowing is not None:
+            tx_path = truth.tx_positions_m(steps) if truth.tx_walks else truth.positions_m[truth.tx_index][None, :]
+            means = physics.path_loss_dbm(sc, np.hypot(tx_path[:, 0], tx_path[:, 1]))
+            if self.shadowing is not None:
+                means = means + self.shadowing(tx_path)
+            if truth.tx_walks:
+                self._iso_means = means.tolist()
+                self._tx_bearings = np.arctan2(tx_path[:, 1], tx_path[:, 0]).tolist()
+            else:
+                self._iso_mean = float(means[0])
+        # RSSI noise: white (phi = 0) or AR(1) on each receiver
+        self._phi = physics.fading_coefficient(sc)
+        self._innovation = math.sqrt(1.0 - self._phi * self._phi)
+        self._noise = None  # (iso, dir) of the previous step
+
+    # -- truth accessors (for scoring and tests; never part of a measurement) ------------------
+    def iso_mean_dbm(self, step: int) -> float:
+        """The noiseless iso RSSI at step ``step``: g(d_Tx) plus the shadowing at the Tx."""
+        return self._iso_mean if self._iso_means is None else self._iso_means[min(step, len(self._iso_means) - 1)]
+
+    def visible_at(self, step: int) -> np.ndarray:
+        """(N,) bool: which targets no nearer target hides at step ``step`` (all without bodies)."""
+        if self._visible is None:
+            return np.ones(self._bearings.shape[0], dtype=bool)
+        return self._visible if self._visible.ndim == 1 else self._visible[min(step, self._visible.shape[0] - 1)]
 
     def sense(self, step: int, pan_rad: float) -> StepMeasurement:
         sc = self.scenario
         sigma = sc.rf_noise_db
-        iso = self._iso_mean + self._rf.normal(0.0, sigma)
-        dir_mean = physics.directional_rssi_scalar(sc, self._iso_mean, pan_rad - self._tx_bearing)
-        dir_ = dir_mean + self._rf.normal(0.0, sigma)
-        rel = (self._bearings - pan_rad + np.pi) % (2.0 * np.pi) - np.pi
+        if self._iso_means is None:
+            iso_mean, tx_bearing = self._iso_mean, self._tx_bearing
+        else:
+            t = min(step, len(self._iso_means) - 1)
+            iso_mean, tx_bearing = self._iso_means[t], self._tx_bearings[t]
+        dir_mean = physics.directional_rssi_scalar(sc, iso_mean, pan_rad - tx_bearing)
+        if self._phi == 0.0:
+            iso = iso_mean + self._rf.normal(0.0, sigma)
+            dir_ = dir_mean + self._rf.normal(0.0, sigma)
+        else:
+            e_iso, e_dir = self._rf.normal(0.0, sigma), self._rf.normal(0.0, sigma)
+            if self._noise is None:
+                n_iso, n_dir = e_iso, e_dir  # stationary start
+            else:
+                n_iso = self._phi * self._noise[0] + self._innovation * e_iso
+                n_dir = self._phi * self._noise[1] + self._innovation * e_dir
+            self._noise = (n_iso, n_dir)
+            iso, dir_ = iso_mean + n_iso, dir_mean + n_dir
+        bearings, p_detect = self._bearings, self._pod
+        if self._walkers is not None:
+            t = min(step, self._walk_bearings.shape[0] - 1)
+            bearings, p_detect = bearings.copy(), p_detect.copy()
+            bearings[self._walkers] = self._walk_bearings[t]
+            p_detect[self._walkers] = self._walk_pod[t]
+        if self._visible is not None:
+            visible = self._visible if self._visible.ndim == 1 else self._visible[min(step, self._visible.shape[0] - 1)]
+            p_detect = np.where(visible, p_detect, 0.0)
+        rel = (bearings - pan_rad + np.pi) % (2.0 * np.pi) - np.pi
         in_view = np.abs(rel) <= self._fov
-        frames = _frames(sc, self._camera, rel[in_view], self._pod[in_view])
+        frames = _frames(sc, self._camera, rel[in_view], p_detect[in_view], _clutter(sc, self._clutter_rng))
         return StepMeasurement.model_construct(
             step=step,
             pan_rad=float(pan_rad),
@@ -171,10 +373,16 @@ class SimulatedPlatform:
 
 @dataclass(frozen=True)
 class TrainingTruth:
-    """The truth behind a training episode, for scoring the learner (paper eq. 23)."""
+    """The truth behind a training episode, for scoring the learner (paper eq. 23).
+
+    ``rssi_dbm`` is the noiseless iso RSSI: the channel, g(d_j) plus the shadowing S at the
+    Tx's position when ``shadowing_db`` > 0 (shadowing is part of the channel the POD is
+    learned over, not measurement noise: the controller too reads the POD at the Tx's
+    shadowed RSSI). It excludes the receiver noise, white or AR(1).
+    """
 
     ranges_m: np.ndarray  # d_j
-    rssi_dbm: np.ndarray  # r_j = g(d_j), the noiseless iso RSSI
+    rssi_dbm: np.ndarray  # r_j = g(d_j) + S(p_j), the noiseless iso RSSI
     pod: np.ndarray  # p_D(d_j)
 
 
@@ -185,6 +393,12 @@ class TrainingEpisode:
     eta ~ N(0, train_step_var_m2), kept in [train_min_range_m, train_max_range_m]; it
     starts at a range drawn uniformly in that interval. Each sample is the iso RSSI and the
     nu frames the detector produced at that range.
+
+    It runs in the scenario's world: the Tx walks along a fixed bearing (the X_0 axis, in
+    front of the camera), where the shadowing field is evaluated along its path; the iso
+    RSSI noise is AR(1) when ``fading_corr_s`` > 0; every frame gets Poisson(``clutter_rate``)
+    false boxes. The Tx is the only target in training: nothing walks past it and nothing
+    occludes it.
     """
 
     def __init__(self, scenario: Scenario, seed: int) -> None:
@@ -200,9 +414,15 @@ class TrainingEpisode:
             d[j] = d_j
             d_j = min(max(d_j + steps[j], lo), hi)
         r = physics.path_loss_dbm(sc, d)
+        if sc.shadowing_db > 0.0:
+            path = np.column_stack([d, np.zeros(n)])
+            r = r + physics.ShadowingField(sc.shadowing_db, sc.shadowing_corr_m, streams.shadowing)(path)
         self.truth = TrainingTruth(ranges_m=d, rssi_dbm=r, pod=physics.pod(sc, d))
-        self._iso = r + streams.rf.normal(0.0, sc.rf_noise_db, size=n)
+        noise = streams.rf.normal(0.0, sc.rf_noise_db, size=n)
+        phi = physics.fading_coefficient(sc)
+        self._iso = r + (noise if phi == 0.0 else physics.ar1(noise, phi))
         self._camera = streams.camera
+        self._clutter_rng = streams.clutter
 
     def __len__(self) -> int:
         return self.scenario.n_train
@@ -212,5 +432,5 @@ class TrainingEpisode:
         sc = self.scenario
         zero = np.zeros(1)
         for j in range(sc.n_train):
-            frames = _frames(sc, self._camera, zero, self.truth.pod[j : j + 1])
+            frames = _frames(sc, self._camera, zero, self.truth.pod[j : j + 1], _clutter(sc, self._clutter_rng))
             yield TrainingSample.model_construct(index=j, iso_rssi_dbm=float(self._iso[j]), frames=frames)

@@ -16,33 +16,36 @@ log = logging.getLogger(__name__)
 
 
 class EventLoop:
-    """Runs callables one at a time, in arrival order, so node state needs no other locking.
+    """Runs a node's handlers one at a time, in arrival order, on the node's own worker thread.
 
-    With ``inline`` (the default) a posted callable runs at once on the posting thread under
-    the loop's lock: a bus callback does its work on Zenoh's thread without a thread hop,
-    which matters at thousands of messages per second. Without it, callables run on a
-    dedicated thread.
+    Bus callbacks (Zenoh's threads) only ``post``: they enqueue and return at once, so a slow
+    disk, a long SQLite transaction or a busy CPU in a handler can never stall message
+    delivery (the zenoh-python docs: callbacks must not block). One FIFO queue per node keeps
+    the order in which messages arrived, and node state needs no other locking.
     """
 
-    def __init__(self, name: str, inline: bool = True) -> None:
+    def __init__(self, name: str) -> None:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._stopped = threading.Event()
-        self._inline = inline
-        self._lock = threading.RLock()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     def post(self, fn: Callable[..., None], *args) -> None:
-        if self._stopped.is_set():
-            return
-        if self._inline:
-            with self._lock:
-                try:
-                    fn(*args)
-                except Exception:
-                    log.exception("event handler %s failed", getattr(fn, "__name__", fn))
-            return
-        self._queue.put((fn, args))
+        """Queue ``fn(*args)`` to run on the worker thread (dropped once the loop is stopped)."""
+        if not self._stopped.is_set():
+            self._queue.put((fn, args))
+
+    def backlog(self) -> int:
+        """Handlers queued and not yet run (approximate)."""
+        return self._queue.qsize()
+
+    def wait_idle(self, timeout: float = 10.0) -> bool:
+        """Block until everything posted before this call has run (tests and shutdown)."""
+        if threading.current_thread() is self._thread:
+            return True
+        done = threading.Event()
+        self.post(done.set)
+        return done.wait(timeout)
 
     def _run(self) -> None:
         while True:
@@ -51,8 +54,7 @@ class EventLoop:
                 return
             fn, args = item
             try:
-                with self._lock:
-                    fn(*args)
+                fn(*args)
             except Exception:
                 log.exception("event handler %s failed", getattr(fn, "__name__", fn))
 

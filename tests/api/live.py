@@ -66,6 +66,14 @@ class LiveAPI:
         self.bus.close()
         assert not self.thread.is_alive(), "the test API server did not stop"
 
+    def settle(self, rounds: int = 3) -> None:
+        """Wait until the bus, every node and the scheduler have handled what was sent so far."""
+        loops = [node.loop for node in self.nodes if hasattr(node, "loop")] + [self.scheduler.loop]
+        for _ in range(rounds):
+            self.bus.wait_idle()
+            for loop in loops:
+                assert loop.wait_idle(), "a node's event loop did not drain"
+
     @property
     def scheduler(self):
         return self.app.state.scheduler

@@ -36,8 +36,8 @@ def test_openapi_and_the_docs_page_are_served(http):
 
 
 def test_create_answers_201_with_location_and_the_resolved_scenario(live, http):
-    body = {"preset": "paper-uniform", "overrides": {**SMALL, "n_targets": "6"}, "algorithms": ["rapas"], "tests": 1, "seed": 8,
-            "name": "one"}
+    body = {"preset": "paper-uniform", "overrides": {**SMALL, "n_targets": 6, "rf_noise_db": 3}, "algorithms": ["rapas"],
+            "tests": 1, "seed": 8, "name": "one"}
     r = http.post("/campaigns", json=body)
     assert r.status_code == 201, r.text
     c = r.json()
@@ -45,6 +45,7 @@ def test_create_answers_201_with_location_and_the_resolved_scenario(live, http):
     assert re.fullmatch(r"[0-9a-f]{12}", c["id"])
     assert c["name"] == "one" and c["preset"] == "paper-uniform" and c["algorithms"] == ["rapas"]
     assert c["scenario"] == build_scenario("paper-uniform", {**SMALL, "n_targets": 6}).model_dump(mode="json")
+    assert c["overrides"]["rf_noise_db"] == 3.0 and isinstance(c["overrides"]["rf_noise_db"], float)  # stored as the scenario types it
     assert set(c["scenario"]) == set(Scenario.model_fields)  # every parameter, not only the overrides
     assert c["progress"]["total"] == 1
     assert http.get(r.headers["location"]).json()["id"] == c["id"]
@@ -98,13 +99,24 @@ BAD_BODIES = [
     ({"seed": -1}, "seed: Input should be greater than or equal to 0"),
     ({"name": "x" * 101}, "name: String should have at most 100 characters"),
     ({"colour": "red"}, "colour: Extra inputs are not permitted"),
-    ({"preset": "moon"}, "preset: unknown preset 'moon'; choose one of paper, paper-uniform"),
+    ({"preset": "moon"}, "preset: unknown preset 'moon'; choose one of paper, paper-uniform, dynamic"),
     ({"overrides": {"n_targets": 0}}, "overrides: n_targets: expected an integer in [1, 500], got 0"),
     ({"overrides": {"placement": "circle"}}, "overrides: placement: expected one of reference|uniform"),
     ({"overrides": {"nope": 1}}, "overrides: unknown scenario parameter 'nope'"),
     ({"overrides": {"n_targets": [1, 2]}}, "overrides.n_targets"),
     ({"overrides": {f"p{i}": 1 for i in range(65)}}, "overrides: Dictionary should have at most 64 items"),
     ({"overrides": {"placement": "x" * 65}}, "overrides.placement"),
+    # no coercion: strings and booleans are not numbers (issue 14's probes)
+    ({"tests": "10"}, "tests: Input should be a valid integer"),
+    ({"tests": True}, "tests: Input should be a valid integer"),
+    ({"seed": "1"}, "seed: Input should be a valid integer"),
+    ({"name": 5}, "name: Input should be a valid string"),
+    ({"overrides": {"n_targets": True}}, "overrides: n_targets: expected an integer in [1, 500], got True"),
+    ({"overrides": {"n_targets": "30"}}, "overrides: n_targets: expected an integer in [1, 500], got '30'"),
+    ({"overrides": {"n_targets": 30.5}}, "overrides: n_targets: expected an integer in [1, 500], got 30.5"),
+    ({"overrides": {"rf_noise_db": "3"}}, "overrides: rf_noise_db: expected a number in [0.0, 30.0], got '3'"),
+    ({"overrides": {"rf_period_s": -0.0}}, "overrides: rf_period_s: expected a number in (0.0, 10.0], got"),
+    ({"overrides": {"n_target": 30}}, "overrides: unknown scenario parameter 'n_target' (did you mean 'n_targets'?)"),
 ]
 
 

@@ -88,7 +88,7 @@ def test_a_running_campaign_has_no_results_and_cannot_be_deleted_but_can_be_canc
     assert events[0][1]["status"] == "running" and events[-1][1]["status"] == "cancelled"
 
     # the episode in flight was stopped on its rig, and the rig's sensors stopped sampling it
-    mesh.bus.wait_idle()
+    mesh.settle()
     stops = [EpisodeStop.model_validate_json(p) for k, p in list(mesh.bus.published)
              if k == keys.episode_control(rig["name"]) and b'"stop"' in p]
     assert any(s.episode_id.startswith(cid) and s.reason == "campaign cancelled" for s in stops)
@@ -138,3 +138,47 @@ def test_a_finished_campaign_can_be_deleted_with_its_tests(mesh, http):
     assert http.delete(f"/campaigns/{cid}").status_code == 204
     assert mesh.app.state.store.episode_rows(cid, status=None) == []
     assert http.get(f"/campaigns/{cid}/tests").status_code == 404
+
+
+def test_the_cap_on_progress_streams_is_exact_under_a_burst(mesh, http):
+    """66 streams were admitted under the old count-in-the-generator cap of 64; the cap holds
+    when every request arrives at once, and a place frees when a stream closes."""
+    from ra2vipas.services.orchestrator.api.routes.events import MAX_STREAMS
+
+    cid = start_running(mesh, http)
+    extra = 6
+    barrier = threading.Barrier(MAX_STREAMS + extra)
+    statuses: list[int] = []
+    lock = threading.Lock()
+    release = threading.Event()
+
+    def open_stream() -> None:
+        with httpx.Client(base_url=mesh.url, timeout=30) as client:
+            barrier.wait()
+            with client.stream("GET", f"/campaigns/{cid}/events", params={"interval": 1}) as stream:
+                with lock:
+                    statuses.append(stream.status_code)
+                if stream.status_code == 200:
+                    release.wait(30)  # hold the stream open until every request has been answered
+
+    threads = [threading.Thread(target=open_stream) for _ in range(MAX_STREAMS + extra)]
+    for t in threads:
+        t.start()
+    try:
+        deadline = time.monotonic() + 30
+        while len(statuses) < len(threads) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert sorted(statuses) == [200] * MAX_STREAMS + [503] * extra
+    finally:
+        release.set()
+        for t in threads:
+            t.join(30)
+    deadline = time.monotonic() + 10  # closed streams give their places back
+    while time.monotonic() < deadline:
+        with http.stream("GET", f"/campaigns/{cid}/events", params={"interval": 1}) as stream:
+            if stream.status_code == 200:
+                break
+        time.sleep(0.1)
+    else:
+        raise AssertionError("no stream place came back after the streams closed")
+    http.post(f"/campaigns/{cid}/cancel")

@@ -27,7 +27,9 @@ def test_results_carry_dr_curves_with_wilson_bands(http, done_campaign):
         assert len(block["dr"]) == len(block["dr_ci95"]) == steps
         assert all(lo <= dr <= hi for dr, (lo, hi) in zip(block["dr"], block["dr_ci95"]))
         assert block["dr_final"] == block["dr"][-1] and block["ci95"] == block["dr_ci95"][-1]
-        assert set(block) == {"dr", "dr_final", "ci95", "dr_ci95", "time_to_dr90_s", "in_fov_final"}
+        assert set(block) == {"dr", "dr_final", "ci95", "dr_ci95", "time_to_dr90_s", "in_fov_final", "calibration"}
+        assert set(block["calibration"]) == {"ece_final", "ece_all", "confidence_final", "reliability"}
+        assert 0.0 <= block["calibration"]["ece_final"] <= 1.0
 
 
 def test_csv_export_by_query_or_accept_reproduces_the_campaign_from_the_file_alone(http, done_campaign):
@@ -97,7 +99,7 @@ def test_trace_of_a_test_the_campaign_does_not_have(http, done_campaign, path, c
     assert r.status_code == code, r.text
 
 
-@pytest.mark.parametrize("path", ["/plots/dr", "/plots/pod", "/tests/1/rapas/plot"])
+@pytest.mark.parametrize("path", ["/plots/dr", "/plots/pod", "/plots/reliability", "/tests/1/rapas/plot"])
 def test_figures_render_as_png_and_svg(http, done_campaign, path):
     url = f"/campaigns/{done_campaign['id']}{path}"
     png = http.get(url)
@@ -117,13 +119,16 @@ def test_the_pod_model_and_its_training_truth_are_kept_for_the_figure(live, done
 
 
 def test_presets_list_every_parameter_with_its_range(http):
-    assert [p["name"] for p in http.get("/presets").json()] == ["paper", "paper-uniform"]
+    assert [p["name"] for p in http.get("/presets").json()] == ["paper", "paper-uniform", "dynamic"]
     paper = http.get("/presets/paper").json()
     assert set(paper["parameters"]) == set(Scenario.model_fields)
     assert paper["parameters"]["n_targets"] == {"value": 20, "allowed": "an integer in [1, 500]",
                                                  "description": Scenario.model_fields["n_targets"].description}
     assert paper["parameters"]["placement"]["allowed"] == "one of reference|uniform"
     assert http.get("/presets/paper-uniform").json()["parameters"]["placement"]["value"] == "uniform"
+    dynamic = http.get("/presets/dynamic").json()["parameters"]
+    assert dynamic["clutter_rate"] == {"value": 0.3, "allowed": "a number in [0.0, 100.0]",
+                                       "description": Scenario.model_fields["clutter_rate"].description}
     r = http.get("/presets/moon")
     assert r.status_code == 404 and "paper" in r.json()["detail"]
 

@@ -32,7 +32,7 @@ def finish(store: Store, key: EpisodeKey) -> bool:
 def test_the_database_is_in_wal_mode_at_the_current_schema_version(tmp_path, store):
     db = sqlite3.connect(tmp_path / "s.db")
     assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
-    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == str(storage.SCHEMA_VERSION) == "2"
+    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == str(storage.SCHEMA_VERSION) == "4"
     db.close()
 
 
@@ -46,15 +46,44 @@ def test_a_version_1_database_is_migrated_and_keeps_its_campaigns(tmp_path):
     db.close()
     s = Store(str(path))
     try:
-        assert s.campaign("old")["status"] == "done"
+        assert s.campaign("old")["status"] == "done" and s.campaign("old")["stop_confidence"] == 0
         assert s.pod_artifacts("old") == {"model": None, "truth": None}
         s.set_pod_artifacts("old", model={"mean": [0.5]}, truth={"rssi_dbm": [-40.0], "pod": [0.5]})
         assert s.pod_artifacts("old")["truth"]["pod"] == [0.5]
     finally:
         s.close()
     db = sqlite3.connect(path)
-    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == "2"
+    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == "4"
     db.close()
+
+
+def test_a_version_2_database_gains_trajectories_and_keeps_its_episodes(tmp_path):
+    path = tmp_path / "v2.db"
+    db = sqlite3.connect(path)
+    db.executescript(storage._MIGRATIONS[1] + ";" + storage._MIGRATIONS[2] + ";CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);"
+                     "INSERT INTO meta VALUES ('schema_version', '2');"
+                     "INSERT INTO campaigns(id, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at)"
+                     " VALUES ('old', 'paper', '{}', '{}', '[\"rapas\"]', 1, 1, 'fast', 'done', 1.0);"
+                     "INSERT INTO episodes(campaign_id, test_index, algorithm, status, hits, bearings)"
+                     " VALUES ('old', 0, 'rapas', 'done', '[1]', '[0.5]');")
+    db.close()
+    s = Store(str(path))
+    try:
+        row = s.episode("old", 0, "rapas")
+        assert row["hits"] == [1] and row["bearings"] == [0.5] and row["trajectories"] is None
+    finally:
+        s.close()
+
+
+def test_walking_targets_per_step_truth_is_kept_with_the_episode(store):
+    cid = new_campaign(store, tests=2)
+    walk = [{"index": 1, "bearings_rad": [1.0, 1.1], "ranges_m": [3.0, 3.05]}]
+    assert store.finish_episode(EpisodeKey(cid, 0, "rapas"), hits=[False, True], in_fov=[True, True], estimates=[0.1, 1.1],
+                                pans=[0.0, 0.5], rewards=[1.0, 2.0], chosen=[0, 1], tx_index=1, bearings=[0.2, 1.0],
+                                ranges=[2.0, 3.0], latencies=None, trajectories=walk)
+    assert finish(store, EpisodeKey(cid, 1, "rapas"))  # a static world: no trajectories
+    assert store.episode(cid, 0, "rapas")["trajectories"] == walk
+    assert store.episode(cid, 1, "rapas")["trajectories"] is None
 
 
 def test_a_database_from_a_newer_version_is_refused(tmp_path):

@@ -45,7 +45,7 @@ def test_completion_offers_commands_and_option_values():
 def test_presets_list_and_show_need_no_server():
     listed = ra2vipas("presets", "list", "--json")
     assert listed.returncode == 0
-    assert [p["name"] for p in json.loads(listed.stdout.strip().splitlines()[-1])] == ["paper", "paper-uniform"]
+    assert [p["name"] for p in json.loads(listed.stdout.strip().splitlines()[-1])] == ["paper", "paper-uniform", "dynamic"]
     table = ra2vipas("presets", "show", "paper-uniform")
     assert table.returncode == 0 and "placement" in table.stdout and "one of reference|uniform" in table.stdout
 

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -54,7 +56,10 @@ def test_simulate_writes_the_dr_plot(tmp_path):
 @pytest.mark.parametrize(
     "args, needle",
     [
-        (["--set", "n_targets=0"], "n_targets: expected an integer in [1, 500], got '0'"),
+        (["--set", "n_targets=0"], "n_targets: expected an integer in [1, 500], got 0"),
+        (["--set", "n_targets=abc"], "n_targets: expected an integer in [1, 500], got 'abc'"),
+        (["--set", "rf_period_s=-0.0"], "rf_period_s: expected a number in (0.0, 10.0], got"),
+        (["--set", "n_target=3"], "unknown scenario parameter 'n_target' (did you mean 'n_targets'?)"),
         (["--set", "rf_noise_db=-1"], "rf_noise_db: expected a number in [0.0, 30.0]"),
         (["--set", "placement=circle"], "placement: expected one of reference|uniform"),
         (["--set", "antenna_model=yagi"], "antenna_model: expected one of paper|db-gain"),
@@ -110,6 +115,16 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
 
 
 def _ra2vipas_processes() -> set[int]:
+    """ra2vipas processes started from this checkout (other checkouts on the machine may be
+    running their own stacks)."""
     out = subprocess.run(["pgrep", "-f", "ra2vipas.cli.main|ra2vipas (up|router|sensors|controller|learner|orchestrator|rig)"],
                          capture_output=True, text=True).stdout
-    return {int(p) for p in out.split()}
+    here = Path(__file__).resolve().parents[2]
+    mine = set()
+    for pid in (int(p) for p in out.split()):
+        try:
+            if Path(os.readlink(f"/proc/{pid}/cwd")).resolve() == here:
+                mine.add(pid)
+        except OSError:
+            pass
+    return mine

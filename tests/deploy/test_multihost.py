@@ -32,6 +32,7 @@ import pytest
 
 from tests.deploy.compose import environment, interpolate, load, ra2vipas_argv
 from tests.deploy.conftest import ROOT, Services, clean_env
+from tests.conftest import untimed
 from tests.deploy.netns import NetnsError, destroy_namespace, ip, remove_stale_namespaces
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
@@ -175,12 +176,6 @@ def wait_healthy(mesh: Mesh, timeout: float) -> dict:
     raise AssertionError(f"/health not 200 within {timeout} s (last: {last[:300]})\n{mesh.diagnostics()}")
 
 
-def untimed(results: dict) -> dict:
-    results = json.loads(json.dumps(results))
-    results.pop("steps_per_second", None)
-    results.pop("latency_ms", None)
-    results["pod"].pop("train_seconds", None)
-    return results
 
 
 def simulate(args: list[str]) -> dict:

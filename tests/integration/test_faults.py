@@ -4,7 +4,6 @@ and that the results equal an undisturbed run with the same seed."""
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import sqlite3
@@ -17,6 +16,7 @@ import pytest
 from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.protocol.scenario import build_scenario
 from tests.integration.conftest import Procs, alive, children_of, start_stack, stop_stack
+from tests.conftest import untimed
 
 ALGORITHMS = ["ra2vipas", "rapas"]
 TESTS = 30
@@ -35,15 +35,9 @@ def stack(tmp_path_factory):
 @pytest.fixture(scope="module")
 def undisturbed():
     results = run_campaign("paper", build_scenario("paper", OVERRIDES), TESTS, SEED, ALGORITHMS)
-    return _untimed(results)
+    return untimed(results)
 
 
-def _untimed(results: dict) -> dict:
-    results = json.loads(json.dumps(results))
-    results.pop("steps_per_second", None)
-    results.pop("latency_ms", None)
-    results["pod"].pop("train_seconds", None)
-    return results
 
 
 def _child(up_pid: int, *words: str) -> int:
@@ -89,7 +83,7 @@ def _campaign_with_a_kill(stack, victim: tuple[str, ...], at_fraction: float) ->
             break
         assert time.monotonic() < deadline, c
         time.sleep(0.05)
-    assert killed is not None, "the campaign finished before the kill"
+    assert killed is not None, f"the campaign finished before the kill: {c}"
     assert done_at_kill < p["total"], "the kill came too late to matter"
     assert not alive(killed)
     return c, _get(api, f"/campaigns/{cid}/results", deadline)
@@ -108,14 +102,14 @@ def test_killing_a_rig_process_loses_nothing_and_changes_nothing(stack, undistur
     c, results = _campaign_with_a_kill(stack, victim, 0.3)
     assert c["status"] == "done", c["error"]
     _recorded_once(stack["db"], c["id"])
-    assert _untimed(results) == undisturbed
+    assert untimed(results) == undisturbed
 
 
 def test_killing_the_orchestrator_resumes_from_sqlite(stack, undisturbed):
     c, results = _campaign_with_a_kill(stack, ("orchestrator",), 0.4)
     assert c["status"] == "done", c["error"]
     _recorded_once(stack["db"], c["id"])
-    assert _untimed(results) == undisturbed
+    assert untimed(results) == undisturbed
 
 
 def test_killing_the_learner_before_a_new_model_is_needed(stack):
@@ -131,4 +125,4 @@ def test_killing_the_learner_before_a_new_model_is_needed(stack):
         time.sleep(0.1)
     assert c["status"] == "done", c["error"]
     expected = run_campaign("paper", build_scenario("paper", overrides), 3, 99, ["ra2vipas"])
-    assert _untimed(_get(api, f"/campaigns/{cid}/results", deadline)) == _untimed(expected)
+    assert untimed(_get(api, f"/campaigns/{cid}/results", deadline)) == untimed(expected)

@@ -14,6 +14,7 @@ import pytest
 
 from ra2vipas.cli.stack import free_port
 from tests.integration.conftest import ROOT, Procs, alive, children_of, wait_for_line
+from tests.conftest import untimed
 
 SMALL = ["--set", "steps=30", "--set", "n_train=250", "--set", "n_targets=10"]
 
@@ -35,11 +36,6 @@ def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
 
 
-def untimed(results: dict) -> dict:
-    results = json.loads(json.dumps(results))
-    results.pop("steps_per_second", None)
-    results["pod"].pop("train_seconds", None)
-    return results
 
 
 def test_up_starts_router_orchestrator_learner_and_two_rigs(stack):

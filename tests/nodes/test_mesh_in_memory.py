@@ -13,10 +13,11 @@ from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol import keys
-from ra2vipas.services.protocol.messages import Command, EpisodeStart, Measurement, dump
+from ra2vipas.services.protocol.messages import Command, EpisodeStart, EpisodeStop, Measurement, dump
 from ra2vipas.services.protocol.scenario import build_scenario
 from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
+from tests.conftest import untimed
 
 SMALL = {"steps": 25, "n_train": 200, "n_targets": 8}
 
@@ -35,10 +36,10 @@ def mesh(tmp_path):
     store.close()
 
 
-def _run(store, scheduler, preset, overrides, tests, seed, algorithms, mode="fast", timeout=120.0):
+def _run(store, scheduler, preset, overrides, tests, seed, algorithms, mode="fast", timeout=120.0, stop_confidence=0.0):
     scenario = build_scenario(preset, overrides)
     cid = store.create_campaign(preset=preset, overrides=overrides, scenario=scenario.model_dump(mode="json"),
-                                algorithms=algorithms, tests=tests, seed=seed, mode=mode)
+                                algorithms=algorithms, tests=tests, seed=seed, mode=mode, stop_confidence=stop_confidence)
     scheduler.submit(cid)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -49,11 +50,15 @@ def _run(store, scheduler, preset, overrides, tests, seed, algorithms, mode="fas
     raise AssertionError(f"campaign did not finish: {store.campaign(cid)}")
 
 
-def _untimed(results):
-    out = json.loads(json.dumps(results))
-    out.pop("steps_per_second", None)
-    out["pod"].pop("train_seconds", None)
-    return out
+def settle(bus, *loops, rounds: int = 3) -> None:
+    """Wait until the bus and the nodes' event loops have handled everything so far (a
+    handler may publish, whose delivery may post to a loop again)."""
+    for _ in range(rounds):
+        bus.wait_idle()
+        for loop in loops:
+            assert loop.wait_idle()
+
+
 
 
 def test_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
@@ -62,7 +67,7 @@ def test_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
     c = _run(store, scheduler, "paper", SMALL, 4, 11, algorithms)
     assert c["status"] == "done", c["error"]
     expected = run_campaign("paper", build_scenario("paper", SMALL), 4, 11, algorithms)
-    assert _untimed(c["results"]) == _untimed(expected)
+    assert untimed(c["results"]) == untimed(expected)
     assert c["progress"] == {"done": 16, "running": 0, "pending": 0, "total": 16}
 
 
@@ -98,10 +103,10 @@ def test_a_command_that_overtakes_its_episode_start_is_kept():
     sc = build_scenario("paper", SMALL)
     start = EpisodeStart(episode_id="c.0.ra2vipas.1", campaign_id="c", test_index=0, algorithm="ra2vipas", seed=1, scenario=sc)
     bus.publish(keys.command("rig-9"), dump(Command(episode_id=start.episode_id, step=0, pan_rad=0.0)))
-    bus.wait_idle()
+    settle(bus, sensors.loop)
     assert got == []
     bus.publish(keys.episode_control("rig-9"), dump(start))
-    bus.wait_idle()
+    settle(bus, sensors.loop)
     assert [m.step for m in got] == [0]
     sensors.close()
     bus.close()
@@ -117,3 +122,100 @@ def test_malformed_messages_are_dropped_and_the_mesh_still_works(mesh, payload):
     bus.wait_idle()
     c = _run(store, scheduler, "paper", SMALL, 1, 4, ["rapas"])
     assert c["status"] == "done"
+
+
+# -- the dynamic world (issue 9): walkers, occlusion, clutter, shadowing, fading -------------------------
+
+DYNAMIC_SMALL = {"steps": 30, "n_train": 200, "n_targets": 8}
+
+
+def _results_without_timing(results: dict) -> dict:
+    out = json.loads(json.dumps(results))
+    out.pop("steps_per_second", None)
+    out["pod"].pop("train_seconds", None)
+    return out
+
+
+def test_dynamic_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
+    """Walkers' per-step truth travels on the truth plane, is stored with each test and scores
+    DR_t exactly as ``run_test`` does in process."""
+    from ra2vipas.services.orchestrator.api.views import trace_public
+    from ra2vipas.services.orchestrator.simulate import run_test, train_pod
+    from ra2vipas.services.sensors.world import SimulatedPlatform
+
+    _, store, scheduler = mesh
+    algorithms = ["ra2vipas", "rapas", "ravipas", "sweep"]
+    scenario = build_scenario("dynamic", DYNAMIC_SMALL)
+    c = _run(store, scheduler, "dynamic", DYNAMIC_SMALL, 3, 5, algorithms)
+    assert c["status"] == "done", c["error"]
+    expected = run_campaign("dynamic", scenario, 3, 5, algorithms)
+    assert _results_without_timing(c["results"]) == _results_without_timing(expected)
+    pod = train_pod(scenario, 5).model
+    walked = 0
+    for row in store.episode_rows(c["id"]):
+        outcome = run_test(scenario, 5, row["test_index"], row["algorithm"], pod)
+        assert row["hits"] == [int(h) for h in outcome.hits] and row["chosen"] == outcome.chosen
+        truth = SimulatedPlatform(scenario, 5, row["test_index"]).truth
+        bearings, ranges = truth.walker_truth()
+        assert [t["index"] for t in row["trajectories"]] == truth.walkers.tolist()
+        for k, t in enumerate(row["trajectories"]):
+            assert t["bearings_rad"] == bearings[:, k].tolist() and t["ranges_m"] == ranges[:, k].tolist()
+        trace = trace_public(row, scenario.rf_period_s)
+        moving = [tg for tg in trace.targets if tg.bearings_rad is not None]
+        assert [tg.index for tg in moving] == truth.walkers.tolist()
+        assert all(len(tg.bearings_rad) == len(tg.ranges_m) == scenario.steps for tg in moving)
+        walked += len(moving)
+    assert walked == 4 * len(algorithms) * 3  # half of the 8 targets walk in every test
+
+
+def test_no_truth_reaches_the_controller_or_the_learner_in_the_dynamic_world(mesh):
+    """Measurements and training streams carry RSSI values and sorted box bearings only: no
+    identity, range, POD, occlusion flag or clutter label."""
+    import threading
+
+    from ra2vipas.services.protocol.messages import TrainingRequest, training_job_id
+
+    bus, store, scheduler = mesh
+    _run(store, scheduler, "dynamic", DYNAMIC_SMALL, 1, 3, ["ra2vipas"])
+    seen = 0
+    for key, payload in bus.published:
+        if key == keys.measurement("rig-1"):
+            m = json.loads(payload)
+            assert set(m) == {"episode_id", "step", "pan_rad", "rf", "frames"}
+            assert set(m["rf"]) == {"iso_rssi_dbm", "dir_rssi_dbm"}
+            assert all(set(f) == {"box_bearings_rad"} and f["box_bearings_rad"] == sorted(f["box_bearings_rad"]) for f in m["frames"])
+            seen += 1
+    assert seen == DYNAMIC_SMALL["steps"]
+    scenario = build_scenario("dynamic", DYNAMIC_SMALL)
+    done, replies = threading.Event(), []
+    request = TrainingRequest(job_id=training_job_id(scenario, 3), scenario=scenario, seed=3)
+    bus.query(keys.training("rig-1"), dump(request), 30.0, lambda r: (replies.extend(r), done.set()))
+    assert done.wait(30.0) and replies and replies[0].ok
+    stream = json.loads(replies[0].payload)
+    assert set(stream) == {"job_id", "samples"} and len(stream["samples"]) == DYNAMIC_SMALL["n_train"]
+    for sample in stream["samples"]:
+        assert set(sample) == {"index", "iso_rssi_dbm", "frames"}
+        assert all(set(f) == {"box_bearings_rad"} for f in sample["frames"])
+
+
+def test_early_decisions_over_the_bus_equal_the_in_process_simulation(mesh):
+    """With stop_confidence, a controller ends an episode at its first confident step; the
+    orchestrator scores the held answer, tells the rig to drop the episode, and the results
+    (DR, calibration, decision) equal the in-process campaign's value for value."""
+    bus, store, scheduler = mesh
+    algorithms = ["ra2vipas", "rapas"]
+    c = _run(store, scheduler, "paper", SMALL, 4, 11, algorithms, stop_confidence=0.9)
+    assert c["status"] == "done", c["error"]
+    expected = run_campaign("paper", build_scenario("paper", SMALL), 4, 11, algorithms, stop_confidence=0.9)
+    assert untimed(c["results"]) == untimed(expected)
+    assert c["results"]["stop_confidence"] == 0.9 and all("decision" in b for b in c["results"]["algorithms"].values())
+    rows = store.episode_rows(c["id"])
+    decided = [r for r in rows if r["decided_step"] is not None]
+    assert decided, "no episode decided early: the test would prove nothing"
+    for r in decided:
+        assert len(r["estimates"]) == r["decided_step"] + 1 < SMALL["steps"] and len(r["hits"]) == SMALL["steps"]
+        assert r["confidences"][-1] >= 0.9 > max(r["confidences"][:-1], default=0.0)
+    settle(bus, scheduler.loop)
+    stops = {EpisodeStop.model_validate_json(p).episode_id for k, p in bus.published
+             if k == keys.episode_control("rig-1") and b'"decided early"' in p}
+    assert len(stops) == len(decided)

@@ -12,6 +12,7 @@ from scipy.stats import multivariate_normal
 from ra2vipas.services.learner.pod import (
     LearnedPOD,
     detection_counts,
+    training_clutter,
     fit_diffusion,
     fit_pod,
     forward_backward,
@@ -185,3 +186,31 @@ def test_kalman_likelihood_is_the_gaussian_likelihood():
 def test_small_training_set_still_gives_a_useful_model(small_pod):
     assert small_pod.r2 > 0.85
     assert small_pod.model.n_train == 300
+
+
+# -- clutter in the training frames (issue 9) -----------------------------------------------------------
+
+
+def test_a_clean_detector_is_recognised_as_clean(paper_fit):
+    sc, episode, _, _ = paper_fit
+    assert training_clutter(list(episode.samples())) == (None, 0.0)
+
+
+def test_false_boxes_are_not_detections_of_the_tx():
+    """With 0.3 false boxes per frame over the field of view (and a 1 degree bearing noise),
+    counting every frame with a box would call many misses detections; the learner counts
+    only the Tx's gate and corrects for the clutter that falls in it, and learns the POD as
+    well as on a clean detector."""
+    sc = build_scenario("paper", {"clutter_rate": 0.3, "box_bearing_noise_deg": 1.0})
+    episode = TrainingEpisode(sc, 4)
+    samples = list(episode.samples())
+    gate, q = training_clutter(samples)
+    assert gate == pytest.approx(4.0 * math.radians(1.0), rel=0.25)
+    expected_q = 1.0 - math.exp(-0.3 / (2.0 * sc.fov_half_angle_rad) * 2.0 * gate)
+    assert q == pytest.approx(expected_q, rel=0.35)
+    naive = np.fromiter((sum(1 for f in s.frames if f.box_bearings_rad) for s in samples), dtype=float)
+    _, k, _ = detection_counts(samples)
+    assert naive.sum() > k.sum()  # the false boxes outside the gate are no longer detections
+    learned = fit_pod(samples)
+    r2 = r2_score(episode.truth.pod, predict(learned.model, episode.truth.rssi_dbm))
+    assert r2 >= 0.95

@@ -7,7 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from ra2vipas.services.orchestrator.metrics import Z95, associate, score_test, summarize_algorithm, time_to_level, wilson_interval
+from ra2vipas.services.orchestrator.metrics import (
+    Z95, associate, decision_summary, expected_calibration_error, reliability_bins, score_episode, score_test, summarize_algorithm,
+    time_to_level, wilson_interval,
+)
 
 D = math.radians
 
@@ -105,3 +108,100 @@ def test_summarize_algorithm():
     assert s["dr_ci95"][0] == pytest.approx(list(wilson_interval(1, 4)), abs=1e-6)
     assert s["time_to_dr90_s"] == pytest.approx(0.4)
     assert s["in_fov_final"] == 0.75
+
+
+# -- moving targets: the association at time t against the bearings at time t ----------------------
+
+
+def test_score_test_against_per_step_bearings():
+    """Target 0 walks from 0 to 40 degrees, target 1 stands at 20 degrees; the estimate stays
+    at 15 degrees. Against the bearings of each step, the walker is the nearest target while it
+    is between 10 and 20 degrees; a static truth (the walker frozen at its start) never sees it."""
+    walker = np.radians([0.0, 8.0, 12.0, 18.0, 25.0, 32.0, 40.0])
+    bearings = np.column_stack([walker, np.full(walker.size, D(20.0))])  # (T, N)
+    est = np.full(walker.size, D(15.0))
+    np.testing.assert_array_equal(associate(est, bearings), [1, 1, 0, 0, 1, 1, 1])
+    hits, in_fov = score_test(est, bearings, tx_index=0, fov_half_angle_rad=D(10.0))
+    np.testing.assert_array_equal(hits, [False, False, True, True, False, False, False])
+    np.testing.assert_array_equal(in_fov, [False, True, True, True, True, False, False])  # |15 - gamma_0(t)| <= 10
+    static_hits, _ = score_test(est, bearings[0], tx_index=0, fov_half_angle_rad=D(10.0))
+    assert not static_hits.any()
+    # per-step bearings equal to the static ones score exactly as the static ones
+    rng = np.random.default_rng(2)
+    b = rng.uniform(-math.pi, math.pi, 9)
+    e = rng.uniform(-math.pi, math.pi, 30)
+    for got, want in zip(score_test(e, np.tile(b, (30, 1)), 4, D(22.5)), score_test(e, b, 4, D(22.5))):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_per_step_bearings_across_the_wrap_and_of_an_episode_that_ended_early():
+    bearings = np.array([[D(179.0), 0.0], [D(-179.0), 0.0], [D(-170.0), 0.0]])
+    np.testing.assert_array_equal(associate(np.array([math.pi, D(-178.0), D(100.0)]), bearings), [0, 0, 0])
+    np.testing.assert_array_equal(associate(np.array([math.pi, D(-178.0)]), bearings), [0, 0])  # first T rows
+    with pytest.raises(ValueError, match="T >= 4"):
+        associate(np.zeros(4), bearings)
+
+
+def test_truth_bearings_reads_trajectories_and_refuses_inconsistent_truth():
+    from ra2vipas.services.orchestrator.metrics import truth_bearings
+    from ra2vipas.services.protocol.messages import EpisodeTruth, TargetTrajectory
+
+    base = dict(episode_id="e", bearings_rad=(0.1, 0.2, 0.3), ranges_m=(1.0, 2.0, 3.0), tx_index=1)
+    v1 = EpisodeTruth(**base)  # a node that sends no trajectories: a static world
+    np.testing.assert_array_equal(truth_bearings(v1, 4), [0.1, 0.2, 0.3])
+    walk = TargetTrajectory(index=2, bearings_rad=(0.3, 0.4, 0.5, 0.6), ranges_m=(3.0, 3.1, 3.2, 3.3))
+    got = truth_bearings(EpisodeTruth(**base, trajectories=(walk,)), 4)
+    np.testing.assert_array_equal(got, [[0.1, 0.2, 0.3], [0.1, 0.2, 0.4], [0.1, 0.2, 0.5], [0.1, 0.2, 0.6]])
+    bad = [
+        (walk.model_copy(update={"index": 3}),),  # no such target
+        (walk, walk),  # twice
+        (walk.model_copy(update={"bearings_rad": (0.3, 0.4)}),),  # not one per step
+        (walk.model_copy(update={"ranges_m": (3.0,)}),),
+    ]
+    for trajectories in bad:
+        assert truth_bearings(EpisodeTruth(**base, trajectories=trajectories), 4) is None
+    assert truth_bearings(EpisodeTruth(**{**base, "tx_index": 3}), 4) is None
+
+
+# -- confidence and early decision (issue 9) ------------------------------------------------------
+
+def test_expected_calibration_error_on_a_hand_made_case():
+    # bin [0.9, 1.0]: 4 answers at 0.95 and 3 right -> |0.95 - 0.75| weighted 4/10;
+    # bin [0.5, 0.6): 6 answers at 0.55, 3 right -> |0.55 - 0.5| weighted 6/10
+    conf = [0.95] * 4 + [0.55] * 6
+    hit = [1, 1, 1, 0] + [1, 1, 1, 0, 0, 0]
+    assert expected_calibration_error(conf, hit) == pytest.approx(0.4 * 0.2 + 0.6 * 0.05)
+    # a perfectly calibrated predictor, and a confidence of exactly 1 (the last bin is closed)
+    assert expected_calibration_error([0.25] * 4, [1, 0, 0, 0]) == pytest.approx(0.0)
+    assert expected_calibration_error([1.0, 1.0], [1, 0]) == pytest.approx(0.5)
+    assert expected_calibration_error([], []) is None
+    bins = reliability_bins(conf, hit)
+    assert [b["n"] for b in bins] == [0, 0, 0, 0, 0, 6, 0, 0, 0, 4]
+    assert bins[9]["accuracy"] == 0.75 and bins[9]["confidence"] == pytest.approx(0.95) and bins[0]["accuracy"] is None
+
+
+def test_summaries_carry_calibration_when_there_are_confidences():
+    hits = np.array([[0, 1, 1], [0, 0, 1]])
+    conf = np.array([[0.2, 0.7, 0.9], [0.1, 0.4, 0.8]])
+    block = summarize_algorithm(hits, hits, 0.1, conf)
+    assert block["calibration"]["ece_final"] == pytest.approx(expected_calibration_error([0.9, 0.8], [1, 1]), abs=1e-6)
+    assert block["calibration"]["ece_all"] == pytest.approx(expected_calibration_error(conf, hits), abs=1e-6)
+    assert "decision" not in summarize_algorithm(hits, hits, 0.1)
+
+
+def test_decision_summary():
+    d = decision_summary([1, 1, 0, 1], [2, None, 0, 9], 0.1)
+    assert d["accuracy"] == 0.75 and d["accuracy_ci95"] == [pytest.approx(v, abs=1e-6) for v in wilson_interval(3, 4)]
+    assert d["median_s"] == pytest.approx(0.3) and d["undecided"] == 0.25
+    assert d["p90_s"] == pytest.approx(np.percentile([0.3, 0.1, 1.0], 90))
+
+
+def test_an_early_decision_keeps_its_target_as_targets_move():
+    """After a decision at step 1 the answer is the target named then, even when another one
+    walks in front of the estimate later."""
+    bearings = np.array([[0.0, 1.0], [0.0, 1.0], [0.02, 1.0], [0.5, 0.0]])  # target 0 walks away, 1 crosses to 0
+    hits, in_fov, chosen = score_episode([0.0, 0.01], bearings, tx_index=0, fov_half_angle_rad=0.3, steps=4, decided_step=1)
+    assert chosen.tolist() == [0, 0, 0, 0] and hits.tolist() == [True] * 4 and in_fov.tolist() == [True] * 4
+    # without a decision the same estimate at step 3 would name target 1
+    hits, _, chosen = score_episode([0.0, 0.01, 0.01, 0.01], bearings, 0, 0.3, 4)
+    assert chosen.tolist() == [0, 0, 0, 1] and hits.tolist() == [True, True, True, False]

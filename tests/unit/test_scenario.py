@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pydantic
+from pydantic import ValidationError
 import pytest
 
 from ra2vipas.services.protocol.scenario import (
@@ -185,7 +187,33 @@ def test_every_field_has_a_description_and_a_range():
 
 def test_parse_overrides():
     assert parse_overrides([]) == {}
-    assert parse_overrides(["steps=40", " rf_noise_db = 2 ", "note=a=b"]) == {"steps": "40", "rf_noise_db": "2", "note": "a=b"}
+    got = parse_overrides(["steps=40", " rf_noise_db = 2 ", "placement=uniform"])
+    assert got == {"steps": 40, "rf_noise_db": 2.0, "placement": "uniform"}
+    assert type(got["steps"]) is int and type(got["rf_noise_db"]) is float  # typed as the scenario types them
+
+
+@pytest.mark.parametrize("assignment, needle", [
+    ("steps=4.5", "steps: expected an integer"), ("steps=true", "steps: expected an integer"),
+    ("rf_noise_db=inf", "rf_noise_db: expected a number"), ("note=a=b", "unknown scenario parameter 'note'"),
+])
+def test_parse_overrides_refuses_values_of_the_wrong_kind(assignment, needle):
+    with pytest.raises(ScenarioError, match=needle):
+        parse_overrides([assignment])
+
+
+@pytest.mark.parametrize("values", [{"n_targets": True}, {"n_targets": "30"}, {"rf_noise_db": "3"}, {"steps": 40.5},
+                                    {"rf_period_s": -0.0}, {"fov_half_angle_deg": False}])
+def test_numbers_are_never_coerced_from_strings_or_booleans(values):
+    with pytest.raises(ScenarioError):
+        build_scenario("paper", values)
+    with pytest.raises(ValidationError):  # the same rule on the wire
+        Scenario.model_validate_json(json.dumps(values))
+
+
+def test_negative_zero_is_zero():
+    sc = build_scenario("paper", {"rf_noise_db": -0.0, "train_step_var_m2": -0.0, "box_bearing_noise_deg": -0.0})
+    assert math.copysign(1.0, sc.rf_noise_db) == 1.0 and math.copysign(1.0, sc.box_bearing_noise_deg) == 1.0
+    assert math.copysign(1.0, sc.train_step_var_m2) == 1.0
 
 
 @pytest.mark.parametrize("bad", ["steps", "=40", "  =1", ""])

@@ -123,3 +123,16 @@ def test_campaign_with_a_subset_of_algorithms():
     result = run_campaign("paper", sc, tests=2, seed=11, algorithms=["rapas"])
     assert list(result["algorithms"]) == ["rapas"]
     assert _without_timing(result) == _without_timing(run_campaign("paper", sc, tests=2, seed=11, algorithms=["rapas"]))
+
+
+def test_an_episode_ends_at_its_first_confident_step_and_keeps_its_answer(small_pod):
+    sc = small_scenario()
+    full = run_test(sc, 5, 0, "ra2vipas", small_pod.model)
+    assert len(full.confidences) == sc.steps and all(0.0 <= c <= 1.0 for c in full.confidences) and full.decided_step is None
+    threshold = sorted(full.confidences)[len(full.confidences) // 2]  # reached somewhere in the episode
+    d = next(t for t, c in enumerate(full.confidences) if c >= threshold)
+    early = run_test(sc, 5, 0, "ra2vipas", small_pod.model, stop_confidence=threshold)
+    assert early.decided_step == d and len(early.estimates) == d + 1
+    assert early.estimates == full.estimates[: d + 1]  # the same episode up to the decision
+    assert early.hits == full.hits[: d + 1] + [full.hits[d]] * (sc.steps - d - 1)  # the answer of step d holds
+    assert early.confidences == full.confidences[: d + 1] + [full.confidences[d]] * (sc.steps - d - 1)

@@ -1,8 +1,8 @@
 """``create_app(settings)``: the orchestrator's FastAPI application.
 
 The lifespan opens the store and the bus (a Zenoh session unless a bus factory is given, as
-tests do), starts the scheduler, and closes all three on shutdown. OpenAPI at ``/docs`` and
-``/openapi.json``.
+tests do), starts the scheduler and the figure renderers (``api.render``), and closes all
+four on shutdown. OpenAPI at ``/docs`` and ``/openapi.json``.
 """
 
 from __future__ import annotations
@@ -13,12 +13,13 @@ from typing import Callable
 from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
 
-from ra2vipas.services.orchestrator.api.errors import responses, validation_error
+from ra2vipas.services.orchestrator.api.errors import responses, storage_fault, validation_error
 from ra2vipas.services.orchestrator.api.limits import MAX_BODY_BYTES, BodySizeLimit
+from ra2vipas.services.orchestrator.api.render import PlotRenderer
 from ra2vipas.services.orchestrator.api.routes import campaigns, catalog, events, health, results, tests
 from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.settings import OrchestratorSettings
-from ra2vipas.services.orchestrator.storage import Store
+from ra2vipas.services.orchestrator.storage import StorageFault, Store
 from ra2vipas.services.transport.bus import Bus
 
 DESCRIPTION = """
@@ -35,7 +36,7 @@ and what it accepts.
 def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        store = Store(settings.db_path)
+        store = Store(settings.db_path, lazy=True)  # a database that cannot be opened yet: 503 until it can
         if bus_factory is None:
             from ra2vipas.services.transport.zenoh_bus import ZenohBus
 
@@ -43,6 +44,8 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
         else:
             bus = bus_factory()
         scheduler = Scheduler(bus, store, window=settings.window, name=settings.name)
+        renderer = PlotRenderer(settings.plot_workers).start()
+        app.state.renderer = renderer
         app.state.settings = settings
         app.state.store = store
         app.state.bus = bus
@@ -52,6 +55,7 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
             yield
         finally:
             app.state.bus_open = False
+            renderer.close()
             scheduler.close()
             bus.close()
             store.close()
@@ -62,10 +66,11 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
         description=DESCRIPTION,
         version="1",
         lifespan=lifespan,
-        responses=responses(400, 413, 422),  # every route: our error body, not FastAPI's default 422 schema
+        responses=responses(400, 413, 422, 503),  # every route: our error body, not FastAPI's default 422 schema
     )
     app.add_middleware(BodySizeLimit, max_bytes=MAX_BODY_BYTES)
     app.add_exception_handler(RequestValidationError, validation_error)
+    app.add_exception_handler(StorageFault, storage_fault)
     for module in (health, campaigns, events, results, tests, catalog):
         app.include_router(module.router)
     return app

@@ -16,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from ra2vipas.services.orchestrator.api.schemas import ErrorPublic
+from ra2vipas.services.orchestrator.storage import StorageFault
 
 _WHERE = ("body", "query", "path", "header", "cookie")
 MAX_LISTED = 5
@@ -27,7 +28,7 @@ _DESCRIPTIONS = {
     409: "the campaign is not in a state that allows this",
     413: "the request body is too large",
     422: "invalid input: the field and what it accepts",
-    503: "too many open event streams",
+    503: "the database cannot take writes right now (retried by the server), or too many open event streams; retry later",
 }
 
 
@@ -44,6 +45,13 @@ def _where(loc: tuple) -> str:
     if len(parts) > 1 and parts[0] in _WHERE:
         parts = parts[1:]
     return ".".join(parts) or "request"
+
+
+async def storage_fault(_request: Request, exc: StorageFault) -> JSONResponse:
+    """503 with a one-line reason when the database cannot be read or written (nothing was
+    half-written; the orchestrator retries its own writes and recovers by itself)."""
+    body = ErrorPublic(detail=f"database unavailable: {exc}; try again later")
+    return JSONResponse(body.model_dump(exclude_none=True), status_code=503, headers={"Retry-After": "5"})
 
 
 async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:

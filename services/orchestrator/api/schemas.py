@@ -52,10 +52,12 @@ class CampaignCreate(BaseModel):
         default_factory=dict, max_length=MAX_OVERRIDES,
         description="scenario parameters to override, NAME: value (GET /presets/{name} lists them with their ranges)")
     algorithms: list[AlgorithmName] = Field(default_factory=lambda: list(ALGORITHM_NAMES), min_length=1, max_length=4)
-    tests: int = Field(50, ge=1, le=MAX_TESTS, description="Monte Carlo tests per algorithm")
-    seed: int = Field(1, ge=0, le=2**63 - 1, description="campaign seed; fixes every random draw")
+    tests: int = Field(50, ge=1, le=MAX_TESTS, strict=True, description="Monte Carlo tests per algorithm")
+    seed: int = Field(1, ge=0, le=2**63 - 1, strict=True, description="campaign seed; fixes every random draw")
     mode: Literal["fast", "realtime"] = Field("fast", description="fast: lockstep as fast as possible; realtime: one sample every T_RF")
-    name: Optional[str] = Field(None, max_length=100, description="a label")
+    name: Optional[str] = Field(None, max_length=100, strict=True, description="a label")
+    stop_confidence: float = Field(0.0, ge=0.0, lt=1.0, strict=True, description="end each episode at the first step whose confidence "
+                                   "reaches this, its answer final (0: off); results then carry `decision` per algorithm")
 
 
 class Progress(BaseModel):
@@ -97,6 +99,7 @@ class CampaignPublic(CampaignProgress):
     created_at: float
     elapsed_s: Optional[float] = Field(description="from start to finish (or to now while it runs)")
     steps_per_second: Optional[float]
+    stop_confidence: float = Field(0.0, description="early decision threshold (0: off)")
 
 
 class CampaignPage(BaseModel):
@@ -108,6 +111,29 @@ class CampaignPage(BaseModel):
 
 # -- results -------------------------------------------------------------------------------------
 
+class ReliabilityBin(BaseModel):
+    lo: float
+    hi: float
+    n: int = Field(description="tests whose final confidence fell in [lo, hi)")
+    confidence: Optional[float] = Field(description="their mean final confidence")
+    accuracy: Optional[float] = Field(description="their share of final hits")
+
+
+class Calibration(BaseModel):
+    ece_final: Optional[float] = Field(description="expected calibration error (10 bins) of the final confidence against the final hit")
+    ece_all: Optional[float] = Field(description="the same over every step's confidence and hit")
+    confidence_final: Optional[float] = Field(None, description="mean final confidence")
+    reliability: list[ReliabilityBin] = Field(default_factory=list, description="the reliability diagram of the final confidences (10 bins)")
+
+
+class Decision(BaseModel):
+    accuracy: Optional[float] = Field(description="share of tests whose final answer (decided early or at the horizon) is the Tx")
+    accuracy_ci95: list[float] = Field(min_length=2, max_length=2, description="its Wilson 95 % interval")
+    median_s: Optional[float] = Field(description="median time to decision over the tests that decided")
+    p90_s: Optional[float] = Field(description="90th percentile of the time to decision")
+    undecided: Optional[float] = Field(description="share of tests that never reached the confidence")
+
+
 class AlgorithmResults(BaseModel):
     dr: list[float] = Field(description="DR_t at every step (association rule, eq. 11)")
     dr_final: float
@@ -115,6 +141,8 @@ class AlgorithmResults(BaseModel):
     dr_ci95: list[list[float]] = Field(description="Wilson 95 % interval [lo, hi] at every step")
     time_to_dr90_s: Optional[float] = Field(description="time after which DR stays >= 0.9; null if it ends below")
     in_fov_final: float = Field(description="rate of tests with the Tx inside the FoV at the final estimate (secondary)")
+    calibration: Optional[Calibration] = Field(None, description="how honest the confidences were (absent without confidences)")
+    decision: Optional[Decision] = Field(None, description="early decision (campaigns with stop_confidence > 0)")
 
 
 class LatencySummary(BaseModel):
@@ -133,6 +161,7 @@ class ResultsPublic(BaseModel):
     algorithms: dict[str, AlgorithmResults]
     steps_per_second: Optional[float]
     latency_ms: Optional[LatencySummary] = Field(None, description="realtime campaigns only: sample -> command latency")
+    stop_confidence: Optional[float] = Field(None, description="early decision threshold, when the campaign had one")
 
 
 class OutcomePublic(BaseModel):
@@ -151,6 +180,8 @@ class OutcomePublic(BaseModel):
     hit_rate: Optional[float] = Field(description="fraction of steps with î_t = i*")
     first_hit_s: Optional[float] = Field(description="time of the first step with î_t = i*")
     settled_s: Optional[float] = Field(description="time after which î_t = i* until the end; null if the test ends on a miss")
+    final_confidence: Optional[float] = Field(None, description="the controller's confidence in its final answer")
+    decided_s: Optional[float] = Field(None, description="time of an early decision (stop_confidence), else null")
 
 
 class OutcomePage(BaseModel):
@@ -162,9 +193,11 @@ class OutcomePage(BaseModel):
 
 class TargetPublic(BaseModel):
     index: int
-    bearing_rad: float
-    range_m: float
+    bearing_rad: float = Field(description="gamma_i at step 0 (always, for a static target)")
+    range_m: float = Field(description="d_i at step 0")
     is_tx: bool
+    bearings_rad: Optional[list[float]] = Field(None, description="walking targets only: gamma_i at every step")
+    ranges_m: Optional[list[float]] = Field(None, description="walking targets only: d_i at every step")
 
 
 class TraceStep(BaseModel):
@@ -177,6 +210,7 @@ class TraceStep(BaseModel):
     hit: bool = Field(description="î_t = i*")
     in_fov: bool = Field(description="the Tx is inside the FoV at gamma_hat_t")
     latency_ms: Optional[float] = Field(None, description="realtime only: sample -> command latency")
+    confidence: Optional[float] = Field(None, description="the controller's confidence in the target it named")
 
 
 class TracePublic(BaseModel):
@@ -223,8 +257,14 @@ class RigsPublic(BaseModel):
 class Health(BaseModel):
     status: Literal["ok", "starting", "degraded"]
     ready: bool
-    database: bool
+    database: bool = Field(description="the database answers and takes writes")
+    database_error: Optional[str] = Field(None, description="why not, e.g. 'not writable: database or disk is full (since 12:01:02)'")
     zenoh: bool
     rigs: list[str]
     expected_rigs: int
     learners: list[str]
+    rejected_messages: dict[str, int] = Field(
+        default_factory=dict,
+        description="result/truth-plane messages dropped, by reason: malformed, not_in_flight (unknown or stale episode id), "
+                    "wrong_rig (not on the key of the rig the episode was assigned to)")
+    waiting_writes: int = Field(0, description="database writes waiting to be retried")

@@ -12,18 +12,23 @@ from ra2vipas.services.orchestrator.api.schemas import (
     TraceStep,
 )
 from ra2vipas.services.orchestrator.metrics import time_to_level
-from ra2vipas.services.orchestrator.storage import ACTIVE
+from ra2vipas.services.orchestrator.storage import ACTIVE, Fault
 
 
-def campaign_progress(row: dict[str, Any]) -> CampaignProgress:
+def campaign_progress(row: dict[str, Any], storage_fault: Fault | None = None) -> CampaignProgress:
+    """``storage_fault``: the store's current fault; an unfinished campaign shows it in
+    ``error`` (it cannot be written to the database, which is what is failing)."""
+    error = row["error"]
+    if error is None and storage_fault is not None and row["status"] in ACTIVE:
+        error = f"database {storage_fault.describe()}; retrying, nothing is lost"
     return CampaignProgress(
         id=row["id"], status=row["status"], progress=Progress(**row["progress"]), started_at=row["started_at"],
         finished_at=row["finished_at"], pod=PODSummary(r2=row["pod_r2"], train_seconds=row["pod_train_seconds"]),
-        error=row["error"],
+        error=error,
     )
 
 
-def campaign_public(row: dict[str, Any], now: float | None = None) -> CampaignPublic:
+def campaign_public(row: dict[str, Any], now: float | None = None, storage_fault: Fault | None = None) -> CampaignPublic:
     started, finished = row["started_at"], row["finished_at"]
     if started is None:
         elapsed = None
@@ -32,10 +37,10 @@ def campaign_public(row: dict[str, Any], now: float | None = None) -> CampaignPu
     else:
         elapsed = max(0.0, (now or time.time()) - started) if row["status"] in ACTIVE else None
     return CampaignPublic(
-        **campaign_progress(row).model_dump(), name=row["name"], preset=row["preset"], overrides=row["overrides"],
+        **campaign_progress(row, storage_fault).model_dump(), name=row["name"], preset=row["preset"], overrides=row["overrides"],
         scenario=row["scenario"], algorithms=row["algorithms"], tests=row["tests"], seed=row["seed"], mode=row["mode"],
         created_at=row["created_at"], elapsed_s=None if elapsed is None else round(elapsed, 3),
-        steps_per_second=row["steps_per_second"],
+        steps_per_second=row["steps_per_second"], stop_confidence=row.get("stop_confidence") or 0.0,
     )
 
 
@@ -50,24 +55,32 @@ def outcome_public(row: dict[str, Any], rf_period_s: float) -> OutcomePublic:
                              hit_rate=None, first_hit_s=None, settled_s=None)
     h = np.asarray(hits, dtype=float)
     first = np.flatnonzero(h > 0)
+    decided = row.get("decided_step")
     return OutcomePublic(
         **base, final_choice=row["final_choice"], final_hit=bool(hits[-1]), final_in_fov=bool(row["final_in_fov"]),
         final_estimate_rad=row["final_estimate"], hit_rate=round(float(h.mean()), 6),
         first_hit_s=None if first.size == 0 else round((int(first[0]) + 1) * rf_period_s, 10),
-        settled_s=time_to_level(h, 1.0, rf_period_s),
+        settled_s=time_to_level(h, 1.0, rf_period_s), final_confidence=row.get("final_confidence"),
+        decided_s=None if decided is None else round((decided + 1) * rf_period_s, 10),
     )
 
 
 def trace_public(row: dict[str, Any], rf_period_s: float) -> TracePublic:
-    """Per step of a finished test: pan angle, reward, gamma_hat_t, î_t and whether it hit."""
+    """Per step of a finished test: pan angle, reward, gamma_hat_t, î_t and whether it hit; the
+    targets at step 0 and, for those that walk, their bearing and range at every step."""
     latencies = row.get("latencies") or []
+    confidences = row.get("confidences") or []
     steps = [
         TraceStep(step=t, time_s=round((t + 1) * rf_period_s, 10), pan_rad=row["pans"][t], reward=row["rewards"][t],
                   gamma_hat_rad=row["estimates"][t], i_hat=row["chosen"][t], hit=bool(row["hits"][t]), in_fov=bool(row["in_fov"][t]),
-                  latency_ms=latencies[t] if t < len(latencies) else None)
+                  latency_ms=latencies[t] if t < len(latencies) else None,
+                  confidence=confidences[t] if t < len(confidences) else None)
         for t in range(len(row["estimates"]))
     ]
-    targets = [TargetPublic(index=i, bearing_rad=b, range_m=r, is_tx=i == row["tx_index"])
+    walks = {t["index"]: t for t in row.get("trajectories") or []}
+    targets = [TargetPublic(index=i, bearing_rad=b, range_m=r, is_tx=i == row["tx_index"],
+                            bearings_rad=walks[i]["bearings_rad"] if i in walks else None,
+                            ranges_m=walks[i]["ranges_m"] if i in walks else None)
                for i, (b, r) in enumerate(zip(row["bearings"], row["ranges"]))]
     return TracePublic(campaign_id=row["campaign_id"], test_index=row["test_index"], algorithm=row["algorithm"], rig=row["rig"],
                        attempt=row["attempt"], tx_index=row["tx_index"], targets=targets, steps=steps)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Optional
 
-from fastapi import APIRouter, HTTPException, Query, Response, status
+from fastapi import APIRouter, HTTPException, Query, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 
 from ra2vipas.services.orchestrator.api.deps import Authorized, CampaignDep, SchedulerDep, StoreDep
@@ -33,15 +33,17 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
         loc = ["body", "preset"] if str(err).startswith("unknown preset") else ["body", "overrides"]
         raise RequestValidationError([{"loc": tuple(loc), "msg": str(err), "type": "value_error"}]) from None
     algorithms = list(dict.fromkeys(body.algorithms))
+    resolved = scenario.model_dump(mode="json")
+    overrides = {name: resolved[name] for name in body.overrides}  # stored with the scenario's types (3 -> 3.0)
     cid = store.create_campaign(
-        preset=body.preset, overrides=body.overrides, scenario=scenario.model_dump(mode="json"), algorithms=algorithms,
-        tests=body.tests, seed=body.seed, mode=body.mode, name=body.name,
+        preset=body.preset, overrides=overrides, scenario=resolved, algorithms=algorithms,
+        tests=body.tests, seed=body.seed, mode=body.mode, name=body.name, stop_confidence=body.stop_confidence,
     )
     scheduler.submit(cid)
     response.headers["Location"] = f"/campaigns/{cid}"
     row = store.campaign(cid)
     assert row is not None
-    return campaign_public(row)
+    return campaign_public(row, storage_fault=store.fault)
 
 
 @router.get("", response_model=CampaignPage, responses=responses(422))
@@ -54,13 +56,13 @@ def list_campaigns(
 ) -> CampaignPage:
     """Campaigns, newest first, one page at a time."""
     rows, total = store.campaigns(status=status_, preset=preset, limit=limit, offset=offset)
-    return CampaignPage(items=[campaign_public(r) for r in rows], total=total, limit=limit, offset=offset)
+    return CampaignPage(items=[campaign_public(r, storage_fault=store.fault) for r in rows], total=total, limit=limit, offset=offset)
 
 
 @router.get("/{campaign_id}", response_model=CampaignPublic, responses=responses(404))
-def show_campaign(campaign: CampaignDep) -> CampaignPublic:
+def show_campaign(campaign: CampaignDep, store: StoreDep) -> CampaignPublic:
     """Status, progress, timings, the resolved scenario (every parameter) and the POD fit (R²)."""
-    return campaign_public(campaign)
+    return campaign_public(campaign, storage_fault=store.fault)
 
 
 @router.post("/{campaign_id}/cancel", response_model=CampaignPublic, dependencies=[Authorized],
@@ -76,12 +78,12 @@ def cancel_campaign(campaign: CampaignDep, store: StoreDep, scheduler: Scheduler
     row = store.campaign(cid)
     if row is None:  # deleted in between
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {cid!r}")
-    return campaign_public(row)
+    return campaign_public(row, storage_fault=store.fault)
 
 
 @router.delete("/{campaign_id}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response, dependencies=[Authorized],
                responses=responses(401, 404, 409, e409="the campaign is still queued, training or running; cancel it first"))
-def delete_campaign(campaign: CampaignDep, store: StoreDep) -> Response:
+def delete_campaign(campaign: CampaignDep, store: StoreDep, request: Request) -> Response:
     """Delete a finished (done, failed or cancelled) campaign and every test it recorded."""
     try:
         deleted = store.delete_campaign(campaign["id"])
@@ -89,4 +91,5 @@ def delete_campaign(campaign: CampaignDep, store: StoreDep) -> Response:
         raise HTTPException(status.HTTP_409_CONFLICT, str(err)) from None
     if not deleted:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {campaign['id']!r}")
+    request.app.state.renderer.invalidate(campaign["id"])  # its cached figures
     return Response(status_code=status.HTTP_204_NO_CONTENT)

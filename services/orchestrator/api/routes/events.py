@@ -11,11 +11,12 @@ from __future__ import annotations
 import asyncio
 import json
 import time
-from typing import Annotated, AsyncIterator
+from typing import Annotated, AsyncIterator, Callable
 
 from fastapi import APIRouter, HTTPException, Query, Request, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
+from starlette.background import BackgroundTask
 
 from ra2vipas.services.orchestrator.api.deps import CampaignDep, StoreDep
 from ra2vipas.services.orchestrator.api.errors import responses
@@ -30,10 +31,27 @@ KEEPALIVE_S = 10.0
 
 
 class _Streams:
-    """Counts open streams so that many idle clients cannot pin the server."""
+    """Counts open streams so that many idle clients cannot pin the server. A stream's place
+    is reserved by the route itself (no ``await`` between the check and the count, so the cap
+    is exact) and released once, whichever ends first: the stream or the response."""
 
     def __init__(self) -> None:
         self.open = 0
+
+    def reserve(self) -> "Callable[[], None] | None":
+        """A release function for one more stream, or None if the cap is reached."""
+        if self.open >= MAX_STREAMS:
+            return None
+        self.open += 1
+        released = False
+
+        def release() -> None:
+            nonlocal released
+            if not released:
+                released = True
+                self.open -= 1
+
+        return release
 
 
 def _streams(request: Request) -> _Streams:
@@ -69,15 +87,15 @@ async def campaign_events(campaign: CampaignDep, request: Request, store: StoreD
                           interval: Annotated[float, Query(ge=0.05, le=10.0, description="seconds between checks")] = 0.5
                           ) -> StreamingResponse:
     """Progress of a campaign as server-sent events, until it finishes."""
-    streams = _streams(request)
-    if streams.open >= MAX_STREAMS:
-        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"too many open event streams ({MAX_STREAMS}); poll GET /campaigns/{{id}}")
-    return StreamingResponse(_events(store, campaign["id"], interval, streams), media_type="text/event-stream",
-                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+    release = _streams(request).reserve()
+    if release is None:
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"too many open event streams ({MAX_STREAMS}); poll GET /campaigns/{{id}}",
+                            headers={"Retry-After": "5"})
+    return StreamingResponse(_events(store, campaign["id"], interval, release), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}, background=BackgroundTask(release))
 
 
-async def _events(store: Store, cid: str, interval: float, streams: _Streams) -> AsyncIterator[str]:
-    streams.open += 1  # counted here, not in the route, so that the finally below always balances it
+async def _events(store: Store, cid: str, interval: float, release: Callable[[], None]) -> AsyncIterator[str]:
     try:
         last, last_sent, n = None, time.monotonic(), 0
         while True:
@@ -85,7 +103,7 @@ async def _events(store: Store, cid: str, interval: float, streams: _Streams) ->
             if row is None:
                 yield f"event: deleted\ndata: {json.dumps({'id': cid})}\n\n"
                 return
-            data = campaign_progress(row).model_dump_json()
+            data = campaign_progress(row, store.fault).model_dump_json()
             if data != last:
                 n += 1
                 yield f"id: {n}\nevent: progress\ndata: {data}\n\n"
@@ -97,4 +115,4 @@ async def _events(store: Store, cid: str, interval: float, streams: _Streams) ->
                 return
             await asyncio.sleep(interval)
     finally:
-        streams.open -= 1
+        release()

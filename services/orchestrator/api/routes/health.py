@@ -12,14 +12,20 @@ router = APIRouter(tags=["health"])
 
 @router.get("/health", response_model=Health, responses={503: {"model": Health, "description": "not ready"}})
 def health(request: Request, response: Response, store: StoreDep, scheduler: SchedulerDep, settings: SettingsDep) -> Health:
-    """200 once the database answers, the Zenoh session is open and the expected rigs and a
-    learner are alive; 503 (same body) until then."""
-    db_ok = store.ping()
+    """200 once the database answers and takes writes, the Zenoh session is open and the
+    expected rigs and a learner are alive; 503 (same body) until then, or while the database
+    is failing (``database_error`` says why; the orchestrator retries by itself). Also counts
+    the result-plane and truth-plane messages it dropped, by reason."""
+    fault = store.fault
+    db_ok = store.ping() and fault is None
     zenoh_ok = bool(getattr(request.app.state, "bus_open", False))
     rigs = scheduler.live_rigs()
-    learners = scheduler.status()["learners"]
-    ready = db_ok and zenoh_ok and len(rigs) >= settings.expect_rigs and bool(learners)
+    snapshot = scheduler.status()
+    ready = db_ok and zenoh_ok and len(rigs) >= settings.expect_rigs and bool(snapshot["learners"])
     if not ready:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
     state = "ok" if ready else ("degraded" if not db_ok or not zenoh_ok else "starting")
-    return Health(status=state, ready=ready, database=db_ok, zenoh=zenoh_ok, rigs=rigs, expected_rigs=settings.expect_rigs, learners=learners)
+    database_error = None if db_ok else (fault.describe() if fault is not None else "unavailable")
+    return Health(status=state, ready=ready, database=db_ok, database_error=database_error, zenoh=zenoh_ok, rigs=rigs,
+                  expected_rigs=settings.expect_rigs, learners=snapshot["learners"], rejected_messages=snapshot["rejected"],
+                  waiting_writes=snapshot["waiting_writes"])

@@ -1,20 +1,20 @@
 """/campaigns/{id}/results (JSON or CSV) and the campaign-level figures: DR curves (paper
-Fig. 4) and the learned POD (paper Fig. 3)."""
+Fig. 4) and the learned POD (paper Fig. 3), drawn by the renderer processes and cached
+(``ra2vipas.services.orchestrator.api.render``)."""
 
 from __future__ import annotations
 
 from typing import Annotated, Any, Optional
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response, status
-from fastapi.concurrency import run_in_threadpool
 
 from ra2vipas.services.orchestrator import plots
-from ra2vipas.services.orchestrator.api.deps import CampaignDep, StoreDep
+from ra2vipas.services.orchestrator.api.deps import CampaignDep, get_campaign
 from ra2vipas.services.orchestrator.api.errors import responses
 from ra2vipas.services.orchestrator.api.export import write_results_csv
-from ra2vipas.services.orchestrator.api.negotiate import IMAGE_CONTENT, ImageFormat, ResultsFormat, image_format, results_format
+from ra2vipas.services.orchestrator.api.negotiate import ImageFormat, ResultsFormat, image_format, results_format
+from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, plot_responses, serve_figure
 from ra2vipas.services.orchestrator.api.schemas import ResultsPublic
-from ra2vipas.services.protocol.scenario import Scenario
 
 router = APIRouter(prefix="/campaigns/{campaign_id}", tags=["results"])
 
@@ -46,31 +46,62 @@ def campaign_results(campaign: CampaignDep, request: Request,
     return results
 
 
-@router.get("/plots/dr", response_class=Response, responses={200: {"content": IMAGE_CONTENT, "description": "the figure"},
-                                                            **responses(404, 409, 422, e409=NOT_DONE)})
-async def dr_plot(campaign: CampaignDep, request: Request,
+@router.get("/plots/dr", response_class=Response, responses=plot_responses(NOT_DONE))
+async def dr_plot(campaign_id: str, request: Request,
                   fmt: Annotated[Optional[ImageFormat], Query(alias="format", description="png (default) or svg")] = None) -> Response:
-    """DR_t of every algorithm with its Wilson 95 % band against time (paper Fig. 4)."""
-    results = finished_results(campaign)
+    """DR_t of every algorithm with its Wilson 95 % band against time (paper Fig. 4).
+
+    Drawn once per format by a renderer process and then served from the cache (a done
+    campaign never changes); 503 with ``Retry-After`` while every renderer is busy."""
     kind = image_format(request, fmt)
-    data = await run_in_threadpool(plots.draw, lambda: plots.dr_figure(results), kind)
-    return Response(data, media_type=plots.MEDIA_TYPES[kind])
+    store = request.app.state.store
+
+    def read() -> FigureSource:
+        results = finished_results(get_campaign(campaign_id, store))
+        return FigureSource(plots.PlotJob("dr", kind, {"results": results}))
+
+    return await serve_figure(request, PlotKey(campaign_id, "dr", kind), read)
 
 
-@router.get("/plots/pod", response_class=Response,
-            responses={200: {"content": IMAGE_CONTENT, "description": "the figure"},
-                       **responses(404, 409, 422, e409="the POD model is not trained yet (or was not kept)")})
-async def pod_plot(campaign: CampaignDep, request: Request, store: StoreDep,
+@router.get("/plots/reliability", response_class=Response, responses=plot_responses(NOT_DONE))
+async def reliability_plot(campaign_id: str, request: Request,
+                           fmt: Annotated[Optional[ImageFormat], Query(alias="format", description="png (default) or svg")] = None
+                           ) -> Response:
+    """Reliability diagram of every algorithm's final confidence: the share of final answers
+    that were the Tx against the confidence given to them (10 bins), ECE in the legend."""
+    kind = image_format(request, fmt)
+    store = request.app.state.store
+
+    def read() -> FigureSource:
+        results = finished_results(get_campaign(campaign_id, store))
+        return FigureSource(plots.PlotJob("reliability", kind, {"results": results}))
+
+    return await serve_figure(request, PlotKey(campaign_id, "reliability", kind), read)
+
+
+@router.get("/plots/pod", response_class=Response, responses=plot_responses("the POD model is not trained yet (or was not kept)"))
+async def pod_plot(campaign_id: str, request: Request,
                    fmt: Annotated[Optional[ImageFormat], Query(alias="format", description="png (default) or svg")] = None) -> Response:
     """The learned POD p̂_D(r) (mean ± 2 std) against the true p_D(r), with the truth at every
     training sample (paper Fig. 3). The noisy labels the learner fitted are not kept by the
-    orchestrator, so the points are the true p_D at each sample's true RSSI."""
-    artifacts = await run_in_threadpool(store.pod_artifacts, campaign["id"])
-    if not artifacts or artifacts["model"] is None:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"campaign {campaign['id']} has no POD model yet ({campaign['status']})")
-    scenario = Scenario.model_validate(campaign["scenario"])
-    r2 = campaign["pod_r2"]
-    title = f"POD regression, {campaign['preset']} seed {campaign['seed']}" + ("" if r2 is None else f": R² {r2:.3f}")
+    orchestrator, so the points are the true p_D at each sample's true RSSI.
+
+    Cached once the model is stored (it never changes after); 503 with ``Retry-After`` while
+    every renderer is busy."""
     kind = image_format(request, fmt)
-    data = await run_in_threadpool(plots.draw, lambda: plots.pod_figure(scenario, artifacts["model"], artifacts["truth"], title), kind)
-    return Response(data, media_type=plots.MEDIA_TYPES[kind])
+    store = request.app.state.store
+
+    def read() -> FigureSource:
+        # the model first: once it is stored, the campaign row read after it carries its R² and pod_job
+        artifacts = store.pod_artifacts(campaign_id)
+        campaign = get_campaign(campaign_id, store)
+        if not artifacts or artifacts["model"] is None:
+            raise HTTPException(status.HTTP_409_CONFLICT,
+                                f"campaign {campaign['id']} has no POD model yet ({campaign['status']})")
+        r2 = campaign["pod_r2"]
+        title = f"POD regression, {campaign['preset']} seed {campaign['seed']}" + ("" if r2 is None else f": R² {r2:.3f}")
+        job = plots.PlotJob("pod", kind, {"scenario": campaign["scenario"], "model": artifacts["model"],
+                                          "truth": artifacts["truth"], "title": title})
+        return FigureSource(job, cacheable=campaign["pod_job"] is not None)
+
+    return await serve_figure(request, PlotKey(campaign_id, "pod", kind), read)

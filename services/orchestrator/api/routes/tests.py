@@ -5,17 +5,16 @@ from __future__ import annotations
 from typing import Annotated, Any, Optional
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
-from fastapi.concurrency import run_in_threadpool
 
 from ra2vipas.services.orchestrator import plots
-from ra2vipas.services.orchestrator.api.deps import CampaignDep, StoreDep
+from ra2vipas.services.orchestrator.api.deps import CampaignDep, StoreDep, get_campaign
 from ra2vipas.services.orchestrator.api.errors import responses
-from ra2vipas.services.orchestrator.api.negotiate import IMAGE_CONTENT, ImageFormat, image_format
+from ra2vipas.services.orchestrator.api.negotiate import ImageFormat, image_format
+from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, plot_responses, serve_figure
 from ra2vipas.services.orchestrator.api.schemas import (
     MAX_OFFSET, MAX_PAGE, MAX_TESTS, AlgorithmName, EpisodeStatus, OutcomePage, TracePublic,
 )
 from ra2vipas.services.orchestrator.api.views import outcome_public, trace_public
-from ra2vipas.services.protocol.scenario import Scenario
 
 router = APIRouter(prefix="/campaigns/{campaign_id}/tests", tags=["tests"])
 
@@ -60,15 +59,20 @@ def test_trace(campaign: CampaignDep, store: StoreDep, test_index: TestIndex, al
     return trace_public(row, campaign["scenario"]["rf_period_s"])
 
 
-@router.get("/{test_index}/{algorithm}/plot", response_class=Response,
-            responses={200: {"content": IMAGE_CONTENT, "description": "the figure"},
-                       **responses(404, 409, 422, e409="the test has not finished")})
-async def test_plot(campaign: CampaignDep, store: StoreDep, request: Request, test_index: TestIndex, algorithm: Algorithm,
+@router.get("/{test_index}/{algorithm}/plot", response_class=Response, responses=plot_responses("the test has not finished"))
+async def test_plot(campaign_id: str, request: Request, test_index: TestIndex, algorithm: Algorithm,
                     fmt: Annotated[Optional[ImageFormat], Query(alias="format", description="png (default) or svg")] = None) -> Response:
     """One test's episode: the targets and the FoV at the final estimate seen from above, and
-    the pan trajectory with its FoV and the estimate γ̂_t against time."""
-    row = await run_in_threadpool(_finished_episode, store, campaign, test_index, algorithm)
-    scenario = Scenario.model_validate(campaign["scenario"])
+    the pan trajectory with its FoV and the estimate γ̂_t against time.
+
+    Cached once drawn (a finished test never changes, even while its campaign runs); 503 with
+    ``Retry-After`` while every renderer is busy."""
     kind = image_format(request, fmt)
-    data = await run_in_threadpool(plots.draw, lambda: plots.episode_figure(scenario, row), kind)
-    return Response(data, media_type=plots.MEDIA_TYPES[kind])
+    store = request.app.state.store
+
+    def read() -> FigureSource:
+        campaign = get_campaign(campaign_id, store)
+        row = _finished_episode(store, campaign, test_index, algorithm)
+        return FigureSource(plots.PlotJob("episode", kind, {"scenario": campaign["scenario"], "episode": row}))
+
+    return await serve_figure(request, PlotKey(campaign_id, "episode", kind, (test_index, algorithm)), read)

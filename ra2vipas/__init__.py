@@ -1,0 +1,38 @@
+"""ra2vipas: find which target around a pan camera carries the radio transmitter.
+
+The Python API (the CLI and the REST API do the same things):
+
+>>> import ra2vipas
+>>> results = ra2vipas.simulate(preset="paper", overrides={"n_targets": 30}, tests=50, seed=1)
+>>> results["algorithms"]["ra2vipas"]["dr_final"]
+>>> with ra2vipas.Client("http://127.0.0.1:8080") as client:      # a running orchestrator
+...     campaign = client.start_campaign(preset="paper", tests=50, seed=1)
+...     results = client.wait(campaign["id"])
+
+The services and the command line live in the subpackages ``ra2vipas.services`` (the wire
+protocol, the simulated sensors, the learner, the controller, the orchestrator) and
+``ra2vipas.cli``. In a source checkout they are the repository's ``services/`` and ``cli/``
+folders; an installed wheel has them inside this package.
+"""
+
+from __future__ import annotations
+
+import os as _os
+from pathlib import Path as _Path
+
+# A source checkout keeps services/ and cli/ beside this folder: make them ra2vipas.services
+# and ra2vipas.cli (an installed wheel has them inside the package, and this does nothing).
+_here = _Path(__file__).resolve().parent
+if not (_here / "services").is_dir() and (_here.parent / "services" / "__init__.py").is_file():
+    __path__.append(_os.fspath(_here.parent))  # type: ignore[name-defined]  # noqa: F821
+
+from ra2vipas.api import Client, ClientError, simulate  # noqa: E402
+
+__all__ = ["Client", "ClientError", "simulate", "__version__"]
+
+try:
+    from importlib.metadata import version as _version
+
+    __version__ = _version("ra2vipas")
+except Exception:  # not installed (a bare checkout)
+    __version__ = "0+unknown"

@@ -1,0 +1,170 @@
+"""The Python API: campaigns in this process (``simulate``) or on a running orchestrator
+(``Client``), returning the same results object as ``ra2vipas simulate --json`` and
+``GET /campaigns/{id}/results``."""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Iterable, Mapping
+
+import httpx
+
+
+def simulate(preset: str = "paper", overrides: Mapping[str, Any] | None = None, tests: int = 50, seed: int = 1,
+             algorithms: Iterable[str] | None = None) -> dict[str, Any]:
+    """Run a Monte Carlo campaign in this process, like ``ra2vipas simulate --json``.
+
+    Parameters
+    ----------
+    preset : str
+        A scenario preset (``ra2vipas presets list``).
+    overrides : mapping, optional
+        Scenario parameters to override, e.g. ``{"n_targets": 30}`` (typed values).
+    tests, seed : int
+        Tests per algorithm and the campaign seed (fixes every random draw).
+    algorithms : iterable of str, optional
+        Default: all of ``ra2vipas``, ``rapas``, ``ravipas``, ``sweep``.
+
+    Returns
+    -------
+    dict
+        The results object (DR curves with Wilson bands, final DR, t90, in-FoV, POD R²).
+
+    Raises
+    ------
+    ValueError
+        A bad preset, parameter, value or algorithm (one line naming it).
+    """
+    from ra2vipas.services.orchestrator.simulate import run_campaign
+    from ra2vipas.services.protocol.messages import ALGORITHMS
+    from ra2vipas.services.protocol.scenario import build_scenario
+
+    names = list(dict.fromkeys(algorithms)) if algorithms is not None else list(ALGORITHMS)
+    unknown = [a for a in names if a not in ALGORITHMS]
+    if unknown or not names:
+        raise ValueError(f"unknown algorithm {unknown[0]!r}; choose from {', '.join(ALGORITHMS)}" if unknown else "no algorithm given")
+    if isinstance(tests, bool) or not isinstance(tests, int) or tests < 1:
+        raise ValueError(f"tests: expected a positive integer, got {tests!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+    scenario = build_scenario(preset, dict(overrides or {}))  # ScenarioError is a ValueError
+    return run_campaign(preset, scenario, tests, seed, names)
+
+
+class ClientError(Exception):
+    """A request to the orchestrator failed; ``status`` is the HTTP status (None: unreachable)."""
+
+    def __init__(self, message: str, status: int | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+FINISHED = ("done", "failed", "cancelled")
+
+
+class Client:
+    """A client of the orchestrator's REST API (``ra2vipas up``, or a deployment).
+
+    Parameters
+    ----------
+    api : str
+        Base URL, e.g. ``http://127.0.0.1:8080``.
+    token : str, optional
+        Bearer token of a server started with one (needed to start, cancel or delete).
+    """
+
+    def __init__(self, api: str = "http://127.0.0.1:8080", token: str | None = None, timeout: float = 30.0) -> None:
+        self.api = api.rstrip("/")
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self._http = httpx.Client(base_url=self.api, headers=headers, timeout=timeout)
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *_exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def _request(self, method: str, path: str, **kw) -> Any:
+        try:
+            r = self._http.request(method, path, **kw)
+        except httpx.HTTPError as err:
+            raise ClientError(f"cannot reach the API at {self.api}: {type(err).__name__}") from None
+        if r.status_code >= 400:
+            try:
+                detail = r.json().get("detail", r.text)
+            except ValueError:
+                detail = r.text[:200]
+            raise ClientError(f"{method} {path}: HTTP {r.status_code}: {detail}", r.status_code)
+        return None if r.status_code == 204 or not r.content else r.json()
+
+    # -- campaigns ---------------------------------------------------------------------------
+    def start_campaign(self, preset: str = "paper", overrides: Mapping[str, Any] | None = None, tests: int = 50, seed: int = 1,
+                       algorithms: Iterable[str] | None = None, mode: str = "fast", name: str | None = None,
+                       **options: Any) -> dict[str, Any]:
+        """Create a campaign (``POST /campaigns``); returns it (``id``, ``status``, ...).
+        Further campaign options of the API (e.g. ``stop_confidence``) pass through ``options``."""
+        body: dict[str, Any] = {"preset": preset, "overrides": dict(overrides or {}), "tests": tests, "seed": seed, "mode": mode,
+                                **options}
+        if algorithms is not None:
+            body["algorithms"] = list(algorithms)
+        if name is not None:
+            body["name"] = name
+        return self._request("POST", "/campaigns", json=body)
+
+    def campaign(self, campaign_id: str) -> dict[str, Any]:
+        return self._request("GET", f"/campaigns/{campaign_id}")
+
+    def campaigns(self, **filters: Any) -> list[dict[str, Any]]:
+        """Every campaign matching the filters (``status``, ``preset``), newest first."""
+        out, offset = [], 0
+        while True:
+            page = self._request("GET", "/campaigns", params={**filters, "limit": 200, "offset": offset})
+            out += page["items"]
+            offset += len(page["items"])
+            if not page["items"] or offset >= page["total"]:
+                return out
+
+    def results(self, campaign_id: str) -> dict[str, Any]:
+        return self._request("GET", f"/campaigns/{campaign_id}/results")
+
+    def cancel(self, campaign_id: str) -> dict[str, Any]:
+        return self._request("POST", f"/campaigns/{campaign_id}/cancel")
+
+    def delete(self, campaign_id: str) -> None:
+        self._request("DELETE", f"/campaigns/{campaign_id}")
+
+    def wait(self, campaign_id: str, timeout: float | None = None, poll: float = 0.5) -> dict[str, Any]:
+        """Wait for a campaign to finish and return its results object.
+
+        Raises
+        ------
+        ClientError
+            It failed or was cancelled, or ``timeout`` seconds passed.
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            c = self.campaign(campaign_id)
+            if c["status"] == "done":
+                return self.results(campaign_id)
+            if c["status"] in FINISHED:
+                raise ClientError(f"campaign {campaign_id} {c['status']}: {c.get('error') or ''}".rstrip(": "))
+            if deadline is not None and time.monotonic() > deadline:
+                raise ClientError(f"campaign {campaign_id} did not finish within {timeout} s")
+            time.sleep(poll)
+
+
+def to_dataframe(results: Mapping[str, Any]):
+    """A results object as a tidy pandas DataFrame: one row per (algorithm, step) with time,
+    DR and its Wilson band (needs pandas: ``pip install 'ra2vipas[pandas]'``)."""
+    try:
+        import pandas as pd
+    except ImportError:
+        raise ImportError("to_dataframe needs pandas: pip install 'ra2vipas[pandas]'") from None
+    period = results["scenario"]["rf_period_s"]
+    rows = [{"algorithm": name, "step": t + 1, "time_s": round((t + 1) * period, 10), "dr": dr, "ci_lo": lo, "ci_hi": hi}
+            for name, block in results["algorithms"].items()
+            for t, (dr, (lo, hi)) in enumerate(zip(block["dr"], block["dr_ci95"]))]
+    return pd.DataFrame(rows)

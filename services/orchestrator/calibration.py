@@ -1,0 +1,100 @@
+"""Fitting the controllers' confidence maps (``ra2vipas bench calibrate``).
+
+Each algorithm reports a raw confidence: the posterior probability of the target it names,
+under its own model. Models are approximations (tempered likelihoods, a POD model learned
+from noisy labels), so the raw number is over- or under-confident by an amount that depends
+on the algorithm. Platt scaling (Platt 1999; Guo et al. 2017 for its use as "temperature
+scaling" of posteriors), with one covariate the controller knows, how likely the Tx walks,
+fits per algorithm sigmoid(A logit(raw) + B + C tx_walks) to the hit of every step of
+simulated tests over a mix of scenarios, with seeds that no benchmark uses. The fitted
+(A, B, C) triples ship in ``services.controller.policy.TUNING``; this module is how they were made
+and how to remake them.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Iterable
+
+import numpy as np
+from scipy.optimize import minimize
+
+from ra2vipas.services.controller.policy import Controller, sensor_config_from_scenario, tuned_settings
+from ra2vipas.services.orchestrator.metrics import expected_calibration_error, score_test
+from ra2vipas.services.orchestrator.simulate import train_pod
+from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.sensors.world import SimulatedPlatform
+
+# A spread of worlds: the paper's, crowds, noise, antenna shapes, cameras, and the dynamic one.
+SCENARIOS: dict[str, tuple[str, dict[str, Any]]] = {
+    "paper": ("paper", {}),
+    "paper-uniform": ("paper-uniform", {}),
+    "crowd-40": ("paper-uniform", {"n_targets": 40, "rf_noise_db": 4.0}),
+    "noise-6dB": ("paper", {"rf_noise_db": 6.0}),
+    "db-gain": ("paper", {"antenna_model": "db-gain"}),
+    "wide-lobe": ("paper", {"antenna_curvature": 0.1}),
+    "fov-45": ("paper-uniform", {"fov_half_angle_deg": 45.0}),
+    "nu-3": ("paper", {"frames_per_rf": 3}),
+    "dynamic": ("dynamic", {}),
+    "dynamic-static": ("dynamic", {"walking_fraction": 0.0}),
+}
+
+
+def collect(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = SCENARIOS,
+            progress: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(raw confidence, how likely the Tx walks, hit) at every step of ``tests`` tests of each
+    scenario, with the algorithm's tuning (its confidence map does not change the raw value)."""
+    settings = tuned_settings(algorithm)
+    raw, walks, hit = [], [], []
+    for name in scenarios:
+        preset, overrides = SCENARIOS[name]
+        scenario = build_scenario(preset, overrides)
+        pod = train_pod(scenario, seed)
+        for k in range(tests):
+            platform = SimulatedPlatform(scenario, seed, k)
+            controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod.model, settings)
+            pan, estimates = controller.first_pan(), []
+            for t in range(scenario.steps):
+                d = controller.step(platform.sense(t, pan))
+                pan = d.next_pan_rad
+                estimates.append(d.estimate_rad)
+                raw.append(d.raw_confidence)
+                walks.append(d.tx_walks)
+            truth = platform.truth
+            hits, _ = score_test(np.asarray(estimates), truth.step_bearings_rad(), truth.tx_index, scenario.fov_half_angle_rad)
+            hit += hits.tolist()
+        if progress:
+            progress(name)
+    return np.asarray(raw, dtype=float), np.asarray(walks, dtype=float), np.asarray(hit, dtype=float)
+
+
+def fit_platt(raw: np.ndarray, walks: np.ndarray, hit: np.ndarray) -> tuple[float, float, float]:
+    """(A, B, C) maximising the Bernoulli likelihood of ``hit`` under
+    sigmoid(A logit(raw) + B + C walks)."""
+    p = np.clip(raw, 1e-6, 1.0 - 1e-6)
+    x = np.log(p / (1.0 - p))
+
+    def nll(theta: np.ndarray) -> float:
+        z = theta[0] * x + theta[1] + theta[2] * walks
+        return float(np.sum(np.logaddexp(0.0, z) - hit * z))
+
+    res = minimize(nll, np.array([1.0, 0.0, 0.0]), method="L-BFGS-B")
+    return float(res.x[0]), float(res.x[1]), float(res.x[2])
+
+
+def platt(raw: np.ndarray, walks: np.ndarray, A: float, B: float, C: float) -> np.ndarray:
+    p = np.clip(raw, 1e-9, 1.0 - 1e-9)
+    return 1.0 / (1.0 + np.exp(-(A * np.log(p / (1.0 - p)) + B + C * walks)))
+
+
+def calibrate(algorithms: Iterable[str], tests: int, seed: int, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Fit every algorithm's map; report it with the ECE before and after on the fitting data."""
+    out: dict[str, Any] = {"tests_per_scenario": tests, "seed": seed, "scenarios": list(SCENARIOS), "algorithms": {}}
+    for algorithm in algorithms:
+        raw, walks, hit = collect(algorithm, tests, seed, progress=(lambda name, a=algorithm: progress(f"{a}: {name}")) if progress else None)
+        A, B, C = fit_platt(raw, walks, hit)
+        out["algorithms"][algorithm] = {
+            "A": round(A, 4), "B": round(B, 4), "C": round(C, 4), "samples": int(raw.size),
+            "ece_raw": round(expected_calibration_error(raw, hit), 4),
+            "ece_fitted": round(expected_calibration_error(platt(raw, walks, A, B, C), hit), 4),
+        }
+    return out

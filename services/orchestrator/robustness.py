@@ -1,0 +1,118 @@
+"""The robustness benchmark (``ra2vipas bench robustness``): every algorithm on a spread of
+worlds, paired test by test, beside the oracle reference.
+
+Per scenario: each algorithm's final DR with its Wilson 95 % interval; the paired difference
+Ra²ViPAS minus the best single cue (RaPAS, the directional receiver alone, or RaViPAS, the
+camera and the omnidirectional receiver) with its 95 % interval (a normal interval on the
+per-test differences, which are paired because every algorithm meets the same world in test
+k); and the oracle's DR (``services.orchestrator.oracle``: the Bayes-MAP choice given the true
+model, the true trajectories and a sweep's measurements). Tests run in a process pool; every
+draw depends only on (seed, test index), so the numbers do not depend on the worker count.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor
+from functools import lru_cache
+from typing import Any, Callable
+
+import numpy as np
+
+from ra2vipas.services.orchestrator.metrics import Z95, wilson_interval
+from ra2vipas.services.orchestrator.oracle import oracle_choice
+from ra2vipas.services.orchestrator.simulate import run_test, train_pod
+from ra2vipas.services.protocol.scenario import Scenario, build_scenario
+
+ALGORITHMS = ("ra2vipas", "rapas", "ravipas", "sweep")
+SINGLE_CUES = ("rapas", "ravipas")
+
+SCENARIOS: dict[str, tuple[str, dict[str, Any]]] = {
+    "paper": ("paper", {}),
+    "uniform": ("paper-uniform", {}),
+    "sparse-10": ("paper", {"n_targets": 10}),
+    "crowd-60": ("paper-uniform", {"n_targets": 60, "rf_noise_db": 4.0}),
+    "noise-2dB": ("paper-uniform", {"rf_noise_db": 2.0}),
+    "noise-6dB": ("paper", {"rf_noise_db": 6.0}),
+    "lobe-0.05": ("paper", {"antenna_curvature": 0.05}),
+    "lobe-2": ("paper-uniform", {"antenna_curvature": 2.0}),
+    "db-gain": ("paper", {"antenna_model": "db-gain"}),
+    "db-gain-wide": ("paper-uniform", {"antenna_model": "db-gain", "antenna_curvature": 0.2}),
+    "fov-10": ("paper", {"fov_half_angle_deg": 10.0}),
+    "fov-45": ("paper-uniform", {"fov_half_angle_deg": 45.0}),
+    "nu-3": ("paper", {"frames_per_rf": 3}),
+    "nu-30": ("paper-uniform", {"frames_per_rf": 30}),
+    "clutter": ("paper", {"clutter_rate": 0.5, "box_bearing_noise_deg": 1.0}),
+    "dynamic-standing": ("dynamic", {"walking_fraction": 0.0}),
+    "dynamic": ("dynamic", {}),
+}
+
+
+@lru_cache(maxsize=4)
+def _scenario_and_model(name: str, seed: int) -> tuple[Scenario, Any]:
+    preset, overrides = SCENARIOS[name]
+    scenario = build_scenario(preset, overrides)
+    return scenario, train_pod(scenario, seed).model
+
+
+def run_chunk(name: str, seed: int, tests: list[int]) -> dict[str, list[int]]:
+    """Final hits (0/1) of every algorithm and of the oracle on the given tests of a scenario
+    (what a pool worker runs; the POD model is trained once per worker and scenario)."""
+    scenario, model = _scenario_and_model(name, seed)
+    out: dict[str, list[int]] = {a: [] for a in (*ALGORITHMS, "oracle")}
+    for k in tests:
+        for a in ALGORITHMS:
+            out[a].append(int(run_test(scenario, seed, k, a, model).hits[-1]))
+        choice, tx = oracle_choice(scenario, seed, k)
+        out["oracle"].append(int(choice == tx))
+    return out
+
+
+def summarize_scenario(name: str, hits: dict[str, list[int]]) -> dict[str, Any]:
+    """The report of one scenario from its per-test final hits."""
+    n = len(hits["ra2vipas"])
+    block: dict[str, Any] = {"preset": SCENARIOS[name][0], "overrides": SCENARIOS[name][1], "tests": n, "dr": {}, "ci95": {}}
+    for a, h in hits.items():
+        block["dr"][a] = round(sum(h) / n, 4)
+        block["ci95"][a] = [round(v, 4) for v in wilson_interval(sum(h), n)]
+    best = max(SINGLE_CUES, key=lambda a: (sum(hits[a]), a == "rapas"))
+    diff = np.asarray(hits["ra2vipas"], dtype=float) - np.asarray(hits[best], dtype=float)
+    half = Z95 * float(diff.std(ddof=1)) / math.sqrt(n) if n > 1 else float("inf")
+    block["best_single_cue"] = best
+    block["difference"] = round(float(diff.mean()), 4)
+    block["difference_ci95"] = [round(float(diff.mean()) - half, 4), round(float(diff.mean()) + half, 4)]
+    block["not_worse"] = bool(float(diff.mean()) + half >= 0.0)
+    oracle = block["dr"]["oracle"]
+    block["ra2vipas_over_oracle"] = round(block["dr"]["ra2vipas"] / oracle, 4) if oracle > 0 else None
+    return block
+
+
+def run(tests: int = 200, seed: int = 1, scenarios: list[str] | None = None, workers: int | None = None,
+        progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """The benchmark: ``tests`` paired tests per scenario, on ``workers`` processes (default:
+    every core)."""
+    names = list(scenarios or SCENARIOS)
+    unknown = [s for s in names if s not in SCENARIOS]
+    if unknown:
+        raise ValueError(f"unknown scenario {unknown[0]!r}; choose from {', '.join(SCENARIOS)}")
+    workers = max(1, workers or os.cpu_count() or 1)
+    chunk = max(1, min(25, tests // max(1, workers)))
+    jobs = [(name, list(range(lo, min(tests, lo + chunk)))) for name in names for lo in range(0, tests, chunk)]
+    hits: dict[str, dict[str, list[tuple[int, int]]]] = {name: {a: [] for a in (*ALGORITHMS, "oracle")} for name in names}
+    done = 0
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = {pool.submit(run_chunk, name, seed, ks): (name, ks) for name, ks in jobs}
+        for future, (name, ks) in futures.items():
+            part = future.result()
+            for a, h in part.items():
+                hits[name][a] += list(zip(ks, h))
+            done += len(ks)
+            if progress:
+                progress(done, tests * len(names))
+    report: dict[str, Any] = {"benchmark": "robustness", "tests": tests, "seed": seed, "workers": workers, "scenarios": {}}
+    for name in names:
+        ordered = {a: [h for _, h in sorted(v)] for a, v in hits[name].items()}
+        report["scenarios"][name] = summarize_scenario(name, ordered)
+    report["all_not_worse"] = all(s["not_worse"] for s in report["scenarios"].values())
+    return report

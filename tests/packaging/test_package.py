@@ -1,0 +1,53 @@
+"""One top-level import package: a wheel installs ``ra2vipas`` only (no generic ``services`` or
+``cli`` packages to collide with other projects), with every subpackage of the repository's
+services/ and cli/ folders inside it; the Python API is importable from it."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_the_declared_packages_are_every_folder_of_services_and_cli():
+    declared = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {"ra2vipas"}
+    for top in ("services", "cli"):
+        for init in (ROOT / top).rglob("__init__.py"):
+            found.add("ra2vipas." + init.parent.relative_to(ROOT).as_posix().replace("/", "."))
+    assert declared == found
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("wheel")
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(out), str(ROOT)],
+                   check=True, capture_output=True, timeout=300)
+    return next(out.glob("ra2vipas-*.whl"))
+
+
+def test_a_wheel_installs_one_top_level_package(wheel):
+    names = zipfile.ZipFile(wheel).namelist()
+    tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
+    assert tops == {"ra2vipas"}
+    assert "ra2vipas/services/controller/policy.py" in names and "ra2vipas/cli/main.py" in names
+    entry = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("entry_points.txt"))).decode()
+    assert "ra2vipas = ra2vipas.cli.main:main" in entry
+
+
+def test_the_installed_layout_imports_without_the_checkout(wheel, tmp_path):
+    """Unpacked elsewhere (no services/ beside it), the package finds its own subpackages."""
+    zipfile.ZipFile(wheel).extractall(tmp_path)
+    code = ("import ra2vipas, ra2vipas.services.protocol.keys as k, ra2vipas.cli.main; "
+            "print(k.__file__); print(callable(ra2vipas.simulate), callable(ra2vipas.Client))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                         env={"PYTHONPATH": str(tmp_path), "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr
+    first, second = out.stdout.splitlines()
+    assert Path(first).is_relative_to(tmp_path) and second == "True True"
