@@ -2,15 +2,7 @@
 
 from __future__ import annotations
 
-import os
-
-# The linear algebra here is on matrices of a few hundred entries: BLAS worker threads only
-# spin and steal the cores the services need (they cost milliseconds of latency). Must be
-# set before numpy is first imported.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-
-import typer  # noqa: E402
+import typer  # noqa: E402  (ra2vipas/__init__ pins BLAS to one thread before numpy loads)
 
 from ra2vipas.cli import bench, campaign, presets, protocol, security, services  # noqa: E402
 from ra2vipas.cli.rig import rig  # noqa: E402
