@@ -269,15 +269,17 @@ def missed_logdensity(l_rf, rf_weight, miss_stand, miss_walk, walks, log_prior, 
     gamma": rf_weight * l_RF(gamma) + log P(no detection in the frames that looked there | the
     Tx's POD) + the log prior of such a target in that grid cell. A Tx that stands was missed
     in every frame ever taken there (``miss_stand``), one that walks only in the recent ones
-    (``miss_walk``): mixed with probability ``walks``; with probability ``outlier`` the miss
-    says nothing (hidden behind someone, or the POD model is off)."""
+    (``miss_walk``): mixed with probability ``walks``; with probability ``outlier[j]`` the miss
+    says nothing (hidden behind someone, most likely just behind a detected target, or the POD
+    model is off)."""
     for j in range(l_rf.size):
         stand = miss_stand[j]
         walk = miss_walk[j]
         top = max(stand, walk)
         miss = top + math.log((1.0 - walks) * math.exp(stand - top) + walks * math.exp(walk - top))
-        if outlier > 0.0:
-            miss = math.log((1.0 - outlier) * math.exp(miss) + outlier)
+        e = outlier[j]
+        if e > 0.0:
+            miss = math.log((1.0 - e) * math.exp(miss) + e)
         out[j] = rf_weight * l_rf[j] + miss + log_prior
     return out
 

@@ -4,7 +4,8 @@ Rx(dir)'s RSSI as a function of the pan angle s is modelled as
 
     z(s) = c + A h(s - gamma) + f(s) + e,      f ~ GP(0, k),  e ~ N(0, sigma^2),
 
-where h(d) = exp(-2 sin^2(d/2) / w^2) is a generic lobe (no knowledge of the true antenna
+where e is the RSSI noise, white or AR(1) in time (Cov(e_t, e_u) = sigma^2 rho^|t - u|,
+``noise_correlation``: fading correlated over successive samples), h(d) = exp(-2 sin^2(d/2) / w^2) is a generic lobe (no knowledge of the true antenna
 pattern beyond "one main lobe aligned with the camera axis"), gamma is the lobe centre, i.e.
 the Tx bearing, and f is a residual GP whose kernel is the squared exponential of the chordal
 distance,
@@ -54,10 +55,13 @@ class LobeGP:
         l and sf2 of the residual GP f.
     capacity : int
         Largest number of samples.
+    noise_correlation : float
+        rho of AR(1) noise between successive samples (0: white); ``set_noise_correlation``
+        changes it later (the samples are refitted).
     """
 
     def __init__(self, grid: "np.ndarray | CircleGrid", noise_var: float, lobe_width: float, lobe_sign: int,
-                 residual_length_scale: float, residual_var: float, capacity: int) -> None:
+                 residual_length_scale: float, residual_var: float, capacity: int, noise_correlation: float = 0.0) -> None:
         if not isinstance(grid, CircleGrid):
             angles = np.asarray(grid, dtype=float)
             grid = CircleGrid(angles.size)
@@ -71,6 +75,10 @@ class LobeGP:
         self.residual_length_scale = float(residual_length_scale)
         self.residual_var = float(residual_var)
         self.capacity = int(capacity)
+        self.noise_correlation = float(noise_correlation)
+        self._reset()
+
+    def _reset(self) -> None:
         M = self.grid.size
         self.n_ = 0
         self._allocate(min(self.capacity, 128))
@@ -85,10 +93,25 @@ class LobeGP:
         the samples actually taken, not with the largest test allowed)."""
         M, n = self.grid.size, self.n_
         old = getattr(self, "_Li", None)
-        x, Li, V, H, o, u = np.empty(size), np.zeros((size, size)), np.zeros((size, M)), np.zeros((size, M)), np.zeros(size), np.zeros(size)
+        x, z, Li, V, H, o, u = (np.empty(size), np.empty(size), np.zeros((size, size)), np.zeros((size, M)), np.zeros((size, M)),
+                                np.zeros(size), np.zeros(size))
         if old is not None and n:
-            x[:n], Li[:n, :n], V[:n], H[:n], o[:n], u[:n] = self.x_[:n], self._Li[:n, :n], self._V[:n], self._H[:n], self._o[:n], self._u[:n]
-        self.x_, self._Li, self._V, self._H, self._o, self._u = x, Li, V, H, o, u  # L^{-1}, L^{-1}k(X,grid), L^{-1}h(X-grid), L^{-1}1, L^{-1}z
+            x[:n], z[:n], Li[:n, :n], V[:n], H[:n], o[:n], u[:n] = (self.x_[:n], self.z_[:n], self._Li[:n, :n], self._V[:n], self._H[:n],
+                                                                    self._o[:n], self._u[:n])
+        # samples, L^{-1}, L^{-1}k(X,grid), L^{-1}h(X-grid), L^{-1}1, L^{-1}z
+        self.x_, self.z_, self._Li, self._V, self._H, self._o, self._u = x, z, Li, V, H, o, u
+
+    def set_noise_correlation(self, rho: float) -> None:
+        """Make the noise AR(1) with lag-1 correlation ``rho`` and refit the samples taken so far
+        (O(n^2 M), so callers change it rarely, e.g. in steps of 0.05)."""
+        rho = float(rho)
+        if rho == self.noise_correlation:
+            return
+        x, z = self.x_[:self.n_].copy(), self.z_[:self.n_].copy()
+        self.noise_correlation = rho
+        self._reset()
+        for s_i, z_i in zip(x, z):
+            self.add(float(s_i), float(z_i))
 
     def add(self, s: float, z: float) -> None:
         """Add the sample z (dBm) taken at pan angle s (rad). O(n M).
@@ -109,6 +132,8 @@ class LobeGP:
         if n:
             half = np.sin(0.5 * (self.x_[:n] - s))
             k_old = self.residual_var * np.exp(-2.0 * half * half / (self.residual_length_scale**2))
+            if self.noise_correlation:  # AR(1) noise: Cov(e_n, e_i) = sigma^2 rho^(n - i)
+                k_old += self.noise_var * self.noise_correlation ** np.arange(n, 0, -1, dtype=float)
             Li = self._Li[:n, :n]
             ell = Li @ k_old
             d2 -= ell @ ell
@@ -132,6 +157,7 @@ class LobeGP:
         self._ou += o * u
         self._uu += u * u
         self.x_[n] = s
+        self.z_[n] = z
         self.n_ = n + 1
 
     def lobe_fit(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -81,15 +81,19 @@ class ControllerSettings:
     warmup_steps: int | None = None  # None: ceil(pi / fov_half_angle)
     min_pod_std: float = 0.05
     # -- fusion and confidence (fitted on simulated campaigns: services/controller/calibration.py)
-    rf_weight: float = 2.0  # tempering of the RF profile log-likelihood l_RF
+    rf_weight: float = 1.0  # tempering of the RF profile log-likelihood l_RF
     pod_floor_std: float = 0.08  # misspecification of the POD model, added to its predictive std
     null_pod_prior: tuple[float, float] = (1.0, 1.0)  # Beta prior of a non-Tx target's POD
     pod_outlier: float = 0.2  # probability that the POD model says nothing about the Tx (hidden, shadowed, misfit)
     missed_prior_per_rad: float = 5.0  # prior density of "the Tx is a target the camera never detected"
+    occlusion_halfwidth_rad: float = math.radians(5.0)  # an undetected target this close to a track's bearing may stand behind it
+    occluded_probability: float = 0.9  # probability that such a target is hidden (its misses say nothing)
     answer_window_rad: float = math.radians(2.0)  # posterior mass within this of the answer is its confidence
-    confidence_calibration: tuple[float, float, float] | None = None  # (A, B, C): sigmoid(A logit(raw) + B + C tx_walks)
+    # (A, B, C, D, E): sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter), see Controller._calibrated
+    confidence_calibration: tuple[float, ...] | None = None
     # -- a Tx that walks
     rf_memory_s: float = 1.5  # memory of the recent-lobe fit
+    ar1_lobe: bool = True  # the standing lobe's noise AR(1) (rho from Rx(iso)) rather than white with its evidence scaled
     tx_walk_prior: float = 0.3  # prior probability that the Tx walks
     walk_penalty: float = 2.0  # nats the recent lobe must gain to count as motion
     probe_rf_peaks: bool = False
@@ -132,6 +136,8 @@ class Decision:
     confidence: float = 0.0  # posterior probability that the target named by estimate_rad is the Tx
     raw_confidence: float = 0.0  # the same under the controller's own model, before calibration
     tx_walks: float = 0.0  # how likely the Tx walks, from Rx(dir) (a walking Tx may have left the answer)
+    noise_correlation: float = 0.0  # rho of the RSSI noise, from Rx(iso) (fading: fewer independent samples)
+    clutter_density: float = 0.0  # false boxes per frame per radian, from the tracker
 
 
 class PODLookup:
@@ -197,6 +203,8 @@ class Controller:
         self._view_frames = np.zeros(self.grid.size)  # frames in which each grid bearing was in view
         self._view_recent = np.zeros(self.grid.size)  # the same, discounted over the recent-lobe memory
         self._missed_buffer = np.empty(self.grid.size)
+        self._outlier_buffer = np.empty(self.grid.size)
+        self._rho = self._clutter = 0.0  # the confidence map's covariates, as of the last step
         self._iso_sum = 0.0
         self._iso_sq = 0.0
         self._n = 0
@@ -223,6 +231,8 @@ class Controller:
             self._iso_diff_sq += (m.rf.iso_rssi_dbm - self._iso_prev) ** 2
         self._iso_prev = m.rf.iso_rssi_dbm
         if self.uses_radio:
+            if self.settings.ar1_lobe:  # in steps of 0.05: each change refits the samples so far
+                self.rf.set_noise_correlation(round(self._noise_correlation() * 20.0) / 20.0)
             self.rf.add(s, m.rf.dir_rssi_dbm)
             self.recent.add(s, m.rf.dir_rssi_dbm)
             if self.uses_camera:
@@ -238,7 +248,8 @@ class Controller:
         reward = self._mass_at(s, post) * self._rf_at(s, lobe)
         next_pan, probe = self._next_pan(t, l_rf, lobe, l_tracks, post)
         return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe,
-                        confidence=round(self._calibrated(raw_confidence), 6), raw_confidence=float(raw_confidence), tx_walks=self.tx_walks)
+                        confidence=round(self._calibrated(raw_confidence), 6), raw_confidence=float(raw_confidence), tx_walks=self.tx_walks,
+                        noise_correlation=self._rho, clutter_density=self._clutter)
 
     # -- beliefs ------------------------------------------------------------------------------
     def _iso_mean_and_std(self) -> tuple[float, float]:
@@ -272,7 +283,7 @@ class Controller:
         prior = cfg.tx_walk_prior
         logit = math.log(prior / (1.0 - prior)) + moved - cfg.walk_penalty
         self.tx_walks = 1.0 / (1.0 + math.exp(-min(max(logit, -50.0), 50.0)))
-        stand = kappa * l_static
+        stand = l_static if cfg.ar1_lobe else kappa * l_static  # an AR(1) lobe fit has the correlation in it
         walk = kappa * l_recent
         self._stand_rf = stand - _logsumexp(stand)
         self._walk_norm = _logsumexp(walk)
@@ -321,9 +332,22 @@ class Controller:
         miss_stand = gammaln(self._view_frames + beta) - gammaln(self._view_frames + alpha + beta) + base
         miss_walk = gammaln(self._view_recent + beta) - gammaln(self._view_recent + alpha + beta) + base
         l_missed = _kernels.missed_logdensity(l_rf, cfg.rf_weight, miss_stand, miss_walk, self.tx_walks,
-                                              math.log(cfg.missed_prior_per_rad * self.circle.step), cfg.pod_outlier,
+                                              math.log(cfg.missed_prior_per_rad * self.circle.step), self._miss_outlier(),
                                               self._missed_buffer)
         return l_tracks, l_missed
+
+    def _miss_outlier(self) -> np.ndarray:
+        """Per grid bearing, the probability that an undetected Tx there was never visible: the
+        POD model's ``pod_outlier`` everywhere, ``occluded_probability`` within
+        ``occlusion_halfwidth_rad`` of a confirmed track (a body in front of it: in a crowd the
+        target the camera cannot see is most often right behind one it sees)."""
+        cfg = self.settings
+        out = self._outlier_buffer
+        out.fill(cfg.pod_outlier)
+        if cfg.occluded_probability > cfg.pod_outlier:
+            for b in self.tracks.bearing:
+                out[self.circle.window(float(self.grid[self.circle.nearest(float(b))]), cfg.occlusion_halfwidth_rad)] = cfg.occluded_probability
+        return out
 
     def _answer(self, l_rf: np.ndarray, l_tracks: np.ndarray, l_missed: np.ndarray | None) -> tuple[float, float, np.ndarray]:
         """gamma_hat_t, the raw posterior probability that the target it names is the Tx, and
@@ -360,14 +384,19 @@ class Controller:
 
     def _calibrated(self, raw: float) -> float:
         """The confidence reported: the raw posterior through the algorithm's fitted Platt map
-        sigmoid(A logit(raw) + B + C tx_walks), where tx_walks (how likely the Tx walks) stands
-        for what the model leaves out: a walking Tx may have moved off the answer by the time it
-        is scored (identity when no map is set)."""
+        sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter), whose covariates, all
+        measured by the controller itself, stand for what its model leaves out: a walking Tx may
+        have moved off the answer by the time it is scored (tx_walks); correlated fading leaves
+        fewer independent RF samples than the AR(1) model credits (rho, from Rx(iso)); false
+        boxes make tracks that are not people (the tracker's clutter density). Identity when no
+        map is set."""
+        self._rho = self._noise_correlation() if self._n else 0.0
+        self._clutter = self.tracks.clutter_density if self.uses_camera else 0.0
         if self.settings.confidence_calibration is None:
             return float(min(max(raw, 0.0), 1.0))
-        A, B, C = self.settings.confidence_calibration
+        A, B, C, D, E = (tuple(self.settings.confidence_calibration) + (0.0,) * 5)[:5]
         p = min(max(raw, 1e-9), 1.0 - 1e-9)
-        z = A * math.log(p / (1.0 - p)) + B + C * self.tx_walks
+        z = A * math.log(p / (1.0 - p)) + B + C * self.tx_walks + D * self._rho + E * self._clutter
         return float(1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0))))
 
     def _refined_argmax(self, values: np.ndarray) -> float:
@@ -439,7 +468,9 @@ TUNING: dict[str, dict] = {
     # 48 000 steps each; ECE on that data before -> after: ra2vipas 0.133 -> 0.024, rapas 0.334
     # -> 0.016, ravipas 0.026 -> 0.024, sweep 0.047 -> 0.023)
     "ra2vipas": {"confidence_calibration": (1.1058, 1.3067, -2.4519)},
-    "rapas": {"confidence_calibration": (0.766, 1.7644, -2.1137)},
+    # RaPAS names the peak of l_RF: with a walking Tx the white-noise fit, flattened by
+    # (1 - rho) / (1 + rho), lets the recent lobe win more often than the sharper AR(1) fit
+    "rapas": {"rf_weight": 2.0, "ar1_lobe": False, "confidence_calibration": (0.766, 1.7644, -2.1137)},
     # with the camera as its only cue, RaViPAS does best trusting the POD model fully
     "ravipas": {"pod_floor_std": 0.0, "pod_outlier": 0.0, "confidence_calibration": (1.1581, 0.1657, 0.0)},
     "sweep": {"confidence_calibration": (1.1721, 0.7, -1.7764)},

@@ -4,10 +4,11 @@ Each algorithm reports a raw confidence: the posterior probability of the target
 under its own model. Models are approximations (tempered likelihoods, a POD model learned
 from noisy labels), so the raw number is over- or under-confident by an amount that depends
 on the algorithm. Platt scaling (Platt 1999; Guo et al. 2017 for its use as "temperature
-scaling" of posteriors), with one covariate the controller knows, how likely the Tx walks,
-fits per algorithm sigmoid(A logit(raw) + B + C tx_walks) to the hit of every step of
+scaling" of posteriors), with covariates the controller measures itself (how likely the Tx
+walks, the fading correlation rho from Rx(iso), the tracker's clutter density), fits per
+algorithm sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter) to the hit of every step of
 simulated tests over a mix of scenarios, with seeds that no benchmark uses. The fitted
-(A, B, C) triples ship in ``services.controller.policy.TUNING``; this module is how they were made
+(A, B, C, D, E) maps ship in ``services.controller.policy.TUNING``; this module is how they were made
 and how to remake them.
 """
 
@@ -41,8 +42,9 @@ SCENARIOS: dict[str, tuple[str, dict[str, Any]]] = {
 
 def collect(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = SCENARIOS,
             progress: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(raw confidence, how likely the Tx walks, hit) at every step of ``tests`` tests of each
-    scenario, with the algorithm's tuning (its confidence map does not change the raw value)."""
+    """(raw confidence, covariates (steps, 3): tx_walks, rho, clutter density, hit) at every
+    step of ``tests`` tests of each scenario, with the algorithm's tuning (its confidence map
+    does not change the raw value)."""
     settings = tuned_settings(algorithm)
     raw, walks, hit = [], [], []
     for name in scenarios:
@@ -58,7 +60,7 @@ def collect(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = SC
                 pan = d.next_pan_rad
                 estimates.append(d.estimate_rad)
                 raw.append(d.raw_confidence)
-                walks.append(d.tx_walks)
+                walks.append((d.tx_walks, d.noise_correlation, d.clutter_density))
             truth = platform.truth
             hits, _ = score_test(np.asarray(estimates), truth.step_bearings_rad(), truth.tx_index, scenario.fov_half_angle_rad)
             hit += hits.tolist()
@@ -67,23 +69,26 @@ def collect(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = SC
     return np.asarray(raw, dtype=float), np.asarray(walks, dtype=float), np.asarray(hit, dtype=float)
 
 
-def fit_platt(raw: np.ndarray, walks: np.ndarray, hit: np.ndarray) -> tuple[float, float, float]:
-    """(A, B, C) maximising the Bernoulli likelihood of ``hit`` under
-    sigmoid(A logit(raw) + B + C walks)."""
-    p = np.clip(raw, 1e-6, 1.0 - 1e-6)
-    x = np.log(p / (1.0 - p))
-
-    def nll(theta: np.ndarray) -> float:
-        z = theta[0] * x + theta[1] + theta[2] * walks
-        return float(np.sum(np.logaddexp(0.0, z) - hit * z))
-
-    res = minimize(nll, np.array([1.0, 0.0, 0.0]), method="L-BFGS-B")
-    return float(res.x[0]), float(res.x[1]), float(res.x[2])
-
-
-def platt(raw: np.ndarray, walks: np.ndarray, A: float, B: float, C: float) -> np.ndarray:
+def _design(raw: np.ndarray, covariates: np.ndarray) -> np.ndarray:
     p = np.clip(raw, 1e-9, 1.0 - 1e-9)
-    return 1.0 / (1.0 + np.exp(-(A * np.log(p / (1.0 - p)) + B + C * walks)))
+    cov = np.asarray(covariates, dtype=float).reshape(raw.size, -1)
+    return np.column_stack([np.log(p / (1.0 - p)), np.ones(raw.size), cov])
+
+
+def fit_platt(raw: np.ndarray, covariates: np.ndarray, hit: np.ndarray) -> tuple[float, ...]:
+    """(A, B, C, ...) maximising the Bernoulli likelihood of ``hit`` under
+    sigmoid(A logit(raw) + B + C covariates[:, 0] + ...): a logistic regression (scikit-learn's,
+    unpenalised) of the hit on the raw logit and the covariates."""
+    from sklearn.linear_model import LogisticRegression
+
+    X = _design(raw, covariates)
+    model = LogisticRegression(C=np.inf, fit_intercept=False, max_iter=1000).fit(X, hit.astype(int))
+    return tuple(float(v) for v in model.coef_[0])
+
+
+def platt(raw: np.ndarray, covariates: np.ndarray, *coefficients: float) -> np.ndarray:
+    X = _design(raw, covariates)
+    return 1.0 / (1.0 + np.exp(-(X @ np.asarray(coefficients, dtype=float))))
 
 
 def calibrate(algorithms: Iterable[str], tests: int, seed: int, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
@@ -91,10 +96,10 @@ def calibrate(algorithms: Iterable[str], tests: int, seed: int, progress: Callab
     out: dict[str, Any] = {"tests_per_scenario": tests, "seed": seed, "scenarios": list(SCENARIOS), "algorithms": {}}
     for algorithm in algorithms:
         raw, walks, hit = collect(algorithm, tests, seed, progress=(lambda name, a=algorithm: progress(f"{a}: {name}")) if progress else None)
-        A, B, C = fit_platt(raw, walks, hit)
+        coefficients = fit_platt(raw, walks, hit)
         out["algorithms"][algorithm] = {
-            "A": round(A, 4), "B": round(B, 4), "C": round(C, 4), "samples": int(raw.size),
+            "map": [round(v, 4) for v in coefficients], "samples": int(raw.size),
             "ece_raw": round(expected_calibration_error(raw, hit), 4),
-            "ece_fitted": round(expected_calibration_error(platt(raw, walks, A, B, C), hit), 4),
+            "ece_fitted": round(expected_calibration_error(platt(raw, walks, *coefficients), hit), 4),
         }
     return out

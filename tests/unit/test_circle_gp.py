@@ -60,17 +60,19 @@ def test_circular_kernel_is_periodic_symmetric_and_psd():
 NOISE, WIDTH, RES_L, RES_VAR = 4.0, 1.0, 0.5, 9.0
 
 
-def _filled(x, z, sign=-1, grid_points=90, capacity=None):
+def _filled(x, z, sign=-1, grid_points=90, capacity=None, rho=0.0):
     grid = np.linspace(-math.pi, math.pi, grid_points, endpoint=False)
-    gp = LobeGP(grid, NOISE, WIDTH, sign, RES_L, RES_VAR, capacity=capacity or len(x) + 5)
+    gp = LobeGP(grid, NOISE, WIDTH, sign, RES_L, RES_VAR, capacity=capacity or len(x) + 5, noise_correlation=rho)
     for s, v in zip(x, z):
         gp.add(float(s), float(v))
     return gp
 
 
-def _batch_gls(x, z, grid):
-    """For each centre: GLS (A, c) with basis [h(x - gamma), 1] and q = (z - B beta)' K^-1 (z - B beta)."""
-    K = circular_kernel(x, x, RES_L, RES_VAR) + NOISE * np.eye(x.size)
+def _batch_gls(x, z, grid, rho=0.0):
+    """For each centre: GLS (A, c) with basis [h(x - gamma), 1] and q = (z - B beta)' K^-1 (z - B beta),
+    the noise AR(1) in sample order (Cov = NOISE rho^|i - j|)."""
+    lag = np.abs(np.subtract.outer(np.arange(x.size), np.arange(x.size)))
+    K = circular_kernel(x, x, RES_L, RES_VAR) + NOISE * rho ** lag
     Ki = np.linalg.inv(K)
     H = circular_kernel(x, grid, WIDTH)
     out = []
@@ -105,6 +107,37 @@ def test_lobe_fit_equals_batch_gls(sign):
     np.testing.assert_allclose(loglik[~right], -0.5 * q_flat, rtol=1e-8)
     # adding a basis function can only explain more
     assert np.all(loglik >= -0.5 * q_flat - 1e-8)
+
+
+def test_lobe_fit_with_ar1_noise_equals_batch_gls():
+    """Fading correlated in time: the incremental fit is the GLS fit under the AR(1) noise
+    covariance, and its evidence differs from the white-noise fit's."""
+    RNG = np.random.default_rng(2)
+    x = RNG.uniform(-math.pi, math.pi, 30)
+    e = np.zeros(x.size)
+    for i in range(1, x.size):
+        e[i] = 0.8 * e[i - 1] + RNG.normal(0, 2 * math.sqrt(1 - 0.64))
+    z = -40.0 - 8.0 * circular_kernel(x, np.array([1.0]), WIDTH)[:, 0] + e
+    gp = _filled(x, z, -1, rho=0.8)
+    loglik, A, c = gp.lobe_fit()
+    A_ref, c_ref, q_ref, _, _ = _batch_gls(x, z, gp.grid, rho=0.8)
+    right = A_ref < 0
+    np.testing.assert_allclose(A[right], A_ref[right], rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(loglik[right], -0.5 * q_ref[right], rtol=1e-6)
+    white = _filled(x, z, -1).lobe_fit()[0]
+    assert np.max(np.abs(white - loglik)) > 1.0
+
+
+def test_changing_the_noise_correlation_refits_every_sample():
+    RNG = np.random.default_rng(3)
+    x = RNG.uniform(-math.pi, math.pi, 15)
+    z = RNG.normal(-45, 3, 15)
+    gp = _filled(x, z, -1, capacity=20)
+    gp.set_noise_correlation(0.6)
+    gp.add(0.3, -44.0)
+    fresh = _filled(np.append(x, 0.3), np.append(z, -44.0), -1, rho=0.6)
+    for got, want in zip(gp.lobe_fit(), fresh.lobe_fit()):
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-10)
 
 
 def test_posterior_equals_sklearn_gpr():

@@ -205,3 +205,26 @@ def test_an_early_decision_keeps_its_target_as_targets_move():
     # without a decision the same estimate at step 3 would name target 1
     hits, _, chosen = score_episode([0.0, 0.01, 0.01, 0.01], bearings, 0, 0.3, 4)
     assert chosen.tolist() == [0, 0, 0, 1] and hits.tolist() == [True, True, True, False]
+
+
+def test_the_confidence_map_fit_recovers_a_known_map_and_the_controller_applies_it():
+    """bench calibrate's logistic fit finds the map that generated the hits, and a controller
+    given that map reports sigmoid(A logit(raw) + B + C walks + D rho + E clutter)."""
+    from ra2vipas.services.controller.policy import Controller, ControllerSettings
+    from ra2vipas.services.orchestrator.calibration import fit_platt, platt
+
+    rng = np.random.default_rng(5)
+    raw = rng.uniform(0.02, 0.98, 40000)
+    cov = rng.uniform(0.0, 1.0, (raw.size, 3))
+    truth = (1.3, -0.4, -2.0, 0.8, -1.5)
+    hit = (rng.uniform(size=raw.size) < platt(raw, cov, *truth)).astype(float)
+    fitted = fit_platt(raw, cov, hit)
+    np.testing.assert_allclose(fitted, truth, atol=0.12)
+    assert expected_calibration_error(platt(raw, cov, *fitted), hit) < 0.02
+    controller = Controller.__new__(Controller)
+    controller.settings = ControllerSettings(confidence_calibration=truth)
+    controller.tx_walks, controller._n = 0.5, 0
+    controller.uses_camera = False
+    got = controller._calibrated(0.7)
+    want = float(platt(np.array([0.7]), np.array([[0.5, 0.0, 0.0]]), *truth)[0])
+    assert got == pytest.approx(want)
