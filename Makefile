@@ -1,12 +1,13 @@
 # Two entry points for a fresh machine (see README):
 #   make campaign   set up .venv and run the paper campaign
-#   make test       set up .venv and run the test suite
+#   make test       set up .venv, install the system Chromium if missing, run the test suite
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
+CHROMIUM ?= /usr/bin/chromium
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup campaign test bench clean
+.PHONY: setup browser campaign test bench clean
 
 setup: $(STAMP)
 
@@ -20,7 +21,16 @@ campaign: setup
 	mkdir -p results
 	$(BIN)/ra2vipas campaign start --embedded --preset paper --tests 50 --seed 1 --db results/ra2vipas.db --plot results/dr-paper.png
 
-test: setup
+# The dashboard's browser tests drive the Debian package's Chromium through Playwright (Playwright's
+# own browser download is not used): install it when it is missing (apt-get needs root, or sudo).
+browser: $(CHROMIUM)
+
+$(CHROMIUM):
+	@if [ "$$(id -u)" = 0 ]; then SUDO=; elif command -v sudo >/dev/null 2>&1; then SUDO=sudo; \
+	else echo "error: $(CHROMIUM) is missing and installing the Debian package chromium needs root" >&2; exit 1; fi; \
+	$$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null
+
+test: setup browser
 	$(BIN)/pytest -q
 
 bench: setup

@@ -515,3 +515,32 @@ def bench_calibrate(
     else:
         for name, a in report["algorithms"].items():
             stdout.print(f"{name}: map {tuple(a['map'])}; ECE {a['ece_raw']} -> {a['ece_fitted']} over {a['samples']} steps")
+
+
+@app.command("dashboard")
+def bench_dashboard(
+    tests: Annotated[int, typer.Option(min=1, max=10000, help="Tests per algorithm of the synthetic finished campaign (4 algorithms, 120 steps).")] = 10000,
+    repeats: Annotated[int, typer.Option(min=1, max=1000, help="Requests per page for the server's render time.")] = 10,
+    chromium: Annotated[Optional[str], typer.Option(envvar="RA2VIPAS_CHROMIUM", help="Chromium executable for first paint and page weight.")] = "/usr/bin/chromium",
+    no_browser: Annotated[bool, typer.Option("--no-browser", help="Time the server only.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
+) -> None:
+    """The dashboard's pages: server render time (the campaign page of a 10 000-test campaign:
+    target < 1 s), and in a headless Chromium first paint, load and page weight, cold and warm."""
+    from pathlib import Path
+
+    from ra2vipas.services.orchestrator.dashboard import bench
+
+    if not no_browser and (not chromium or not Path(chromium).exists()):
+        fail(f"no Chromium at {chromium!r} (install the Debian package chromium, set --chromium, or use --no-browser)", EXIT_USAGE)
+    report = bench.run(tests=tests, repeats=repeats, chromium=None if no_browser else chromium)
+    if as_json:
+        print_json(report)
+        return
+    for name, s in report["server"].items():
+        stdout.print(f"{name:42s} server p50 {s['p50_ms']:7.1f} ms  p95 {s['p95_ms']:7.1f} ms  {s['bytes'] / 1024:7.1f} KiB")
+    for name, b in (report["browser"] or {}).items():
+        if isinstance(b, dict):
+            c = b["cold"]
+            stdout.print(f"{name:42s} first paint {c['first_paint_ms']} ms, load {c['load_ms']} ms, "
+                         f"{c['transferred_bytes'] / 1024:.1f} KiB in {c['requests']} requests (cold)")

@@ -130,6 +130,7 @@ def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: boo
         client = Client(stack.api_url, None)
         c = client.request("POST", "/campaigns", json=body)
         stderr.print(f"campaign {c['id']} on {stack.api_url} (logs in {stack.log_dir})")
+        stderr.print(f"dashboard: {stack.api_url}/ui/campaigns/{c['id']}", soft_wrap=True, markup=False)
         _finish(client, c["id"], plot, as_json)
     except KeyboardInterrupt:
         fail("interrupted; the campaign stays in the database and resumes when a stack is started on it", EXIT_FAILED)

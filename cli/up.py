@@ -52,6 +52,7 @@ def up(
             zenoh_info = f"Zenoh router {stack.router_endpoint} without credentials (--insecure): any local process may join"
         print(f"ra2vipas up: API on {stack.api_url} (rigs: {rigs}, database: {db}, logs: {stack.log_dir}); {zenoh_info}; "
               "Ctrl-C to stop", flush=True)  # one line: scripts wait for it
+        print(f"ra2vipas up: dashboard on {stack.api_url}/", flush=True)
         while not stop.wait(0.5):
             dead = stack.watch()
             if dead is not None and not stop.is_set():

@@ -104,6 +104,7 @@ class _Rig:
     sensors: bool = False
     controller: bool = False
     in_flight: set = field(default_factory=set)
+    since: float = 0.0  # epoch seconds of the last change of ``live`` (for the dashboard's "live since" / "last seen")
 
     @property
     def live(self) -> bool:
@@ -549,6 +550,8 @@ class Scheduler:
         rig = self.rigs.setdefault(name, _Rig())
         was_live = rig.live
         setattr(rig, role, up)
+        if rig.live != was_live or not rig.since:
+            rig.since = time.time()
         if was_live and not rig.live:
             log.warning("rig %s lost (%s gone); requeueing %d episodes", name, role, len(rig.in_flight))
             for eid in list(rig.in_flight):
@@ -590,7 +593,8 @@ class Scheduler:
     def status(self) -> dict[str, Any]:
         """Snapshot for /health (read from another thread; copies only)."""
         return {
-            "rigs": {name: {"sensors": st.sensors, "controller": st.controller, "in_flight": len(st.in_flight)} for name, st in list(self.rigs.items())},
+            "rigs": {name: {"sensors": st.sensors, "controller": st.controller, "in_flight": len(st.in_flight),
+                            "since": st.since} for name, st in list(self.rigs.items())},
             "learners": sorted(self.learners),
             "rejected": dict(self.rejected),
             "waiting_writes": len(self._deferred),

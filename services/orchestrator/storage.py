@@ -479,6 +479,56 @@ class Store:
                 f" FROM episodes{clause} ORDER BY test_index, algorithm LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
         return [_episode_dict(r) for r in rows], total
 
+    # -- dashboard reads (ra2vipas.services.orchestrator.dashboard) ------------------------------
+    def test_page(self, cid: str, *, missed_by: str | None = None, sort: str = "test", sort_algorithm: str | None = None,
+                  descending: bool = False, limit: int = 50, offset: int = 0) -> tuple[list[dict[str, Any]], int]:
+        """One page of a campaign's *tests* (every algorithm's summary row of each, shaped as
+        ``episode_page``'s) and how many tests match in all.
+
+        ``missed_by``: only the tests this algorithm finished on a miss (î at the last step is
+        not the Tx). ``sort``: ``test`` (index) or ``confidence`` (``sort_algorithm``'s final
+        confidence; tests without one last), then by index.
+        """
+        if sort not in ("test", "confidence"):
+            raise ValueError(f"sort: expected test|confidence, got {sort!r}")
+        where, args = ["campaign_id=?", "algorithm=?"], [cid, missed_by or sort_algorithm]
+        if missed_by:
+            where.append("status='done' AND json_extract(hits, '$[#-1]')=0")
+        if args[1] is None:  # neither a filter nor a sort by algorithm: one row per test from any algorithm
+            where, args = ["campaign_id=?", "algorithm=(SELECT MIN(algorithm) FROM episodes WHERE campaign_id=?)"], [cid, cid]
+        direction = "DESC" if descending else "ASC"
+        order = f"test_index {direction}"
+        if sort == "confidence":
+            order = f"json_extract(confidences, '$[#-1]') IS NULL, json_extract(confidences, '$[#-1]') {direction}, test_index"
+        clause = " WHERE " + " AND ".join(where)
+        with self._reading() as db:
+            total = db.execute(f"SELECT COUNT(*) FROM episodes{clause}", args).fetchone()[0]
+            tests = [r[0] for r in db.execute(f"SELECT test_index FROM episodes{clause} ORDER BY {order} LIMIT ? OFFSET ?",
+                                              [*args, limit, offset])]
+            if not tests:
+                return [], total
+            rows = db.execute(
+                "SELECT test_index, algorithm, status, rig, attempt, tx_index, hits, json_extract(chosen, '$[#-1]') AS final_choice,"
+                " json_extract(in_fov, '$[#-1]') AS final_in_fov, json_extract(estimates, '$[#-1]') AS final_estimate,"
+                " json_extract(confidences, '$[#-1]') AS final_confidence, decided_step"
+                f" FROM episodes WHERE campaign_id=? AND test_index IN ({','.join('?' * len(tests))})", [cid, *tests]).fetchall()
+        rank = {k: i for i, k in enumerate(tests)}
+        out = sorted((_episode_dict(r) for r in rows), key=lambda d: (rank[d["test_index"]], d["algorithm"]))
+        return out, total
+
+    def done_hits(self, cid: str, after: tuple[float, int, str] | None = None, limit: int = 2000) -> list[tuple[float, int, str, list[int]]]:
+        """Finished episodes' per-step hits, in the order they were recorded, after the key
+        ``(finished_at, test_index, algorithm)`` (exclusive; None: from the first): up to
+        ``limit`` of ``(finished_at, test_index, algorithm, hits)``. A recorded episode never
+        changes, so a reader that keeps the last key sees every episode exactly once."""
+        key = after or (-1.0, -1, "")
+        with self._reading() as db:
+            rows = db.execute(
+                "SELECT finished_at, test_index, algorithm, hits FROM episodes WHERE campaign_id=? AND status='done'"
+                " AND (finished_at, test_index, algorithm) > (?, ?, ?) ORDER BY finished_at, test_index, algorithm LIMIT ?",
+                (cid, *key, limit)).fetchall()
+        return [(r[0], r[1], r[2], json.loads(r[3])) for r in rows]
+
     def episode(self, cid: str, test_index: int, algorithm: str) -> dict[str, Any] | None:
         with self._reading() as db:
             row = db.execute("SELECT * FROM episodes WHERE campaign_id=? AND test_index=? AND algorithm=?", (cid, test_index, algorithm)).fetchone()

@@ -41,6 +41,16 @@ def test_a_wheel_installs_one_top_level_package(wheel):
     assert "ra2vipas = ra2vipas.cli.main:main" in entry
 
 
+def test_the_wheel_ships_the_dashboards_templates_and_static_files(wheel):
+    """The orchestrator serves its dashboard from the installed package (offline, no CDN)."""
+    names = set(zipfile.ZipFile(wheel).namelist())
+    folder = ROOT / "services/orchestrator/dashboard"
+    expected = {f"ra2vipas/services/orchestrator/dashboard/{p.relative_to(folder).as_posix()}"
+                for p in [*folder.glob("templates/*.html"), *folder.glob("static/**/*")] if p.is_file()}
+    assert expected and expected <= names
+    assert "ra2vipas/services/orchestrator/dashboard/static/vendor/LICENSES.txt" in names
+
+
 def test_the_installed_layout_imports_without_the_checkout(wheel, tmp_path):
     """Unpacked elsewhere (no services/ beside it), the package finds its own subpackages."""
     zipfile.ZipFile(wheel).extractall(tmp_path)

@@ -2,7 +2,8 @@
 
 The lifespan opens the store and the bus (a Zenoh session unless a bus factory is given, as
 tests do), starts the scheduler and the figure renderers (``api.render``), and closes all
-four on shutdown. OpenAPI at ``/docs`` and ``/openapi.json``.
+four on shutdown. OpenAPI at ``/docs`` and ``/openapi.json``; the web dashboard at ``/``
+(``ra2vipas.services.orchestrator.dashboard``).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from ra2vipas.services.orchestrator.api.errors import responses, storage_fault, 
 from ra2vipas.services.orchestrator.api.limits import MAX_BODY_BYTES, BodySizeLimit
 from ra2vipas.services.orchestrator.api.render import PlotRenderer
 from ra2vipas.services.orchestrator.api.routes import campaigns, catalog, events, health, results, tests
+from ra2vipas.services.orchestrator.dashboard import routes as dashboard
 from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.settings import OrchestratorSettings
 from ra2vipas.services.orchestrator.storage import StorageFault, Store
@@ -73,4 +75,5 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
     app.add_exception_handler(StorageFault, storage_fault)
     for module in (health, campaigns, events, results, tests, catalog):
         app.include_router(module.router)
+    dashboard.mount(app)  # the web dashboard at / (pages under /ui/, not in the OpenAPI schema)
     return app

@@ -1,0 +1,297 @@
+"""The dashboard in a real headless Chromium against a real stack (``ra2vipas up``: router,
+orchestrator, learner, two rigs, SQLite file, an API token): the home page, creating a
+campaign through the form (a 422 shown next to its field), progress and DR curves updating
+without a reload, the campaign page, the episode player, cancelling and deleting, the rigs
+page, phone width and the keyboard; no console errors anywhere (``conftest.watched``)."""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+
+import httpx
+import pytest
+
+from tests.web.conftest import PHONE, TOKEN
+
+SMALL = {"steps": 30, "n_train": 250, "n_targets": 10}
+
+
+def wait_until(predicate, timeout: float = 60.0, every: float = 0.2, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(every)
+    raise AssertionError(f"{what} not met within {timeout} s")
+
+
+def next_line_with(proc, needle: str, timeout: float) -> str:
+    """The next line of the process's output that contains ``needle`` (read by a thread: the
+    line may already sit in the pipe reader's buffer, where a select() would not see it)."""
+    found: list[str] = []
+
+    def read() -> None:
+        for line in proc.stdout:
+            if needle in line:
+                found.append(line)
+                return
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    reader.join(timeout)
+    assert found, f"{needle!r} not printed within {timeout} s"
+    return found[0]
+
+
+def wait_done(api, cid: str, timeout: float = 180.0) -> dict:
+    return wait_until(lambda: (c := api.get(f"/campaigns/{cid}").json())["status"] in ("done", "failed", "cancelled") and c,
+                      timeout, what=f"campaign {cid} finished")
+
+
+@pytest.fixture(scope="module")
+def done_campaign(api):
+    """A small finished campaign (6 tests of Ra²ViPAS and RaPAS)."""
+    r = api.post("/campaigns", json={"overrides": SMALL, "algorithms": ["ra2vipas", "rapas"], "tests": 6, "seed": 4, "name": "fixture"})
+    assert r.status_code == 201, r.text
+    c = wait_done(api, r.json()["id"])
+    assert c["status"] == "done", c
+    return c
+
+
+def enter_token(page) -> None:
+    dialog = page.locator("#token-dialog")
+    dialog.wait_for(state="visible")
+    page.fill("#token-input", TOKEN)
+    page.click("#token-form button[type=submit]")
+    dialog.wait_for(state="hidden")
+
+
+def test_up_prints_the_dashboard_address(stack):
+    line = next_line_with(stack["up"], "dashboard on", 10)
+    url = re.search(r"dashboard on (http://[0-9.:]+/)", line).group(1)
+    assert url == stack["api"] + "/"
+    page = httpx.get(url, timeout=10)
+    assert page.status_code == 200 and "<h1>Campaigns</h1>" in page.text
+
+
+def test_home_page_lists_campaigns_with_their_final_dr(watched, done_campaign, screenshots):
+    w = watched()
+    w.page.goto("/")
+    row = w.page.locator(f"#campaign-{done_campaign['id']}")
+    row.wait_for()
+    assert "fixture" in row.inner_text() and "done" in row.inner_text()
+    results = w.page.request.get(f"/campaigns/{done_campaign['id']}/results").json()
+    assert f"{results['algorithms']['ra2vipas']['dr_final']:.3f}" in row.inner_text()
+    # the status filter narrows the table without a reload
+    w.page.evaluate("window.__marker = 'same page'")
+    w.page.select_option("select[name=status]", "failed")
+    w.page.locator("#campaign-rows").get_by_text("No campaigns").wait_for()
+    assert w.page.evaluate("window.__marker") == "same page" and "status=failed" in w.page.url
+    w.page.select_option("select[name=status]", "")
+    row.wait_for()
+    w.page.screenshot(path=screenshots / "home.png", full_page=True)
+
+
+def test_create_a_campaign_through_the_form_see_a_422_then_follow_it_live(watched, stack, api, screenshots):
+    w = watched(expect=(422,))
+    page = w.page
+    page.goto("/ui/new")
+    posts = []
+    page.on("request", lambda r: posts.append(r.url) if r.method == "POST" else None)
+    # the page refuses what it can check itself, beside the field, without a request
+    page.fill("#p-n_targets", "0")
+    page.click("#submit-campaign")
+    assert page.locator("#error-n_targets").is_visible() and posts == []
+    assert page.locator("#p-n_targets").get_attribute("aria-invalid") == "true"
+    # a value only the API can refuse (train_min_range_m must stay below train_max_range_m): a 422, shown at that field
+    page.fill("#p-n_targets", "15")
+    page.fill("#p-train_min_range_m", "8")
+    page.fill("#f-tests", "40")
+    page.fill("#f-name", "from the form")
+    page.fill("#p-steps", "60")
+    page.click("#submit-campaign")
+    enter_token(page)  # asked once: the orchestrator has a token
+    error = page.locator("#error-train_min_range_m")
+    error.wait_for(state="visible")
+    assert "train_max_range_m" in error.inner_text()
+    assert "Not started" in page.locator("#form-error").inner_text()
+    assert all(c["name"] != "from the form" for c in api.get("/campaigns", params={"limit": 200}).json()["items"])  # nothing stored
+    page.screenshot(path=screenshots / "new-campaign-422.png", full_page=True)
+    # fixed: created (the token is not asked again in this tab) and the page follows it
+    page.fill("#p-train_min_range_m", "0.5")
+    page.click("#submit-campaign")
+    page.wait_for_url(re.compile(r"/ui/campaigns/[0-9a-f]{12}$"))
+    assert not page.locator("#token-dialog").is_visible()
+    cid = page.url.rsplit("/", 1)[1]
+    c = api.get(f"/campaigns/{cid}").json()
+    assert c["name"] == "from the form" and c["tests"] == 40 and c["overrides"] == {"n_targets": 15, "steps": 60}
+    # overrides highlighted in the scenario table
+    changed = page.locator("#scenario-table tr.changed th code").all_text_contents()
+    assert sorted(changed) == ["n_targets", "steps"]
+
+    # progress and the DR curves grow without a reload
+    page.evaluate("window.__marker = 'same page'")
+    seen = set()
+
+    def progressed():
+        seen.add(page.locator("#progress-text").inner_text())
+        return len(seen) >= 3 and page.locator("#dr-chart canvas").count() == 1
+
+    wait_until(progressed, 120, what="three progress updates and the DR chart")
+    legend = page.locator("#dr-legend").inner_text()
+    assert "Ra²ViPAS" in legend and re.search(r"n=\d+", legend)
+    page.screenshot(path=screenshots / "campaign-running.png", full_page=True)
+    # done: the summary is swapped in, still without a reload
+    page.locator("#summary-table").wait_for(timeout=180_000)
+    assert page.locator("#status").inner_text() == "done"
+    assert page.evaluate("window.__marker") == "same page"
+    assert api.get(f"/campaigns/{cid}").json()["status"] == "done"
+
+
+def test_campaign_page_curves_summary_tests_and_exports(watched, api, done_campaign, screenshots):
+    cid = done_campaign["id"]
+    results = api.get(f"/campaigns/{cid}/results").json()
+    w = watched()
+    page = w.page
+    page.goto(f"/ui/campaigns/{cid}")
+    page.locator("#dr-chart canvas").wait_for()
+    # the legend shows each algorithm's final DR; unticking one redraws the plot without it
+    assert f"DR {results['algorithms']['ra2vipas']['dr_final']:.3f}" in page.locator("#dr-legend").inner_text()
+    before = page.locator("#dr-chart canvas").evaluate("c => c.toDataURL()")
+    page.locator("#dr-legend input").first.uncheck()
+    after = page.locator("#dr-chart canvas").evaluate("c => c.toDataURL()")
+    assert before != after
+    # summary: every algorithm, with the calibration columns the results carry
+    summary = page.locator("#summary-table").inner_text()
+    assert "Ra²ViPAS" in summary and "RaPAS" in summary and f"{results['algorithms']['rapas']['dr_final']:.3f}" in summary
+    if "calibration" in results["algorithms"]["ra2vipas"]:
+        assert "ECE (final)" in summary
+    # the POD plot
+    page.locator("#pod-chart canvas").wait_for()
+    # per-test table and the "missed by Ra²ViPAS" filter, against the API's outcomes
+    outcomes = api.get(f"/campaigns/{cid}/tests", params={"algorithm": "ra2vipas"}).json()["items"]
+    missed = sorted(o["test_index"] for o in outcomes if not o["final_hit"])
+    assert page.locator("#tests-table tbody tr").count() == 6
+    page.check("#tests-filters input[name=missed]")
+    page.wait_for_function(
+        "n => document.querySelectorAll('#tests-table tbody tr').length === n && "
+        "document.querySelector('#tests-filters input[name=missed]').checked", arg=max(1, len(missed)))
+    shown = [int(t) for t in page.locator("#tests-table tbody th").all_inner_texts()]
+    assert shown == missed
+    page.uncheck("#tests-filters input[name=missed]")
+    page.locator("#tests-table tbody tr").nth(5).wait_for()
+    for link in ("results JSON", "CSV"):
+        href = page.get_by_role("link", name=link).get_attribute("href")
+        assert page.request.get(href).status == 200
+    page.screenshot(path=screenshots / "campaign.png", full_page=True)
+
+
+def test_episode_player_slider_play_and_keyboard(watched, api, done_campaign, screenshots):
+    cid = done_campaign["id"]
+    trace = api.get(f"/campaigns/{cid}/tests/2/ra2vipas").json()
+    w = watched()
+    page = w.page
+    page.goto(f"/ui/campaigns/{cid}")
+    page.locator("#tests-table a[href$='/tests/2/ra2vipas']").click()
+    page.wait_for_url(re.compile(r"/tests/2/ra2vipas$"))
+    slider, readout, fov = page.locator("#step-slider"), page.locator("#step-readout"), page.locator("#polar .fov")
+    last = len(trace["steps"]) - 1
+    assert f"(step {last})" in readout.inner_text()
+    assert len(page.locator("#polar .target").all()) == len(trace["targets"])
+    assert page.locator("#polar .target.tx").count() == 1
+    # the keyboard moves the slider: the readout and the field of view follow
+    slider.focus()
+    page.keyboard.press("Home")
+    assert "(step 0)" in readout.inner_text()
+    step0 = trace["steps"][0]
+    assert f"î = {step0['i_hat']}" in readout.inner_text()
+    fov0 = fov.get_attribute("d")
+    page.keyboard.press("ArrowRight")
+    page.keyboard.press("ArrowRight")
+    assert "(step 2)" in readout.inner_text()
+    if trace["steps"][2]["pan_rad"] != step0["pan_rad"]:
+        assert fov.get_attribute("d") != fov0
+    # play from step 0 advances by itself
+    page.locator("#play").focus()
+    page.keyboard.press("Enter")
+    wait_until(lambda: int(slider.input_value()) >= 6, 20, what="the player advanced")
+    page.locator("#play").click()  # pause
+    assert page.locator("#error-chart canvas").count() == 1 and page.locator("#reward-chart canvas").count() == 1
+    page.screenshot(path=screenshots / "episode.png", full_page=True)
+
+
+def test_cancel_a_running_campaign_then_delete_it(watched, api, screenshots):
+    r = api.post("/campaigns", json={"tests": 400, "seed": 9, "name": "to cancel"})
+    assert r.status_code == 201
+    cid = r.json()["id"]
+    w = watched()
+    page = w.page
+    page.on("dialog", lambda d: d.accept())
+    page.goto(f"/ui/campaigns/{cid}")
+    page.wait_for_function("() => document.querySelector('#status').textContent === 'running'", timeout=120_000)
+    page.click("#cancel-button")
+    enter_token(page)  # a new tab: asked again
+    page.wait_for_function("() => document.querySelector('#status').textContent === 'cancelled'")
+    page.locator("#delete-button").wait_for()  # the finished page swapped in: delete is offered now
+    assert api.get(f"/campaigns/{cid}").json()["status"] == "cancelled"
+    page.screenshot(path=screenshots / "campaign-cancelled.png", full_page=True)
+    page.click("#delete-button")
+    page.wait_for_url(re.compile(r"/$"))
+    assert api.get(f"/campaigns/{cid}").status_code == 404
+
+
+def test_a_wrong_token_is_asked_again_and_changes_nothing(watched, api, done_campaign):
+    r = api.post("/campaigns", json={"overrides": SMALL, "tests": 2, "algorithms": ["rapas"], "name": "wrong token"})
+    cid = r.json()["id"]
+    wait_done(api, cid)
+    w = watched(expect=(401,))
+    page = w.page
+    page.on("dialog", lambda d: d.accept())
+    page.goto(f"/ui/campaigns/{cid}")
+    page.click("#delete-button")
+    page.fill("#token-input", "not-the-token")
+    page.click("#token-form button[type=submit]")
+    page.locator("#token-error").wait_for(state="visible")
+    assert "refused" in page.locator("#token-error").inner_text()
+    page.click("#token-cancel")
+    assert api.get(f"/campaigns/{cid}").status_code == 200
+    assert page.evaluate("sessionStorage.getItem('ra2vipas.apiToken')") is None  # a refused token is not kept
+
+
+def test_rigs_page_shows_the_live_rigs_and_learner(watched, screenshots):
+    w = watched()
+    w.page.goto("/ui/rigs")
+    rows = w.page.locator("#rigs-table tbody tr")
+    rows.first.wait_for()
+    text = w.page.locator("#rigs").inner_text()
+    assert "rig-1" in text and "rig-2" in text and "live since" in text and "learner" in text
+    w.page.screenshot(path=screenshots / "rigs.png", full_page=True)
+
+
+@pytest.mark.parametrize("path", ["/", "/ui/new", "/ui/rigs", "CAMPAIGN", "EPISODE"])
+def test_pages_fit_a_phone_and_tab_order_starts_with_the_skip_link(watched, done_campaign, screenshots, path):
+    cid = done_campaign["id"]
+    url = {"CAMPAIGN": f"/ui/campaigns/{cid}", "EPISODE": f"/ui/campaigns/{cid}/tests/0/ra2vipas"}.get(path, path)
+    w = watched(viewport=PHONE)
+    page = w.page
+    page.goto(url)
+    page.wait_for_load_state("networkidle") if path not in ("/", "/ui/rigs") else page.wait_for_timeout(500)
+    # nothing wider than the screen: wide tables scroll inside their own box
+    assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+    page.keyboard.press("Tab")
+    assert page.evaluate("document.activeElement.textContent") == "Skip to content"
+    page.keyboard.press("Enter")
+    page.keyboard.press("Tab")
+    assert page.evaluate("document.activeElement.closest('main') !== null")
+    name = {"/": "home", "/ui/new": "new", "/ui/rigs": "rigs"}.get(path, path.lower())
+    page.screenshot(path=screenshots / f"phone-{name}.png", full_page=True)
+
+
+def test_no_token_in_the_stack_logs(stack, screenshots):
+    """The browser sent the token in headers only; no service wrote it anywhere."""
+    for log in stack["logs"].rglob("*"):
+        if log.is_file():
+            assert TOKEN not in log.read_text(errors="replace"), log
