@@ -96,7 +96,8 @@ class ControllerSettings:
     ar1_lobe: bool = True  # the standing lobe's noise AR(1) (rho from Rx(iso)) rather than white with its evidence scaled
     tx_walk_prior: float = 0.3  # prior probability that the Tx walks
     walk_penalty: float = 2.0  # nats the recent lobe must gain to count as motion
-    probe_rf_peaks: bool = False
+    probe_rf_peaks: bool = False  # probe between the two best RF peaks, not the two best tracks (always when the Tx walks)
+    walker_answer_from_rf: bool = True  # a Tx that walks is named where l_RF peaks (its track may lag or be lost)
     mass_in_acquisition: bool = True
 
     def __post_init__(self) -> None:
@@ -377,6 +378,9 @@ class Controller:
         if post.size and (float(post.max()) >= missed_mass or not self.uses_radio):  # without Rx(dir), "missed" names no bearing
             i = int(np.argmax(post))
             estimate = float(self._track_where[i])
+            if self.uses_radio and self._n and cfg.walker_answer_from_rf and self.tx_walks > 0.5:
+                # a walker: the tracks are where the camera last saw people, l_RF where the Tx is now
+                estimate = self._refined_argmax(l_rf)
             return estimate, float(post[i]) + _arc_mass(post_missed, self.circle.nearest(estimate), half), post
         if not self._n:
             return self.first_pan(), 0.0, post
@@ -450,7 +454,7 @@ class Controller:
 
     def _probe(self, l_rf: np.ndarray, l_tracks: np.ndarray) -> float:
         """The pan where the two leading hypotheses' lobes differ most, on alternating sides."""
-        if l_tracks.size >= 2 and not self.settings.probe_rf_peaks:
+        if l_tracks.size >= 2 and not self.settings.probe_rf_peaks and self.tx_walks <= 0.5:
             top = np.argsort(-l_tracks)[:2]
             g1, g2 = self.tracks.bearing[top[0]], self.tracks.bearing[top[1]]
         else:
