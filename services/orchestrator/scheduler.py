@@ -45,7 +45,8 @@ import numpy as np
 
 from ra2vipas.services.learner.pod import predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
-from ra2vipas.services.orchestrator.simulate import TestOutcome, TrainedPOD, held, summarize
+from ra2vipas.services.orchestrator.reduce import AlgorithmTally, results_object
+from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
 from ra2vipas.services.orchestrator.storage import EpisodeKey, StorageFault, Store
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
@@ -513,19 +514,19 @@ class Scheduler:
         c = self.store.campaign(run.id)
         if c is None or c["progress"]["done"] < c["progress"]["total"]:
             return
-        rows = self.store.episode_rows(run.id)
-        outcomes: dict[str, list[TestOutcome]] = {a: [] for a in c["algorithms"]}
         steps = run.scenario.steps
-        for row in rows:
-            outcomes[row["algorithm"]].append(TestOutcome(
-                algorithm=row["algorithm"], test_index=row["test_index"], hits=[bool(h) for h in row["hits"]],
-                in_fov=[bool(f) for f in row["in_fov"]], confidences=held(row.get("confidences") or [], steps),
-                decided_step=row.get("decided_step")))
+        # streamed: one page of episodes in memory at a time, reduced into running sums (reduce.AlgorithmTally)
+        tallies = {a: AlgorithmTally(steps, run.scenario.rf_period_s) for a in c["algorithms"]}
+        latencies: list[float] = []
+        for row in self.store.episode_outcomes(run.id):
+            tallies[row["algorithm"]].add(row["hits"], row["in_fov"], held(row.get("confidences") or [], steps) or None,
+                                          row.get("decided_step"), row["n_estimates"])
+            latencies += row.get("latencies") or []
         finished = time.time()
         elapsed = finished - (run.running_since or finished)
-        sps = (sum(len(row["estimates"]) for row in rows) / elapsed) if elapsed > 0 else None
-        results = summarize(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, outcomes, sps, run.stop_confidence)
-        latencies = [v for row in rows for v in (row.get("latencies") or [])]
+        steps_run = sum(t.steps_run for t in tallies.values())
+        sps = (steps_run / elapsed) if elapsed > 0 else None
+        results = results_object(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, tallies, sps, run.stop_confidence)
         if latencies:
             results["latency_ms"] = {"p50": round(float(np.percentile(latencies, 50)), 4), "p99": round(float(np.percentile(latencies, 99)), 4)}
         self.store.set_campaign(run.id, status="done", results=_json(results), finished_at=finished,

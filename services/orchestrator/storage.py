@@ -463,6 +463,31 @@ class Store:
                 rows = db.execute("SELECT * FROM episodes WHERE campaign_id=? AND status=? ORDER BY test_index, algorithm", (cid, status)).fetchall()
         return [_episode_dict(r) for r in rows]
 
+    def episode_outcomes(self, cid: str, page: int = 500) -> Iterator[dict[str, Any]]:
+        """A campaign's done episodes in (test index, algorithm) order, a page at a time (the lock
+        is released between pages), each with only what its reduction needs: ``hits``,
+        ``in_fov``, ``confidences`` (None from a v1 controller), ``decided_step``, ``latencies``
+        and ``n_estimates`` (control steps run). Memory holds one page, whatever the campaign's size.
+
+        Raises
+        ------
+        StorageFault
+            The database cannot be read.
+        """
+        after: tuple[int, str] = (-1, "")
+        while True:
+            with self._reading() as db:
+                rows = db.execute(
+                    "SELECT test_index, algorithm, hits, in_fov, confidences, decided_step, latencies,"
+                    " json_array_length(estimates) AS n_estimates FROM episodes"
+                    " WHERE campaign_id=? AND status='done' AND (test_index, algorithm) > (?, ?)"
+                    " ORDER BY test_index, algorithm LIMIT ?", (cid, *after, page)).fetchall()
+            for row in rows:
+                yield _episode_dict(row)
+            if len(rows) < page:
+                return
+            after = (rows[-1]["test_index"], rows[-1]["algorithm"])
+
     def episode_page(self, cid: str, *, algorithm: str | None = None, status: str | None = None, limit: int = 50,
                      offset: int = 0) -> tuple[list[dict[str, Any]], int]:
         """One page of a campaign's episodes ordered by (test index, algorithm), optionally
