@@ -48,6 +48,7 @@ from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
 from ra2vipas.services.orchestrator.reduce import AlgorithmTally, results_object
 from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
 from ra2vipas.services.orchestrator.storage import EpisodeKey, StorageFault, Store
+from ra2vipas.services.orchestrator.study_store import StudyStore
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
     EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Mode, PODRequest, PODResponse,
@@ -98,6 +99,9 @@ class _Run:
     model_attempts: int = 0
     model_retry_at: float | None = None
     stop_confidence: float = 0.0
+    study: str | None = None  # the study this campaign is a point of, if any
+    point: int = 0  # its index in the study's grid
+    tests: int = 0
 
 
 @dataclass
@@ -118,6 +122,7 @@ class Scheduler:
                  heal_backoff_s: tuple[float, float] = HEAL_BACKOFF_S, tick_s: float = TIMEOUT_CHECK_S) -> None:
         self.bus = bus
         self.store = store
+        self._studies = StudyStore(store)
         self.window = max(1, int(window))
         self.loop = EventLoop("scheduler")
         self.rigs: dict[str, _Rig] = {}
@@ -274,7 +279,11 @@ class Scheduler:
         if c is None or c["status"] not in ("queued", "training", "running"):
             return
         scenario = Scenario.model_validate(c["scenario"])
-        run = _Run(id=cid, scenario=scenario, seed=c["seed"], mode=Mode(c["mode"]), stop_confidence=c.get("stop_confidence") or 0.0)
+        run = _Run(id=cid, scenario=scenario, seed=c["seed"], mode=Mode(c["mode"]), stop_confidence=c.get("stop_confidence") or 0.0,
+                   tests=c["tests"])
+        membership = self._studies.membership(cid)
+        if membership is not None:
+            run.study, run.point = membership
         if c["pod_job"] is not None:  # resumed after a restart: the model was already trained and scored
             run.pod = TrainedPOD(model=None, r2=c["pod_r2"], train_seconds=c["pod_train_seconds"] or 0.0)
             self._go_now(run)
@@ -395,14 +404,43 @@ class Scheduler:
                     seed=run.seed, scenario=run.scenario, mode=run.mode, stop_confidence=run.stop_confidence)))
 
     def _next_episode(self, allow_realtime: bool) -> tuple[_Run, EpisodeKey] | None:
+        studies: set[str] = set()
         for cid in list(self._order):
             run = self.runs.get(cid)
-            if run is None or run.pod is None or not run.pending:
+            if run is None:
+                continue
+            if run.study is not None:  # a study's points are served together, interleaved
+                if run.study not in studies:
+                    studies.add(run.study)
+                    item = self._next_of_study(run.study, allow_realtime)
+                    if item is not None:
+                        return item
+                continue
+            if run.pod is None or not run.pending:
                 continue
             if run.mode is Mode.realtime and not allow_realtime:
                 continue
             return run, run.pending.popleft()
         return None
+
+    def _next_of_study(self, study: str, allow_realtime: bool) -> tuple[_Run, EpisodeKey] | None:
+        """The next episode of a study: from the point whose next test is the earliest (then the
+        first point), so the points advance test by test together and partial results are
+        meaningful early; a point's last test waits until every point has its POD model (and so
+        has been handed its first tests), so every point gets its first tests before any point
+        gets its last."""
+        members = [r for r in self.runs.values() if r.study == study]
+        all_trained = all(r.pod is not None for r in members)
+        best: _Run | None = None
+        for r in members:
+            if r.pod is None or not r.pending or (r.mode is Mode.realtime and not allow_realtime):
+                continue
+            k = r.pending[0].test_index
+            if r.tests > 1 and k >= r.tests - 1 and not all_trained:
+                continue
+            if best is None or (k, r.point) < (best.pending[0].test_index, best.point):
+                best = r
+        return None if best is None else (best, best.pending.popleft())
 
     def _is_realtime(self, eid: str) -> bool:
         flight = self.flights.get(eid)

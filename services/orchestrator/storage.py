@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Iterator
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -93,6 +93,27 @@ _MIGRATIONS: dict[int, str] = {
     ALTER TABLE episodes ADD COLUMN confidences TEXT;
     ALTER TABLE episodes ADD COLUMN decided_step INTEGER
     """,
+    # 5: parameter studies (issue 10): a study row (its grid and campaign options) and, on each of
+    #    its points' campaigns, the study and the point's index in the grid (study_store.py).
+    5: """
+    CREATE TABLE studies (
+        id TEXT PRIMARY KEY,
+        name TEXT,
+        preset TEXT NOT NULL,
+        overrides TEXT NOT NULL,
+        vary TEXT NOT NULL,
+        algorithms TEXT NOT NULL,
+        tests INTEGER NOT NULL,
+        seed INTEGER NOT NULL,
+        mode TEXT NOT NULL,
+        stop_confidence REAL NOT NULL DEFAULT 0,
+        created_at REAL NOT NULL
+    );
+    CREATE INDEX studies_created ON studies(created_at);
+    ALTER TABLE campaigns ADD COLUMN study_id TEXT REFERENCES studies(id);
+    ALTER TABLE campaigns ADD COLUMN study_point INTEGER;
+    CREATE INDEX campaigns_study ON campaigns(study_id, study_point)
+    """,
 }
 
 ACTIVE = ("queued", "training", "running")
@@ -133,6 +154,10 @@ class Fault:
 
 class CampaignActiveError(StoreError):
     """The operation needs a finished campaign and this one is still queued, training or running."""
+
+
+class CampaignInStudyError(StoreError):
+    """The campaign is a point of a study: it goes with its study (delete the study)."""
 
 
 @dataclass(frozen=True)
@@ -380,13 +405,17 @@ class Store:
         ------
         CampaignActiveError
             The campaign is still queued, training or running (cancel it first).
+        CampaignInStudyError
+            The campaign is a point of a study (delete the study).
         """
         with self.transaction() as db:
-            row = db.execute("SELECT status FROM campaigns WHERE id=?", (cid,)).fetchone()
+            row = db.execute("SELECT status, study_id FROM campaigns WHERE id=?", (cid,)).fetchone()
             if row is None:
                 return False
             if row[0] in ACTIVE:
                 raise CampaignActiveError(f"campaign {cid} is {row[0]}; cancel it first")
+            if row[1] is not None:
+                raise CampaignInStudyError(f"campaign {cid} is a point of study {row[1]}; delete the study instead")
             db.execute("DELETE FROM episodes WHERE campaign_id=?", (cid,))
             db.execute("DELETE FROM campaigns WHERE id=?", (cid,))
             return True
