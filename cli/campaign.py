@@ -66,6 +66,7 @@ def start(
     embedded: Annotated[bool, typer.Option("--embedded", help="Start a local stack (Zenoh router, services, SQLite file) just for this campaign and stop it afterwards; implies --wait.")] = False,
     db: Annotated[str, typer.Option("--db", envvar="RA2VIPAS_DB", help="With --embedded: the SQLite file the results go to.")] = "ra2vipas.db",
     rigs: Annotated[int, typer.Option(min=0, max=64, help="With --embedded: sensor+controller pairs (0: one per CPU core).")] = 0,
+    insecure: Annotated[bool, typer.Option("--insecure", help="With --embedded: no Zenoh credentials for the local stack (any local process may join it).")] = False,
     as_json: JsonOpt = False,
     api: ApiOpt = DEFAULT_API,
     token: TokenOpt = None,
@@ -92,7 +93,7 @@ def start(
     if stop_confidence > 0.0:
         body["stop_confidence"] = stop_confidence
     if embedded:
-        _run_embedded(body, db, rigs, plot, as_json)
+        _run_embedded(body, db, rigs, plot, as_json, insecure)
         return
     client = Client(api, token)
     c = client.request("POST", "/campaigns", json=body)
@@ -111,14 +112,14 @@ def _finish(client: Client, cid: str, plot: str | None, as_json: bool) -> None:
     emit_results(results, plot, as_json)
 
 
-def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: bool) -> None:
+def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: bool, insecure: bool = False) -> None:
     import os
     import signal
 
     from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
 
     rigs = rigs or max(1, min(os.cpu_count() or 1, 16))
-    stack = Stack(StackConfig(rigs=rigs, port=free_port(), db_path=db, log_level="WARNING"))
+    stack = Stack(StackConfig(rigs=rigs, port=free_port(), db_path=db, log_level="WARNING", insecure=insecure))
     previous = signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     try:
         stderr.print(f"starting a local stack ({rigs} rigs, database {db}) ...")

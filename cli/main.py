@@ -2,17 +2,9 @@
 
 from __future__ import annotations
 
-import os
+import typer  # noqa: E402  (ra2vipas/__init__ pins BLAS to one thread before numpy loads)
 
-# The linear algebra here is on matrices of a few hundred entries: BLAS worker threads only
-# spin and steal the cores the services need (they cost milliseconds of latency). Must be
-# set before numpy is first imported.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-
-import typer  # noqa: E402
-
-from ra2vipas.cli import bench, campaign, presets, protocol, services  # noqa: E402
+from ra2vipas.cli import bench, campaign, presets, protocol, security, services  # noqa: E402
 from ra2vipas.cli.rig import rig  # noqa: E402
 from ra2vipas.cli.rigs import rigs  # noqa: E402
 from ra2vipas.cli.simulate import simulate  # noqa: E402
@@ -31,6 +23,7 @@ app.command("rigs")(rigs)
 app.add_typer(presets.app, name="presets")
 app.add_typer(bench.app, name="bench")
 app.add_typer(protocol.app, name="protocol")
+app.add_typer(security.app, name="security")
 for _name in ("sensors", "controller", "learner", "orchestrator", "router"):
     app.command(_name)(getattr(services, _name))
 app.command("rig")(rig)

@@ -139,19 +139,25 @@ def orchestrator(
 
 
 def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
-    """Run a standalone Zenoh router (Python) for hosts without the official zenohd binary."""
+    """Run a standalone Zenoh router (Python) for hosts without the official zenohd binary.
+    Without --listen it listens on tcp/127.0.0.1:7447 only: give e.g. --listen tcp/0.0.0.0:7447
+    to accept other machines."""
     from ra2vipas.services.transport.runtime import configure_logging, wait_for_shutdown_signal
 
     configure_logging(log_level)
-    _yield_cpu()
-    settings = zenoh_settings("router", connect, listen or ["tcp/0.0.0.0:7447"], zenoh_config)
+    _claim_cpu()  # every message between clients passes through the router: it is on the control loop's path
+    settings = zenoh_settings("router", connect, listen, zenoh_config)  # no listen endpoint anywhere: 127.0.0.1:7447
+    import json
+
     import zenoh
 
     try:
-        session = zenoh.open(settings.to_zenoh())
+        conf = settings.to_zenoh()
+        session = zenoh.open(conf)
     except Exception as err:
         fail(f"cannot start the Zenoh router: {err}")
-    log.info("zenoh router up, listening on %s", list(settings.listen))
+    endpoints = json.loads(conf.get_json("listen/endpoints"))
+    log.info("zenoh router up, listening on %s", endpoints.get("router", endpoints) if isinstance(endpoints, dict) else endpoints)
     try:
         wait_for_shutdown_signal()
     finally:
@@ -159,8 +165,9 @@ def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: C
 
 
 def _claim_cpu() -> None:
-    """Sensors and controllers close the control loop: where allowed (root, CAP_SYS_NICE) they
-    run at a higher priority so a busy machine delays their replies less."""
+    """Sensors and controllers close the control loop, and a router carries their messages when
+    they are its clients: where allowed (root, CAP_SYS_NICE) they run at a higher priority so
+    a busy machine delays their replies less."""
     try:
         os.nice(-5)
     except OSError:

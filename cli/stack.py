@@ -1,6 +1,21 @@
 """A whole local stack as child processes: a Zenoh router on loopback, the orchestrator
-(REST API), the learner and N rigs (sensors + controller). Used by ``ra2vipas up`` and
-``ra2vipas bench mesh``.
+(REST API), the learner and N rigs (sensors + controller). Used by ``ra2vipas up``,
+``ra2vipas campaign start --embedded`` and ``ra2vipas bench mesh``.
+
+Everything listens on 127.0.0.1 only: the router and the API. The services are Zenoh
+*clients* of the router and listen on nothing (as in a deployment across machines). Peers
+talking directly would save a hop, but a peer mesh whose links are authenticated sometimes
+misses a link between two peers, and the router does not carry their traffic then (seen as
+a learner the orchestrator never sees); a client has one link, to the router, which carries
+everything.
+
+Unless ``insecure``, the stack has its own Zenoh credentials, made up when it starts: a
+random user name and password in files only their owner can read (0600, in a private 0700
+directory), which every service of the stack presents and the router requires (Zenoh
+user/password authentication), so a process without them (another local user's, or one in
+another network namespace) cannot open a session with the stack. The credentials reach the
+children as file paths in their environment, never on a command line or in a log; the
+directory is removed by ``stop()``.
 
 Children get ``PR_SET_PDEATHSIG`` so they die with their parent even if it is killed with
 SIGKILL; ``stop()`` sends SIGTERM, waits, then SIGKILLs stragglers, and reaps every pid it
@@ -11,6 +26,8 @@ from __future__ import annotations
 
 import ctypes
 import os
+import secrets
+import shutil
 import signal
 import socket
 import subprocess
@@ -72,7 +89,55 @@ class StackConfig:
     window: int = 8
     log_dir: str | None = None
     log_level: str = "INFO"
-    zenoh_mode: str = "peer"
+    zenoh_mode: str = "client"  # the services' mode: clients of the router, or peers (direct links, listening on loopback)
+    insecure: bool = False  # True: no Zenoh credentials (any local process may join the stack)
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Create ``path`` readable and writable by its owner only (0600), failing if it exists."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(text)
+
+
+@dataclass(frozen=True)
+class StackCredentials:
+    """Where a stack's Zenoh credentials are: ``directory`` (0700) holds ``password`` (the
+    password alone) and ``credentials`` (``user:password``, the dictionary every service
+    checks), both 0600, and ``zenoh.env``, the environment another process needs to join
+    the stack (``set -a; . DIR/zenoh.env``): paths and the user name, no secret."""
+
+    directory: Path
+    user: str
+
+    @property
+    def password_file(self) -> Path:
+        return self.directory / "password"
+
+    @property
+    def dictionary_file(self) -> Path:
+        return self.directory / "credentials"
+
+    @property
+    def env_file(self) -> Path:
+        return self.directory / "zenoh.env"
+
+    def env(self) -> dict[str, str]:
+        return {"RA2VIPAS_ZENOH_USER": self.user, "RA2VIPAS_ZENOH_PASSWORD_FILE": str(self.password_file),
+                "RA2VIPAS_ZENOH_CREDENTIALS": str(self.dictionary_file)}
+
+    @classmethod
+    def create(cls) -> "StackCredentials":
+        directory = Path(tempfile.mkdtemp(prefix="ra2vipas-stack-"))  # 0700: mkdtemp's own mode
+        os.chmod(directory, 0o700)
+        creds = cls(directory, f"stack-{secrets.token_hex(4)}")
+        password = secrets.token_urlsafe(32)
+        _write_private(creds.password_file, password + "\n")
+        _write_private(creds.dictionary_file, f"{creds.user}:{password}\n")
+        return creds
+
+    def remove(self) -> None:
+        shutil.rmtree(self.directory, ignore_errors=True)
 
 
 class StackError(RuntimeError):
@@ -84,6 +149,8 @@ class Stack:
     config: StackConfig
     children: list[Child] = field(default_factory=list)
     log_dir: Path | None = None
+    credentials: StackCredentials | None = None
+    router_endpoint: str | None = None
 
     @property
     def api_url(self) -> str:
@@ -94,7 +161,7 @@ class Stack:
         self.log_dir = Path(cfg.log_dir or tempfile.mkdtemp(prefix="ra2vipas-logs-"))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         router_port = cfg.router_port or free_port()
-        endpoint = f"tcp/127.0.0.1:{router_port}"
+        endpoint = self.router_endpoint = f"tcp/127.0.0.1:{router_port}"
         # the stack sets its own RA2VIPAS_* variables; the API token and the orchestrator's figure
         # renderer count are the user's
         base_env = {k: v for k, v in os.environ.items()
@@ -102,11 +169,17 @@ class Stack:
         base_env.update({
             "RA2VIPAS_ZENOH_MODE": cfg.zenoh_mode,
             "RA2VIPAS_ZENOH_CONNECT": endpoint,
+            "RA2VIPAS_ZENOH_LISTEN": "tcp/127.0.0.1:0" if cfg.zenoh_mode == "peer" else "",
             "RA2VIPAS_LOG_LEVEL": cfg.log_level,
             "PYTHONUNBUFFERED": "1",
         })
+        if not cfg.insecure:
+            self.credentials = StackCredentials.create()
+            base_env.update(self.credentials.env())
+            _write_private(self.credentials.env_file, "".join(f"{k}={v}\n" for k, v in {
+                "RA2VIPAS_ZENOH_MODE": "client", "RA2VIPAS_ZENOH_CONNECT": endpoint, **self.credentials.env()}.items()))
         py = [sys.executable, "-m", "ra2vipas.cli.main"]
-        specs = [("router", [*py, "router", "--listen", endpoint], {"RA2VIPAS_ZENOH_CONNECT": ""})]
+        specs = [("router", [*py, "router", "--listen", endpoint], {"RA2VIPAS_ZENOH_CONNECT": "", "RA2VIPAS_ZENOH_LISTEN": ""})]
         specs.append(("learner", [*py, "learner"], {}))
         for i in range(1, cfg.rigs + 1):
             rig = f"rig-{i}"
@@ -167,7 +240,8 @@ class Stack:
         child.start()
 
     def stop(self, timeout: float = 10.0) -> None:
-        """SIGTERM every child (orchestrator first, router last), wait, SIGKILL what is left."""
+        """SIGTERM every child (orchestrator first, router last), wait, SIGKILL what is left;
+        then delete the stack's credentials."""
         order = sorted(self.children, key=lambda c: (c.name != "orchestrator", c.name == "router"))
         for c in order:
             if c.alive():
@@ -184,6 +258,8 @@ class Stack:
             except subprocess.TimeoutExpired:
                 c.proc.kill()
                 c.proc.wait(5.0)
+        if self.credentials is not None:
+            self.credentials.remove()
 
     def pids(self) -> list[int]:
         return [c.proc.pid for c in self.children if c.proc is not None]

@@ -21,11 +21,16 @@ def up(
     router_port: Annotated[int, typer.Option(min=0, max=65535, help="Port of the loopback Zenoh router (0: any free port).")] = 0,
     window: Annotated[int, typer.Option(min=1, max=1024, help="Episodes in flight per rig.")] = 8,
     log_dir: Annotated[Optional[str], typer.Option(help="Directory for the services' logs (default: a new temporary directory).")] = None,
+    insecure: Annotated[bool, typer.Option("--insecure", help="No Zenoh credentials: any local process may join the stack's Zenoh network (by default the stack makes up its own, readable by you only).")] = False,
 ) -> None:
     """Run a local stack in the foreground: a Zenoh router on loopback, the orchestrator (REST
     API), the learner and RIGS sensor+controller pairs. Prints the API address once
     GET /health answers 200; Ctrl-C or SIGTERM stops every process it started.
-    A service that crashes is restarted."""
+    A service that crashes is restarted.
+
+    Everything listens on 127.0.0.1 only, and the stack's Zenoh network is closed to any
+    process without its credentials (made up at start, in a file only you can read, deleted
+    at stop); another process joins it with the environment in the printed zenoh.env file."""
     stop = threading.Event()
 
     def on_signal(_signum, _frame) -> None:
@@ -33,13 +38,20 @@ def up(
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    stack = Stack(StackConfig(rigs=rigs, host=host, port=port, db_path=db, router_port=router_port, window=window, log_dir=log_dir))
+    stack = Stack(StackConfig(rigs=rigs, host=host, port=port, db_path=db, router_port=router_port, window=window, log_dir=log_dir,
+                              insecure=insecure))
     try:
         try:
             stack.start()
         except StackError as err:
             fail(str(err))
-        print(f"ra2vipas up: API on {stack.api_url} (rigs: {rigs}, database: {db}, logs: {stack.log_dir}); Ctrl-C to stop", flush=True)
+        if stack.credentials is not None:
+            zenoh_info = (f"Zenoh router {stack.router_endpoint}, closed to processes without its credentials "
+                          f"(join with the environment in {stack.credentials.env_file})")
+        else:
+            zenoh_info = f"Zenoh router {stack.router_endpoint} without credentials (--insecure): any local process may join"
+        print(f"ra2vipas up: API on {stack.api_url} (rigs: {rigs}, database: {db}, logs: {stack.log_dir}); {zenoh_info}; "
+              "Ctrl-C to stop", flush=True)  # one line: scripts wait for it
         while not stop.wait(0.5):
             dead = stack.watch()
             if dead is not None and not stop.is_set():

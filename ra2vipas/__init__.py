@@ -18,7 +18,22 @@ folders; an installed wheel has them inside this package.
 from __future__ import annotations
 
 import os as _os
+import sys as _sys
 from pathlib import Path as _Path
+
+# One BLAS/OpenMP thread. The linear algebra here is on matrices of a few hundred entries:
+# worker threads only spin and steal the cores the services need, and, worse, a threaded
+# BLAS sums in another order, so a campaign's confidences would differ in the last digit
+# between a process with 1 thread (every service) and one with many (a notebook): results
+# must be equal value for value wherever they are computed. The variables work if numpy is
+# not loaded yet; if it is, threadpoolctl (a scikit-learn dependency) limits the loaded
+# libraries.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    _os.environ.setdefault(_var, "1")
+if "numpy" in _sys.modules:
+    from threadpoolctl import threadpool_limits as _threadpool_limits
+
+    _threadpool_limits(1)
 
 # A source checkout keeps services/ and cli/ beside this folder: make them ra2vipas.services
 # and ra2vipas.cli (an installed wheel has them inside the package, and this does nothing).

@@ -222,22 +222,41 @@ def track_logpost(l_rf, track_rf, grid_step, rf_weight, means, sds, weights, det
     near its prediction: Rx(dir) says where). ``where[i]`` is the bearing of the track's most
     probable component (the maximiser of its integrand for a wide one). Plus ``pod_evidence``
     of its detection counts."""
+    M = l_rf.size
+    wide_best = -1e300
+    wide_at = 0.0
+    comp = np.empty(2)
+    spot = np.empty(2)
     for i in range(means.shape[0]):
         top = -1e300
-        comp = np.empty(2)
-        spot = np.empty(2)
         for a in range(2):
-            if weights[i, a] <= 1e-12:
+            if weights[i, a] <= 1e-3:  # a model this unlikely moves nothing (and costs a window of work)
                 comp[a] = -1e300
                 spot[a] = means[i, a]
                 continue
             if sds[i, a] < grid_step:
                 comp[a] = rf_weight * track_rf[i]
                 spot[a] = means[i, a]
+            elif sds[i, a] > 1.0:  # lost: anywhere on the circle, as far as the track can tell
+                if wide_best < -1e299:
+                    total = 0.0
+                    top_j = 0
+                    for j in range(M):
+                        if l_rf[j] > l_rf[top_j]:
+                            top_j = j
+                    for j in range(M):
+                        total += math.exp(rf_weight * (l_rf[j] - l_rf[top_j]))
+                    wide_best = rf_weight * l_rf[top_j] + math.log(total / M)
+                    wide_at = -math.pi + top_j * grid_step
+                comp[a] = wide_best
+                spot[a] = wide_at
             else:
                 comp[a], spot[a] = _smeared(l_rf, grid_step, rf_weight, means[i, a], sds[i, a])
             comp[a] += math.log(weights[i, a])
             top = max(top, comp[a])
+        if top <= -1e299:  # both models negligible (cannot happen with weights summing to 1)
+            comp[0] = rf_weight * track_rf[i]
+            top = comp[0]
         rf = top + math.log(math.exp(comp[0] - top) + math.exp(comp[1] - top))
         where[i] = spot[0] if comp[0] >= comp[1] else spot[1]
         out[i] = rf + pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
@@ -245,19 +264,19 @@ def track_logpost(l_rf, track_rf, grid_step, rf_weight, means, sds, weights, det
 
 
 @njit(cache=True)
-def missed_logdensity(l_rf, rf_weight, view_frames, recent_frames, walks, alpha, beta, log_prior, outlier, out):
+def missed_logdensity(l_rf, rf_weight, miss_stand, miss_walk, walks, log_prior, outlier, out):
     """Log-posterior of "the Tx is a target not detected (where it is now), at grid bearing
     gamma": rf_weight * l_RF(gamma) + log P(no detection in the frames that looked there | the
-    Tx's POD ~ Beta(alpha, beta)) + the log prior of such a target in that grid cell. A Tx that
-    stands was missed in every frame ever taken there (``view_frames``); one that walks only in
-    the recent ones (``recent_frames``, discounted): mixed with probability ``walks``."""
-    lb = _lbeta(alpha, beta)
+    Tx's POD) + the log prior of such a target in that grid cell. A Tx that stands was missed
+    in every frame ever taken there (``miss_stand``), one that walks only in the recent ones
+    (``miss_walk``): mixed with probability ``walks``; with probability ``outlier`` the miss
+    says nothing (hidden behind someone, or the POD model is off)."""
     for j in range(l_rf.size):
-        stand = _lbeta(alpha, view_frames[j] + beta) - lb
-        walk = _lbeta(alpha, recent_frames[j] + beta) - lb
+        stand = miss_stand[j]
+        walk = miss_walk[j]
         top = max(stand, walk)
         miss = top + math.log((1.0 - walks) * math.exp(stand - top) + walks * math.exp(walk - top))
-        if outlier > 0.0:  # robust, as ``pod_evidence``: hidden behind someone, or the POD model is off
+        if outlier > 0.0:
             miss = math.log((1.0 - outlier) * math.exp(miss) + outlier)
         out[j] = rf_weight * l_rf[j] + miss + log_prior
     return out

@@ -191,7 +191,8 @@ class RecentLobe:
         self._w = self._z = self._zz = 0.0
         # the recent samples (weights beyond exp(-6) dropped), to start a new track's statistics
         self._recent: deque = deque(maxlen=max(1, int(math.ceil(6.0 * memory_s / rf_period_s))))
-        self._tracks: dict[int, np.ndarray] = {}  # track id -> discounted (sum h^2, sum h, sum h z)
+        self._stats = np.zeros((0, 3))  # per followed track: discounted (sum h^2, sum h, sum h z)
+        self._rows: dict[int, int] = {}  # track id -> row of _stats
 
     def add(self, s: float, z: float) -> None:
         """Add the sample z taken at pan s; older samples weigh lambda less each step. O(M)."""
@@ -214,29 +215,27 @@ class RecentLobe:
         have stood where it is over the recent samples). Tracks no longer listed are forgotten."""
         lam = self.forget
         s, z = self._recent[-1]
+        g = np.asarray(bearings, dtype=float)
         inv_w2 = 1.0 / (self.lobe_width * self.lobe_width)
-        kept: dict[int, np.ndarray] = {}
-        for tid, g in zip(ids, bearings):
-            st = self._tracks.get(tid)
-            if st is None:
-                st = np.zeros(3)
-                w = 1.0
-                for s_j, z_j in reversed(self._recent):
-                    a = math.sin(0.5 * (s_j - g))
-                    h = math.exp(-2.0 * a * a * inv_w2)
-                    st += (w * h * h, w * h, w * h * z_j)
-                    w *= lam
-            else:
-                a = math.sin(0.5 * (s - g))
-                h = math.exp(-2.0 * a * a * inv_w2)
-                st *= lam
-                st += (h * h, h, h * z)
-            kept[tid] = st
-        self._tracks = kept
+        a = np.sin(0.5 * (s - g))
+        h = np.exp(-2.0 * a * a * inv_w2)
+        rows = np.fromiter((self._rows.get(tid, -1) for tid in ids), dtype=np.int64, count=len(ids))
+        stats = np.empty((len(ids), 3))
+        old = rows >= 0
+        stats[old] = lam * self._stats[rows[old]] + np.stack([h[old] * h[old], h[old], h[old] * z], axis=1)
+        new = np.flatnonzero(~old)
+        if new.size:  # backfill over the recent samples, newest first
+            past = np.asarray(self._recent, dtype=float)[::-1]  # (R, 2): pan, z
+            w = lam ** np.arange(past.shape[0])
+            ah = np.sin(0.5 * (past[:, 0][:, None] - g[new][None, :]))
+            hh = np.exp(-2.0 * ah * ah * inv_w2)  # (R, len(new))
+            stats[new] = np.stack([w @ (hh * hh), w @ hh, (w * past[:, 1]) @ hh], axis=1)
+        self._stats = stats
+        self._rows = {tid: j for j, tid in enumerate(ids)}
 
     def follow_profile(self, ids) -> np.ndarray:
         """Profile log-likelihood of "the lobe followed track id" for each id (see ``follow``)."""
-        stats = np.array([self._tracks[tid] for tid in ids]).reshape(-1, 3)
+        stats = self._stats[[self._rows[tid] for tid in ids]].reshape(-1, 3)
         n = stats.shape[0]
         loglik, A, c = np.empty(n), np.empty(n), np.empty(n)
         if n:

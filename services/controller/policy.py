@@ -44,6 +44,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
+from scipy.special import gammaln
 
 from ra2vipas.services.controller import _kernels
 from ra2vipas.services.controller.circle_gp import LobeGP, RecentLobe
@@ -273,8 +274,8 @@ class Controller:
         self.tx_walks = 1.0 / (1.0 + math.exp(-min(max(logit, -50.0), 50.0)))
         stand = kappa * l_static
         walk = kappa * l_recent
-        self._stand_rf = stand - np.logaddexp.reduce(stand)
-        self._walk_norm = float(np.logaddexp.reduce(walk))
+        self._stand_rf = stand - _logsumexp(stand)
+        self._walk_norm = _logsumexp(walk)
         walk = walk - self._walk_norm
         self._log_stand, self._log_walk = math.log(max(1.0 - self.tx_walks, 1e-300)), math.log(max(self.tx_walks, 1e-300))
         return np.logaddexp(self._log_stand + self._stand_rf, self._log_walk + walk)
@@ -315,7 +316,11 @@ class Controller:
             _kernels.track_logpost(l_rf, track_rf, self.circle.step, cfg.rf_weight, means, sds, weights,
                                    self.tracks.detections, self.tracks.frames_in_view, alpha, beta, a0, b0, cfg.pod_outlier, l_tracks,
                                    self._track_where)
-        l_missed = _kernels.missed_logdensity(l_rf, cfg.rf_weight, self._view_frames, self._view_recent, self.tx_walks, alpha, beta,
+        # log P(no detection in n frames | POD ~ Beta(alpha, beta)) = log B(alpha, n + beta) - log B(alpha, beta)
+        base = gammaln(alpha + beta) - gammaln(beta)
+        miss_stand = gammaln(self._view_frames + beta) - gammaln(self._view_frames + alpha + beta) + base
+        miss_walk = gammaln(self._view_recent + beta) - gammaln(self._view_recent + alpha + beta) + base
+        l_missed = _kernels.missed_logdensity(l_rf, cfg.rf_weight, miss_stand, miss_walk, self.tx_walks,
                                               math.log(cfg.missed_prior_per_rad * self.circle.step), cfg.pod_outlier,
                                               self._missed_buffer)
         return l_tracks, l_missed
@@ -448,6 +453,11 @@ def tuned_settings(algorithm: "Algorithm | str", base: ControllerSettings | None
     algorithm's own tuning (``TUNING``) on top, whoever builds the controller (in-process
     campaigns and the controller service alike)."""
     return dataclasses.replace(base or ControllerSettings(), **TUNING.get(Algorithm(algorithm).value, {}))
+
+
+def _logsumexp(values: np.ndarray) -> float:
+    top = float(values.max())
+    return top + math.log(float(np.exp(values - top).sum()))
 
 
 def _beta_of(mean: float, var: float) -> tuple[float, float]:

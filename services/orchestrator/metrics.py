@@ -91,7 +91,7 @@ def expected_calibration_error(confidence, correct, bins: int = 10) -> float | N
     for b in range(bins):
         inside = idx == b
         if inside.any():
-            total += inside.mean() * abs(conf[inside].mean() - ok[inside].mean())
+            total += inside.mean() * abs(_mean(conf[inside]) - _mean(ok[inside]))
     return float(total)
 
 
@@ -106,8 +106,8 @@ def reliability_bins(confidence, correct, bins: int = 10) -> list[dict[str, Any]
         inside = idx == b
         n = int(inside.sum())
         out.append({"lo": b / bins, "hi": (b + 1) / bins, "n": n,
-                    "confidence": round(float(conf[inside].mean()), 6) if n else None,
-                    "accuracy": round(float(ok[inside].mean()), 6) if n else None})
+                    "confidence": round(_mean(conf[inside]), 6) if n else None,
+                    "accuracy": round(_mean(ok[inside]), 6) if n else None})
     return out
 
 
@@ -194,7 +194,7 @@ def summarize_algorithm(hits: np.ndarray, in_fov: np.ndarray, rf_period_s: float
         conf = np.asarray(confidences, dtype=float)
         extra["calibration"] = {"ece_final": _rounded(expected_calibration_error(conf[:, -1], hits[:, -1])),
                                 "ece_all": _rounded(expected_calibration_error(conf, hits)),
-                                "confidence_final": round(float(conf[:, -1].mean()), 6),
+                                "confidence_final": round(_mean(conf[:, -1]), 6),
                                 "reliability": reliability_bins(conf[:, -1], hits[:, -1])}
     if decided_steps is not None:
         extra["decision"] = decision_summary(hits[:, -1], decided_steps, rf_period_s)
@@ -207,6 +207,14 @@ def summarize_algorithm(hits: np.ndarray, in_fov: np.ndarray, rf_period_s: float
         "in_fov_final": round(float(in_fov[:, -1].mean()), 6),
         **extra,
     }
+
+
+def _mean(values) -> float:
+    """The mean with an exactly rounded sum (``math.fsum``): the same value whatever the order
+    of the tests, so a campaign whose episodes finished in another order (other rigs, a rerun
+    after a kill) reports the same results to the last digit."""
+    flat = np.asarray(values, dtype=float).ravel()
+    return math.fsum(flat.tolist()) / flat.size
 
 
 def _rounded(value: float | None) -> float | None:

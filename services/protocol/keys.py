@@ -70,6 +70,11 @@ def episode_control(rig: str) -> str:
     return f"{PREFIX}/control/{check_chunk(rig)}/episode"
 
 
+def episode_control_all() -> str:
+    """Every rig's episode control key: what the orchestrator may publish on (access control)."""
+    return f"{PREFIX}/control/*/episode"
+
+
 # -- result plane ------------------------------------------------------------------------------
 
 def episode_result(rig: str) -> str:
@@ -139,6 +144,12 @@ def alive(role: str, name: str) -> str:
 
 def alive_all() -> str:
     return f"{PREFIX}/alive/**"
+
+
+def every_key() -> str:
+    """Every key of every plane. Never subscribed to: access control uses it to let any node
+    learn where subscribers and queryables are (``services/transport/acl.py``)."""
+    return f"{PREFIX}/**"
 
 
 def parse_alive(key: str) -> tuple[str, str] | None:

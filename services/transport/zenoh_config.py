@@ -7,6 +7,10 @@ Precedence: CLI flag > environment variable > default. Environment variables:
     peer|client|router.
 ``RA2VIPAS_ZENOH_CONNECT``, ``RA2VIPAS_ZENOH_LISTEN``
     comma-separated endpoints such as ``tcp/10.0.0.1:7447`` or ``tls/router:7447``.
+    Without listen endpoints (here or in the config file) a peer listens on
+    ``tcp/127.0.0.1:0`` and a router on ``tcp/127.0.0.1:7447``, loopback only (Zenoh's own
+    default is every interface); a client never listens. Listening beyond the machine is
+    always explicit, e.g. ``--listen tcp/0.0.0.0:7447``.
 ``RA2VIPAS_ZENOH_CONFIG``
     a Zenoh JSON5 configuration file, applied first; every other setting overrides it.
 ``RA2VIPAS_ZENOH_CONNECT_TIMEOUT``
@@ -64,6 +68,12 @@ TLS_VERIFY_NAME = "transport/link/tls/verify_name_on_connect"
 AUTH_USER = "transport/auth/usrpwd/user"
 AUTH_PASSWORD = "transport/auth/usrpwd/password"
 AUTH_DICTIONARY = "transport/auth/usrpwd/dictionary_file"
+
+
+# Zenoh's default listeners (every interface) and ours (loopback): anything that listens binds
+# 127.0.0.1 unless told otherwise.
+ZENOH_DEFAULT_LISTEN = {"router": ["tcp/[::]:7447"], "peer": ["tcp/[::]:0"]}
+LOOPBACK_LISTEN = {"router": ["tcp/127.0.0.1:7447"], "peer": ["tcp/127.0.0.1:0"]}
 
 
 class ZenohSettingsError(ValueError):
@@ -211,6 +221,8 @@ class ZenohSettings:
             conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
         if self.listen:
             conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        elif json.loads(conf.get_json("listen/endpoints")) == ZENOH_DEFAULT_LISTEN:  # nobody chose: loopback
+            conf.insert_json5("listen/endpoints", json.dumps(LOOPBACK_LISTEN))
         if not self.config_file:  # a config file decides scouting itself
             conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         timeout = self.connect_timeout_s

@@ -51,6 +51,15 @@ def interpolate(value, env: dict):
     return _VAR.sub(sub, value)
 
 
+def generated_rigs(rigs: tuple[str, ...] = ("rig-1", "rig-2"), split_rigs: tuple[str, ...] = ("robot-1",)) -> dict:
+    """The ``docker-compose.rigs.yml`` that ``ra2vipas security init --rigs ... --split-rigs ...``
+    writes into ./secrets (the same function writes it)."""
+    from ra2vipas.cli.security import compose_services
+    from ra2vipas.services.transport.acl import standard_identities
+
+    return yaml.safe_load(compose_services(standard_identities(list(rigs), list(split_rigs)), "./secrets"))
+
+
 def load(path: Path = COMPOSE_FILE) -> dict:
     """The compose file as YAML gives it (merge keys ``<<`` resolved, variables not)."""
     return yaml.safe_load(path.read_text())

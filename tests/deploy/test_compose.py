@@ -23,7 +23,7 @@ from ra2vipas.services.orchestrator.settings import OrchestratorSettings
 from ra2vipas.services.protocol.keys import check_chunk
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 from tests.deploy.compose import (
-    COMPOSE_SCHEMA, ROOT, TLS_OVERRIDE_FILE, InterpolationError, environment, interpolate, load, merge, our_services,
+    COMPOSE_SCHEMA, ROOT, TLS_OVERRIDE_FILE, InterpolationError, environment, generated_rigs, interpolate, load, merge, our_services,
 )
 
 VARS = {"RA2VIPAS_TOKEN": "compose-test-token"}  # what an operator's .env must provide
@@ -35,9 +35,12 @@ PATH_VARS = {"RA2VIPAS_DB", "RA2VIPAS_MODEL_CACHE", "RA2VIPAS_ZENOH_CONFIG", "RA
              "RA2VIPAS_ZENOH_TLS_KEY", "RA2VIPAS_ZENOH_CREDENTIALS", "RA2VIPAS_ZENOH_PASSWORD_FILE"}
 
 
+SECURED = "docker-compose.yml + docker-compose.tls.yml + secrets/docker-compose.rigs.yml"
+
+
 def variants() -> dict[str, dict]:
     base = load()
-    return {"docker-compose.yml": base, "docker-compose.yml + docker-compose.tls.yml": merge(base, load(TLS_OVERRIDE_FILE))}
+    return {"docker-compose.yml": base, SECURED: merge(merge(base, load(TLS_OVERRIDE_FILE)), generated_rigs())}
 
 
 @pytest.fixture(scope="module")
@@ -113,8 +116,9 @@ def test_compose_files_follow_the_compose_specification(validator):
         for form, doc in (("as written", compose), ("interpolated", interpolate(compose, VARS))):
             errors = [f"{'/'.join(map(str, e.absolute_path))}: {e.message}" for e in validator.iter_errors(doc)]
             assert not errors, f"{name} ({form}) is not a valid Compose file:\n" + "\n".join(errors)
-    errors = list(validator.iter_errors(load(TLS_OVERRIDE_FILE)))
-    assert not errors, errors[0].message
+    for override in (load(TLS_OVERRIDE_FILE), generated_rigs()):
+        errors = list(validator.iter_errors(override))
+        assert not errors, errors[0].message
 
 
 def test_the_schema_check_can_fail(validator):
@@ -181,8 +185,10 @@ def test_the_router_is_the_official_image_at_the_bindings_version():
             if arg.startswith("--cfg="):
                 key, value = arg[len("--cfg="):].split(":", 1)
                 conf.insert_json5(key, value)  # raises on a key or value this Zenoh does not know
-        # every service reaches the router by its compose name, on a protocol and port it listens on
+        # every service that runs reaches the router by its compose name, on a protocol and port it listens on
         for svc_name, svc in our_services(interpolate(compose, VARS)).items():
+            if str(svc.get("deploy", {}).get("replicas", 1)) == "0":
+                continue
             for ep in environment(svc)["RA2VIPAS_ZENOH_CONNECT"].split(","):
                 proto, address = ep.split("/", 1)
                 host, port = address.rsplit(":", 1)
@@ -216,3 +222,25 @@ def test_the_image_installs_the_project():
     ignored = {ln.strip() for ln in (ROOT / ".dockerignore").read_text().splitlines()}
     assert {".git", ".venv"} <= ignored
     assert not ({"ra2vipas", "services", "cli", "pyproject.toml", "README.md"} & ignored)
+
+
+def test_the_secured_deployment_names_every_rig_and_gives_each_service_only_its_own_secrets():
+    compose = interpolate(variants()[SECURED], VARS)
+    services = compose["services"]
+    router = services["router"]
+    command = router["command"]
+    assert command[command.index("-c") + 1] == "/run/secrets/router.json5" and "router.json5" in router["secrets"]
+    assert [c for c in command if c.startswith("--listen") or c.startswith("tls/")] == ["--listen", "tls/0.0.0.0:7447"]
+    for replicated in ("rig", "sensors", "controller"):  # replicas cannot hold one identity each
+        assert services[replicated]["deploy"]["replicas"] == 0
+    running = {name: svc for name, svc in our_services(compose).items() if svc.get("deploy", {}).get("replicas", 1) != 0}
+    assert set(running) == {"orchestrator", "learner", "rig-1", "rig-2", "robot-1-sensors", "robot-1-controller"}
+    for name, svc in running.items():
+        env = environment(svc)
+        user = env["RA2VIPAS_ZENOH_USER"]
+        assert env["RA2VIPAS_ZENOH_TLS_MTLS"] == "true" and env["RA2VIPAS_ZENOH_CONNECT"] == "tls/router:7447"
+        assert sorted(svc["secrets"]) == sorted(["ca.pem", f"{user}.pem", f"{user}.key", f"{user}.password"]), name
+        if "RA2VIPAS_RIG" in env:
+            assert user in (env["RA2VIPAS_RIG"], f"{env['RA2VIPAS_RIG']}.{svc['command'][1]}")
+    assert environment(services["orchestrator"])["RA2VIPAS_EXPECT_RIGS"] == "3"
+    assert all(s["file"].startswith("./secrets/") for s in compose["secrets"].values())

@@ -20,9 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
-import shutil
-import signal
 import sqlite3
 import subprocess
 import sys
@@ -36,6 +33,7 @@ import pytest
 from tests.deploy.compose import environment, interpolate, load, ra2vipas_argv
 from tests.deploy.conftest import ROOT, Services, clean_env
 from tests.conftest import untimed
+from tests.deploy.netns import NetnsError, destroy_namespace, ip, remove_stale_namespaces
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 
@@ -44,30 +42,6 @@ HOSTS = ("router", "sensors", "controller", "orch")
 TOKEN = "multihost-test-token"
 VARS = {"RA2VIPAS_TOKEN": TOKEN, "RA2VIPAS_RIGS": "1"}
 SMALL = ["--set", "steps=30", "--set", "n_train=250", "--set", "n_targets=10"]
-
-
-class NetnsError(RuntimeError):
-    pass
-
-
-def ip(*args: str) -> str:
-    try:
-        r = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=30)
-    except FileNotFoundError:
-        raise NetnsError("the `ip` command (iproute2) is not installed") from None
-    if r.returncode != 0:
-        raise NetnsError(f"`ip {' '.join(args)}` failed: {r.stderr.strip() or r.stdout.strip()}")
-    return r.stdout
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 @dataclass
@@ -129,39 +103,8 @@ class Network:
                 if "Cannot find device" not in str(err):
                     errors.append(str(err))
         for ns in self.namespaces.values():
-            _destroy_namespace(ns, errors)
+            destroy_namespace(ns, errors)
         assert not errors, "cleaning up the namespaces failed: " + "; ".join(errors)
-
-
-def _destroy_namespace(ns: str, errors: list[str]) -> None:
-    """Kill what still runs in ``ns`` (the services were stopped before), delete it and its /etc/netns files."""
-    try:
-        pids = ip("netns", "pids", ns).split()
-    except NetnsError:
-        pids = []
-    for pid in pids:
-        try:
-            os.kill(int(pid), signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-    try:
-        ip("netns", "del", ns)
-    except NetnsError as err:
-        if "No such file" not in str(err):
-            errors.append(str(err))
-    shutil.rmtree(Path("/etc/netns") / ns, ignore_errors=True)
-
-
-def remove_stale_namespaces() -> None:
-    """Namespaces left by an earlier run that was killed before its cleanup (its pid is gone)."""
-    try:
-        names = [line.split()[0] for line in ip("netns", "list").splitlines() if line.strip()]
-    except NetnsError:
-        return
-    for name in names:
-        m = re.fullmatch(r"r2v-(\d+)-\w+", name)
-        if m and not _pid_alive(int(m.group(1))):
-            _destroy_namespace(name, [])
 
 
 @dataclass

@@ -93,7 +93,7 @@ def wait_for_line(proc: subprocess.Popen, needle: str, timeout: float) -> str:
 
 def start_stack(registry: Procs, tmp: Path, *extra: str, rigs: int = 2) -> dict:
     """``ra2vipas up`` with its database and logs under ``tmp``; returns api, the up process,
-    the database path and the log directory once the API is ready."""
+    the database path, the log directory and the line ``up`` printed once the API is ready."""
     import re
 
     from ra2vipas.cli.stack import free_port
@@ -101,7 +101,28 @@ def start_stack(registry: Procs, tmp: Path, *extra: str, rigs: int = 2) -> dict:
     up = registry.start("up", "--rigs", str(rigs), "--port", str(free_port()), "--db", str(tmp / "stack.db"),
                         "--log-dir", str(tmp / "logs"), *extra)
     line = wait_for_line(up, "API on http://", 120)
-    return {"api": re.search(r"(http://[0-9.:]+)", line).group(1), "up": up, "db": tmp / "stack.db", "logs": tmp / "logs"}
+    return {"api": re.search(r"(http://[0-9.:]+)", line).group(1), "up": up, "db": tmp / "stack.db", "logs": tmp / "logs", "line": line}
+
+
+def stack_zenoh_env(up_pid: int) -> dict[str, str]:
+    """The environment a process of the stack's own user joins its Zenoh network with: the
+    ``zenoh.env`` file ``ra2vipas up`` writes (found, like a user would, in its output or,
+    here, through the router child's environment)."""
+    for pid in children_of(up_pid):
+        environ = dict(item.split("=", 1) for item in Path(f"/proc/{pid}/environ").read_text().split("\0") if "=" in item)
+        if "RA2VIPAS_ZENOH_PASSWORD_FILE" in environ:
+            env_file = Path(environ["RA2VIPAS_ZENOH_PASSWORD_FILE"]).parent / "zenoh.env"
+            return dict(line.split("=", 1) for line in env_file.read_text().splitlines() if "=" in line)
+    raise AssertionError("no child of the stack has Zenoh credentials")
+
+
+def stack_zenoh_session(up_pid: int):
+    """A Zenoh client session on the stack, with its credentials (close it)."""
+    import zenoh
+
+    from ra2vipas.services.transport.zenoh_config import ZenohSettings
+
+    return zenoh.open(ZenohSettings.from_sources(env=stack_zenoh_env(up_pid)).to_zenoh())
 
 
 def stop_stack(registry: Procs, up: subprocess.Popen) -> None:

@@ -7,17 +7,15 @@ from __future__ import annotations
 import json
 import random
 import time
-from pathlib import Path
 
 import httpx
 import pytest
-import zenoh
 
 from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import Command, EpisodeResult, EpisodeStart, EpisodeTruth, Measurement
 from ra2vipas.services.protocol.scenario import build_scenario
-from tests.integration.conftest import Procs, alive, children_of, start_stack, stop_stack
+from tests.integration.conftest import Procs, alive, children_of, stack_zenoh_session, start_stack, stop_stack
 
 VALID = {
     "command": Command(episode_id="x.0.ra2vipas.1", step=0, pan_rad=0.1).model_dump(mode="json"),
@@ -83,25 +81,13 @@ def stack(tmp_path_factory):
     stop_stack(registry, state["up"])
 
 
-def _router_endpoint(up_pid: int) -> str:
-    for pid in children_of(up_pid):
-        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        if b"router" in cmd:
-            return cmd[cmd.index(b"--listen") + 1].decode()
-    raise AssertionError("no router child")
-
-
 def test_thousands_of_hostile_messages_crash_nothing(stack):
     children = children_of(stack["up"].pid)
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("connect/endpoints", json.dumps([_router_endpoint(stack["up"].pid)]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
     pub_keys = [keys.command("rig-1"), keys.measurement("rig-1"), keys.episode_control("rig-1"), keys.episode_result("rig-1"),
                 keys.episode_timing("rig-1"), keys.episode_truth("rig-1")]
     query_keys = [keys.pod_model(), keys.training("rig-1"), keys.training_truth("rig-1")]
     sent = 0
-    with zenoh.open(conf) as session:
+    with stack_zenoh_session(stack["up"].pid) as session:  # a hostile process that has the stack's credentials
         time.sleep(1.0)
         publishers = [session.declare_publisher(k) for k in pub_keys]
         for i, payload in enumerate(payloads(3000)):

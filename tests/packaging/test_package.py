@@ -51,3 +51,21 @@ def test_the_installed_layout_imports_without_the_checkout(wheel, tmp_path):
     assert out.returncode == 0, out.stderr
     first, second = out.stdout.splitlines()
     assert Path(first).is_relative_to(tmp_path) and second == "True True"
+
+
+def test_importing_ra2vipas_pins_blas_to_one_thread_even_after_numpy():
+    """A notebook imports numpy first: ra2vipas still runs its linear algebra on one BLAS
+    thread, as every service does, so its results equal the services' to the last digit."""
+    import subprocess
+    import sys
+
+    code = ("import os\n"
+            "for v in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'): os.environ.pop(v, None)\n"
+            "import numpy, threadpoolctl\n"
+            "before = max(i['num_threads'] for i in threadpoolctl.threadpool_info() if i['user_api'] == 'blas')\n"
+            "import ra2vipas\n"
+            "after = max(i['num_threads'] for i in threadpoolctl.threadpool_info() if i['user_api'] == 'blas')\n"
+            "print(before, after)\n")
+    env = {k: v for k, v in __import__("os").environ.items() if not k.endswith("_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout.split()
+    assert out[1] == "1", out

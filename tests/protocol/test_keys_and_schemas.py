@@ -31,6 +31,7 @@ CONCRETE = {
 }
 WILDCARDS = {
     "data": [keys.training_any()],
+    "control": [keys.episode_control_all()],
     "result": [keys.episode_result_all(), keys.episode_timing_all()],
     "truth": [keys.episode_truth_all(), keys.training_truth_any()],
     "alive": [keys.alive_all()],
@@ -56,6 +57,12 @@ def test_no_wildcard_crosses_a_plane(plane):
 def _same_family(pattern: str, key: str) -> bool:
     p, k = pattern.split("/"), key.split("/")
     return p[-1] == "**" or (len(p) == len(k) and p[-1] == k[-1])
+
+
+def test_every_key_covers_every_plane_and_nothing_else():
+    everything = zenoh.KeyExpr(keys.every_key())
+    assert all(everything.includes(zenoh.KeyExpr(k)) for ks in (*CONCRETE.values(), *WILDCARDS.values()) for k in ks)
+    assert not everything.intersects(zenoh.KeyExpr("ra2vipas/v2/data/rig-1/command"))
 
 
 def test_what_controllers_and_learners_subscribe_to_never_touches_the_truth_plane():
