@@ -9,20 +9,24 @@ episode at a time and keeps only running sums over steps and one scalar per test
   interval at every t are exact whatever the order the tests arrive in;
 * in-FoV at the last step: a count;
 * calibration: per confidence bin, the number of (test, step) samples, their summed
-  confidence and their hits (``ece_all``), and each test's final confidence and hit (the
-  final-step ECE, mean confidence and reliability bins: O(tests) scalars, never O(tests x T));
+  confidence (summed exactly, see below) and their hits (``ece_all``), and each test's final
+  confidence and hit (the final-step ECE, mean confidence and reliability bins: O(tests)
+  scalars, never O(tests x T));
 * early decisions: each test's decided step.
 
-``AlgorithmTally.summary()`` returns the same block, field for field, as
-``summarize_algorithm`` on the whole array (a unit test checks it against it on random
-outcomes): equal for everything but ``ece_all``, whose per-bin mean confidence is summed in
-test order rather than numpy's pairwise order (equal to ~1e-15 before rounding to 6 digits).
-The in-process engine and the orchestrator both reduce with it, tests fed in test order, so
-the mesh and ``simulate`` agree value for value.
+``AlgorithmTally.summary()`` returns the same block, value for value, as
+``summarize_algorithm`` on the whole array, whatever order the episodes arrive in (unit tests
+check both on random outcomes). Every sum it keeps is exact: counts are integers, and the
+per-bin confidence sums are kept as integers in units of 2**-1074 (every double is a whole
+multiple of it), so the per-bin mean is the correctly rounded sum divided by n, which is what
+``metrics._mean`` (``math.fsum``) gives over all the samples at once. A float running sum
+would depend on the arrival order (other workers, other rigs, a rerun after a kill) in the
+last bits, and that moves a rounded 6th decimal now and then.
 """
 
 from __future__ import annotations
 
+import math
 from array import array
 from typing import Any, Mapping
 
@@ -33,6 +37,13 @@ from ra2vipas.services.orchestrator.metrics import (
 )
 
 BINS = 10  # the calibration bins of metrics.expected_calibration_error
+_ULP_EXP = 1074  # every finite double is a whole multiple of 2**-1074
+
+
+def _exact_units(value: float) -> int:
+    """``value`` as an integer count of 2**-1074 (exact for every finite double)."""
+    num, den = value.as_integer_ratio()  # den is a power of two, at most 2**1074
+    return num << (_ULP_EXP - den.bit_length() + 1)
 
 
 class AlgorithmTally:
@@ -59,7 +70,9 @@ class AlgorithmTally:
         self._decided: list[int | None] = []
         self._with_conf = True  # every episode so far carried per-step confidences
         self._bin_n = np.zeros(BINS, dtype=np.int64)
-        self._bin_conf = np.zeros(BINS, dtype=np.float64)
+        self._bin_conf = [0] * BINS  # exact sums, in units of 2**-1074 (_exact_units)
+        self._bin_special: list[list[float]] = [[] for _ in range(BINS)]  # inf/nan confidences, if ever
+        self._samples = 0  # every (test, step) confidence, binned or not (metrics' denominator)
         self._bin_hits = np.zeros(BINS, dtype=np.int64)
 
     def add(self, hits, in_fov, confidences=None, decided_step: int | None = None, steps_run: int | None = None) -> None:
@@ -88,21 +101,38 @@ class AlgorithmTally:
             c = np.asarray(confidences, dtype=np.float64)
             if c.shape != (self.steps,):
                 raise ValueError(f"an episode's confidences must have {self.steps} steps, got {c.shape}")
-            idx = np.clip((c * BINS).astype(int), 0, BINS - 1)  # metrics.expected_calibration_error's bins
-            self._bin_n += np.bincount(idx, minlength=BINS)
-            self._bin_conf += np.bincount(idx, weights=c, minlength=BINS)
-            self._bin_hits += np.bincount(idx, weights=h, minlength=BINS).astype(np.int64)
+            with np.errstate(invalid="ignore"):
+                idx = np.minimum((c * BINS).astype(int), BINS - 1)  # metrics.expected_calibration_error's bins
+            self._samples += c.size
+            binned = idx >= 0
+            self._bin_n += np.bincount(idx[binned], minlength=BINS)
+            self._bin_hits += np.bincount(idx[binned], weights=h[binned], minlength=BINS).astype(np.int64)
+            for b, value in zip(idx[binned].tolist(), c[binned].tolist()):
+                if math.isfinite(value):
+                    self._bin_conf[b] += _exact_units(value)
+                else:
+                    self._bin_special[b].append(value)
             self._final_conf.append(float(c[-1]))
 
-    def _ece_all(self) -> float | None:
-        total_n = int(self._bin_n.sum())
+    def _bin_mean_confidence(self, b: int, n: int) -> float:
+        """The mean confidence of bin ``b`` (n samples): its exact sum, correctly rounded (int / int
+        is), divided by n: ``math.fsum`` over the bin's samples, divided by n."""
+        exact = self._bin_conf[b] / (1 << _ULP_EXP)
+        if self._bin_special[b]:
+            exact = math.fsum([exact, *self._bin_special[b]])
+        return exact / n
+
+    def ece_all(self) -> float | None:
+        """``metrics.expected_calibration_error`` over every (test, step) sample, bin by bin in
+        the same order with the same operations."""
+        total_n = self._samples
         if total_n == 0:
             return None
         total = 0.0
         for b in range(BINS):
             n = int(self._bin_n[b])
             if n:
-                total += (n / total_n) * abs(float(self._bin_conf[b]) / n - int(self._bin_hits[b]) / n)
+                total += (n / total_n) * abs(self._bin_mean_confidence(b, n) - int(self._bin_hits[b]) / n)
         return float(total)
 
     def summary(self, decisions: bool = False) -> dict[str, Any]:
@@ -124,10 +154,10 @@ class AlgorithmTally:
         extra: dict[str, Any] = {}
         if self._with_conf and len(self._final_conf) == tests:
             conf = np.frombuffer(self._final_conf, dtype=np.float64)
-            ece_all = self._ece_all()
+            ece_all = self.ece_all()
             extra["calibration"] = {"ece_final": _rounded(expected_calibration_error(conf, final_hits)),
                                     "ece_all": _rounded(ece_all),
-                                    "confidence_final": round(float(conf.mean()), 6),
+                                    "confidence_final": round(math.fsum(conf.tolist()) / conf.size, 6),  # metrics._mean
                                     "reliability": reliability_bins(conf, final_hits)}
         if decisions:
             extra["decision"] = decision_summary(final_hits, list(self._decided), self.rf_period_s)
