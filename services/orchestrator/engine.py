@@ -20,10 +20,14 @@ Design, and why it gives the same numbers on any number of workers:
   value to ``workers=1``, which runs the same chunks inline, without a pool.
 * **Memory.** At most ``4 x workers`` chunks are in flight; the parent holds running sums and
   one scalar per test (``reduce``), so memory does not grow with tests x steps.
-* **Processes.** A ``ProcessPoolExecutor`` forks its workers where that is safe (Linux, one
-  thread, no Zenoh session: the CLI) so they start at once with everything imported; otherwise
-  (threads, e.g. a notebook or a server) it uses ``forkserver`` (or ``spawn``). Workers ignore
-  SIGINT (the parent stops them) and die with the parent.
+* **Processes.** A ``ProcessPoolExecutor`` whose workers start from a ``forkserver`` (``spawn``
+  where there is none), never by forking the caller: the caller may run threads (a progress
+  bar, a notebook, a server with a Zenoh session) that a fork would copy mid-operation. The
+  fork server imports this module once (``set_forkserver_preload``), so a worker starts in
+  milliseconds with numpy, scikit-learn and the controller loaded, and, as importing
+  ``ra2vipas`` does, with one BLAS thread: a worker is one core, and a threaded BLAS would
+  sum in another order than ``workers=1``. Workers ignore SIGINT (the parent stops them) and
+  exit by themselves when the parent is gone.
 """
 
 from __future__ import annotations
@@ -32,7 +36,6 @@ import math
 import multiprocessing
 import os
 import signal
-import sys
 import threading
 import time
 from collections import deque
@@ -50,6 +53,7 @@ from ra2vipas.services.protocol.scenario import Scenario
 
 IN_FLIGHT_PER_WORKER = 4  # chunks submitted ahead of the one being consumed, per worker
 MAX_CHUNK_TESTS = 16
+PARENT_POLL_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -128,26 +132,30 @@ def run_chunk(scenario: Scenario, seed: int, first: int, stop: int, algorithms: 
 
 
 def _init_worker(parent_pid: int) -> None:
-    """Ctrl-C is the parent's to handle (it stops the pool); die with the parent."""
+    """Ctrl-C is the parent's to handle (it stops the pool); exit when the parent is gone (a
+    forkserver's child is not the parent's child, so no PR_SET_PDEATHSIG: a watcher thread)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if sys.platform.startswith("linux"):
-        try:
-            import ctypes
+    threading.Thread(target=_exit_with_parent, args=(parent_pid,), name="engine-parent-watch", daemon=True).start()
 
-            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-        except OSError:
-            pass
-        if os.getppid() != parent_pid:  # the parent died before prctl
+
+def _exit_with_parent(parent_pid: int) -> None:
+    while True:
+        time.sleep(PARENT_POLL_S)
+        try:
+            os.kill(parent_pid, 0)
+        except ProcessLookupError:
+            os._exit(0)
+        except PermissionError:  # alive, another user's (cannot be ours: the pid was reused)
             os._exit(0)
 
 
 def _context() -> multiprocessing.context.BaseContext:
-    """``fork`` where it is safe (Linux, a single thread, no Zenoh runtime), so workers start at
-    once with everything imported; else ``forkserver`` (or ``spawn``)."""
-    if sys.platform.startswith("linux") and threading.active_count() == 1 and "zenoh" not in sys.modules:
-        return multiprocessing.get_context("fork")
-    methods = multiprocessing.get_all_start_methods()
-    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+    """A ``forkserver`` context that preloads this module (``spawn`` where there is none)."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload([__name__])
+    return ctx
 
 
 # -- the parent ------------------------------------------------------------------------------------
