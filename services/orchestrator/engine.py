@@ -284,3 +284,34 @@ def _stop_pool(pool: ProcessPoolExecutor) -> None:
         if p.is_alive():
             p.kill()
             p.join()
+
+
+def run_study(preset: str, overrides: dict[str, Any], vary: dict[str, Sequence[Any]], tests: int, seed: int,
+              algorithms: Sequence[str], stop_confidence: float = 0.0, workers: int | None = None,
+              progress: Callable[[int, int], None] | None = None, settings: ControllerSettings | None = None,
+              name: str | None = None) -> dict[str, Any]:
+    """A parameter study in this process (``ra2vipas simulate --vary``): every point of the grid
+    is a campaign with the same seed, all run together on ``workers`` processes, their points
+    interleaved test by test; returns the study's results object (``study.study_results``), the
+    same shape as ``GET /studies/{id}/results``.
+
+    Raises
+    ------
+    study.StudyError
+        A bad preset, parameter, value or grid (one line naming it).
+    """
+    from ra2vipas.services.orchestrator.study import check_size, expand, study_results
+
+    grid = expand(preset, overrides, vary)
+    check_size(len(grid), tests, len(algorithms))
+    points = [Point(preset=preset, scenario=scenario, tests=tests, seed=seed, algorithms=tuple(algorithms),
+                    stop_confidence=stop_confidence) for _, scenario in grid]
+    report = run_points(points, workers=workers, progress=progress, settings=settings)
+    resolved = {n: list(dict.fromkeys(values[n] for values, _ in grid)) for n in vary}
+    meta = {"id": None, "name": name, "status": "done", "preset": preset, "overrides": dict(overrides), "vary": resolved,
+            "algorithms": list(algorithms), "tests": tests, "seed": seed, "mode": "fast", "stop_confidence": stop_confidence}
+    shown = [{"point": i, "values": values, "campaign_id": None, "status": "done", "results": res}
+             for i, ((values, _), res) in enumerate(zip(grid, report.results))]
+    out = study_results(meta, shown, report.steps_per_second)
+    out["workers"] = report.workers
+    return out

@@ -163,6 +163,20 @@ def expand(preset: str, overrides: Mapping[str, Any], vary: Mapping[str, Sequenc
     return points
 
 
+def check_size(points: int, tests: int, algorithms: int) -> None:
+    """At most ``MAX_STUDY_EPISODES`` episodes (points x tests x algorithms) in one study.
+
+    Raises
+    ------
+    StudyError
+        Too many episodes (``where`` is ``"tests"``).
+    """
+    episodes = points * tests * algorithms
+    if episodes > MAX_STUDY_EPISODES:
+        raise StudyError(f"tests: {points} points x {tests} tests x {algorithms} algorithms = {episodes} episodes, more than "
+                         f"the {MAX_STUDY_EPISODES} a study may have", where="tests")
+
+
 def _key(value: Any) -> tuple:
     return (type(value) is bool, value.value if isinstance(value, Enum) else value)
 
