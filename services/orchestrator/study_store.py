@@ -183,9 +183,38 @@ def _study_dict(row: Any, points: list[dict[str, Any]], counts: dict[str, dict[s
                            "pod": {"r2": p["pod_r2"], "train_seconds": p["pod_train_seconds"]}})
     d["progress"] = progress
     d["points"] = out_points
+    d["points_total"] = len(points)
     started = [p["started_at"] for p in points if p["started_at"] is not None]
     d["started_at"] = min(started) if started else None
     finished = [p["finished_at"] for p in points if p["finished_at"] is not None]
     d["finished_at"] = max(finished) if finished and d["status"] not in ACTIVE else None
     d["error"] = next((f"point {p['study_point']}: {p['error']}" for p in points if p["status"] == "failed" and p["error"]), None)
     return d
+
+
+def point_results(store: Store, campaign: dict[str, Any]) -> tuple[dict[str, Any] | None, dict[str, int], bool]:
+    """A point's results object, the tests each algorithm's row rests on, and whether it is
+    partial: the stored results of a done point; otherwise the episodes recorded so far,
+    reduced the same way (``reduce.AlgorithmTally``, a page at a time), or None if there are none."""
+    from ra2vipas.services.orchestrator.reduce import AlgorithmTally, results_object
+    from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
+    from ra2vipas.services.protocol.scenario import Scenario
+
+    algorithms = campaign["algorithms"]
+    if campaign["status"] == "done" and campaign.get("results"):
+        return campaign["results"], {a: campaign["tests"] for a in algorithms}, False
+    if not campaign["progress"]["done"]:
+        return None, {}, True
+    scenario = Scenario.model_validate(campaign["scenario"])
+    steps = scenario.steps
+    tallies = {a: AlgorithmTally(steps, scenario.rf_period_s) for a in algorithms}
+    for row in store.episode_outcomes(campaign["id"]):
+        tallies[row["algorithm"]].add(row["hits"], row["in_fov"], held(row.get("confidences") or [], steps) or None,
+                                      row.get("decided_step"), row["n_estimates"])
+    shown = {a: t for a, t in tallies.items() if t.tests}
+    if not shown:
+        return None, {}, True
+    pod = TrainedPOD(model=None, r2=campaign["pod_r2"], train_seconds=campaign["pod_train_seconds"] or 0.0)  # type: ignore[arg-type]
+    stop = campaign.get("stop_confidence") or 0.0
+    results = results_object(campaign["preset"], scenario, campaign["tests"], campaign["seed"], pod, shown, None, stop)
+    return results, {a: t.tests for a, t in shown.items()}, True
