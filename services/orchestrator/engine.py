@@ -36,6 +36,7 @@ import math
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -95,6 +96,7 @@ class RunReport:
     steps: int
     seconds: float
     workers: int
+    worker_peak_rss_kb: int = 0  # the largest peak RSS a worker reported (this process's own with workers=1)
 
     @property
     def steps_per_second(self) -> float | None:
@@ -118,8 +120,9 @@ def train(scenario: Scenario, seed: int) -> TrainedPOD:
 
 def run_chunk(scenario: Scenario, seed: int, first: int, stop: int, algorithms: Sequence[str], model: PODModel,
               stop_confidence: float = 0.0, settings: ControllerSettings | None = None,
-              on_episode: Callable[[], None] | None = None) -> list[list[EpisodeSummary]]:
-    """Tests ``first`` .. ``stop - 1`` of a point, every algorithm: ``[test][algorithm]``."""
+              on_episode: Callable[[], None] | None = None) -> tuple[list[list[EpisodeSummary]], int]:
+    """Tests ``first`` .. ``stop - 1`` of a point, every algorithm: ``[test][algorithm]``, and
+    the peak resident memory of the process that ran them (kB)."""
     out = []
     for k in range(first, stop):
         row = []
@@ -128,7 +131,18 @@ def run_chunk(scenario: Scenario, seed: int, first: int, stop: int, algorithms: 
             if on_episode is not None:
                 on_episode()
         out.append(row)
-    return out
+    return out, peak_rss_kb()
+
+
+def peak_rss_kb() -> int:
+    """This process's peak resident set size in kB (``ru_maxrss``; 0 where unknown)."""
+    try:
+        import resource
+
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    except (ImportError, OSError):
+        return 0
+    return int(peak // 1024 if sys.platform == "darwin" else peak)  # bytes on macOS, kB on Linux
 
 
 def _init_worker(parent_pid: int) -> None:
@@ -209,6 +223,7 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
     chunk = chunk_tests(work, workers)
     tallies = [{a: AlgorithmTally(p.scenario.steps, p.scenario.rf_period_s) for a in p.algorithms} for p in points]
     done = 0
+    worker_rss = 0
 
     def tick() -> None:
         nonlocal done
@@ -250,7 +265,8 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
                 break
         while in_flight:
             i, first, stop, future = in_flight.popleft()
-            rows = future.result()
+            rows, rss = future.result()
+            worker_rss = max(worker_rss, rss)
             for test_row in rows:
                 for a, ep in zip(points[i].algorithms, test_row):
                     tallies[i][a].add(ep.hits, ep.in_fov, ep.confidences, ep.decided_step, ep.steps_run)
@@ -269,7 +285,7 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
     sps = steps / seconds if seconds > 0 else None
     results = [results_object(p.preset, p.scenario, p.tests, p.seed, pod, tallies[i], sps, p.stop_confidence)
                for i, (p, pod) in enumerate(zip(points, pods))]
-    return RunReport(results=results, steps=steps, seconds=seconds, workers=workers)
+    return RunReport(results=results, steps=steps, seconds=seconds, workers=workers, worker_peak_rss_kb=worker_rss)
 
 
 def _stop_pool(pool: ProcessPoolExecutor) -> None:
