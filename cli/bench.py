@@ -545,6 +545,28 @@ def _memory_probe(tests: int, steps: int, algorithm: str, workers: int, seed: in
                       "dr_final": report.results[0]["algorithms"][algorithm]["dr_final"]}))
 
 
+def _spin(loops: int = 3_000_000) -> float:
+    """Seconds of a pure-Python loop: a yardstick of the CPU this process gets."""
+    started = time.perf_counter()
+    x = 0
+    for i in range(loops):
+        x += i
+    return time.perf_counter() - started
+
+
+def _cpu_available(workers: int) -> float:
+    """The speedup a pure CPU loop gets on ``workers`` processes right now (1 on a busy machine,
+    ``workers`` on an idle one with that many cores): what the simulate speedup can reach."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        list(pool.map(_spin, [10_000] * workers))  # started
+        alone = min(pool.submit(_spin).result() for _ in range(2))
+        together = max(pool.map(_spin, [3_000_000] * workers))
+    return round(workers * alone / together, 3)
+
+
 @app.command("simulate")
 def bench_simulate(
     tests: Annotated[int, typer.Option(min=1, max=10000, help="Tests of the speed campaign (paper scenario, every algorithm).")] = 30,
@@ -556,7 +578,9 @@ def bench_simulate(
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """`ra2vipas simulate` on one core and on every core, in the same run: steps/s of each, the
-    speedup, and whether the two results objects are identical (they must be). Then the peak
+    speedup, and whether the two results objects are identical (they must be), beside
+    ``cpu_loop_speedup``: what a pure CPU loop gains on as many processes just before and just
+    after (the ceiling the machine's other load leaves; N on an idle N-core machine). Then the peak
     resident memory of campaigns of 1 000 and 10 000 tests, each in a fresh process: flat,
     because outcomes are reduced as they arrive and no per-step trace is kept.
 
@@ -579,8 +603,10 @@ def bench_simulate(
     n = workers or default_workers()
     scenario = build_scenario("paper")
     point = Point("paper", scenario, tests, seed, tuple(ALGORITHMS))
+    available_before = _cpu_available(n)
     one = run_points([point], workers=1)
     many = run_points([point], workers=n)
+    available_after = _cpu_available(n)
 
     def untimed(results: dict) -> dict:
         out = json.loads(json.dumps(results))
@@ -594,6 +620,7 @@ def bench_simulate(
         "steps_per_second_1": round(sps1, 1), "steps_per_second_n": round(spsn, 1),
         "speedup": round(spsn / sps1, 3) if sps1 else None,
         "identical": untimed(one.results[0]) == untimed(many.results[0]),
+        "cpu_loop_speedup": [available_before, available_after],
         "target_speedup": 1.7, "load_average": [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None,
         "memory": [],
     }
@@ -610,7 +637,7 @@ def bench_simulate(
         return
     stdout.print(f"simulate, paper scenario, {tests} tests x {len(ALGORITHMS)} algorithms ({one.steps} steps): "
                  f"{report['steps_per_second_1']:.0f} steps/s on 1 worker, {report['steps_per_second_n']:.0f} on {many.workers}: "
-                 f"speedup {report['speedup']}; results identical: {report['identical']}")
+                 f"speedup {report['speedup']} (a CPU loop: {report['cpu_loop_speedup']}); results identical: {report['identical']}")
     for m in report["memory"]:
         stdout.print(f"{m['tests']} tests ({m['steps']} steps, {m['algorithm']}, {m['workers']} workers): peak RSS "
                      f"{m['parent_peak_rss_mb']} MB (parent, {m['parent_rss_growth_mb']:+} MB during the run), {m['worker_peak_rss_mb']} MB "

@@ -23,8 +23,9 @@ Design, and why it gives the same numbers on any number of workers:
 * **Processes.** A ``ProcessPoolExecutor`` whose workers start from a ``forkserver`` (``spawn``
   where there is none), never by forking the caller: the caller may run threads (a progress
   bar, a notebook, a server with a Zenoh session) that a fork would copy mid-operation. The
-  fork server imports this module once (``set_forkserver_preload``), so a worker starts in
-  milliseconds with numpy, scikit-learn and the controller loaded, and, as importing
+  fork server imports this module once (``set_forkserver_preload``, through
+  ``engine_preload``, which also runs one tiny episode of every algorithm), so a worker starts
+  in milliseconds, warm, with numpy, scikit-learn and the controller loaded, and, as importing
   ``ra2vipas`` does, with one BLAS thread: a worker is one core, and a threaded BLAS would
   sum in another order than ``workers=1``. Workers ignore SIGINT (the parent stops them) and
   exit by themselves when the parent is gone.
@@ -168,7 +169,7 @@ def _context() -> multiprocessing.context.BaseContext:
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload([__name__])
+    ctx.set_forkserver_preload([__name__ + "_preload"])  # engine_preload: this module, and every worker starts warm
     return ctx
 
 
@@ -241,6 +242,8 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
             if key not in trained:
                 trained[key] = pool.submit(train, p.scenario, p.seed)
             models.append(trained[key])
+        for _ in range(workers - len(trained)):  # start every worker now, while the models train, not in the timed part
+            pool.submit(os.getpid)
         started: float | None = None
         in_flight: deque[tuple[int, int, int, Future]] = deque()
         jobs = plan(points, chunk)
