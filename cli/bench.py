@@ -544,3 +544,134 @@ def bench_dashboard(
             c = b["cold"]
             stdout.print(f"{name:42s} first paint {c['first_paint_ms']} ms, load {c['load_ms']} ms, "
                          f"{c['transferred_bytes'] / 1024:.1f} KiB in {c['requests']} requests (cold)")
+
+
+def _memory_probe(tests: int, steps: int, algorithm: str, workers: int, seed: int) -> None:
+    """Run one in-process campaign in this (fresh) process and print its peak memory as JSON:
+    this process's (which reduces every outcome) and the largest worker's."""
+    import json
+    import resource
+
+    from ra2vipas.services.orchestrator.engine import Point, peak_rss_kb, run_points
+    from ra2vipas.services.protocol.scenario import build_scenario
+
+    def current_rss_kb() -> int:
+        try:
+            with open("/proc/self/status") as f:
+                return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:"))
+        except (OSError, StopIteration, ValueError):
+            return 0
+
+    scenario = build_scenario("paper", {"steps": steps})
+    before = peak_rss_kb()
+    rss_before = current_rss_kb()
+    started = time.perf_counter()
+    report = run_points([Point("paper", scenario, tests, seed, (algorithm,))], workers=workers)
+    wall = time.perf_counter() - started
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(json.dumps({"tests": tests, "steps": steps, "algorithm": algorithm, "workers": report.workers,
+                      "episodes": tests, "seconds": round(wall, 2),
+                      "steps_per_second": round(report.steps_per_second or 0.0, 1),
+                      "parent_peak_rss_mb": round(own / 1024, 1), "parent_peak_rss_before_run_mb": round(before / 1024, 1),
+                      "parent_rss_growth_mb": round((current_rss_kb() - rss_before) / 1024, 2),
+                      "worker_peak_rss_mb": round(report.worker_peak_rss_kb / 1024, 1),
+                      "dr_final": report.results[0]["algorithms"][algorithm]["dr_final"]}))
+
+
+def _spin(loops: int = 3_000_000) -> float:
+    """Seconds of a pure-Python loop: a yardstick of the CPU this process gets."""
+    started = time.perf_counter()
+    x = 0
+    for i in range(loops):
+        x += i
+    return time.perf_counter() - started
+
+
+def _cpu_available(workers: int) -> float:
+    """The speedup a pure CPU loop gets on ``workers`` processes right now (1 on a busy machine,
+    ``workers`` on an idle one with that many cores): what the simulate speedup can reach."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        list(pool.map(_spin, [10_000] * workers))  # started
+        alone = min(pool.submit(_spin).result() for _ in range(2))
+        together = max(pool.map(_spin, [3_000_000] * workers))
+    return round(workers * alone / together, 3)
+
+
+@app.command("simulate")
+def bench_simulate(
+    tests: Annotated[int, typer.Option(min=1, max=10000, help="Tests of the speed campaign (paper scenario, every algorithm).")] = 30,
+    workers: Annotated[int, typer.Option(min=0, max=1024, help="Workers of the parallel run (0: one per CPU core).")] = 0,
+    seed: Annotated[int, typer.Option(min=0)] = 1,
+    memory_tests: Annotated[str, typer.Option(help="Campaign sizes whose peak memory to measure, comma-separated ('' for none).")] = "1000,10000",
+    memory_steps: Annotated[int, typer.Option(min=1, max=1000, help="n_test of the memory campaigns (short, so 10 000 tests take minutes, not an hour).")] = 20,
+    memory_algorithm: Annotated[str, typer.Option(help="The algorithm of the memory campaigns.")] = "rapas",
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
+) -> None:
+    """`ra2vipas simulate` on one core and on every core, in the same run: steps/s of each, the
+    speedup, and whether the two results objects are identical (they must be), beside
+    ``cpu_loop_speedup``: what a pure CPU loop gains on as many processes just before and just
+    after (the ceiling the machine's other load leaves; N on an idle N-core machine). Then the peak
+    resident memory of campaigns of 1 000 and 10 000 tests, each in a fresh process: flat,
+    because outcomes are reduced as they arrive and no per-step trace is kept.
+
+    Target: speedup >= 1.7 on 2 cores. Timings are wall-clock: other load on the machine lowers them.
+    """
+    import json
+    import subprocess
+    import sys
+
+    from ra2vipas.services.orchestrator.engine import Point, default_workers, run_points
+    from ra2vipas.services.protocol.messages import ALGORITHMS
+    from ra2vipas.services.protocol.scenario import build_scenario
+
+    if memory_algorithm not in ALGORITHMS:
+        fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
+    try:
+        sizes = [int(v) for v in memory_tests.split(",") if v.strip()]
+    except ValueError:
+        fail(f"--memory-tests expects comma-separated integers, got {memory_tests!r}", EXIT_USAGE)
+    n = workers or default_workers()
+    scenario = build_scenario("paper")
+    point = Point("paper", scenario, tests, seed, tuple(ALGORITHMS))
+    available_before = _cpu_available(n)
+    one = run_points([point], workers=1)
+    many = run_points([point], workers=n)
+    available_after = _cpu_available(n)
+
+    def untimed(results: dict) -> dict:
+        out = json.loads(json.dumps(results))
+        out.pop("steps_per_second", None)
+        out["pod"].pop("train_seconds", None)
+        return out
+
+    sps1, spsn = one.steps_per_second or 0.0, many.steps_per_second or 0.0
+    report: dict = {
+        "benchmark": "simulate", "workers": many.workers, "tests": tests, "steps": one.steps,
+        "steps_per_second_1": round(sps1, 1), "steps_per_second_n": round(spsn, 1),
+        "speedup": round(spsn / sps1, 3) if sps1 else None,
+        "identical": untimed(one.results[0]) == untimed(many.results[0]),
+        "cpu_loop_speedup": [available_before, available_after],
+        "target_speedup": 1.7, "load_average": [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None,
+        "memory": [],
+    }
+    for size in sizes:
+        probe = subprocess.run(
+            [sys.executable, "-c", f"from ra2vipas.cli.bench import _memory_probe; _memory_probe({size}, {memory_steps}, "
+                                   f"{memory_algorithm!r}, {n}, {seed})"],
+            capture_output=True, text=True, timeout=7200)
+        if probe.returncode != 0:
+            fail(f"the memory run of {size} tests failed: {(probe.stderr.strip().splitlines() or ['?'])[-1]}")
+        report["memory"].append(json.loads(probe.stdout.strip().splitlines()[-1]))
+    if as_json:
+        print_json(report)
+        return
+    stdout.print(f"simulate, paper scenario, {tests} tests x {len(ALGORITHMS)} algorithms ({one.steps} steps): "
+                 f"{report['steps_per_second_1']:.0f} steps/s on 1 worker, {report['steps_per_second_n']:.0f} on {many.workers}: "
+                 f"speedup {report['speedup']} (a CPU loop: {report['cpu_loop_speedup']}); results identical: {report['identical']}")
+    for m in report["memory"]:
+        stdout.print(f"{m['tests']} tests ({m['steps']} steps, {m['algorithm']}, {m['workers']} workers): peak RSS "
+                     f"{m['parent_peak_rss_mb']} MB (parent, {m['parent_rss_growth_mb']:+} MB during the run), {m['worker_peak_rss_mb']} MB "
+                     f"(largest worker), {m['seconds']} s")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer  # noqa: E402  (ra2vipas/__init__ pins BLAS to one thread before numpy loads)
 
-from ra2vipas.cli import bench, campaign, presets, protocol, security, services  # noqa: E402
+from ra2vipas.cli import bench, campaign, presets, protocol, security, services, study  # noqa: E402
 from ra2vipas.cli.rig import rig  # noqa: E402
 from ra2vipas.cli.rigs import rigs  # noqa: E402
 from ra2vipas.cli.simulate import simulate  # noqa: E402
@@ -19,6 +19,7 @@ app = typer.Typer(
 app.command("simulate")(simulate)
 app.command("up")(up)
 app.add_typer(campaign.app, name="campaign")
+app.add_typer(study.app, name="study")
 app.command("rigs")(rigs)
 app.add_typer(presets.app, name="presets")
 app.add_typer(bench.app, name="bench")

@@ -36,11 +36,15 @@ def simulate(
     as_json: Annotated[bool, typer.Option("--json", help="Print the results object as one JSON line (last line of stdout).")] = False,
     plot: Annotated[Optional[str], typer.Option(metavar="FILE", help="Write the DR curves with 95% bands to FILE (.png or .svg).")] = None,
     reliability_plot: Annotated[Optional[str], typer.Option("--reliability-plot", metavar="FILE", help="Write the reliability diagram of the final confidences to FILE (.png or .svg).")] = None,
+    vary: Annotated[Optional[list[str]], typer.Option("--vary", metavar="NAME=a,b,c|NAME=a:b:step", help="Run a parameter study instead: vary a scenario parameter over a list or an inclusive range (repeatable: the grid is the product); prints one row per point x algorithm, and --plot draws the final DR against it.")] = None,
+    workers: Annotated[int, typer.Option("--workers", "-w", min=0, max=1024, help="Processes to run the tests on (0: one per CPU core). Results are identical for any number.")] = 0,
 ) -> None:
     """Run the Monte Carlo campaign in-process and print the discovery-rate table.
 
     Trains the POD model once from the self-supervised training episode, runs every test of
-    every algorithm on its own seeded world, and scores DR_t by the paper's association rule.
+    every algorithm on its own seeded world, on every core, and scores DR_t by the paper's
+    association rule. With --vary, runs a parameter study: one campaign per grid point, all
+    with the same seed.
     """
     try:
         names = parse_algorithms(algorithms)
@@ -50,6 +54,10 @@ def simulate(
     for option, value in (("--plot", plot), ("--reliability-plot", reliability_plot)):
         if value is not None and not value.lower().endswith((".png", ".svg")):
             fail(f"{option} expects a .png or .svg file name, got {value!r}", EXIT_USAGE)
+
+    if vary:
+        _study(preset, tests, seed, names, overrides, stop_confidence, as_json, plot, reliability_plot, vary, workers)
+        return
 
     from ra2vipas.services.orchestrator.simulate import run_campaign
 
@@ -61,7 +69,7 @@ def simulate(
         task = bar.add_task("episodes", total=total)
         try:
             results = run_campaign(preset, scenario, tests, seed, names, progress=lambda done, _: bar.update(task, completed=done),
-                                   stop_confidence=stop_confidence)
+                                   stop_confidence=stop_confidence, workers=workers or None)
         except ScenarioError as err:
             fail(str(err))
     if reliability_plot:
@@ -72,3 +80,30 @@ def simulate(
         except OSError as err:
             fail(f"cannot write {reliability_plot}: {err.strerror or err}")
     emit_results(results, plot, as_json)
+
+
+def _study(preset: str, tests: int, seed: int, names: list[str], overrides: list[str] | None, stop_confidence: float,
+           as_json: bool, plot: str | None, reliability_plot: str | None, vary: list[str], workers: int) -> None:
+    """``simulate --vary``: the study in this process, printed like ``ra2vipas study results``."""
+    from ra2vipas.cli.study import emit_study, parse_vary_options
+    from ra2vipas.services.orchestrator.engine import run_study
+    from ra2vipas.services.orchestrator.study import StudyError
+
+    if reliability_plot:
+        fail("--reliability-plot draws one campaign; with --vary use --plot (the final DR against the varied parameters)",
+             EXIT_USAGE)
+    try:
+        grid = parse_vary_options(vary)
+        base = parse_overrides(overrides or [])
+        if len(grid) > 2 and plot:
+            raise StudyError(f"--plot shows one or two varied parameters; {len(grid)} are varied")
+        with Progress(
+            TextColumn("[bold]study[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
+            TimeElapsedColumn(), TimeRemainingColumn(), console=stderr, transient=True,
+        ) as bar:
+            task = bar.add_task("episodes", total=None)
+            results = run_study(preset, base, grid, tests, seed, names, stop_confidence, workers=workers or None,
+                                progress=lambda done, total: bar.update(task, completed=done, total=total))
+    except (ScenarioError, StudyError) as err:
+        fail(str(err), EXIT_USAGE)
+    emit_study(results, plot, as_json)

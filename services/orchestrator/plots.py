@@ -3,7 +3,9 @@
 * ``dr_figure``: the DR curves of every algorithm with Wilson 95 % bands (paper Fig. 4);
 * ``pod_figure``: the learned POD p_hat_D(r) against the true p_D(r) (paper Fig. 3);
 * ``episode_figure``: one test of one algorithm: the targets, the FoV, the pan trajectory and
-  the estimate gamma_hat_t over time.
+  the estimate gamma_hat_t over time;
+* ``study_figure``: a study's metric (e.g. the final DR) against its varied parameter, one line
+  per algorithm with its 95 % band, or a heat map per algorithm when two parameters vary.
 
 Figures are built on ``matplotlib.figure.Figure`` (never pyplot, whose global state is not
 thread-safe) and rendered one at a time under a lock (``draw``), for callers that render from
@@ -200,6 +202,105 @@ def episode_figure(scenario: Scenario, episode: dict[str, Any]) -> Figure:
     return fig
 
 
+METRIC_LABELS = {"dr_final": "final discovery rate DR (association rule)", "time_to_dr90_s": "time to DR ≥ 0.9 [s]",
+                 "in_fov_final": "Tx in FoV at the final estimate", "pod_r2": "POD regression R²",
+                 "calibration_ece_final": "ECE of the final confidence", "calibration_ece_all": "ECE over every step",
+                 "calibration_confidence_final": "mean final confidence", "decision_accuracy": "accuracy of early decisions",
+                 "decision_median_s": "median time to decision [s]", "decision_p90_s": "90th percentile time to decision [s]",
+                 "decision_undecided": "share undecided at the horizon"}
+
+
+def band_fields(metric: str) -> tuple[str, str] | None:
+    """The row fields of a metric's 95 % interval: ``ci95_lo``/``ci95_hi`` for the final DR,
+    ``<metric>_ci95_lo``/``_hi`` for a metric that reports one (e.g. ``decision_accuracy``)."""
+    if metric == "dr_final":
+        return "ci95_lo", "ci95_hi"
+    return f"{metric}_ci95_lo", f"{metric}_ci95_hi"
+
+
+def _ordered(values: list[Any]) -> list[Any]:
+    """The distinct values in grid order (numbers sorted, anything else as first met)."""
+    distinct = list(dict.fromkeys(values))
+    if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in distinct):
+        return sorted(distinct)
+    return distinct
+
+
+def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
+    """A study's ``metric`` against its varied parameter: one line per algorithm with its Wilson
+    95 % band where the metric has one (numeric parameters on a numeric axis, others as
+    categories); with two varied parameters a heat map per algorithm (first parameter on y).
+
+    Raises
+    ------
+    ValueError
+        More than two varied parameters, or no row with a value of ``metric``.
+    """
+    params = results["parameters"]
+    rows = [r for r in results["rows"] if r.get(metric) is not None]
+    if len(params) > 2:
+        raise ValueError(f"a study figure shows one or two varied parameters; this study varies {len(params)}")
+    if not rows:
+        raise ValueError(f"no point reports {metric} yet")
+    algorithms = [a for a in results["algorithms"] if any(r["algorithm"] == a for r in rows)]
+    label = METRIC_LABELS.get(metric, metric)
+    title = (f"{results['preset']}: {label}, {results['tests']} tests per point, seed {results['seed']}"
+             + (" (partial)" if results.get("partial") else ""))
+    if len(params) == 1:
+        (name,) = params
+        xs = _ordered([r[name] for r in rows])
+        numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xs)
+        fig = Figure(figsize=(7.0, 4.2), dpi=120)
+        ax = fig.subplots()
+        lo_key, hi_key = band_fields(metric)
+        for a in algorithms:
+            mine = {r[name]: r for r in rows if r["algorithm"] == a}
+            pts = [(x if numeric else i, mine[x]) for i, x in enumerate(xs) if x in mine]
+            x = [p[0] for p in pts]
+            line = ax.plot(x, [p[1][metric] for p in pts], marker="o", linewidth=1.8, label=LABELS.get(a, a))[0]
+            if all(p[1].get(lo_key) is not None and p[1].get(hi_key) is not None for p in pts):
+                ax.fill_between(x, [p[1][lo_key] for p in pts], [p[1][hi_key] for p in pts], color=line.get_color(), alpha=0.15,
+                                linewidth=0)
+        if not numeric:
+            ax.set_xticks(range(len(xs)), [str(v) for v in xs])
+        if metric in ("dr_final", "in_fov_final", "decision_accuracy") or metric.endswith("_final") and "ece" not in metric:
+            ax.set_ylim(0.0, 1.02)
+        ax.set_xlabel(name)
+        ax.set_ylabel(label)
+        ax.set_title(title, fontsize=10)
+        ax.grid(True, linestyle=":", linewidth=0.6)
+        ax.legend(fontsize=9)
+        fig.tight_layout()
+        return fig
+    ny, nx = params
+    ys, xs = _ordered([r[ny] for r in rows]), _ordered([r[nx] for r in rows])
+    values = [r[metric] for r in rows]
+    vmin, vmax = (0.0, 1.0) if metric in ("dr_final", "in_fov_final") else (min(values), max(values))
+    fig = Figure(figsize=(3.2 * len(algorithms) + 1.4, max(3.6, 0.35 * len(ys) + 2.6)), dpi=120, layout="constrained")
+    axes = fig.subplots(1, len(algorithms), squeeze=False)[0]
+    image = None
+    for ax, a in zip(axes, algorithms):
+        grid = np.full((len(ys), len(xs)), np.nan)
+        for r in rows:
+            if r["algorithm"] == a:
+                grid[ys.index(r[ny]), xs.index(r[nx])] = r[metric]
+        image = ax.imshow(grid, origin="lower", aspect="auto", vmin=vmin, vmax=vmax, cmap="viridis")
+        ax.set_xticks(range(len(xs)), [f"{v:g}" if isinstance(v, float) else str(v) for v in xs], fontsize=8)
+        ax.set_yticks(range(len(ys)), [f"{v:g}" if isinstance(v, float) else str(v) for v in ys], fontsize=8)
+        if len(xs) * len(ys) <= 64:
+            for (i, j), v in np.ndenumerate(grid):
+                if not np.isnan(v):
+                    ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7,
+                            color="white" if v < vmin + 0.5 * (vmax - vmin) else "black")
+        ax.set_title(LABELS.get(a, a), fontsize=10)
+        ax.set_xlabel(nx)
+    axes[0].set_ylabel(ny)
+    if image is not None:
+        fig.colorbar(image, ax=list(axes), label=label, shrink=0.9)
+    fig.suptitle(title, fontsize=10)
+    return fig
+
+
 def render(fig: Figure, fmt: str = "png") -> bytes:
     """The figure as PNG or SVG bytes."""
     if fmt not in FORMATS:
@@ -217,7 +318,7 @@ def draw(build: Callable[[], Figure], fmt: str = "png") -> bytes:
         return render(build(), fmt)
 
 
-PlotKind = Literal["dr", "pod", "episode", "reliability"]
+PlotKind = Literal["dr", "pod", "episode", "reliability", "study"]
 
 
 @dataclass(frozen=True)
@@ -229,7 +330,8 @@ class PlotJob:
     * ``"dr"``, ``"reliability"``: ``results`` (the results object of a finished campaign);
     * ``"pod"``: ``scenario`` (Scenario as JSON data), ``model`` (PODModel as JSON data),
       ``truth`` (``{"rssi_dbm", "pod"}`` or None), ``title``;
-    * ``"episode"``: ``scenario`` and ``episode`` (a finished episode row).
+    * ``"episode"``: ``scenario`` and ``episode`` (a finished episode row);
+    * ``"study"``: ``results`` (a study's results object) and ``metric`` (a field of its rows).
     """
 
     kind: PlotKind
@@ -248,6 +350,8 @@ def build_figure(job: PlotJob) -> Figure:
         return pod_figure(Scenario.model_validate(d["scenario"]), d["model"], d["truth"], d.get("title", ""))
     if job.kind == "episode":
         return episode_figure(Scenario.model_validate(d["scenario"]), d["episode"])
+    if job.kind == "study":
+        return study_figure(d["results"], d["metric"])
     raise ValueError(f"unknown figure kind {job.kind!r}")
 
 
@@ -266,6 +370,12 @@ def write_reliability_plot(results: dict[str, Any], path: str) -> None:
     """Write the reliability diagram to ``path`` (.png or .svg)."""
     fmt = "svg" if str(path).lower().endswith(".svg") else "png"
     write_bytes(draw(lambda: reliability_figure(results), fmt), path)
+
+
+def write_study_plot(results: dict[str, Any], metric: str, path: str) -> None:
+    """Write a study's figure of ``metric`` to ``path`` (.png or .svg)."""
+    fmt = "svg" if str(path).lower().endswith(".svg") else "png"
+    write_bytes(draw(lambda: study_figure(results, metric), fmt), path)
 
 
 def write_bytes(data: bytes, path: str) -> None:

@@ -45,8 +45,10 @@ import numpy as np
 
 from ra2vipas.services.learner.pod import predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
-from ra2vipas.services.orchestrator.simulate import TestOutcome, TrainedPOD, held, summarize
+from ra2vipas.services.orchestrator.reduce import AlgorithmTally, results_object
+from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
 from ra2vipas.services.orchestrator.storage import EpisodeKey, StorageFault, Store
+from ra2vipas.services.orchestrator.study_store import StudyStore
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
     EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Mode, PODRequest, PODResponse,
@@ -97,6 +99,9 @@ class _Run:
     model_attempts: int = 0
     model_retry_at: float | None = None
     stop_confidence: float = 0.0
+    study: str | None = None  # the study this campaign is a point of, if any
+    point: int = 0  # its index in the study's grid
+    tests: int = 0
 
 
 @dataclass
@@ -118,6 +123,7 @@ class Scheduler:
                  heal_backoff_s: tuple[float, float] = HEAL_BACKOFF_S, tick_s: float = TIMEOUT_CHECK_S) -> None:
         self.bus = bus
         self.store = store
+        self._studies = StudyStore(store)
         self.window = max(1, int(window))
         self.loop = EventLoop("scheduler")
         self.rigs: dict[str, _Rig] = {}
@@ -274,7 +280,11 @@ class Scheduler:
         if c is None or c["status"] not in ("queued", "training", "running"):
             return
         scenario = Scenario.model_validate(c["scenario"])
-        run = _Run(id=cid, scenario=scenario, seed=c["seed"], mode=Mode(c["mode"]), stop_confidence=c.get("stop_confidence") or 0.0)
+        run = _Run(id=cid, scenario=scenario, seed=c["seed"], mode=Mode(c["mode"]), stop_confidence=c.get("stop_confidence") or 0.0,
+                   tests=c["tests"])
+        membership = self._studies.membership(cid)
+        if membership is not None:
+            run.study, run.point = membership
         if c["pod_job"] is not None:  # resumed after a restart: the model was already trained and scored
             run.pod = TrainedPOD(model=None, r2=c["pod_r2"], train_seconds=c["pod_train_seconds"] or 0.0)
             self._go_now(run)
@@ -395,14 +405,43 @@ class Scheduler:
                     seed=run.seed, scenario=run.scenario, mode=run.mode, stop_confidence=run.stop_confidence)))
 
     def _next_episode(self, allow_realtime: bool) -> tuple[_Run, EpisodeKey] | None:
+        studies: set[str] = set()
         for cid in list(self._order):
             run = self.runs.get(cid)
-            if run is None or run.pod is None or not run.pending:
+            if run is None:
+                continue
+            if run.study is not None:  # a study's points are served together, interleaved
+                if run.study not in studies:
+                    studies.add(run.study)
+                    item = self._next_of_study(run.study, allow_realtime)
+                    if item is not None:
+                        return item
+                continue
+            if run.pod is None or not run.pending:
                 continue
             if run.mode is Mode.realtime and not allow_realtime:
                 continue
             return run, run.pending.popleft()
         return None
+
+    def _next_of_study(self, study: str, allow_realtime: bool) -> tuple[_Run, EpisodeKey] | None:
+        """The next episode of a study: from the point whose next test is the earliest (then the
+        first point), so the points advance test by test together and partial results are
+        meaningful early; a point's last test waits until every point has its POD model (and so
+        has been handed its first tests), so every point gets its first tests before any point
+        gets its last."""
+        members = [r for r in self.runs.values() if r.study == study]
+        all_trained = all(r.pod is not None for r in members)
+        best: _Run | None = None
+        for r in members:
+            if r.pod is None or not r.pending or (r.mode is Mode.realtime and not allow_realtime):
+                continue
+            k = r.pending[0].test_index
+            if r.tests > 1 and k >= r.tests - 1 and not all_trained:
+                continue
+            if best is None or (k, r.point) < (best.pending[0].test_index, best.point):
+                best = r
+        return None if best is None else (best, best.pending.popleft())
 
     def _is_realtime(self, eid: str) -> bool:
         flight = self.flights.get(eid)
@@ -514,19 +553,19 @@ class Scheduler:
         c = self.store.campaign(run.id)
         if c is None or c["progress"]["done"] < c["progress"]["total"]:
             return
-        rows = self.store.episode_rows(run.id)
-        outcomes: dict[str, list[TestOutcome]] = {a: [] for a in c["algorithms"]}
         steps = run.scenario.steps
-        for row in rows:
-            outcomes[row["algorithm"]].append(TestOutcome(
-                algorithm=row["algorithm"], test_index=row["test_index"], hits=[bool(h) for h in row["hits"]],
-                in_fov=[bool(f) for f in row["in_fov"]], confidences=held(row.get("confidences") or [], steps),
-                decided_step=row.get("decided_step")))
+        # streamed: one page of episodes in memory at a time, reduced into running sums (reduce.AlgorithmTally)
+        tallies = {a: AlgorithmTally(steps, run.scenario.rf_period_s) for a in c["algorithms"]}
+        latencies: list[float] = []
+        for row in self.store.episode_outcomes(run.id):
+            tallies[row["algorithm"]].add(row["hits"], row["in_fov"], held(row.get("confidences") or [], steps) or None,
+                                          row.get("decided_step"), row["n_estimates"])
+            latencies += row.get("latencies") or []
         finished = time.time()
         elapsed = finished - (run.running_since or finished)
-        sps = (sum(len(row["estimates"]) for row in rows) / elapsed) if elapsed > 0 else None
-        results = summarize(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, outcomes, sps, run.stop_confidence)
-        latencies = [v for row in rows for v in (row.get("latencies") or [])]
+        steps_run = sum(t.steps_run for t in tallies.values())
+        sps = (steps_run / elapsed) if elapsed > 0 else None
+        results = results_object(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, tallies, sps, run.stop_confidence)
         if latencies:
             results["latency_ms"] = {"p50": round(float(np.percentile(latencies, 50)), 4), "p99": round(float(np.percentile(latencies, 99)), 4)}
         self.store.set_campaign(run.id, status="done", results=_json(results), finished_at=finished,

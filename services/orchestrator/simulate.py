@@ -8,7 +8,6 @@ serves.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable
 
@@ -118,25 +117,18 @@ def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: Train
 
 def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = ALGORITHMS,
                  settings: ControllerSettings | None = None,
-                 progress: Callable[[int, int], None] | None = None, stop_confidence: float = 0.0) -> dict[str, Any]:
+                 progress: Callable[[int, int], None] | None = None, stop_confidence: float = 0.0,
+                 workers: int = 1) -> dict[str, Any]:
     """Train once, run tests x algorithms episodes, return the results object.
 
-    ``progress(done, total)`` is called after each episode; ``stop_confidence`` > 0 ends each
+    ``progress(done, total)`` is called as episodes finish; ``stop_confidence`` > 0 ends each
     episode at its first step that confident (its answer final) and adds ``decision`` blocks.
+    ``workers`` > 1 runs the tests on that many processes (``engine.run_points``), with results
+    identical value for value to ``workers=1``; outcomes are reduced as they arrive, never
+    held for every test at once.
     """
-    algorithms = list(algorithms)
-    pod = train_pod(scenario, seed)
-    total = tests * len(algorithms)
-    outcomes: dict[str, list[TestOutcome]] = {a: [] for a in algorithms}
-    started = time.perf_counter()
-    done = 0
-    for k in range(tests):
-        for a in algorithms:
-            outcomes[a].append(run_test(scenario, seed, k, a, pod.model, settings, stop_confidence))
-            done += 1
-            if progress:
-                progress(done, total)
-    elapsed = time.perf_counter() - started
-    steps_run = sum(len(o.estimates) for runs in outcomes.values() for o in runs)
-    steps_per_second = steps_run / elapsed if elapsed > 0 else None
-    return summarize(preset, scenario, tests, seed, pod, outcomes, steps_per_second, stop_confidence)
+    from ra2vipas.services.orchestrator.engine import Point, run_points
+
+    point = Point(preset=preset, scenario=scenario, tests=tests, seed=seed, algorithms=tuple(algorithms),
+                  stop_confidence=stop_confidence)
+    return run_points([point], workers=workers, progress=progress, settings=settings).results[0]

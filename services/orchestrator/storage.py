@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Iterator
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -93,6 +93,27 @@ _MIGRATIONS: dict[int, str] = {
     ALTER TABLE episodes ADD COLUMN confidences TEXT;
     ALTER TABLE episodes ADD COLUMN decided_step INTEGER
     """,
+    # 5: parameter studies (issue 10): a study row (its grid and campaign options) and, on each of
+    #    its points' campaigns, the study and the point's index in the grid (study_store.py).
+    5: """
+    CREATE TABLE studies (
+        id TEXT PRIMARY KEY,
+        name TEXT,
+        preset TEXT NOT NULL,
+        overrides TEXT NOT NULL,
+        vary TEXT NOT NULL,
+        algorithms TEXT NOT NULL,
+        tests INTEGER NOT NULL,
+        seed INTEGER NOT NULL,
+        mode TEXT NOT NULL,
+        stop_confidence REAL NOT NULL DEFAULT 0,
+        created_at REAL NOT NULL
+    );
+    CREATE INDEX studies_created ON studies(created_at);
+    ALTER TABLE campaigns ADD COLUMN study_id TEXT REFERENCES studies(id);
+    ALTER TABLE campaigns ADD COLUMN study_point INTEGER;
+    CREATE INDEX campaigns_study ON campaigns(study_id, study_point)
+    """,
 }
 
 ACTIVE = ("queued", "training", "running")
@@ -133,6 +154,10 @@ class Fault:
 
 class CampaignActiveError(StoreError):
     """The operation needs a finished campaign and this one is still queued, training or running."""
+
+
+class CampaignInStudyError(StoreError):
+    """The campaign is a point of a study: it goes with its study (delete the study)."""
 
 
 @dataclass(frozen=True)
@@ -380,13 +405,17 @@ class Store:
         ------
         CampaignActiveError
             The campaign is still queued, training or running (cancel it first).
+        CampaignInStudyError
+            The campaign is a point of a study (delete the study).
         """
         with self.transaction() as db:
-            row = db.execute("SELECT status FROM campaigns WHERE id=?", (cid,)).fetchone()
+            row = db.execute("SELECT status, study_id FROM campaigns WHERE id=?", (cid,)).fetchone()
             if row is None:
                 return False
             if row[0] in ACTIVE:
                 raise CampaignActiveError(f"campaign {cid} is {row[0]}; cancel it first")
+            if row[1] is not None:
+                raise CampaignInStudyError(f"campaign {cid} is a point of study {row[1]}; delete the study instead")
             db.execute("DELETE FROM episodes WHERE campaign_id=?", (cid,))
             db.execute("DELETE FROM campaigns WHERE id=?", (cid,))
             return True
@@ -462,6 +491,31 @@ class Store:
             else:
                 rows = db.execute("SELECT * FROM episodes WHERE campaign_id=? AND status=? ORDER BY test_index, algorithm", (cid, status)).fetchall()
         return [_episode_dict(r) for r in rows]
+
+    def episode_outcomes(self, cid: str, page: int = 500) -> Iterator[dict[str, Any]]:
+        """A campaign's done episodes in (test index, algorithm) order, a page at a time (the lock
+        is released between pages), each with only what its reduction needs: ``hits``,
+        ``in_fov``, ``confidences`` (None from a v1 controller), ``decided_step``, ``latencies``
+        and ``n_estimates`` (control steps run). Memory holds one page, whatever the campaign's size.
+
+        Raises
+        ------
+        StorageFault
+            The database cannot be read.
+        """
+        after: tuple[int, str] = (-1, "")
+        while True:
+            with self._reading() as db:
+                rows = db.execute(
+                    "SELECT test_index, algorithm, hits, in_fov, confidences, decided_step, latencies,"
+                    " json_array_length(estimates) AS n_estimates FROM episodes"
+                    " WHERE campaign_id=? AND status='done' AND (test_index, algorithm) > (?, ?)"
+                    " ORDER BY test_index, algorithm LIMIT ?", (cid, *after, page)).fetchall()
+            for row in rows:
+                yield _episode_dict(row)
+            if len(rows) < page:
+                return
+            after = (rows[-1]["test_index"], rows[-1]["algorithm"])
 
     def episode_page(self, cid: str, *, algorithm: str | None = None, status: str | None = None, limit: int = 50,
                      offset: int = 0) -> tuple[list[dict[str, Any]], int]:

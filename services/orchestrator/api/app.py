@@ -17,7 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from ra2vipas.services.orchestrator.api.errors import responses, storage_fault, validation_error
 from ra2vipas.services.orchestrator.api.limits import MAX_BODY_BYTES, BodySizeLimit
 from ra2vipas.services.orchestrator.api.render import PlotRenderer
-from ra2vipas.services.orchestrator.api.routes import campaigns, catalog, events, health, results, tests
+from ra2vipas.services.orchestrator.api.routes import campaigns, catalog, events, health, results, studies, tests
 from ra2vipas.services.orchestrator.dashboard import routes as dashboard
 from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.settings import OrchestratorSettings
@@ -27,7 +27,8 @@ from ra2vipas.services.transport.bus import Bus
 DESCRIPTION = """
 Run Monte Carlo campaigns of transmitter discovery (Ra²ViPAS and its baselines) on the rigs of
 a Zenoh mesh, and read their results: discovery-rate curves with Wilson bands (JSON or CSV),
-per-test outcomes and traces, and figures (PNG or SVG).
+per-test outcomes and traces, and figures (PNG or SVG). Parameter studies (`/studies`) run one
+campaign per point of a grid of scenario parameters and tabulate and plot DR against them.
 
 When the server has a token (`RA2VIPAS_TOKEN`), every request that changes state needs
 `Authorization: Bearer <token>`. Errors are `{"detail": "one line"}`; a 422 names the field
@@ -73,7 +74,7 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
     app.add_middleware(BodySizeLimit, max_bytes=MAX_BODY_BYTES)
     app.add_exception_handler(RequestValidationError, validation_error)
     app.add_exception_handler(StorageFault, storage_fault)
-    for module in (health, campaigns, events, results, tests, catalog):
+    for module in (health, campaigns, events, results, tests, studies, catalog):
         app.include_router(module.router)
     dashboard.mount(app)  # the web dashboard at / (pages under /ui/, not in the OpenAPI schema)
     return app

@@ -92,3 +92,25 @@ def rigs_public(status: dict[str, Any]) -> RigsPublic:
                       in_flight=st["in_flight"])
             for name, st in sorted(status["rigs"].items())]
     return RigsPublic(rigs=rigs, learners=list(status["learners"]))
+
+
+def study_public(d: dict[str, Any], now: float | None = None) -> "StudyPublic":
+    """A study (``StudyStore.study``) as the API shows it; ``points`` only if ``d`` has them."""
+    from ra2vipas.services.orchestrator.api.study_schemas import StudyPoint, StudyPublic
+
+    started, finished = d["started_at"], d["finished_at"]
+    if started is None:
+        elapsed = None
+    elif finished is not None:
+        elapsed = max(0.0, finished - started)
+    else:
+        elapsed = max(0.0, (now or time.time()) - started) if d["status"] in ACTIVE else None
+    points = d.get("points")
+    return StudyPublic(
+        id=d["id"], name=d["name"], status=d["status"], progress=Progress(**d["progress"]), preset=d["preset"],
+        overrides=d["overrides"], vary=d["vary"], parameters=list(d["vary"]), points_total=d["points_total"],
+        algorithms=d["algorithms"], tests=d["tests"], seed=d["seed"], mode=d["mode"], stop_confidence=d["stop_confidence"] or 0.0,
+        created_at=d["created_at"], started_at=started, finished_at=finished,
+        elapsed_s=None if elapsed is None else round(elapsed, 3), error=d["error"],
+        points=None if points is None else [StudyPoint(**p) for p in points],
+    )

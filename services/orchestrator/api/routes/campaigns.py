@@ -11,7 +11,7 @@ from ra2vipas.services.orchestrator.api.deps import Authorized, CampaignDep, Sch
 from ra2vipas.services.orchestrator.api.errors import responses
 from ra2vipas.services.orchestrator.api.schemas import MAX_OFFSET, MAX_PAGE, CampaignCreate, CampaignPage, CampaignPublic, CampaignStatus
 from ra2vipas.services.orchestrator.api.views import campaign_public
-from ra2vipas.services.orchestrator.storage import CampaignActiveError
+from ra2vipas.services.orchestrator.storage import CampaignActiveError, CampaignInStudyError
 from ra2vipas.services.protocol.scenario import ScenarioError, build_scenario
 
 router = APIRouter(prefix="/campaigns", tags=["campaigns"])
@@ -82,12 +82,13 @@ def cancel_campaign(campaign: CampaignDep, store: StoreDep, scheduler: Scheduler
 
 
 @router.delete("/{campaign_id}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response, dependencies=[Authorized],
-               responses=responses(401, 404, 409, e409="the campaign is still queued, training or running; cancel it first"))
+               responses=responses(401, 404, 409, e409="the campaign is still queued, training or running (cancel it first), or "
+                                                         "is a point of a study (delete the study)"))
 def delete_campaign(campaign: CampaignDep, store: StoreDep, request: Request) -> Response:
     """Delete a finished (done, failed or cancelled) campaign and every test it recorded."""
     try:
         deleted = store.delete_campaign(campaign["id"])
-    except CampaignActiveError as err:
+    except (CampaignActiveError, CampaignInStudyError) as err:
         raise HTTPException(status.HTTP_409_CONFLICT, str(err)) from None
     if not deleted:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no campaign {campaign['id']!r}")

@@ -1,0 +1,187 @@
+"""Streaming reduction of episode outcomes to the results object, in memory that does not grow
+with the number of steps kept per test.
+
+``summarize_algorithm`` (``metrics``) reduces a (tests, T) array of per-step hits at once: a
+campaign of 10 000 tests would hold every test's per-step trace. ``AlgorithmTally`` takes one
+episode at a time and keeps only running sums over steps and one scalar per test:
+
+* DR_t (eq. 28): per step, how many tests hit (an integer per step), so DR_t and its Wilson
+  interval at every t are exact whatever the order the tests arrive in;
+* in-FoV at the last step: a count;
+* calibration: per confidence bin, the number of (test, step) samples, their summed
+  confidence (summed exactly, see below) and their hits (``ece_all``), and each test's final
+  confidence and hit (the final-step ECE, mean confidence and reliability bins: O(tests)
+  scalars, never O(tests x T));
+* early decisions: each test's decided step.
+
+``AlgorithmTally.summary()`` returns the same block, value for value, as
+``summarize_algorithm`` on the whole array, whatever order the episodes arrive in (unit tests
+check both on random outcomes). Every sum it keeps is exact: counts are integers, and the
+per-bin confidence sums are kept as integers in units of 2**-1074 (every double is a whole
+multiple of it), so the per-bin mean is the correctly rounded sum divided by n, which is what
+``metrics._mean`` (``math.fsum``) gives over all the samples at once. A float running sum
+would depend on the arrival order (other workers, other rigs, a rerun after a kill) in the
+last bits, and that moves a rounded 6th decimal now and then.
+"""
+
+from __future__ import annotations
+
+import math
+from array import array
+from typing import Any, Mapping
+
+import numpy as np
+
+from ra2vipas.services.orchestrator.metrics import (
+    decision_summary, expected_calibration_error, reliability_bins, time_to_level, wilson_interval,
+)
+
+BINS = 10  # the calibration bins of metrics.expected_calibration_error
+_ULP_EXP = 1074  # every finite double is a whole multiple of 2**-1074
+
+
+def _exact_units(value: float) -> int:
+    """``value`` as an integer count of 2**-1074 (exact for every finite double)."""
+    num, den = value.as_integer_ratio()  # den is a power of two, at most 2**1074
+    return num << (_ULP_EXP - den.bit_length() + 1)
+
+
+class AlgorithmTally:
+    """Running sums of one algorithm's episodes over a campaign (see the module docstring).
+
+    Parameters
+    ----------
+    steps : int
+        n_test, the length of every episode's per-step series (an episode that decided early
+        arrives padded to it, its answer held).
+    rf_period_s : float
+        T_RF, to turn steps into times.
+    """
+
+    def __init__(self, steps: int, rf_period_s: float) -> None:
+        self.steps = int(steps)
+        self.rf_period_s = float(rf_period_s)
+        self.tests = 0
+        self.steps_run = 0
+        self._hit_counts = np.zeros(self.steps, dtype=np.int64)
+        self._final_in_fov = 0
+        self._final_hits = array("b")
+        self._final_conf = array("d")
+        self._decided: list[int | None] = []
+        self._with_conf = True  # every episode so far carried per-step confidences
+        self._bin_n = np.zeros(BINS, dtype=np.int64)
+        self._bin_conf = [0] * BINS  # exact sums, in units of 2**-1074 (_exact_units)
+        self._bin_special: list[list[float]] = [[] for _ in range(BINS)]  # inf/nan confidences, if ever
+        self._samples = 0  # every (test, step) confidence, binned or not (metrics' denominator)
+        self._bin_hits = np.zeros(BINS, dtype=np.int64)
+
+    def add(self, hits, in_fov, confidences=None, decided_step: int | None = None, steps_run: int | None = None) -> None:
+        """One episode: its per-step hits and in-FoV flags (``steps`` long), its per-step
+        confidences (``steps`` long, or None/empty from a controller that sends none), the step
+        it decided at (early decisions) and how many control steps it actually ran.
+
+        Raises
+        ------
+        ValueError
+            A series is not ``steps`` long.
+        """
+        h = np.asarray(hits, dtype=bool)
+        f = np.asarray(in_fov, dtype=bool)
+        if h.shape != (self.steps,) or f.shape != (self.steps,):
+            raise ValueError(f"an episode's hits and in-FoV flags must have {self.steps} steps, got {h.shape} and {f.shape}")
+        self.tests += 1
+        self.steps_run += self.steps if steps_run is None else int(steps_run)
+        self._hit_counts += h
+        self._final_in_fov += bool(f[-1])
+        self._final_hits.append(int(h[-1]))
+        self._decided.append(decided_step)
+        if confidences is None or len(confidences) == 0:
+            self._with_conf = False
+        elif self._with_conf:
+            c = np.asarray(confidences, dtype=np.float64)
+            if c.shape != (self.steps,):
+                raise ValueError(f"an episode's confidences must have {self.steps} steps, got {c.shape}")
+            with np.errstate(invalid="ignore"):
+                idx = np.minimum((c * BINS).astype(int), BINS - 1)  # metrics.expected_calibration_error's bins
+            self._samples += c.size
+            binned = idx >= 0
+            self._bin_n += np.bincount(idx[binned], minlength=BINS)
+            self._bin_hits += np.bincount(idx[binned], weights=h[binned], minlength=BINS).astype(np.int64)
+            for b, value in zip(idx[binned].tolist(), c[binned].tolist()):
+                if math.isfinite(value):
+                    self._bin_conf[b] += _exact_units(value)
+                else:
+                    self._bin_special[b].append(value)
+            self._final_conf.append(float(c[-1]))
+
+    def _bin_mean_confidence(self, b: int, n: int) -> float:
+        """The mean confidence of bin ``b`` (n samples): its exact sum, correctly rounded (int / int
+        is), divided by n: ``math.fsum`` over the bin's samples, divided by n."""
+        exact = self._bin_conf[b] / (1 << _ULP_EXP)
+        if self._bin_special[b]:
+            exact = math.fsum([exact, *self._bin_special[b]])
+        return exact / n
+
+    def ece_all(self) -> float | None:
+        """``metrics.expected_calibration_error`` over every (test, step) sample, bin by bin in
+        the same order with the same operations."""
+        total_n = self._samples
+        if total_n == 0:
+            return None
+        total = 0.0
+        for b in range(BINS):
+            n = int(self._bin_n[b])
+            if n:
+                total += (n / total_n) * abs(self._bin_mean_confidence(b, n) - int(self._bin_hits[b]) / n)
+        return float(total)
+
+    def summary(self, decisions: bool = False) -> dict[str, Any]:
+        """The per-algorithm block of the results object (``metrics.summarize_algorithm``'s
+        fields); ``decisions`` adds the early-decision block (campaigns with stop_confidence).
+
+        Raises
+        ------
+        ValueError
+            No episode was added.
+        """
+        if self.tests == 0:
+            raise ValueError("no episode to summarize")
+        tests = self.tests
+        successes = self._hit_counts.astype(np.float64)
+        dr = successes / tests
+        bands = [wilson_interval(float(k), tests) for k in successes]
+        final_hits = np.frombuffer(self._final_hits, dtype=np.int8).astype(np.float64)
+        extra: dict[str, Any] = {}
+        if self._with_conf and len(self._final_conf) == tests:
+            conf = np.frombuffer(self._final_conf, dtype=np.float64)
+            ece_all = self.ece_all()
+            extra["calibration"] = {"ece_final": _rounded(expected_calibration_error(conf, final_hits)),
+                                    "ece_all": _rounded(ece_all),
+                                    "confidence_final": round(math.fsum(conf.tolist()) / conf.size, 6),  # metrics._mean
+                                    "reliability": reliability_bins(conf, final_hits)}
+        if decisions:
+            extra["decision"] = decision_summary(final_hits, list(self._decided), self.rf_period_s)
+        return {
+            "dr": [round(float(v), 6) for v in dr],
+            "dr_final": round(float(dr[-1]), 6),
+            "ci95": [round(bands[-1][0], 6), round(bands[-1][1], 6)],
+            "dr_ci95": [[round(lo, 6), round(hi, 6)] for lo, hi in bands],
+            "time_to_dr90_s": time_to_level(dr, 0.9, self.rf_period_s),
+            "in_fov_final": round(self._final_in_fov / tests, 6),
+            **extra,
+        }
+
+
+def results_object(preset: str, scenario, tests: int, seed: int, pod, tallies: Mapping[str, AlgorithmTally],
+                   steps_per_second: float | None, stop_confidence: float = 0.0) -> dict[str, Any]:
+    """The results object (``simulate.summarize``'s envelope: preset, scenario, tests, seed,
+    POD fit, speed, and whatever else it carries) with the algorithms' blocks from ``tallies``."""
+    from ra2vipas.services.orchestrator.simulate import summarize
+
+    out = summarize(preset, scenario, tests, seed, pod, {}, steps_per_second, stop_confidence)
+    out["algorithms"] = {name: tally.summary(decisions=stop_confidence > 0.0) for name, tally in tallies.items()}
+    return out
+
+
+def _rounded(value: float | None) -> float | None:
+    return None if value is None else round(value, 6)
