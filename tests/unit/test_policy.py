@@ -342,3 +342,23 @@ def test_a_tx_hidden_behind_a_nearer_target_is_named_where_rx_dir_puts_it(offset
         answers[occluded] = associate(np.array([d.estimate_rad for d in decisions[-10:]]), platform.truth.bearings_rad)
     assert np.all(answers[0.9] == 0), answers
     assert np.all(answers[0.0] == 1), answers
+
+
+def test_a_tx_that_walks_across_plus_minus_pi_is_found(paper_pod):
+    """The Tx walks at 3 m from bearing 160 to 200 degrees, through +-pi, while four people
+    stand elsewhere (one of them 15 degrees from its start): at the end Ra²ViPAS names it,
+    where it is then, not where it started."""
+    from ra2vipas.services.sensors.world import GroundTruth, SimulatedPlatform
+
+    sc = small_scenario(steps=120, n_targets=5)
+    steps = sc.steps
+    angles = np.radians(np.linspace(160.0, 200.0, steps))
+    tx_path = np.column_stack([3.0 * np.cos(angles), 3.0 * np.sin(angles)])[:, None, :]
+    standing = polar_positions([3.5, 2.5, 4.0, 3.0], [145.0, -60.0, 30.0, 100.0])
+    layout = GroundTruth(positions_m=np.vstack([tx_path[0], standing]), tx_index=0,
+                         walkers=np.array([0]), walker_positions_m=tx_path)
+    platform = SimulatedPlatform(sc, 5, 0, layout=layout)
+    decisions = run_closed_loop(new_controller("ra2vipas", sc, paper_pod.model), platform, steps)
+    final_bearings = platform.truth.step_bearings_rad()[-1]
+    assert associate(np.array([decisions[-1].estimate_rad]), final_bearings)[0] == 0
+    assert angle_error(decisions[-1].estimate_rad, final_bearings[0]) < math.radians(5.0)
