@@ -10,8 +10,26 @@ from typing import Any, Iterable, Mapping
 import httpx
 
 
+def _check_run(algorithms: Iterable[str] | None, tests: int, seed: int, stop_confidence: float, workers: int | None) -> list[str]:
+    from ra2vipas.services.protocol.messages import ALGORITHMS
+
+    names = list(dict.fromkeys(algorithms)) if algorithms is not None else list(ALGORITHMS)
+    unknown = [a for a in names if a not in ALGORITHMS]
+    if unknown or not names:
+        raise ValueError(f"unknown algorithm {unknown[0]!r}; choose from {', '.join(ALGORITHMS)}" if unknown else "no algorithm given")
+    if isinstance(tests, bool) or not isinstance(tests, int) or tests < 1:
+        raise ValueError(f"tests: expected a positive integer, got {tests!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+    if isinstance(stop_confidence, bool) or not isinstance(stop_confidence, (int, float)) or not 0.0 <= stop_confidence < 1.0:
+        raise ValueError(f"stop_confidence: expected a number in [0, 1), got {stop_confidence!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ValueError(f"workers: expected a positive integer, got {workers!r}")
+    return names
+
+
 def simulate(preset: str = "paper", overrides: Mapping[str, Any] | None = None, tests: int = 50, seed: int = 1,
-             algorithms: Iterable[str] | None = None) -> dict[str, Any]:
+             algorithms: Iterable[str] | None = None, stop_confidence: float = 0.0, workers: int | None = None) -> dict[str, Any]:
     """Run a Monte Carlo campaign in this process, like ``ra2vipas simulate --json``.
 
     Parameters
@@ -24,11 +42,18 @@ def simulate(preset: str = "paper", overrides: Mapping[str, Any] | None = None, 
         Tests per algorithm and the campaign seed (fixes every random draw).
     algorithms : iterable of str, optional
         Default: all of ``ra2vipas``, ``rapas``, ``ravipas``, ``sweep``.
+    stop_confidence : float
+        0 (default): every episode runs to the horizon; else each ends at its first step that
+        confident, its answer final, and the results gain ``decision`` blocks.
+    workers : int, optional
+        Worker processes (default 1 here; results are identical for any number). A script
+        that uses more than one needs the usual ``if __name__ == "__main__":`` guard.
 
     Returns
     -------
     dict
-        The results object (DR curves with Wilson bands, final DR, t90, in-FoV, POD R²).
+        The results object (DR curves with Wilson bands, final DR, t90, in-FoV, POD R²,
+        calibration).
 
     Raises
     ------
@@ -36,19 +61,36 @@ def simulate(preset: str = "paper", overrides: Mapping[str, Any] | None = None, 
         A bad preset, parameter, value or algorithm (one line naming it).
     """
     from ra2vipas.services.orchestrator.simulate import run_campaign
-    from ra2vipas.services.protocol.messages import ALGORITHMS
     from ra2vipas.services.protocol.scenario import build_scenario
 
-    names = list(dict.fromkeys(algorithms)) if algorithms is not None else list(ALGORITHMS)
-    unknown = [a for a in names if a not in ALGORITHMS]
-    if unknown or not names:
-        raise ValueError(f"unknown algorithm {unknown[0]!r}; choose from {', '.join(ALGORITHMS)}" if unknown else "no algorithm given")
-    if isinstance(tests, bool) or not isinstance(tests, int) or tests < 1:
-        raise ValueError(f"tests: expected a positive integer, got {tests!r}")
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+    names = _check_run(algorithms, tests, seed, stop_confidence, workers)
     scenario = build_scenario(preset, dict(overrides or {}))  # ScenarioError is a ValueError
-    return run_campaign(preset, scenario, tests, seed, names)
+    return run_campaign(preset, scenario, tests, seed, names, stop_confidence=float(stop_confidence), workers=workers or 1)
+
+
+def study(vary: Mapping[str, Iterable[Any]], preset: str = "paper", overrides: Mapping[str, Any] | None = None, tests: int = 50,
+          seed: int = 1, algorithms: Iterable[str] | None = None, stop_confidence: float = 0.0,
+          workers: int | None = None) -> dict[str, Any]:
+    """A parameter study in this process, like ``ra2vipas simulate --vary ... --json``: one
+    campaign per point of the grid ``vary`` ({parameter: values}; several parameters: their
+    product), all with the same seed, so points are paired test by test.
+
+    Returns the study's results object: ``rows`` has one row per point x algorithm (the varied
+    values, final DR and its Wilson CI, t90, in-FoV, POD R², calibration fields); ``points``
+    the grid. ``to_dataframe`` turns it into a table.
+
+    Raises
+    ------
+    ValueError
+        A bad preset, parameter, value or grid (one line naming it).
+    """
+    from ra2vipas.services.orchestrator.engine import run_study
+
+    names = _check_run(algorithms, tests, seed, stop_confidence, workers)
+    if not isinstance(vary, Mapping) or not vary:
+        raise ValueError("vary: expected a mapping {parameter: [values]} with at least one parameter")
+    grid = {str(k): list(v) for k, v in vary.items()}
+    return run_study(preset, dict(overrides or {}), grid, tests, seed, names, float(stop_confidence), workers=workers or 1)
 
 
 class ClientError(Exception):
@@ -136,6 +178,45 @@ class Client:
     def delete(self, campaign_id: str) -> None:
         self._request("DELETE", f"/campaigns/{campaign_id}")
 
+    # -- studies ------------------------------------------------------------------------------
+    def start_study(self, vary: Mapping[str, Iterable[Any]], preset: str = "paper", overrides: Mapping[str, Any] | None = None,
+                    tests: int = 50, seed: int = 1, algorithms: Iterable[str] | None = None, mode: str = "fast",
+                    name: str | None = None, **options: Any) -> dict[str, Any]:
+        """Create a parameter study (``POST /studies``); returns it (``id``, ``status``, points)."""
+        body: dict[str, Any] = {"preset": preset, "overrides": dict(overrides or {}), "vary": {k: list(v) for k, v in vary.items()},
+                                "tests": tests, "seed": seed, "mode": mode, **options}
+        if algorithms is not None:
+            body["algorithms"] = list(algorithms)
+        if name is not None:
+            body["name"] = name
+        return self._request("POST", "/studies", json=body)
+
+    def study(self, study_id: str) -> dict[str, Any]:
+        return self._request("GET", f"/studies/{study_id}")
+
+    def study_results(self, study_id: str) -> dict[str, Any]:
+        return self._request("GET", f"/studies/{study_id}/results")
+
+    def cancel_study(self, study_id: str) -> dict[str, Any]:
+        return self._request("POST", f"/studies/{study_id}/cancel")
+
+    def delete_study(self, study_id: str) -> None:
+        self._request("DELETE", f"/studies/{study_id}")
+
+    def wait_study(self, study_id: str, timeout: float | None = None, poll: float = 0.5) -> dict[str, Any]:
+        """Wait for a study to finish and return its results object (``ClientError`` if it
+        failed, was cancelled, or ``timeout`` seconds passed)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            s = self.study(study_id)
+            if s["status"] == "done":
+                return self.study_results(study_id)
+            if s["status"] in FINISHED:
+                raise ClientError(f"study {study_id} {s['status']}: {s.get('error') or ''}".rstrip(": "))
+            if deadline is not None and time.monotonic() > deadline:
+                raise ClientError(f"study {study_id} did not finish within {timeout} s")
+            time.sleep(poll)
+
     def wait(self, campaign_id: str, timeout: float | None = None, poll: float = 0.5) -> dict[str, Any]:
         """Wait for a campaign to finish and return its results object.
 
@@ -157,12 +238,15 @@ class Client:
 
 
 def to_dataframe(results: Mapping[str, Any]):
-    """A results object as a tidy pandas DataFrame: one row per (algorithm, step) with time,
-    DR and its Wilson band (needs pandas: ``pip install 'ra2vipas[pandas]'``)."""
+    """A results object as a tidy pandas DataFrame (needs pandas: ``pip install
+    'ra2vipas[pandas]'``): a campaign's, one row per (algorithm, step) with time, DR and its
+    Wilson band; a study's, its ``rows`` (one per point x algorithm)."""
     try:
         import pandas as pd
     except ImportError:
         raise ImportError("to_dataframe needs pandas: pip install 'ra2vipas[pandas]'") from None
+    if "rows" in results and "points" in results:  # a study
+        return pd.DataFrame(list(results["rows"]))
     period = results["scenario"]["rf_period_s"]
     rows = [{"algorithm": name, "step": t + 1, "time_s": round((t + 1) * period, 10), "dr": dr, "ci_lo": lo, "ci_hi": hi}
             for name, block in results["algorithms"].items()
