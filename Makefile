@@ -7,7 +7,7 @@ BIN    := $(VENV)/bin
 CHROMIUM ?= /usr/bin/chromium
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup browser campaign test bench clean
+.PHONY: setup browser campaign test bench docs clean
 
 setup: $(STAMP)
 
@@ -32,6 +32,11 @@ $(CHROMIUM):
 
 test: setup browser
 	$(BIN)/pytest -q
+
+# The README's result tables and figure from what the code prints (minutes): reruns the documented
+# campaigns and benchmarks, writes docs/results.json, renders the README blocks from it.
+docs: setup
+	$(BIN)/python tools/docs.py
 
 bench: setup
 	$(BIN)/ra2vipas bench step --json
