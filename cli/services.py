@@ -12,6 +12,7 @@ import gc
 import logging
 import os
 import sys
+from pathlib import Path
 from typing import Annotated, Callable, Optional
 
 import typer
@@ -127,6 +128,20 @@ def orchestrator(
     # its renderer processes at nice 19 instead
     settings = OrchestratorSettings.from_sources(host=host, port=port, db_path=db, window=window, expect_rigs=expect_rigs,
                                                  token=token, zenoh=zenoh_settings(mode, connect, listen, zenoh_config))
+    from ra2vipas.services.orchestrator.dblock import DatabaseInUse, DatabaseLock
+
+    folder = Path(settings.db_path).expanduser().resolve().parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        fail(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
+             "create it, or give --db a path you can write")
+    try:
+        db_lock = DatabaseLock(settings.db_path).acquire()  # held until this process exits
+    except DatabaseInUse as err:
+        fail(str(err))
+    except OSError as err:
+        fail(f"cannot lock the database {settings.db_path}: {err.strerror or err}")
     server = uvicorn.Server(uvicorn.Config(create_app(settings), host=settings.host, port=settings.port, log_level=log_level.lower(),
                                            access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5))
     import signal
@@ -135,7 +150,10 @@ def orchestrator(
     # that was there before it; with this no-op one the process exits 0 like the other services.
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: None)
-    server.run()
+    try:
+        server.run()
+    finally:
+        db_lock.release()
 
 
 def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:

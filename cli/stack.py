@@ -62,6 +62,7 @@ class Child:
     log_path: Path
     proc: subprocess.Popen | None = None
     restarts: int = 0
+    crashes: list[float] = field(default_factory=list)  # monotonic times it was found dead
 
     def start(self) -> None:
         log = open(self.log_path, "ab", buffering=0)
@@ -144,6 +145,68 @@ class StackError(RuntimeError):
     pass
 
 
+def port_holder(port: int) -> str | None:
+    """Who listens on TCP ``port`` on this machine: "pid N (command line)" from /proc, "an
+    unknown process" when the socket's owner cannot be read, None when nobody listens."""
+    inodes = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            parts = line.split()
+            if len(parts) > 9 and parts[3] == "0A" and int(parts[1].rsplit(":", 1)[1], 16) == port:  # 0A: LISTEN
+                inodes.add(parts[9])
+    if not inodes:
+        return None
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            for fd in os.listdir(f"/proc/{pid}/fd"):
+                target = os.readlink(f"/proc/{pid}/fd/{fd}")
+                if target.startswith("socket:[") and target[8:-1] in inodes:
+                    cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
+                    return f"pid {pid} ({cmd[:120]})"
+        except OSError:
+            continue
+    return "an unknown process"
+
+
+def check_port_free(host: str, port: int, what: str) -> None:
+    """Raise ``StackError`` (one line naming the port and who holds it) if ``port`` is taken."""
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as sock:
+        try:
+            sock.bind((host, port))
+        except OSError as err:
+            who = port_holder(port)
+            why = f"taken by {who}" if who else (err.strerror or str(err)).lower()
+            raise StackError(f"{what} port {port} on {host} is {why}: stop it or choose another port") from None
+
+
+def prepare_database(db_path: str) -> None:
+    """Create the database's folder (one-line ``StackError`` if it cannot be) and refuse a
+    database another orchestrator holds."""
+    from ra2vipas.services.orchestrator.dblock import holder
+
+    folder = Path(db_path).expanduser().resolve().parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise StackError(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
+                         "create it, or give --db a path you can write") from None
+    if not os.access(folder, os.W_OK):
+        raise StackError(f"cannot write in the database folder {folder}: give --db a path you can write")
+    pid = holder(db_path)
+    if pid is not None:
+        raise StackError(f"the database {db_path} is in use by another orchestrator{f' (pid {pid})' if pid else ''}: "
+                         "stop that stack, or give this one another --db")
+
+
+# a service that crashes this many times within CRASH_WINDOW_S makes `up` give up
+CRASH_LIMIT = 5
+CRASH_WINDOW_S = 60.0
+
+
 @dataclass
 class Stack:
     config: StackConfig
@@ -151,13 +214,20 @@ class Stack:
     log_dir: Path | None = None
     credentials: StackCredentials | None = None
     router_endpoint: str | None = None
+    instance_id: str = field(default_factory=lambda: secrets.token_hex(8))
 
     @property
     def api_url(self) -> str:
         return f"http://{self.config.host}:{self.config.port}"
 
     def start(self, ready_timeout: float = 90.0) -> None:
+        """Check the ports and the database, then start every service and wait until /health
+        answers 200 from *this* stack's orchestrator. ``StackError`` (one line) otherwise."""
         cfg = self.config
+        check_port_free(cfg.host, cfg.port, "the API")
+        if cfg.router_port:
+            check_port_free("127.0.0.1", cfg.router_port, "the Zenoh router's")
+        prepare_database(cfg.db_path)
         self.log_dir = Path(cfg.log_dir or tempfile.mkdtemp(prefix="ra2vipas-logs-"))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         router_port = cfg.router_port or free_port()
@@ -187,7 +257,7 @@ class Stack:
             specs.append((f"controller-{rig}", [*py, "controller", "--rig", rig], {}))
         specs.append(("orchestrator", [*py, "orchestrator"], {
             "RA2VIPAS_HOST": cfg.host, "RA2VIPAS_PORT": str(cfg.port), "RA2VIPAS_DB": cfg.db_path,
-            "RA2VIPAS_WINDOW": str(cfg.window), "RA2VIPAS_EXPECT_RIGS": str(cfg.rigs),
+            "RA2VIPAS_WINDOW": str(cfg.window), "RA2VIPAS_EXPECT_RIGS": str(cfg.rigs), "RA2VIPAS_INSTANCE_ID": self.instance_id,
         }))
         for name, argv, extra in specs:
             env = {**base_env, **extra}
@@ -220,9 +290,16 @@ class Stack:
                 raise StackError(f"{dead[0].name} exited during start-up (log {dead[0].log_path}):\n{dead[0].tail()}")
             try:
                 r = httpx.get(f"{self.api_url}/health", timeout=1.0)
-                if r.status_code == 200:
+                try:
+                    instance = r.json().get("instance")
+                except ValueError:
+                    instance = None
+                if instance != self.instance_id:  # someone else answers on our address: never adopt it
+                    last = f"HTTP {r.status_code} from another server (instance {instance!r})"
+                elif r.status_code == 200:
                     return
-                last = r.text
+                else:
+                    last = r.text
             except httpx.HTTPError as err:
                 last = str(err)
             time.sleep(0.1)
@@ -234,6 +311,16 @@ class Stack:
             if not c.alive():
                 return c
         return None
+
+    def crashed(self, child: Child, now: float | None = None) -> float | None:
+        """Record that ``child`` died: the delay before restarting it (0.5 s doubling with each
+        crash in the window, at most 30 s), or None when it crashed ``CRASH_LIMIT`` times within
+        ``CRASH_WINDOW_S`` (then give up and show its last words)."""
+        now = time.monotonic() if now is None else now
+        child.crashes = [t for t in child.crashes if now - t < CRASH_WINDOW_S] + [now]
+        if len(child.crashes) >= CRASH_LIMIT:
+            return None
+        return min(30.0, 0.5 * 2 ** (len(child.crashes) - 1))
 
     def restart(self, child: Child) -> None:
         child.restarts += 1

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import signal
+import sys
 import threading
-import time
 from typing import Annotated, Optional
 
 import typer
 
 from ra2vipas.cli.output import fail
-from ra2vipas.cli.stack import Stack, StackConfig, StackError
+from ra2vipas.cli.stack import CRASH_LIMIT, CRASH_WINDOW_S, Stack, StackConfig, StackError
 
 
 def up(
@@ -26,12 +26,17 @@ def up(
     """Run a local stack in the foreground: a Zenoh router on loopback, the orchestrator (REST
     API), the learner and RIGS sensor+controller pairs. Prints the API address once
     GET /health answers 200; Ctrl-C or SIGTERM stops every process it started.
-    A service that crashes is restarted.
+    A service that crashes is restarted after a delay that doubles with each crash (0.5 s to
+    30 s); one that crashes 5 times within a minute stops the stack, with its last log lines.
+    Before starting anything it checks that the API port is free (else one line naming who
+    holds it), creates the database's folder, and refuses a database another orchestrator
+    holds.
 
     Everything listens on 127.0.0.1 only, and the stack's Zenoh network is closed to any
     process without its credentials (made up at start, in a file only you can read, deleted
     at stop); another process joins it with the environment in the printed zenoh.env file."""
     stop = threading.Event()
+    gave_up = False
 
     def on_signal(_signum, _frame) -> None:
         stop.set()
@@ -56,9 +61,18 @@ def up(
         while not stop.wait(0.5):
             dead = stack.watch()
             if dead is not None and not stop.is_set():
-                print(f"ra2vipas up: {dead.name} exited (code {dead.proc.returncode}); restarting it", flush=True)
-                time.sleep(min(5.0, 0.5 * (dead.restarts + 1)))
+                delay = stack.crashed(dead)
+                if delay is None:
+                    print(f"ra2vipas up: {dead.name} crashed {CRASH_LIMIT} times within {CRASH_WINDOW_S:.0f} s; stopping. "
+                          f"Its last log lines ({dead.log_path}):\n{dead.tail()}", file=sys.stderr, flush=True)
+                    gave_up = True
+                    break
+                print(f"ra2vipas up: {dead.name} exited (code {dead.proc.returncode}); restarting it in {delay:g} s", flush=True)
+                if stop.wait(delay):
+                    break
                 stack.restart(dead)
     finally:
         stack.stop()
     print("ra2vipas up: stopped", flush=True)
+    if gave_up:
+        raise typer.Exit(1)

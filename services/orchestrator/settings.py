@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import secrets
 from dataclasses import dataclass, field
 
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
@@ -18,6 +19,8 @@ class OrchestratorSettings:
     token: str | None = None  # RA2VIPAS_TOKEN: bearer token required by state-changing requests
     name: str = "orchestrator"
     plot_workers: int = 1  # RA2VIPAS_PLOT_WORKERS: figure renderer processes (from_sources: default_plot_workers())
+    # RA2VIPAS_INSTANCE_ID: shown by /health, so `ra2vipas up` knows it reached its own orchestrator
+    instance_id: str = field(default_factory=lambda: secrets.token_hex(8))
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
 
     @classmethod
@@ -37,6 +40,7 @@ class OrchestratorSettings:
             expect_rigs=int(expect_rigs if expect_rigs is not None else env.get("RA2VIPAS_EXPECT_RIGS") or 1),
             token=token or env.get("RA2VIPAS_TOKEN") or None,
             plot_workers=workers,
+            instance_id=env.get("RA2VIPAS_INSTANCE_ID") or secrets.token_hex(8),
             zenoh=zenoh or ZenohSettings.from_sources(env=env),
         )
 

@@ -268,3 +268,4 @@ class Health(BaseModel):
         description="result/truth-plane messages dropped, by reason: malformed, not_in_flight (unknown or stale episode id), "
                     "wrong_rig (not on the key of the rig the episode was assigned to)")
     waiting_writes: int = Field(0, description="database writes waiting to be retried")
+    instance: str = Field("", description="this orchestrator process's instance id (a client can tell it from another one on the same address)")

@@ -28,4 +28,4 @@ def health(request: Request, response: Response, store: StoreDep, scheduler: Sch
     database_error = None if db_ok else (fault.describe() if fault is not None else "unavailable")
     return Health(status=state, ready=ready, database=db_ok, database_error=database_error, zenoh=zenoh_ok, rigs=rigs,
                   expected_rigs=settings.expect_rigs, learners=snapshot["learners"], rejected_messages=snapshot["rejected"],
-                  waiting_writes=snapshot["waiting_writes"])
+                  waiting_writes=snapshot["waiting_writes"], instance=settings.instance_id)

@@ -1,0 +1,80 @@
+"""One orchestrator per database file: an advisory lock (``fcntl.flock``) on ``DB.lock`` beside
+it, holding the owner's pid, taken for the orchestrator process's life.
+
+Two orchestrators on one SQLite file would each schedule the same campaigns' episodes and
+record them twice; the second one must refuse to start and say who holds the file.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+from pathlib import Path
+
+
+class DatabaseInUse(RuntimeError):
+    """Another process holds the database's lock; the message names the file and its pid."""
+
+
+def lock_path(db_path: str | os.PathLike) -> Path:
+    return Path(f"{os.fspath(db_path)}.lock")
+
+
+class DatabaseLock:
+    """An exclusive lock on ``db_path``; ``acquire()`` raises ``DatabaseInUse`` if it is held."""
+
+    def __init__(self, db_path: str | os.PathLike) -> None:
+        self.db_path = os.fspath(db_path)
+        self.path = lock_path(db_path)
+        self._fd: int | None = None
+
+    def acquire(self) -> "DatabaseLock":
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _read_pid(fd)
+            os.close(fd)
+            who = f" (pid {holder})" if holder else ""
+            raise DatabaseInUse(f"the database {self.db_path} is in use by another orchestrator{who}: "
+                                "stop it, or give this one another database") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing the descriptor releases the flock
+            self._fd = None
+
+    def __enter__(self) -> "DatabaseLock":
+        return self.acquire()
+
+    def __exit__(self, *_exc) -> None:
+        self.release()
+
+
+def holder(db_path: str | os.PathLike) -> int | None:
+    """The pid holding ``db_path``'s lock (0 if unknown), or None when it is free (or there is
+    no lock file)."""
+    path = lock_path(db_path)
+    if not path.exists():
+        return None
+    try:
+        with DatabaseLock(db_path):
+            return None
+    except DatabaseInUse:
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            return _read_pid(fd) or 0
+        finally:
+            os.close(fd)
+
+
+def _read_pid(fd: int) -> int | None:
+    try:
+        text = os.pread(fd, 32, 0).decode().strip()
+        return int(text) if text else None
+    except (OSError, ValueError):
+        return None
