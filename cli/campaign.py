@@ -32,7 +32,20 @@ def _complete(choices):
 
 
 def _follow(client: Client, cid: str, as_json_lines: bool = False) -> dict:
-    """Follow a campaign's progress (a bar on stderr; JSON lines on stdout if asked) until it finishes."""
+    """Follow a campaign's progress (a bar on stderr; JSON lines on stdout if asked) until it
+    finishes. Ctrl-C stops following, not the campaign: it says so, with the commands to
+    follow or cancel it, and exits 130."""
+    try:
+        return _progress(client, cid, as_json_lines)
+    except KeyboardInterrupt:
+        api = client.api
+        where = "" if api == DEFAULT_API else f" --api {api}"
+        stderr.print(f"interrupted: campaign {cid} keeps running on {api}. Follow it with `ra2vipas campaign watch {cid}{where}`, "
+                     f"cancel it with `ra2vipas campaign cancel {cid}{where}`.", soft_wrap=True, markup=False, highlight=False)
+        raise typer.Exit(130) from None
+
+
+def _progress(client: Client, cid: str, as_json_lines: bool) -> dict:
     with Progress(TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
                   TimeElapsedColumn(), console=stderr, transient=True) as bar:
         task = bar.add_task(f"campaign {cid}", total=None)

@@ -121,6 +121,9 @@ def emit_results(results: dict[str, Any], plot: str | None, as_json: bool) -> No
 
 
 def print_results(results: dict[str, Any]) -> None:
+    if results.get("partial"):
+        recorded = ", ".join(f"{a} {n}" for a, n in (results.get("tests_recorded") or {}).items())
+        stdout.print(f"partial results: the campaign stopped before its end; tests recorded: {recorded} (of {results['tests']})")
     stdout.print(dr_table(results))
     confidence = confidence_table(results)
     if confidence is not None:

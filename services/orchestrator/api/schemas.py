@@ -162,6 +162,9 @@ class ResultsPublic(BaseModel):
     steps_per_second: Optional[float]
     latency_ms: Optional[LatencySummary] = Field(None, description="realtime campaigns only: sample -> command latency")
     stop_confidence: Optional[float] = Field(None, description="early decision threshold, when the campaign had one")
+    partial: Optional[bool] = Field(None, description="true for a cancelled or failed campaign: the reduction of the episodes "
+                                                      "recorded before it stopped (tests_recorded says how many per algorithm)")
+    tests_recorded: Optional[dict[str, int]] = Field(None, description="partial results only: tests recorded per algorithm")
 
 
 class OutcomePublic(BaseModel):

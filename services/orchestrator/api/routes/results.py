@@ -18,16 +18,25 @@ from ra2vipas.services.orchestrator.api.schemas import ResultsPublic
 
 router = APIRouter(prefix="/campaigns/{campaign_id}", tags=["results"])
 
-NOT_DONE = "the campaign has not finished (or failed, or was cancelled): no results"
+NOT_DONE = "the campaign is still queued or running (or stopped before any episode was recorded): no results yet"
 
 
-def finished_results(campaign: dict[str, Any]) -> dict[str, Any]:
-    """The stored results object; 409 until the campaign is done."""
-    if campaign["status"] != "done" or campaign["results"] is None:
-        p = campaign["progress"]
-        raise HTTPException(status.HTTP_409_CONFLICT,
-                            f"campaign {campaign['id']} is {campaign['status']} ({p['done']}/{p['total']} episodes done): no results")
-    return campaign["results"]
+def finished_results(campaign: dict[str, Any], store: Any = None) -> dict[str, Any]:
+    """The stored results object of a done campaign; for a cancelled or failed one (with a
+    ``store``), the reduction of the episodes it recorded, marked ``partial`` with
+    ``tests_recorded``; 409 while it runs or if nothing was recorded."""
+    if campaign["status"] == "done" and campaign["results"] is not None:
+        return campaign["results"]
+    p = campaign["progress"]
+    if store is not None and campaign["status"] in ("cancelled", "failed") and p["done"]:
+        from ra2vipas.services.orchestrator.study_store import point_results
+
+        results, tests, _ = point_results(store, campaign)
+        if results is not None:
+            return {**results, "partial": True, "tests_recorded": tests}
+    raise HTTPException(status.HTTP_409_CONFLICT,
+                        f"campaign {campaign['id']} is {campaign['status']} ({p['done']}/{p['total']} episodes done): no results"
+                        + (" yet" if campaign["status"] in ("queued", "running") else ""))
 
 
 @router.get("/results", response_model=ResultsPublic, response_model_exclude_unset=True,
@@ -38,8 +47,10 @@ def campaign_results(campaign: CampaignDep, request: Request,
                      fmt: Annotated[Optional[ResultsFormat], Query(alias="format", description="json (default) or csv")] = None) -> Any:
     """Per algorithm: the DR curve with Wilson 95 % bands, the final DR, the time to DR ≥ 0.9 and
     the in-FoV rate, with the preset, the full scenario and the seed (the same object as
-    ``ra2vipas simulate --json``). The CSV carries the scenario and seed in its header lines."""
-    results = finished_results(campaign)
+    ``ra2vipas simulate --json``). The CSV carries the scenario and seed in its header lines.
+    A cancelled or failed campaign's results are those of the episodes it recorded, with
+    ``partial: true`` and ``tests_recorded``."""
+    results = finished_results(campaign, request.app.state.store)
     if results_format(request, fmt) == "csv":
         return Response(write_results_csv(results, campaign["id"]), media_type="text/csv",
                         headers={"Content-Disposition": f'inline; filename="campaign-{campaign["id"]}.csv"'})
