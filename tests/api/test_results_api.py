@@ -137,3 +137,16 @@ def test_rigs_come_from_liveliness(http):
     body = http.get("/rigs").json()
     assert [(r["name"], r["live"], r["sensors"], r["controller"]) for r in body["rigs"]] == [("rig-1", True, True, True)]
     assert body["rigs"][0]["in_flight"] >= 0 and body["learners"] == ["learner"]
+
+
+def test_tests_can_be_filtered_by_hit_and_campaigns_by_name(http, done_campaign):
+    cid = done_campaign["id"]
+    every = http.get(f"/campaigns/{cid}/tests", params={"limit": 200}).json()["items"]
+    hits = http.get(f"/campaigns/{cid}/tests", params={"hit": "true", "limit": 200}).json()
+    misses = http.get(f"/campaigns/{cid}/tests", params={"hit": "false", "limit": 200}).json()
+    assert hits["total"] + misses["total"] == len(every)
+    assert all(row["final_hit"] is True for row in hits["items"]) and all(row["final_hit"] is False for row in misses["items"])
+    assert http.get(f"/campaigns/{cid}/tests", params={"hit": "maybe"}).status_code == 422
+    named = http.get("/campaigns", params={"name": "fixture"}).json()
+    assert named["total"] >= 1 and all(c["name"] == "fixture" for c in named["items"])
+    assert http.get("/campaigns", params={"name": "no such name"}).json()["total"] == 0

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 import ra2vipas
-from tests.cli.conftest import one_error_line, ra2vipas as run
+from tests.cli.conftest import done_campaign, live, one_error_line, ra2vipas as run  # noqa: F401  (fixtures)
 
 
 @pytest.mark.parametrize("variable, value, words", [
@@ -45,3 +45,17 @@ def test_an_unknown_preset_is_a_usage_error_like_other_bad_input():
 def test_version():
     proc = run("--version")
     assert proc.returncode == 0 and proc.stdout.strip() == f"ra2vipas {ra2vipas.__version__}"
+
+
+def test_results_of_one_algorithm_and_campaigns_by_name(live, done_campaign):
+    import json
+
+    cid = done_campaign["id"]
+    one = run("campaign", "results", cid, "--algorithm", "rapas", "--json", "--api", live.url)
+    assert one.returncode == 0, one.stderr
+    assert list(json.loads(one.stdout.strip().splitlines()[-1])["algorithms"]) == ["rapas"]
+    bad = run("campaign", "results", cid, "--algorithm", "sweep", "--api", live.url)
+    assert bad.returncode == 2 and "no results for 'sweep'" in one_error_line(bad)
+    listed = run("campaign", "list", "--name", "fixture", "--json", "--api", live.url)
+    items = json.loads(listed.stdout.strip().splitlines()[-1])["items"]
+    assert items and {c["name"] for c in items} == {"fixture"}
