@@ -371,3 +371,15 @@ def test_renderer_processes_exit_when_the_api_process_is_killed(tmp_path):
         proc.stdout.close()
         if renderer_pid is not None and not gone(renderer_pid):
             os.kill(renderer_pid, signal.SIGKILL)
+
+
+def test_the_rate_limit_refuses_beyond_its_rate_and_refills():
+    from ra2vipas.services.orchestrator.api.render import RateLimit
+
+    limit = RateLimit(10.0, burst=3.0)
+    t = 100.0
+    limit._at = t
+    assert [limit.try_acquire(now=t) for _ in range(4)] == [True, True, True, False]
+    assert limit.try_acquire(now=t + 0.05) is False  # half a token
+    assert limit.try_acquire(now=t + 0.15) is True  # refilled at 10 per second
+    assert [limit.try_acquire(now=t + 10.0) for _ in range(4)] == [True, True, True, False]  # never more than the burst
