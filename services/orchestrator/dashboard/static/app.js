@@ -310,7 +310,7 @@
   }
 
   // -- study page ----------------------------------------------------------------------------
-  const BOUNDED = /^(dr_final|in_fov_final|pod_r2|calibration_|decision_accuracy|decision_undecided)/;  // metrics in [0, 1]
+  const BOUNDED = /^(dr_final|in_fov_final|calibration_|decision_accuracy|decision_undecided)/;  // metrics in [0, 1]
   const key = (v) => JSON.stringify(v);
   let studyState = null;
 
