@@ -74,6 +74,9 @@ def start(
     mode: Annotated[str, typer.Option(help="fast (lockstep, as fast as possible) or realtime (one sample every T_RF).", autocompletion=_complete(("fast", "realtime")))] = "fast",
     name: Annotated[Optional[str], typer.Option(help="A label for the campaign.")] = None,
     stop_confidence: Annotated[float, typer.Option("--stop-confidence", min=0.0, max=0.999999, help="End each episode at the first step whose confidence reaches this, its answer final (0: off); the results then report accuracy and time to decision.")] = 0.0,
+    target_rigs: Annotated[Optional[list[str]], typer.Option("--rig", metavar="NAME", help="Run only on this rig (repeatable; default: any live rig).")] = None,
+    rig_kind: Annotated[Optional[str], typer.Option("--rig-kind", help="Run only on rigs of this kind: simulated, hardware or survey.")] = None,
+    use_rig_values: Annotated[bool, typer.Option("--use-rig-values", help="Where the scenario contradicts a targeted rig's descriptor, take the rig's values (else the campaign is refused, naming each field).")] = False,
     wait: Annotated[bool, typer.Option("--wait", help="Show progress until it finishes, then print the DR table.")] = False,
     plot: Annotated[Optional[str], typer.Option(metavar="FILE", help="With --wait: also write the DR curves to FILE (.png or .svg).")] = None,
     embedded: Annotated[bool, typer.Option("--embedded", help="Start a local stack (Zenoh router, services, SQLite file) just for this campaign and stop it afterwards; implies --wait.")] = False,
@@ -105,6 +108,14 @@ def start(
         body["name"] = name
     if stop_confidence > 0.0:
         body["stop_confidence"] = stop_confidence
+    if target_rigs:
+        body["rigs"] = list(dict.fromkeys(target_rigs))
+    if rig_kind is not None:
+        if rig_kind not in ("simulated", "hardware", "survey"):
+            fail(f"--rig-kind must be simulated, hardware or survey, got {rig_kind!r}", EXIT_USAGE)
+        body["rig_kind"] = rig_kind
+    if use_rig_values:
+        body["use_rig_values"] = True
     if embedded:
         _run_embedded(body, db, rigs, plot, as_json, insecure)
         return
