@@ -346,6 +346,8 @@ class Scheduler:
         if truth is not None:
             r2 = round(float(r2_score(np.asarray(truth.pod), predict(response.model, np.asarray(truth.rssi_dbm)))), 6)
             truth_data = {"rssi_dbm": list(truth.rssi_dbm), "pod": list(truth.pod)}
+        else:
+            log.info("campaign %s: no training truth answered (a hardware rig has none): POD R² is not scored", cid)
 
         def record() -> None:
             if cid not in self.runs:
@@ -615,6 +617,9 @@ class Scheduler:
         if latencies:
             results["latency_ms"] = {"p50": round(float(np.percentile(latencies, 50)), 4), "p99": round(float(np.percentile(latencies, 99)), 4)}
         rig_notes(results, checks)
+        if results["pod"].get("r2") is None:
+            results["pod"]["note"] = ("R² not scored: no rig served the training truth (truth/*/training) when the model was "
+                                      "trained; a hardware rig cannot, a simulated one or an operator can")
         self.store.set_campaign(run.id, status="done", results=_json(results), finished_at=finished,
                                 steps_per_second=results["steps_per_second"])
         self.runs.pop(run.id, None)

@@ -84,6 +84,10 @@ class PODSummary(BaseModel):
     train_seconds: Optional[float] = None
 
 
+class ResultsPOD(PODSummary):
+    note: Optional[str] = Field(None, description="why r2 is null (no rig served the training truth)")
+
+
 class CampaignProgress(BaseModel):
     """What the progress stream sends (``event: progress``)."""
 
@@ -170,7 +174,7 @@ class ResultsPublic(BaseModel):
     scenario: dict[str, Any]
     tests: int
     seed: int
-    pod: PODSummary
+    pod: ResultsPOD
     algorithms: dict[str, AlgorithmResults]
     steps_per_second: Optional[float]
     latency_ms: Optional[LatencySummary] = Field(None, description="realtime campaigns only: sample -> command latency")
