@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import heapq
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -34,6 +35,7 @@ from ra2vipas.services.protocol.messages import (
 )
 from ra2vipas.services.protocol.rig import RigDescriptor, apply_rig_values
 from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.sensors.physics import wrap
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode, episode_truth
 from ra2vipas.services.transport.bus import Bus, QueryError, undeclare_all
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop
@@ -136,6 +138,8 @@ class SensorsNode:
             self._end(cmd.episode_id)
 
     def _sense(self, ep: _Episode, step: int, pan: float) -> Measurement:
+        if not -math.pi <= pan < math.pi:  # the pan unit reaches the commanded angle, reported wrapped (docs/protocol.md)
+            pan = float(wrap(pan))
         m = ep.platform.sense(step, pan)
         return Measurement.model_construct(episode_id=ep.start.episode_id, step=m.step, pan_rad=m.pan_rad, rf=m.rf, frames=m.frames)
 
