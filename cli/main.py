@@ -5,6 +5,7 @@ from __future__ import annotations
 import typer  # noqa: E402  (ra2vipas/__init__ pins BLAS to one thread before numpy loads)
 
 from ra2vipas.cli import bench, campaign, presets, protocol, security, services, study  # noqa: E402
+from ra2vipas.cli.record import record, replay  # noqa: E402
 from ra2vipas.cli.rig import rig  # noqa: E402
 from ra2vipas.cli.rigs import rigs  # noqa: E402
 from ra2vipas.cli.simulate import simulate  # noqa: E402
@@ -44,6 +45,8 @@ app.add_typer(security.app, name="security")
 for _name in ("sensors", "controller", "learner", "orchestrator", "router"):
     app.command(_name)(getattr(services, _name))
 app.command("rig")(rig)
+app.command("record")(record)
+app.command("replay")(replay)
 
 
 def main() -> None:

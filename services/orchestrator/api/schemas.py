@@ -246,6 +246,9 @@ class TracePublic(BaseModel):
     tx_index: int
     targets: list[TargetPublic]
     steps: list[TraceStep]
+    decided_step: Optional[int] = Field(None, description="the step of an early decision (stop_confidence), else null")
+    model_check: Optional[dict[str, Any]] = Field(None, description="how the controller modelled the rig (EpisodeResult.model_check; "
+                                                                   "null from a v1 controller)")
 
 
 # -- presets, rigs, health -----------------------------------------------------------------------

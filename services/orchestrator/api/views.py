@@ -84,7 +84,8 @@ def trace_public(row: dict[str, Any], rf_period_s: float) -> TracePublic:
                             ranges_m=walks[i]["ranges_m"] if i in walks else None)
                for i, (b, r) in enumerate(zip(row["bearings"], row["ranges"]))]
     return TracePublic(campaign_id=row["campaign_id"], test_index=row["test_index"], algorithm=row["algorithm"], rig=row["rig"],
-                       attempt=row["attempt"], tx_index=row["tx_index"], targets=targets, steps=steps)
+                       attempt=row["attempt"], tx_index=row["tx_index"], targets=targets, steps=steps,
+                       decided_step=row.get("decided_step"), model_check=row.get("model_check"))
 
 
 def rigs_public(status: dict[str, Any]) -> RigsPublic:
