@@ -20,6 +20,9 @@ def schema_documents() -> dict[str, dict]:
 
     docs = {f"{m.__name__}.json": m.model_json_schema() for m in WIRE_MESSAGES}
     docs["EpisodeControl.json"] = episode_control_adapter.json_schema()
+    from ra2vipas.services.rigs.survey import Survey
+
+    docs["Survey.json"] = Survey.model_json_schema()  # a file format, not a wire message: the survey rig's input
     return docs
 
 
