@@ -18,11 +18,11 @@ def test_bench_dashboard_reports_server_and_browser_numbers():
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout.strip().splitlines()[-1])
     assert report["tests"] == 60 and report["episodes"] == 240
-    assert set(report["server"]) >= {"campaigns", "campaign", "campaign_missed_filter", "episode", "new_campaign", "rigs"}
+    assert set(report["server"]) >= {"campaigns", "campaign", "campaign_missed_filter", "episode", "new_campaign", "rigs", "studies", "study"}
     for page in report["server"].values():
         assert page["p50_ms"] > 0 and page["bytes"] > 1000 and 0 < page["transferred_bytes"] < page["bytes"]
     assert isinstance(report["campaign_page_under_1s"], bool)
-    for name in ("campaigns", "campaign", "episode", "new_campaign", "rigs"):
+    for name in ("campaigns", "campaign", "episode", "new_campaign", "rigs", "studies", "study"):
         cold = report["browser"][name]["cold"]
         assert cold["first_contentful_paint_ms"] > 0 and cold["load_ms"] > 0
         assert cold["transferred_bytes"] > 10_000 and cold["requests"] >= 5  # the page and its scripts, all from the orchestrator

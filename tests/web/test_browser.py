@@ -2,7 +2,9 @@
 orchestrator, learner, two rigs, SQLite file, an API token): the home page, creating a
 campaign through the form (a 422 shown next to its field), progress and DR curves updating
 without a reload, the campaign page, the episode player, cancelling and deleting, the rigs
-page, phone width and the keyboard; no console errors anywhere (``conftest.watched``)."""
+page, phone width and the keyboard; a study started through the API progressing on the studies
+page, its plot and a point's campaign page, cancelling and deleting a study; no console errors
+anywhere (``conftest.watched``)."""
 
 from __future__ import annotations
 
@@ -288,6 +290,112 @@ def test_pages_fit_a_phone_and_tab_order_starts_with_the_skip_link(watched, done
     assert page.evaluate("document.activeElement.closest('main') !== null")
     name = {"/": "home", "/ui/new": "new", "/ui/rigs": "rigs"}.get(path, path.lower())
     page.screenshot(path=screenshots / f"phone-{name}.png", full_page=True)
+
+
+def wait_study(api, sid: str, timeout: float = 180.0) -> dict:
+    return wait_until(lambda: (s := api.get(f"/studies/{sid}").json())["status"] in ("done", "failed", "cancelled") and s,
+                      timeout, what=f"study {sid} finished")
+
+
+def test_a_study_appears_and_progresses_live_then_its_page_plots_it_and_links_its_points(watched, api, screenshots):
+    w = watched()
+    page = w.page
+    page.goto("/")
+    page.get_by_role("link", name="Studies").click()  # the navigation's link
+    page.wait_for_url(re.compile(r"/ui/studies$"))
+    page.evaluate("window.__marker = 'same page'")
+    # started through the API while the page is open: its row appears, progresses and finishes without a reload
+    r = api.post("/studies", json={"overrides": {"steps": 60, "n_train": 250}, "vary": {"n_targets": [6, 12]},
+                                   "algorithms": ["ra2vipas", "rapas"], "tests": 8, "seed": 2, "name": "browser study"})
+    assert r.status_code == 201, r.text
+    sid = r.json()["id"]
+    row = page.locator(f"#study-{sid}")
+    row.wait_for()
+    assert "browser study" in row.inner_text() and "n_targets" in row.inner_text()
+    seen = set()
+
+    def finished():
+        text = row.inner_text()
+        seen.add(re.search(r"\d+/\d+", text).group(0))
+        return row.get_attribute("data-status") == "done"
+
+    wait_until(finished, 180, every=0.1, what="the study's row shows it done")
+    assert len(seen) >= 2 and "32/32" in seen, seen  # 2 points x 8 tests x 2 algorithms, updated live
+    assert page.evaluate("window.__marker") == "same page"
+    page.screenshot(path=screenshots / "studies.png", full_page=True)
+
+    # the study page: one line per algorithm over n_targets, the legend with the API's values, the points
+    results = api.get(f"/studies/{sid}/results").json()
+    row.get_by_role("link", name="browser study").click()
+    page.wait_for_url(re.compile(rf"/ui/studies/{sid}$"))
+    page.locator("#study-chart canvas").wait_for()
+    legend = " ".join(page.locator("#study-legend").inner_text().split())
+    last = {r["algorithm"]: r for r in results["rows"] if r["n_targets"] == 12}
+    assert f"Ra²ViPAS {last['ra2vipas']['dr_final']:.3f}" in legend and f"RaPAS {last['rapas']['dr_final']:.3f}" in legend
+    assert "n_targets=12, n=8" in legend
+    before = page.locator("#study-chart canvas").evaluate("c => c.toDataURL()")
+    page.select_option("#metric", "time_to_dr90_s")  # another metric: redrawn, its figure exported
+    page.wait_for_function("() => document.querySelector('#export-png').href.includes('/plots/time_to_dr90_s')")
+    assert page.locator("#study-chart canvas").evaluate("c => c.toDataURL()") != before
+    assert page.request.get(page.locator("#export-png").get_attribute("href")).status == 200
+    assert page.locator("#points-table tbody").count() == 2
+    page.screenshot(path=screenshots / "study.png", full_page=True)
+
+    # a point's link opens its campaign page, which links back to the study
+    point = api.get(f"/studies/{sid}").json()["points"][1]
+    page.locator("#point-1 a").first.click()
+    page.wait_for_url(re.compile(rf"/ui/campaigns/{point['campaign_id']}$"))
+    page.locator("#dr-chart canvas").wait_for()
+    point_results = api.get(f"/campaigns/{point['campaign_id']}/results").json()
+    if point_results["algorithms"]["ra2vipas"].get("calibration", {}).get("reliability"):
+        page.locator("#reliability-chart canvas").wait_for()  # the reliability diagram beside the summary
+        assert "ECE" in page.locator("#reliability-legend").inner_text()
+    page.screenshot(path=screenshots / "study-point-campaign.png", full_page=True)
+    page.locator("#study-link").click()
+    page.wait_for_url(re.compile(rf"/ui/studies/{sid}$"))
+
+
+def test_cancel_a_study_from_its_page_then_delete_it(watched, api, screenshots):
+    r = api.post("/studies", json={"vary": {"n_targets": [10, 20]}, "tests": 300, "seed": 3, "name": "study to cancel"})
+    assert r.status_code == 201
+    sid = r.json()["id"]
+    w = watched()
+    page = w.page
+    page.on("dialog", lambda d: d.accept())
+    page.goto(f"/ui/studies/{sid}")
+    page.click("#cancel-button")
+    enter_token(page)
+    page.wait_for_function("() => document.querySelector('#status').textContent === 'cancelled'")
+    page.locator("#delete-button").wait_for()  # the finished page swapped in
+    assert api.get(f"/studies/{sid}").json()["status"] == "cancelled"
+    page.click("#delete-button")
+    page.wait_for_url(re.compile(r"/ui/studies$"))
+    assert api.get(f"/studies/{sid}").status_code == 404
+
+
+@pytest.fixture(scope="module")
+def done_study(api):
+    r = api.post("/studies", json={"overrides": {"steps": 30, "n_train": 250},
+                                   "vary": {"n_targets": [6, 10]}, "algorithms": ["rapas"], "tests": 2, "seed": 1, "name": "phone"})
+    assert r.status_code == 201, r.text
+    s = wait_study(api, r.json()["id"])
+    assert s["status"] == "done"
+    return s
+
+
+@pytest.mark.parametrize("path", ["/ui/studies", "STUDY"])
+def test_studies_pages_fit_a_phone(watched, done_study, screenshots, path):
+    w = watched(viewport=PHONE)
+    page = w.page
+    page.goto(path if path != "STUDY" else f"/ui/studies/{done_study['id']}")
+    if path == "STUDY":
+        page.locator("#study-chart canvas").wait_for()
+    else:
+        page.locator(f"#study-{done_study['id']}").wait_for()
+    assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+    page.keyboard.press("Tab")
+    assert page.evaluate("document.activeElement.textContent") == "Skip to content"
+    page.screenshot(path=screenshots / f"phone-{'study' if path == 'STUDY' else 'studies'}.png", full_page=True)
 
 
 def test_no_token_in_the_stack_logs(stack, screenshots):

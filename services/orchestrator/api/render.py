@@ -166,10 +166,10 @@ class RateLimit:
             return False
 
 
-# Figure requests served per second, cached or not (RA2VIPAS_PLOT_RATE): every request costs the
-# orchestrator's CPU even when its bytes are cached, and on a small machine that CPU is the rigs'.
-# Beyond it: 503 with Retry-After, before any work.
-PLOT_RATE = float(os.environ.get("RA2VIPAS_PLOT_RATE", "40"))
+# Figure requests served per second, cached or not (OrchestratorSettings.plot_rate,
+# RA2VIPAS_PLOT_RATE): every request costs the orchestrator's CPU even when its bytes are cached,
+# and on a small machine that CPU is the rigs'. Beyond it: 503 with Retry-After, before any work.
+PLOT_RATE = 40.0
 
 
 class PlotRenderer:

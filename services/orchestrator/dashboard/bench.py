@@ -3,7 +3,9 @@
 A finished campaign of TESTS tests x 4 algorithms x 120 steps is written straight into a new
 SQLite file (synthetic outcomes with the shapes and sizes of real ones: hits, estimates, pans,
 rewards, choices, confidences, 20 targets; its results object and POD model computed from
-them), the orchestrator's app is served by uvicorn on loopback (no rigs: nothing runs), and
+them), and a finished study of 8 points (n_targets) x up to 1000 tests x 4 algorithms (each
+point's results object computed from synthetic outcomes); the orchestrator's app is served by
+uvicorn on loopback (no rigs: nothing runs), and
 
 * the server's render time of each page is timed over REPEATS requests (the campaign page of
   a 10 000-test campaign must render in < 1 s: its per-test table is paginated in SQL);
@@ -30,6 +32,7 @@ from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol.scenario import build_scenario
 
 ALGORITHMS = ["ra2vipas", "rapas", "ravipas", "sweep"]
+STUDY_TESTS = 1000  # tests per point of the bench's study (at most)
 SKILL = {"ra2vipas": (0.99, 8), "rapas": (0.92, 25), "ravipas": (0.68, 40), "sweep": (0.98, 80)}  # final hit rate, settling step
 
 
@@ -80,6 +83,43 @@ def seed_campaign(store: Store, tests: int, seed: int = 1) -> str:
     store.set_campaign(cid, status="done", started_at=now, finished_at=now + 1, pod_r2=0.99, pod_train_seconds=0.3,
                        results=json.dumps(results), steps_per_second=3000.0, pod_job="bench")
     return cid
+
+
+STUDY_POINTS = [5, 10, 15, 20, 25, 30, 35, 40]  # n_targets of the bench's study
+
+
+def seed_study(store: Store, tests: int, seed: int = 2) -> str:
+    """Write a finished study over ``STUDY_POINTS`` (n_targets) of ``tests`` synthetic tests of
+    every algorithm per point (each point's results object computed from synthetic hits and
+    confidences); return its id."""
+    from ra2vipas.services.orchestrator.study_store import StudyStore
+
+    rng = np.random.default_rng(seed)
+    points = []
+    for n in STUDY_POINTS:
+        points.append(({"n_targets": n}, build_scenario("paper", {"n_targets": n}).model_dump(mode="json")))
+    sid, cids = StudyStore(store).create(preset="paper", overrides={}, vary={"n_targets": STUDY_POINTS}, points=points,
+                                         algorithms=ALGORITHMS, tests=tests, seed=seed, mode="fast", name=f"bench: {tests} tests per point")
+    now = time.time()
+    for (overrides, scenario), cid in zip(points, cids):
+        steps = scenario["steps"]
+        summaries = {}
+        for algorithm in ALGORITHMS:
+            rate, settle = SKILL[algorithm]
+            rate = rate * (1 - overrides["n_targets"] / 200)
+            finals = rng.random(tests) < rate
+            settles = np.clip(rng.geometric(1.0 / settle, tests), 1, steps)
+            hits = np.where(finals[:, None], np.arange(steps)[None, :] >= settles[:, None], rng.random((tests, steps)) < 0.2)
+            hits[:, -1] = finals
+            confidences = np.clip(np.where(hits, 0.6 + 0.4 * rng.random((tests, steps)), 0.5 * rng.random((tests, steps))), 0, 1)
+            summaries[algorithm] = summarize_algorithm(hits, hits, scenario["rf_period_s"], confidences)
+        results = {"preset": "paper", "scenario": scenario, "tests": tests, "seed": seed, "pod": {"r2": 0.99, "train_seconds": 0.3},
+                   "algorithms": summaries, "steps_per_second": 3000.0}
+        with store.transaction() as db:
+            db.execute("UPDATE episodes SET status='done', rig='rig-1', finished_at=? WHERE campaign_id=?", (now, cid))
+        store.set_campaign(cid, status="done", started_at=now, finished_at=now + 1, pod_r2=0.99, pod_train_seconds=0.3,
+                           results=json.dumps(results), steps_per_second=3000.0, pod_job="bench")
+    return sid
 
 
 class _Server:
@@ -139,6 +179,7 @@ def run(tests: int = 10_000, repeats: int = 10, chromium: str | None = "/usr/bin
         store = Store(db)
         t0 = time.perf_counter()
         cid = seed_campaign(store, tests)
+        sid = seed_study(store, min(tests, STUDY_TESTS))
         seed_s = time.perf_counter() - t0
         store.close()
         pages = {
@@ -149,6 +190,8 @@ def run(tests: int = 10_000, repeats: int = 10, chromium: str | None = "/usr/bin
             "episode": f"/ui/campaigns/{cid}/tests/{tests // 2}/ra2vipas",
             "new_campaign": "/ui/new",
             "rigs": "/ui/rigs",
+            "studies": "/ui/studies",
+            "study": f"/ui/studies/{sid}",
         }
         report: dict[str, Any] = {"tests": tests, "algorithms": len(ALGORITHMS), "steps": 120, "episodes": tests * len(ALGORITHMS),
                                   "seed_seconds": round(seed_s, 2), "server": {}, "browser": None}

@@ -275,3 +275,83 @@ def episode_data(row: dict[str, Any], scenario: dict[str, Any]) -> dict[str, Any
         "targets": [{"index": t.index, "bearing": round(t.bearing_rad, 6), "range": round(t.range_m, 4), "is_tx": t.is_tx,
                      "bearings": t.bearings_rad, "ranges": t.ranges_m} for t in trace.targets],
     }
+
+
+# -- reliability diagram -------------------------------------------------------------------------
+
+def reliability_series(results: dict[str, Any]) -> dict[str, Any] | None:
+    """The reliability diagram's data (``calibration.reliability`` bins of the final
+    confidences): per algorithm that has them, the non-empty bins' mean confidence, accuracy and
+    count, and its final-step ECE; None when no algorithm carries bins."""
+    out = {}
+    for name, block in results.get("algorithms", {}).items():
+        cal = block.get("calibration") or {}
+        bins = [b for b in cal.get("reliability") or [] if b.get("n") and b.get("confidence") is not None]
+        if not bins:
+            continue
+        bins.sort(key=lambda b: b["confidence"])
+        out[name] = {"label": label(name), "ece": cal.get("ece_final"), "confidence": [b["confidence"] for b in bins],
+                     "accuracy": [b["accuracy"] for b in bins], "n": [b["n"] for b in bins]}
+    return {"algorithms": out} if out else None
+
+
+# -- studies -------------------------------------------------------------------------------------
+
+# metrics offered first (in this order) when a study's rows have them; any other numeric field follows
+STUDY_METRICS = ["dr_final", "time_to_dr90_s", "in_fov_final", "pod_r2", "calibration_confidence_final", "calibration_ece_final",
+                 "calibration_ece_all", "decision_accuracy", "decision_median_s", "decision_p90_s", "decision_undecided"]
+# the results table's columns after the point's values, algorithm and tests
+STUDY_COLUMNS = [("dr_final", "final DR (95 % CI)"), ("time_to_dr90_s", "t(DR ≥ 0.9) [s]"), ("in_fov_final", "Tx in FoV"),
+                 ("pod_r2", "POD R²"), ("calibration_ece_final", "ECE (final)"), ("decision_accuracy", "decision accuracy"),
+                 ("decision_median_s", "median time to decide [s]")]
+
+
+def _is_band(key: str) -> bool:
+    return key in ("ci95_lo", "ci95_hi") or key.endswith(("_ci95_lo", "_ci95_hi"))
+
+
+def study_metrics(rows: list[dict[str, Any]], parameters: list[str]) -> list[dict[str, str]]:
+    """The metrics a study's plot can show: numeric fields of its rows other than the varied
+    values and the interval bounds, the known ones first; each with its label."""
+    from ra2vipas.services.orchestrator.plots import METRIC_LABELS
+    from ra2vipas.services.orchestrator.study import metrics_of
+
+    known = [m for m in metrics_of(rows, parameters) if not _is_band(m)]
+    ordered = [m for m in STUDY_METRICS if m in known] + [m for m in known if m not in STUDY_METRICS]
+    return [{"key": m, "label": METRIC_LABELS.get(m, m)} for m in ordered]
+
+
+def study_chart(results: dict[str, Any]) -> dict[str, Any]:
+    """What the study page's plot draws: the varied parameters and their values in grid order,
+    the algorithms with their labels, the metrics and the rows (each row's varied values, its
+    algorithm, the tests it rests on and its numeric fields, interval bounds included)."""
+    params = results["parameters"]
+    rows = []
+    for r in results["rows"]:
+        keep = {k: v for k, v in r.items() if k in params or k in ("point", "algorithm", "tests")
+                or (isinstance(v, (int, float)) and not isinstance(v, bool))}
+        rows.append(keep)
+    return {"parameters": params, "vary": results["vary"], "partial": results["partial"], "status": results["status"],
+            "algorithms": {a: label(a) for a in results["algorithms"]}, "metrics": study_metrics(results["rows"], params), "rows": rows}
+
+
+def study_table(points: list[dict[str, Any]], results: dict[str, Any]) -> dict[str, Any]:
+    """The study page's results table: one group per point (its values, campaign, status and
+    progress) with one row per algorithm that has recorded tests (final DR with its interval,
+    t90, in-FoV, POD R², and the calibration and decision fields when the rows carry them)."""
+    rows = results["rows"]
+    present = {k for r in rows for k, v in r.items() if v is not None}
+    columns = [(key, title) for key, title in STUDY_COLUMNS if key in present or key in ("dr_final", "time_to_dr90_s", "pod_r2")]
+    by_point: dict[int, list[dict[str, Any]]] = {}
+    for r in rows:
+        cells = []
+        for key, _ in columns:
+            if key == "dr_final":
+                cells.append(f"{fmt(r.get('dr_final'))} ({fmt([r.get('ci95_lo'), r.get('ci95_hi')])})")
+            else:
+                cells.append(fmt(r.get(key)))
+        by_point.setdefault(r["point"], []).append({"algorithm": r["algorithm"], "label": label(r["algorithm"]), "tests": r["tests"],
+                                                    "cells": cells})
+    groups = [{**p, "rows": by_point.get(p["point"], [])} for p in points]
+    return {"columns": [title for _, title in columns], "parameters": results["parameters"], "groups": groups,
+            "algorithms": results["algorithms"]}

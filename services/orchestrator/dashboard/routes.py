@@ -1,7 +1,7 @@
 """The dashboard's pages (``/`` and ``/ui/...``), their htmx fragments and event streams.
 
 Read-only: every page and stream reads the store and the scheduler like the REST API's GET
-routes; creating, cancelling and deleting campaigns is done by the page's script through the
+routes (the studies pages are in ``studies.py``); creating, cancelling and deleting campaigns is done by the page's script through the
 REST API itself (``POST /campaigns``, ``POST /campaigns/{id}/cancel``, ``DELETE
 /campaigns/{id}``), with the bearer token the user typed once (kept in the tab's
 sessionStorage, never in a URL). None of these routes is in the OpenAPI schema.
@@ -28,6 +28,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
 from fastapi.templating import Jinja2Templates
 from starlette.background import BackgroundTask
 from starlette.middleware.gzip import GZipMiddleware
+from starlette.routing import NoMatchFound
 from starlette.staticfiles import StaticFiles
 
 from ra2vipas.services.orchestrator.api.deps import get_campaign
@@ -84,7 +85,10 @@ class CachedStatic(StaticFiles):
 
 def mount(app: FastAPI) -> None:
     """Add the dashboard to ``app``: its routes and its static files (gzip-compressed)."""
+    from ra2vipas.services.orchestrator.dashboard import studies  # its routes use this module's helpers
+
     app.include_router(router)
+    app.include_router(studies.router)
     app.mount("/ui/static", GZipMiddleware(CachedStatic(directory=str(STATIC)), minimum_size=1024), name="dashboard-static")
 
 
@@ -95,9 +99,16 @@ def _store(request: Request) -> Store:
 
 
 def _has_studies(request: Request) -> bool:
-    """Hook for the studies pages (issue 10): the navigation shows "Studies" once the REST API
-    serves ``/studies``; the page itself is to be added here when that API exists."""
-    return any(getattr(r, "path", "").startswith("/studies") for r in request.app.routes)
+    """Whether the navigation shows "Studies" (``/ui/studies``): when the REST API serves
+    ``/studies`` (an app built without the studies router has no such pages)."""
+    state = request.app.state
+    if not hasattr(state, "dashboard_has_studies"):
+        try:  # FastAPI includes routers lazily: ask the app to build the URL rather than scan app.routes
+            request.app.url_path_for("list_studies")
+            state.dashboard_has_studies = True
+        except NoMatchFound:
+            state.dashboard_has_studies = False
+    return state.dashboard_has_studies
 
 
 def _html(request: Request, text: str) -> HTMLResponse:
@@ -238,6 +249,14 @@ def _tests_context(store: Store, campaign: dict[str, Any], missed: bool, sort: s
             "can_miss": can_miss, "tpages": _pages(total, offset)}
 
 
+def _membership(store: Store, cid: str) -> dict[str, Any] | None:
+    """The study a campaign is a point of (its id and the point's index), else None."""
+    from ra2vipas.services.orchestrator.study_store import StudyStore
+
+    found = StudyStore(store).membership(cid)
+    return None if found is None else {"id": found[0], "point": found[1]}
+
+
 def _campaign_or_404(store: Store, cid: str) -> dict[str, Any]:
     return get_campaign(cid, store)
 
@@ -263,6 +282,8 @@ def campaign_page(request: Request, campaign_id: CampaignId, missed: bool = Fals
         "summary": data.summary_table(results) if results else None,
         "curves": data.dr_curves(results) if results else None,
         "has_reliability": bool(results) and any("calibration" in b for b in results["algorithms"].values()),
+        "reliability": data.reliability_series(results) if results else None,
+        "study": _membership(store, campaign_id),
         **_tests_context(store, row, missed, sort, sort_algorithm, order, offset),
     }
     name = c.name or f"campaign {c.id}"

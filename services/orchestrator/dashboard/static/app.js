@@ -1,5 +1,6 @@
 /* ra2vipas dashboard: the token for state-changing requests, the new-campaign form, the live
- * campaign page (DR curves, POD), the episode player. Plain ES2017, no build step; plots with
+ * campaign page (DR curves, POD, reliability), the live study page (metric against the varied
+ * parameter), the episode player. Plain ES2017, no build step; plots with
  * uPlot, partial page updates with htmx (both served by the orchestrator). */
 (function () {
   "use strict";
@@ -184,6 +185,33 @@
     return plot;
   }
 
+  /* Reliability diagram of the final confidences: per algorithm, the share of final answers
+   * that are the Tx against the bins' mean confidence; the diagonal is perfect calibration. */
+  function reliabilityChart(el, legend, d) {
+    const names = Object.keys(d.algorithms);
+    const tables = [[[0, 1], [0, 1]]].concat(names.map((name) => [d.algorithms[name].confidence, d.algorithms[name].accuracy]));
+    const series = [{ label: "confidence" }, { label: "perfectly calibrated", stroke: "#888", width: 1, dash: [4, 4], points: { show: false } }];
+    names.forEach((name, i) => {
+      const c = color(name, i);
+      series.push({ label: d.algorithms[name].label, stroke: c, width: 2, spanGaps: true, points: { show: true, size: 7, fill: c, stroke: c } });
+    });
+    const height = Math.min(340, Math.max(240, Math.round(chartWidth(el) * 0.85)));
+    const plot = new uPlot({ width: chartWidth(el), height: height, series: series, legend: { show: false },
+      scales: { x: { time: false, range: [0, 1] }, y: { range: [0, 1.02] } },
+      axes: [{ label: "mean final confidence" }, { label: "share that is the Tx", values: (u, v) => v.map((x) => x.toFixed(1)) }] },
+      uPlot.join(tables), el);
+    legend.innerHTML = "";
+    names.forEach((name, i) => {
+      const a = d.algorithms[name], item = document.createElement("span");
+      item.className = "legend-item";
+      item.innerHTML = '<span class="sw" style="background:' + color(name, i) + '"></span> ' + a.label +
+        (a.ece === null || a.ece === undefined ? "" : ' <span class="num">ECE ' + fixed(a.ece, 3) + "</span>");
+      legend.appendChild(item);
+    });
+    resizeWith(el, plot, height);
+    return plot;
+  }
+
   // -- campaign page -------------------------------------------------------------------------
   let campaignState = null;
 
@@ -199,6 +227,8 @@
       if (state.dr) state.dr.setScale("x", { min: state.dr.data[0][0], max: state.dr.data[0][state.dr.data[0].length - 1] });
     });
     loadPod(state, page);
+    const rel = $("#reliability-data", page);
+    if (rel) reliabilityChart($("#reliability-chart", page), $("#reliability-legend", page), JSON.parse(rel.textContent));
     const cancel = $("#cancel-button", page), del = $("#delete-button", page);
     if (cancel) cancel.addEventListener("click", async () => {
       if (!window.confirm("Cancel campaign " + id + "? Tests recorded so far are kept.")) return;
@@ -277,6 +307,177 @@
   function refreshCampaign() {
     // the finished campaign's page (summary, exports, final curves), swapped in without a reload
     htmx.ajax("GET", window.location.pathname + window.location.search, { target: "#campaign", select: "#campaign", swap: "outerHTML" });
+  }
+
+  // -- study page ----------------------------------------------------------------------------
+  const BOUNDED = /^(dr_final|in_fov_final|calibration_|decision_accuracy|decision_undecided)/;  // metrics in [0, 1]
+  const key = (v) => JSON.stringify(v);
+  let studyState = null;
+
+  function bandOf(metric) { return metric === "dr_final" ? ["ci95_lo", "ci95_hi"] : [metric + "_ci95_lo", metric + "_ci95_hi"]; }
+
+  /* The metric against the varied parameter: one line per algorithm (points at the grid's
+   * values; categories for a non-numeric parameter) with its 95 % band where the rows have one;
+   * a legend of checkboxes (toggle) with the values under the cursor. */
+  function studyChart(el, legend, chart, metric, hidden) {
+    const name = chart.parameters[0], values = chart.vary[name];
+    const numeric = values.every((v) => typeof v === "number");
+    const xs = numeric ? values.slice().sort((a, b) => a - b) : values.slice();
+    const pos = numeric ? xs : xs.map((_, i) => i);
+    const [loKey, hiKey] = bandOf(metric);
+    const names = Object.keys(chart.algorithms).filter((a) => chart.rows.some((r) => r.algorithm === a));
+    const series = [{ label: name }], bands = [], columns = [pos];
+    names.forEach((a, i) => {
+      const c = color(a, i), base = series.length;
+      const mine = new Map(chart.rows.filter((r) => r.algorithm === a).map((r) => [key(r[name]), r]));
+      const at = (f) => xs.map((x) => { const r = mine.get(key(x)); return r && typeof r[f] === "number" ? r[f] : null; });
+      series.push({ label: chart.algorithms[a], stroke: c, width: 2, spanGaps: true, show: !hidden.has(a),
+                    points: { show: true, size: 7, fill: c, stroke: c } });
+      series.push({ label: "low", stroke: "transparent", spanGaps: true, points: { show: false }, show: !hidden.has(a) });
+      series.push({ label: "high", stroke: "transparent", spanGaps: true, points: { show: false }, show: !hidden.has(a) });
+      bands.push({ series: [base + 2, base + 1], fill: alpha(c, 0.16) });
+      columns.push(at(metric), at(loKey), at(hiKey), xs.map((x) => { const r = mine.get(key(x)); return r ? r.tests : null; }));
+    });
+    const data = [pos];
+    names.forEach((_, i) => data.push(columns[1 + 4 * i], columns[2 + 4 * i], columns[3 + 4 * i]));
+    const tests = names.map((_, i) => columns[4 + 4 * i]);
+    const lo = Math.min.apply(null, pos), hi = Math.max.apply(null, pos), pad = (hi - lo) * 0.05 || 0.5;
+    const height = Math.min(360, Math.max(220, Math.round(chartWidth(el) * 0.45)));
+    const label = (chart.metrics.find((m) => m.key === metric) || { label: metric }).label;
+    const plot = new uPlot({
+      width: chartWidth(el), height: height, series: series, bands: bands, legend: { show: false },
+      scales: { x: { time: false, range: [lo - pad, hi + pad] },
+                y: { range: BOUNDED.test(metric) ? [0, 1.02] : (u, mn, mx) => (mn === null ? [0, 1] : [Math.min(0, mn), mx > 0 ? mx * 1.08 : 1]) } },
+      axes: [{ label: name, splits: xs.length <= 16 ? () => pos : undefined,
+               values: numeric ? undefined : (u, v) => v.map((p) => (Number.isInteger(p) && xs[p] !== undefined ? String(xs[p]) : "")) },
+             { label: label, size: 60 }],
+      hooks: { setCursor: [(u) => showValues(u)] },
+    }, data, el);
+    legend.innerHTML = "";
+    names.forEach((a, i) => {
+      const item = document.createElement("label");
+      item.className = "legend-item";
+      item.innerHTML = '<input type="checkbox"' + (hidden.has(a) ? "" : " checked") + '> <span class="sw" style="background:' + color(a, i) +
+        '"></span> ' + chart.algorithms[a] + ' <span class="num value" data-alg="' + a + '"></span>';
+      item.querySelector("input").addEventListener("change", (e) => {
+        if (e.target.checked) hidden.delete(a); else hidden.add(a);
+        [1, 2, 3].forEach((k) => plot.setSeries(3 * i + k, { show: e.target.checked }));
+      });
+      legend.appendChild(item);
+    });
+    function showValues(u) {
+      const idx = u.cursor.idx;
+      names.forEach((a, i) => {
+        const cell = legend.querySelector('[data-alg="' + a + '"]');
+        const y = u.data[1 + 3 * i], l = u.data[2 + 3 * i], h = u.data[3 + 3 * i];
+        let k = idx;
+        if (k === null || k === undefined) { k = y.length - 1; while (k > 0 && y[k] === null) k--; }
+        if (y[k] === null || y[k] === undefined) { cell.textContent = "(no test yet)"; return; }
+        cell.textContent = fixed(y[k], 3) + (l[k] !== null && h[k] !== null ? " [" + fixed(l[k], 3) + ", " + fixed(h[k], 3) + "]" : "") +
+          " at " + name + "=" + xs[k] + ", n=" + tests[i][k];
+      });
+    }
+    showValues(plot);
+    resizeWith(el, plot, height);
+    return plot;
+  }
+
+  function drawStudy(state, page) {
+    const chart = state.chart, metric = state.metric;
+    const hasRows = chart.rows.some((r) => typeof r[metric] === "number");
+    const el = $("#study-chart", page), img = $("#study-heatmap", page), exports = $("#plot-exports", page);
+    if (exports) {
+      exports.hidden = !hasRows;
+      ["png", "svg"].forEach((f) => { const a = $("#export-" + f, page); if (a) a.href = "/studies/" + state.id + "/plots/" + metric + "?format=" + f; });
+    }
+    if (el) {
+      if (state.plot) { state.plot.destroy(); state.plot = null; }
+      if (hasRows) state.plot = studyChart(el, $("#study-legend", page), chart, metric, state.hidden);
+      else $("#study-legend", page).textContent = "";
+    }
+    if (img && hasRows) {
+      // the server's heat map; while the study runs, a new picture at each update of the rows
+      const done = chart.rows.reduce((n, r) => n + (r.tests || 0), 0);
+      img.src = img.dataset.base + encodeURIComponent(metric) + "?format=svg" + (chart.partial ? "&rows=" + done : "");
+    }
+  }
+
+  function initStudy(root) {
+    const page = root.id === "study" ? root : $("#study", root);
+    if (!page) return;
+    if (studyState && studyState.source) studyState.source.close();
+    const id = page.dataset.studyId;
+    const state = studyState = { id: id, chart: JSON.parse($("#study-data", page).textContent), plot: null, source: null,
+                                 hidden: (studyState && studyState.id === id && studyState.hidden) || new Set(),
+                                 metric: studyState && studyState.id === id ? studyState.metric : null };
+    const select = $("#metric", page);
+    if (state.metric && Array.from(select.options).some((o) => o.value === state.metric)) select.value = state.metric;
+    state.metric = select.value || "dr_final";
+    select.addEventListener("change", () => { state.metric = select.value; drawStudy(state, page); });
+    drawStudy(state, page);
+    const cancel = $("#cancel-button", page), del = $("#delete-button", page);
+    if (cancel) cancel.addEventListener("click", async () => {
+      if (!window.confirm("Cancel study " + id + "? Every unfinished point stops; tests recorded so far are kept.")) return;
+      const r = await api("POST", "/studies/" + id + "/cancel");
+      if (r === null) return;
+      if (r.ok) toast("Study " + id + " cancelled.", "ok"); else toast("Cancel failed: " + (await detail(r)), "bad");
+      if (r.ok && !state.source) refreshStudy();
+    });
+    if (del) del.addEventListener("click", async () => {
+      if (!window.confirm("Delete study " + id + ", its points' campaigns and every test they recorded?")) return;
+      const r = await api("DELETE", "/studies/" + id);
+      if (r === null) return;
+      if (r.status === 204) window.location.assign("/ui/studies"); else toast("Delete failed: " + (await detail(r)), "bad");
+    });
+    if (page.dataset.active === "true") followStudy(state, page);
+  }
+
+  function followStudy(state, page) {
+    const source = state.source = new EventSource("/ui/studies/" + state.id + "/live");
+    source.addEventListener("progress", (e) => {
+      const s = JSON.parse(e.data);
+      const badge = $("#status", page);
+      badge.textContent = s.status;
+      badge.className = "status status-" + s.status;
+      page.dataset.status = s.status;
+      const bar = $("#progress-bar", page);
+      bar.max = s.progress.total || 1;
+      bar.value = s.progress.done;
+      $("#progress-text", page).textContent = s.progress.done + "/" + s.progress.total + " episodes done, " + s.progress.running + " running";
+      const err = $("#study-error", page);
+      err.hidden = !s.error;
+      err.textContent = s.error || "";
+      (s.points || []).forEach((p) => {
+        const st = $('[data-point-status="' + p.point + '"]', page), pr = $('[data-point-progress="' + p.point + '"]', page);
+        if (st) { st.textContent = p.status; st.className = "status status-" + p.status; }
+        if (pr) pr.textContent = p.progress.done + "/" + p.progress.total;
+      });
+      if (FINISHED.includes(s.status)) {
+        source.close();
+        state.source = null;
+        refreshStudy();
+      }
+    });
+    source.addEventListener("results", (e) => {
+      const d = JSON.parse(e.data);
+      state.chart = d.chart;
+      const select = $("#metric", page);
+      const keys = d.chart.metrics.map((m) => m.key);
+      if (keys.join() !== Array.from(select.options).map((o) => o.value).join()) {
+        select.innerHTML = "";
+        d.chart.metrics.forEach((m) => { const o = document.createElement("option"); o.value = m.key; o.textContent = m.label; select.appendChild(o); });
+        if (keys.includes(state.metric)) select.value = state.metric; else state.metric = select.value;
+      }
+      if (d.chart.rows.length) $("#plot-note", page).textContent = "Over the tests recorded so far; grows while the study runs.";
+      drawStudy(state, page);
+      const holder = $("#study-table", page);
+      if (!holder.contains(document.activeElement)) holder.innerHTML = d.table;
+    });
+    source.addEventListener("deleted", () => { source.close(); state.source = null; toast("This study was deleted.", "bad"); });
+  }
+
+  function refreshStudy() {
+    htmx.ajax("GET", window.location.pathname, { target: "#study", select: "#study", swap: "outerHTML" });
   }
 
   // -- new campaign --------------------------------------------------------------------------
@@ -502,6 +703,7 @@
 
   function init(root) {
     initCampaign(root);
+    initStudy(root);
     initNewCampaign(root);
     initEpisode(root);
   }
