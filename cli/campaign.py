@@ -74,6 +74,10 @@ def start(
     mode: Annotated[str, typer.Option(help="fast (lockstep, as fast as possible) or realtime (one sample every T_RF).", autocompletion=_complete(("fast", "realtime")))] = "fast",
     name: Annotated[Optional[str], typer.Option(help="A label for the campaign.")] = None,
     stop_confidence: Annotated[float, typer.Option("--stop-confidence", min=0.0, max=0.999999, help="End each episode at the first step whose confidence reaches this, its answer final (0: off); the results then report accuracy and time to decision.")] = 0.0,
+    target_rigs: Annotated[Optional[list[str]], typer.Option("--rig", metavar="NAME", help="Run only on this rig (repeatable; default: any live rig).")] = None,
+    rig_kind: Annotated[Optional[str], typer.Option("--rig-kind", help="Run only on rigs of this kind: simulated, hardware or survey.")] = None,
+    use_rig_values: Annotated[bool, typer.Option("--use-rig-values", help="Where the scenario contradicts a targeted rig's descriptor, take the rig's values (else the campaign is refused, naming each field).")] = False,
+    record_to: Annotated[Optional[str], typer.Option("--record", metavar="FILE", help="Record every message of every episode to this MCAP file as the campaign runs (implies --wait); joins the Zenoh mesh from the RA2VIPAS_ZENOH_* environment (e.g. a stack's zenoh.env).")] = None,
     wait: Annotated[bool, typer.Option("--wait", help="Show progress until it finishes, then print the DR table.")] = False,
     plot: Annotated[Optional[str], typer.Option(metavar="FILE", help="With --wait: also write the DR curves to FILE (.png or .svg).")] = None,
     embedded: Annotated[bool, typer.Option("--embedded", help="Start a local stack (Zenoh router, services, SQLite file) just for this campaign and stop it afterwards; implies --wait.")] = False,
@@ -105,10 +109,23 @@ def start(
         body["name"] = name
     if stop_confidence > 0.0:
         body["stop_confidence"] = stop_confidence
+    if target_rigs:
+        body["rigs"] = list(dict.fromkeys(target_rigs))
+    if rig_kind is not None:
+        if rig_kind not in ("simulated", "hardware", "survey"):
+            fail(f"--rig-kind must be simulated, hardware or survey, got {rig_kind!r}", EXIT_USAGE)
+        body["rig_kind"] = rig_kind
+    if use_rig_values:
+        body["use_rig_values"] = True
     if embedded:
+        if record_to:
+            fail("--record needs a running stack (ra2vipas up), not --embedded", EXIT_USAGE)
         _run_embedded(body, db, rigs, plot, as_json, insecure)
         return
     client = Client(api, token)
+    if record_to:
+        _start_recorded(client, body, record_to, plot, as_json)
+        return
     c = client.request("POST", "/campaigns", json=body)
     if not wait:
         if as_json:
@@ -123,6 +140,28 @@ def _finish(client: Client, cid: str, plot: str | None, as_json: bool) -> None:
     _check_finished(_follow(client, cid))
     results = client.request("GET", f"/campaigns/{cid}/results")
     emit_results(results, plot, as_json)
+
+
+def _start_recorded(client: Client, body: dict, output: str, plot: str | None, as_json: bool) -> None:
+    """Start a campaign with a recorder already listening, follow it, write the recording."""
+    from pathlib import Path
+
+    from ra2vipas.cli.record import open_bus, save_recording
+    from ra2vipas.services.rigs.recording import Recorder
+
+    bus = open_bus(None, None, None, None)
+    try:
+        recorder = Recorder(bus)
+        c = client.request("POST", "/campaigns", json=body)
+        try:
+            _check_finished(_follow(client, c["id"]))
+        finally:
+            recorder.stop()
+        count = save_recording(client, c["id"], Path(output), recorder, bus)
+    finally:
+        bus.close()
+    stderr.print(f"recorded {count} messages to {output}")
+    emit_results(client.request("GET", f"/campaigns/{c['id']}/results"), plot, as_json)
 
 
 def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: bool, insecure: bool = False) -> None:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import typer  # noqa: E402  (ra2vipas/__init__ pins BLAS to one thread before numpy loads)
 
-from ra2vipas.cli import bench, campaign, presets, protocol, security, services, study  # noqa: E402
+from ra2vipas.cli import bench, campaign, presets, protocol, security, services, study, survey  # noqa: E402
+from ra2vipas.cli.record import record, replay  # noqa: E402
 from ra2vipas.cli.rig import rig  # noqa: E402
 from ra2vipas.cli.rigs import rigs  # noqa: E402
 from ra2vipas.cli.simulate import simulate  # noqa: E402
@@ -41,9 +42,12 @@ app.add_typer(presets.app, name="presets")
 app.add_typer(bench.app, name="bench")
 app.add_typer(protocol.app, name="protocol")
 app.add_typer(security.app, name="security")
+app.add_typer(survey.app, name="survey")
 for _name in ("sensors", "controller", "learner", "orchestrator", "router"):
     app.command(_name)(getattr(services, _name))
 app.command("rig")(rig)
+app.command("record")(record)
+app.command("replay")(replay)
 
 
 def main() -> None:

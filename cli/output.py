@@ -13,6 +13,7 @@ from typing import Any, NoReturn
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 _WIDTH = max(shutil.get_terminal_size((120, 24)).columns, 100)  # pipes and CI logs get 120 columns
@@ -125,6 +126,12 @@ def print_results(results: dict[str, Any]) -> None:
         recorded = ", ".join(f"{a} {n}" for a, n in (results.get("tests_recorded") or {}).items())
         stdout.print(f"partial results: the campaign stopped before its end; tests recorded: {recorded} (of {results['tests']})")
     stdout.print(dr_table(results))
+    for warning in results.get("warnings") or []:
+        stdout.print(f"[bold red]warning:[/] {escape(warning)}")
+    if results.get("assumptions"):
+        a = results["assumptions"]
+        stdout.print(f"note: {a['episodes']} of {a['of']} episodes ran on undescribed rigs ({', '.join(a['rigs'])}): "
+                     "modelled and scored under the scenario's assumptions")
     confidence = confidence_table(results)
     if confidence is not None:
         stdout.print(confidence)
@@ -227,9 +234,28 @@ def trace_table(trace: dict[str, Any]) -> Table:
 def rigs_table(body: dict[str, Any]) -> Table:
     """``GET /rigs``."""
     table = Table(title=f"Rigs (learners: {', '.join(body['learners']) or 'none'})")
-    for col in ("rig", "live", "sensors", "controller", "episodes in flight"):
+    for col in ("rig", "live", "sensors", "controller", "episodes in flight", "descriptor"):
         table.add_column(col)
     for r in body["rigs"]:
         table.add_row(r["name"], "yes" if r["live"] else "no", "up" if r["sensors"] else "down",
-                      "up" if r["controller"] else "down", str(r["in_flight"]))
+                      "up" if r["controller"] else "down", str(r["in_flight"]), describe_rig(r))
     return table
+
+
+def describe_rig(r: dict[str, Any]) -> str:
+    """One line of a rig's descriptor: kind, vendor/model, nu, T_RF, half-FoV, box noise, Rx(dir)
+    (``=campaign`` for a configurable field); ``undescribed`` for a v1 node."""
+    d = r.get("descriptor")
+    if d is None:
+        return {"undescribed": "undescribed (v1 node: modelled from each campaign's scenario)", "asking": "asking..."}.get(
+            r.get("described", "unknown"), "-")
+    def show(value, fmt="{}"):
+        return "=campaign" if value is None else fmt.format(value)
+    rx = d.get("rx_dir")
+    parts = [d["kind"], " ".join(p for p in (d.get("vendor"), d.get("model")) if p) or "-",
+             f"nu {show(d.get('frames_per_rf'))}", f"T_RF {show(d.get('rf_period_s'), '{:g} s')}",
+             f"half-FoV {show(d.get('fov_half_angle_deg'), '{:g} deg')}", f"box noise {show(d.get('box_bearing_noise_deg'), '{:g} deg')}",
+             f"Rx(dir) {show(None if rx is None else rx['model'])}"]
+    if d.get("episode_truth"):
+        parts.append("knows the truth")
+    return ", ".join(parts)

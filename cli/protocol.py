@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from ra2vipas.cli.output import fail
+from ra2vipas.cli.services import ConfigOpt, ConnectOpt, ListenOpt, ModeOpt
 
 app = typer.Typer(help="The wire protocol (key expressions and message schemas).", no_args_is_help=True)
 
@@ -19,6 +20,9 @@ def schema_documents() -> dict[str, dict]:
 
     docs = {f"{m.__name__}.json": m.model_json_schema() for m in WIRE_MESSAGES}
     docs["EpisodeControl.json"] = episode_control_adapter.json_schema()
+    from ra2vipas.services.rigs.survey import Survey
+
+    docs["Survey.json"] = Survey.model_json_schema()  # a file format, not a wire message: the survey rig's input
     return docs
 
 
@@ -32,3 +36,55 @@ def schemas(outdir: Annotated[Path, typer.Argument(help="Directory to write one 
     except OSError as err:
         fail(f"cannot write schemas to {outdir}: {err.strerror or err}")
     print(f"wrote {len(schema_documents())} schemas to {outdir}")
+
+
+@app.command("check")
+def check(
+    rig: Annotated[str, typer.Option("--rig", help="The rig (sensors node) to check.")],
+    timeout: Annotated[float, typer.Option(min=0.5, max=600.0, help="How long to wait for any one answer [s].")] = 5.0,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the report as one JSON line.")] = False,
+    mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None, zenoh_config: ConfigOpt = None,
+) -> None:
+    """Drive a live sensors node through scripted episodes (fast and realtime, a command before
+    its start, duplicates, an EpisodeStop mid-episode, malformed messages, a training episode)
+    and print a pass/fail report per protocol rule. Exit 0 if no rule failed, 1 otherwise. Run it
+    on a rig no campaign is using (it moves the rig)."""
+    import logging
+
+    from ra2vipas.cli.output import stdout
+    from ra2vipas.cli.services import zenoh_settings
+    from ra2vipas.services.protocol.keys import check_chunk
+    from ra2vipas.services.rigs.conformance import check_rig, report
+    from ra2vipas.services.transport.zenoh_bus import ZenohBus
+
+    try:
+        check_chunk(rig, "rig")
+    except ValueError as err:
+        fail(str(err), 2)
+    logging.getLogger("ra2vipas").setLevel(logging.ERROR)
+    settings = zenoh_settings(mode, connect, listen, zenoh_config)
+    try:
+        bus = ZenohBus(settings)
+    except Exception as err:  # zenoh raises ZError for bad endpoints, unreachable routers, ...
+        fail(f"cannot open the Zenoh session: {err}")
+    try:
+        results = check_rig(bus, rig, timeout=timeout)
+    finally:
+        bus.close()
+    body = report(results)
+    if as_json:
+        print(json.dumps(body, separators=(",", ":")))
+    else:
+        from rich.table import Table
+
+        table = Table(title=f"Conformance of rig {rig} (docs/protocol.md)")
+        for col in ("rule", "result", "what it checks", "detail"):
+            table.add_column(col)
+        for r in body["rules"]:
+            colour = {"pass": "green", "fail": "bold red", "skip": "yellow"}[r["status"]]
+            table.add_row(r["rule"], f"[{colour}]{r['status']}[/]", r["what"], r["detail"])
+        stdout.print(table)
+        failed = [r["rule"] for r in body["rules"] if r["status"] == "fail"]
+        stdout.print("all rules pass" if not failed else f"{len(failed)} rule(s) failed: {', '.join(failed)}")
+    if not body["passed"]:
+        raise typer.Exit(1)

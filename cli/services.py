@@ -61,17 +61,33 @@ def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
         bus.close()
 
 
-def sensors(rig: RigOpt = "rig-1", mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+def sensors(rig: RigOpt = "rig-1",
+            hardware: Annotated[Optional[list[str]], typer.Option("--hardware", metavar="NAME=VALUE", help="Pin a hardware parameter of this simulated rig (repeatable): frames_per_rf, rf_period_s, fov_half_angle_deg, box_bearing_noise_deg, antenna_model (paper|db-gain|unknown), antenna_curvature, antenna_floor_db. Its descriptor says so, and it simulates that hardware whatever a campaign's scenario says.")] = None,
+            undescribed: Annotated[bool, typer.Option("--undescribed", help="Serve no rig descriptor (behave as a v1 node).")] = False,
+            mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
             zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
     """Run a rig's simulated sensors: the world, the camera detector, Rx(iso) and Rx(dir)."""
     from ra2vipas.services.protocol.keys import check_chunk
-    from ra2vipas.services.sensors.node import SensorsNode
+    from ra2vipas.services.protocol.scenario import ScenarioError, parse_value
+    from ra2vipas.services.sensors.node import SensorsNode, pinned_descriptor
     from ra2vipas.services.transport.runtime import configure_logging
 
     configure_logging(log_level)
     _check_rig(rig, check_chunk)
+    values = {}
+    try:
+        for item in hardware or []:
+            name, sep, text = item.partition("=")
+            if not sep or not name.strip():
+                raise ValueError(f"--hardware expects NAME=VALUE, got {item!r}")
+            name = name.strip()
+            values[name] = text.strip() if name == "antenna_model" else parse_value(name, text)
+        descriptor = pinned_descriptor(rig, values)
+    except (ValueError, ScenarioError) as err:
+        fail(str(err), EXIT_USAGE)
     _claim_cpu()
-    run_node(f"sensors[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config), lambda bus: SensorsNode(bus, rig))
+    run_node(f"sensors[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config),
+             lambda bus: SensorsNode(bus, rig, descriptor=descriptor, describe=not undescribed))
 
 
 def controller(rig: RigOpt = "rig-1", beta: Annotated[float, typer.Option(min=0.0, help="UCB exploration weight beta.")] = 4.0,

@@ -160,8 +160,11 @@ class LobeGP:
         self.z_[n] = z
         self.n_ = n + 1
 
-    def lobe_fit(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def lobe_fit(self, sign: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For every grid centre gamma: profile log-likelihood -q(gamma)/2, amplitude A, offset c.
+
+        ``sign`` overrides ``lobe_sign`` for this call (the statistics do not depend on it: the
+        opposite orientation's fit costs one more O(M) profile).
 
         (A, c) solve [[h.h, h.o], [h.o, o.o]] (A, c) = (h.u, o.u) with h = L^{-1} h(X - gamma),
         o = L^{-1} 1, u = L^{-1} z, and q = u.u - A h.u - c o.u. Centres whose best amplitude
@@ -171,8 +174,10 @@ class LobeGP:
         if self.n_ == 0:
             return np.zeros(M), np.zeros(M), np.zeros(M)
         loglik, A, c = np.empty(M), np.empty(M), np.empty(M)
-        self.best_ = _kernels.lobe_profile(self._hh, self._ho, self._hu, self._oo, self._ou, self._uu,
-                                           float(self.lobe_sign), loglik, A, c)
+        best = _kernels.lobe_profile(self._hh, self._ho, self._hu, self._oo, self._ou, self._uu,
+                                     float(self.lobe_sign if sign is None else (1 if sign >= 0 else -1)), loglik, A, c)
+        if sign is None:
+            self.best_ = best
         return loglik, A, c
 
     def posterior(self, centre_index: int, A: float, c: float) -> tuple[np.ndarray, np.ndarray]:

@@ -1,8 +1,10 @@
 """The controller service's node logic: one rig's Ra²ViPAS controllers on the bus.
 
-* ``control/<rig>/episode``: on ``EpisodeStart`` it fetches the POD model of (scenario,
-  seed) from the learner (``model/pod`` query; cached here afterwards), builds a
-  ``Controller`` and sends the step-0 ``Command`` with the initial pan angle;
+* ``control/<rig>/episode``: on ``EpisodeStart`` it asks its rig what it is
+  (``rig/<rig>/info``, a ``RigDescriptor``; once per campaign) and fetches the POD model of
+  (scenario, seed) from the learner (``model/pod`` query; cached here afterwards), builds a
+  ``Controller`` whose sensor model is the rig's descriptor (the campaign's scenario only for
+  an undescribed, v1 rig) and sends the step-0 ``Command`` with the initial pan angle;
 * ``data/<rig>/measurement``: each ``Measurement`` of step t goes through
   ``Controller.step``; the node answers with the ``Command`` for step t+1, or, after the last
   step (or the first whose confidence reaches ``EpisodeStart.stop_confidence``: an early,
@@ -18,12 +20,15 @@ import logging
 import threading
 from dataclasses import dataclass, field
 
-from ra2vipas.services.controller.policy import Controller, ControllerSettings, sensor_config_from_scenario
+from ra2vipas.services.controller.policy import (
+    Controller, ControllerSettings, SensorConfig, sensor_config_from_descriptor, sensor_config_from_scenario,
+)
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeResult, EpisodeStart, EpisodeStop, Measurement, Mode, PODRequest, PODResponse, dump,
+    Command, EpisodeResult, EpisodeStart, EpisodeStop, Measurement, Mode, ModelCheck, PODRequest, PODResponse, dump,
     episode_control_adapter, training_job_id,
 )
+from ra2vipas.services.protocol.rig import RigDescriptor
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
@@ -32,6 +37,9 @@ log = logging.getLogger(__name__)
 
 MODEL_TIMEOUT_S = 300.0
 MODEL_ATTEMPTS = 30  # about a minute of retries while no learner answers
+DESCRIPTOR_TIMEOUT_S = 3.0  # a v1 sensors node serves no descriptor: the query ends with no reply
+DESCRIPTORS_KEPT = 64  # campaigns whose rig descriptor is remembered
+_ASKING = object()
 
 
 @dataclass
@@ -72,6 +80,10 @@ class ControllerNode:
         self.episodes: dict[str, _Episode] = {}
         self.models: dict[str, PODModel] = {}
         self._waiting: dict[str, list[str]] = {}  # job id -> episodes waiting for that model
+        # campaign id -> the rig's descriptor when its first episode arrived (None: undescribed), or
+        # _ASKING while the query is out; one query per campaign, so a campaign sees one rig model
+        self.descriptors: dict[str, object] = {}
+        self._described: dict[str, list[str]] = {}  # campaign id -> episodes waiting for the descriptor
         self._command_key = keys.command(rig)
         warm_up()
         self._handles = [
@@ -91,6 +103,39 @@ class ControllerNode:
         if msg.episode_id in self.episodes:
             return
         self.episodes[msg.episode_id] = _Episode(start=msg)
+        if self.descriptors.get(msg.campaign_id, _ASKING) is not _ASKING:
+            self._with_model(msg)
+            return
+        waiting = self._described.setdefault(msg.campaign_id, [])
+        waiting.append(msg.episode_id)
+        if len(waiting) == 1:
+            self.descriptors[msg.campaign_id] = _ASKING
+            while len(self.descriptors) > DESCRIPTORS_KEPT:
+                self.descriptors.pop(next(iter(self.descriptors)))
+            self.bus.query(keys.rig_info(self.rig), b"", DESCRIPTOR_TIMEOUT_S,
+                           lambda replies: self.loop.post(self._on_descriptor, msg.campaign_id, replies))
+
+    def _on_descriptor(self, campaign_id: str, replies: list[Reply]) -> None:
+        descriptor, passed_over = first_valid_reply(replies, RigDescriptor, "RigDescriptor")
+        if descriptor is not None and descriptor.rig != self.rig:
+            log.warning("rig %s: the descriptor names rig %s; ignored", self.rig, descriptor.rig)
+            descriptor = None
+        if descriptor is None:
+            log.info("rig %s is undescribed%s: modelling it from each campaign's scenario", self.rig,
+                     f" ({passed_over[-1]})" if passed_over else "")
+        self.descriptors[campaign_id] = descriptor
+        for episode_id in self._described.pop(campaign_id, []):
+            ep = self.episodes.get(episode_id)
+            if ep is not None:
+                self._with_model(ep.start)
+
+    def _sensor_config(self, start: EpisodeStart) -> SensorConfig:
+        descriptor = self.descriptors.get(start.campaign_id)
+        if isinstance(descriptor, RigDescriptor):
+            return sensor_config_from_descriptor(descriptor, start.scenario)
+        return sensor_config_from_scenario(start.scenario)
+
+    def _with_model(self, msg: EpisodeStart) -> None:
         job = training_job_id(msg.scenario, msg.seed)
         if job in self.models:
             self._begin(msg.episode_id, self.models[job])
@@ -126,8 +171,7 @@ class ControllerNode:
         ep = self.episodes.get(episode_id)
         if ep is None:
             return
-        sc = ep.start.scenario
-        ep.controller = Controller(ep.start.algorithm, sensor_config_from_scenario(sc), model, self.settings)
+        ep.controller = Controller(ep.start.algorithm, self._sensor_config(ep.start), model, self.settings)
         self.bus.publish(self._command_key, dump(Command(episode_id=episode_id, step=0, pan_rad=ep.controller.first_pan())))
 
     def _fail(self, episode_id: str, error: str) -> None:
@@ -145,8 +189,9 @@ class ControllerNode:
         if ep is None or ep.controller is None or m.step != ep.next_step:
             return  # not ours, not started, or a duplicate
         sc = ep.start.scenario
-        if len(m.frames) != sc.frames_per_rf:
-            log.warning("episode %s step %d: %d frames, expected %d; dropped", m.episode_id, m.step, len(m.frames), sc.frames_per_rf)
+        if len(m.frames) != ep.controller.sensors.frames_per_rf:
+            log.warning("episode %s step %d: %d frames, expected %d; dropped", m.episode_id, m.step, len(m.frames),
+                        ep.controller.sensors.frames_per_rf)
             return
         decision = ep.controller.step(m)
         ep.estimates.append(decision.estimate_rad)
@@ -163,9 +208,17 @@ class ControllerNode:
         self.episodes.pop(m.episode_id, None)
         self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(
             episode_id=m.episode_id, rig=self.rig, estimates_rad=tuple(ep.estimates), pans_rad=tuple(ep.pans), rewards=tuple(ep.rewards),
-            confidences=tuple(ep.confidences), decided_step=m.step if decided else None)))
+            confidences=tuple(ep.confidences), decided_step=m.step if decided else None, model_check=model_check(ep.controller))))
 
     def close(self) -> None:
         undeclare_all(self._handles)
         self.loop.stop()
+
+
+def model_check(controller: Controller) -> ModelCheck:
+    """What the controller assumed about its rig in this episode and whether Rx(dir) agreed."""
+    evidence = controller.lobe_evidence()
+    return ModelCheck(sensor_model="descriptor" if controller.sensors.source == "descriptor" else "scenario",
+                      rx_dir=controller.sensors.rx_dir, lobe=controller.lobe,
+                      lobe_evidence=None if evidence is None else round(evidence, 4))
 

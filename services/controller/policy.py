@@ -120,8 +120,10 @@ class SensorConfig:
     fov_half_angle_rad: float
     box_bearing_noise_rad: float
     initial_pan_rad: float
-    rssi_grows_with_alignment: bool  # True: stronger reads higher (db-gain); False: paper's |g| rho
+    rssi_grows_with_alignment: bool | None  # True: stronger reads higher (db-gain); False: paper's |g| rho; None: learn it
     rf_period_s: float = 0.1  # T_RF, time between control steps
+    source: str = "scenario"  # where this description came from: "descriptor" (the rig's) or "scenario" (an undescribed rig)
+    rx_dir: str = "paper"  # the Rx(dir) response assumed: paper | db-gain | unknown
 
 
 
@@ -187,14 +189,18 @@ class Controller:
         self.uses_radio = self.algorithm is not Algorithm.ravipas
         self.uses_camera = self.algorithm is not Algorithm.rapas
         sigma = max(self.pod.rf_noise_db, 0.1)
+        # an unknown Rx(dir) response: the lobe's orientation (a peak, or the paper's dip) is learned
+        # from the data, step by step (``_learn_lobe``); a peak until the data say otherwise
+        self.learn_lobe = sensors.rssi_grows_with_alignment is None
+        lobe_sign = -1 if sensors.rssi_grows_with_alignment is False else 1
         self.rf = LobeGP(
             self.circle, noise_var=sigma**2, lobe_width=cfg.lobe_width_rad,
-            lobe_sign=1 if sensors.rssi_grows_with_alignment else -1,
+            lobe_sign=lobe_sign,
             residual_length_scale=cfg.residual_length_scale_rad,
             residual_var=cfg.residual_std_db**2, capacity=max(sensors.steps, 1),
         )
         self.recent = RecentLobe(self.circle, noise_var=sigma**2, lobe_width=cfg.lobe_width_rad,
-                                 lobe_sign=1 if sensors.rssi_grows_with_alignment else -1, memory_s=cfg.rf_memory_s,
+                                 lobe_sign=lobe_sign, memory_s=cfg.rf_memory_s,
                                  rf_period_s=sensors.rf_period_s)
         self._iso_prev: float | None = None
         self._iso_diff_sq = 0.0
@@ -236,6 +242,8 @@ class Controller:
                 self.rf.set_noise_correlation(round(self._noise_correlation() * 20.0) / 20.0)
             self.rf.add(s, m.rf.dir_rssi_dbm)
             self.recent.add(s, m.rf.dir_rssi_dbm)
+            if self.learn_lobe:
+                self._learn_lobe()
             if self.uses_camera:
                 self.recent.follow(self.tracks.ids.tolist(), self.tracks.bearing.tolist())
             l_static, amplitude, offset = self.rf.lobe_fit()
@@ -251,6 +259,32 @@ class Controller:
         return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe,
                         confidence=round(self._calibrated(raw_confidence), 6), raw_confidence=float(raw_confidence), tx_walks=self.tx_walks,
                         noise_correlation=self._rho, clutter_density=self._clutter)
+
+    def lobe_evidence(self) -> float | None:
+        """log-likelihood ratio of the lobe orientation in use against the opposite one, over every
+        Rx(dir) sample so far: the best profile likelihood over the lobe centre (``LobeGP.lobe_fit``)
+        with the amplitude's sign as used, minus the same with the sign flipped. Strongly negative
+        when the directional RSSI contradicts the assumed antenna model (e.g. a dB-gain antenna,
+        whose reading peaks at the Tx, modelled as the paper's dip). None without Rx(dir) samples."""
+        if not self.uses_radio or self.rf.n_ == 0:
+            return None
+        used = float(self.rf.lobe_fit()[0].max())
+        return used - float(self.rf.lobe_fit(-self.rf.lobe_sign)[0].max())
+
+    @property
+    def lobe(self) -> str | None:
+        """``peak`` or ``dip``: the lobe orientation in use (None without Rx(dir))."""
+        return None if not self.uses_radio else ("peak" if self.rf.lobe_sign > 0 else "dip")
+
+    def _learn_lobe(self) -> None:
+        """Unknown Rx(dir) response: use the lobe orientation the samples so far support best (the
+        larger maximised profile likelihood of the two signs of A, a generalised likelihood ratio
+        with the same number of parameters on both sides). Both lobe fits keep sufficient statistics
+        that do not depend on the sign, so switching costs nothing but the next profile."""
+        evidence = self.lobe_evidence()
+        if evidence is not None and evidence < 0.0:
+            self.rf.lobe_sign = -self.rf.lobe_sign
+            self.recent.lobe_sign = self.rf.lobe_sign
 
     # -- beliefs ------------------------------------------------------------------------------
     def _iso_mean_and_std(self) -> tuple[float, float]:
@@ -533,4 +567,37 @@ def sensor_config_from_scenario(scenario) -> SensorConfig:
         initial_pan_rad=scenario.initial_pan_rad,
         rssi_grows_with_alignment=scenario.antenna_model is not AntennaModel.paper,
         rf_period_s=scenario.rf_period_s,
+        source="scenario",
+        rx_dir=scenario.antenna_model.value,
+    )
+
+
+def sensor_config_from_descriptor(descriptor, scenario) -> SensorConfig:
+    """The controller's model of its platform from the rig's own ``RigDescriptor``.
+
+    The hardware (nu, T_RF, the half field of view, the detector's bearing noise, the Rx(dir)
+    response) is the rig's: the campaign's world parameters are never read for it. A field the
+    rig leaves ``null`` is *configurable*: the rig (a simulator) runs with the campaign's value,
+    so that value is its hardware. Only the test's length (``steps``) and its initial pan come
+    from the campaign, which decides them. An ``unknown`` Rx(dir) response leaves the lobe's
+    orientation to be learned from the data (``rssi_grows_with_alignment=None``).
+    """
+    from ra2vipas.services.protocol.scenario import AntennaModel
+
+    def value(name: str):
+        own = getattr(descriptor, name)
+        return getattr(scenario, name) if own is None else own
+
+    rx = descriptor.rx_dir
+    rx_dir = scenario.antenna_model.value if rx is None else rx.model
+    return SensorConfig(
+        steps=scenario.steps,
+        frames_per_rf=int(value("frames_per_rf")),
+        fov_half_angle_rad=math.radians(value("fov_half_angle_deg")),
+        box_bearing_noise_rad=math.radians(value("box_bearing_noise_deg")),
+        initial_pan_rad=scenario.initial_pan_rad,
+        rssi_grows_with_alignment=None if rx_dir == "unknown" else rx_dir != AntennaModel.paper.value,
+        rf_period_s=float(value("rf_period_s")),
+        source="descriptor",
+        rx_dir=rx_dir,
     )

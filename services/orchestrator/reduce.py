@@ -178,8 +178,13 @@ def results_object(preset: str, scenario, tests: int, seed: int, pod, tallies: M
     POD fit, speed, and whatever else it carries) with the algorithms' blocks from ``tallies``."""
     from ra2vipas.services.orchestrator.simulate import summarize
 
+    from ra2vipas.services.orchestrator.rigcheck import dr_warnings
+
     out = summarize(preset, scenario, tests, seed, pod, {}, steps_per_second, stop_confidence)
     out["algorithms"] = {name: tally.summary(decisions=stop_confidence > 0.0) for name, tally in tallies.items()}
+    warnings = dr_warnings(out)
+    if warnings:
+        out["warnings"] = warnings
     return out
 
 

@@ -12,7 +12,11 @@ For each campaign it
 4. when every episode is recorded, reduces them to the same results object as
    ``ra2vipas simulate --json``.
 
-A rig is live while both its sensors and its controller hold their liveliness tokens. If a
+A rig is live while both its sensors and its controller hold their liveliness tokens; when
+its sensors come up the scheduler asks the rig what it is (``rig/<rig>/info``, a
+``RigDescriptor``; a v1 node answers nothing and the rig is *undescribed*). A campaign's
+episodes go only to the rigs it targets (``targeting``: named rigs or a rig kind) whose
+descriptor its scenario does not contradict (``protocol.rig.conflicts``). If a
 rig disappears, its unfinished episodes go back to the queue and are run again from scratch
 elsewhere: every draw of test k depends only on (seed, k), so the rerun gives the result the
 lost run would have given, and ``finish_episode`` never records a test twice. On start, the
@@ -50,10 +54,12 @@ from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
 from ra2vipas.services.orchestrator.storage import EpisodeKey, StorageFault, Store
 from ra2vipas.services.orchestrator.study_store import StudyStore
 from ra2vipas.services.protocol import keys
+from ra2vipas.services.orchestrator.rigcheck import rig_notes
 from ra2vipas.services.protocol.messages import (
     EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Mode, PODRequest, PODResponse,
     TrainingRequest, TrainingTruth, dump,
 )
+from ra2vipas.services.protocol.rig import RigDescriptor, conflicts
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
@@ -66,6 +72,7 @@ MODEL_ATTEMPTS = 60  # retries (every 2-10 s) while no learner answers
 EPISODE_TIMEOUT_S = 60.0  # plus twice the test's duration in realtime mode
 TIMEOUT_CHECK_S = 2.0
 HEAL_BACKOFF_S = (1.0, 30.0)  # first and longest wait between retries of a failed database write
+DESCRIPTOR_TIMEOUT_S = 3.0  # a v1 sensors node serves no descriptor: the query ends with no reply
 
 REJECTIONS = ("malformed", "not_in_flight", "wrong_rig")
 """Why a result-plane or truth-plane message was dropped: it did not validate; its episode id
@@ -102,6 +109,8 @@ class _Run:
     study: str | None = None  # the study this campaign is a point of, if any
     point: int = 0  # its index in the study's grid
     tests: int = 0
+    targeting: dict | None = None  # {"rigs": [...] | None, "rig_kind": ... | None, ...}; None: any rig
+    eligible: dict = field(default_factory=dict)  # rig -> whether this campaign may run there (cleared when a descriptor changes)
 
 
 @dataclass
@@ -110,10 +119,17 @@ class _Rig:
     controller: bool = False
     in_flight: set = field(default_factory=set)
     since: float = 0.0  # epoch seconds of the last change of ``live`` (for the dashboard's "live since" / "last seen")
+    descriptor: RigDescriptor | None = None
+    described: str = "unknown"  # unknown (sensors down) | asking | described | undescribed (a v1 node)
 
     @property
     def live(self) -> bool:
         return self.sensors and self.controller
+
+    @property
+    def ready(self) -> bool:
+        """Live, and its descriptor (or its absence) is known: episodes may go there."""
+        return self.live and self.described in ("described", "undescribed")
 
 
 class Scheduler:
@@ -281,7 +297,7 @@ class Scheduler:
             return
         scenario = Scenario.model_validate(c["scenario"])
         run = _Run(id=cid, scenario=scenario, seed=c["seed"], mode=Mode(c["mode"]), stop_confidence=c.get("stop_confidence") or 0.0,
-                   tests=c["tests"])
+                   tests=c["tests"], targeting=c.get("targeting"))
         membership = self._studies.membership(cid)
         if membership is not None:
             run.study, run.point = membership
@@ -330,6 +346,8 @@ class Scheduler:
         if truth is not None:
             r2 = round(float(r2_score(np.asarray(truth.pod), predict(response.model, np.asarray(truth.rssi_dbm)))), 6)
             truth_data = {"rssi_dbm": list(truth.rssi_dbm), "pod": list(truth.pod)}
+        else:
+            log.info("campaign %s: no training truth answered (a hardware rig has none): POD R² is not scored", cid)
 
         def record() -> None:
             if cid not in self.runs:
@@ -383,10 +401,12 @@ class Scheduler:
             return
         for rig_name in self.live_rigs():
             rig = self.rigs[rig_name]
+            if not rig.ready:
+                continue
             while len(rig.in_flight) < self.window:
                 if any(self._is_realtime(eid) for eid in rig.in_flight):
                     break
-                item = self._next_episode(allow_realtime=not rig.in_flight)
+                item = self._next_episode(allow_realtime=not rig.in_flight, rig=rig_name)
                 if item is None:
                     break
                 run, key = item
@@ -404,16 +424,39 @@ class Scheduler:
                     episode_id=eid, campaign_id=key.campaign_id, test_index=key.test_index, algorithm=key.algorithm,
                     seed=run.seed, scenario=run.scenario, mode=run.mode, stop_confidence=run.stop_confidence)))
 
-    def _next_episode(self, allow_realtime: bool) -> tuple[_Run, EpisodeKey] | None:
+    def _eligible(self, run: _Run, rig_name: str) -> bool:
+        """Whether ``run`` may go to ``rig_name``: the rig is one the campaign targets, and its
+        descriptor (if it has one) does not contradict the campaign's scenario or mode."""
+        known = run.eligible.get(rig_name)
+        if known is not None:
+            return known
+        rig = self.rigs.get(rig_name)
+        target = run.targeting or {}
+        ok = rig is not None
+        if ok and target.get("rigs"):
+            ok = rig_name in target["rigs"]
+        if ok and target.get("rig_kind"):
+            ok = rig.descriptor is not None and rig.descriptor.kind == target["rig_kind"]
+        if ok and rig.descriptor is not None:
+            found = conflicts(rig.descriptor, run.scenario, run.mode.value)
+            if found:
+                log.warning("campaign %s does not run on rig %s: %s", run.id, rig_name, "; ".join(c.describe(rig_name) for c in found))
+                ok = False
+        run.eligible[rig_name] = ok
+        return ok
+
+    def _next_episode(self, allow_realtime: bool, rig: str | None = None) -> tuple[_Run, EpisodeKey] | None:
         studies: set[str] = set()
         for cid in list(self._order):
             run = self.runs.get(cid)
             if run is None:
                 continue
+            if rig is not None and not self._eligible(run, rig):
+                continue
             if run.study is not None:  # a study's points are served together, interleaved
                 if run.study not in studies:
                     studies.add(run.study)
-                    item = self._next_of_study(run.study, allow_realtime)
+                    item = self._next_of_study(run.study, allow_realtime, rig)
                     if item is not None:
                         return item
                 continue
@@ -424,7 +467,7 @@ class Scheduler:
             return run, run.pending.popleft()
         return None
 
-    def _next_of_study(self, study: str, allow_realtime: bool) -> tuple[_Run, EpisodeKey] | None:
+    def _next_of_study(self, study: str, allow_realtime: bool, rig: str | None = None) -> tuple[_Run, EpisodeKey] | None:
         """The next episode of a study: from the point whose next test is the earliest (then the
         first point), so the points advance test by test together and partial results are
         meaningful early; a point's last test waits until every point has its POD model (and so
@@ -435,6 +478,8 @@ class Scheduler:
         best: _Run | None = None
         for r in members:
             if r.pod is None or not r.pending or (r.mode is Mode.realtime and not allow_realtime):
+                continue
+            if rig is not None and not self._eligible(r, rig):
                 continue
             k = r.pending[0].test_index
             if r.tests > 1 and k >= r.tests - 1 and not all_trained:
@@ -528,6 +573,7 @@ class Scheduler:
             latencies=list(flight.timing.latencies_ms) if flight.timing else None,
             trajectories=[t.model_dump(mode="json") for t in truth.trajectories] or None,
             confidences=list(res.confidences) or None, decided_step=decided,
+            model_check=None if res.model_check is None else res.model_check.model_dump(mode="json"),
         )
 
         def save() -> None:
@@ -557,10 +603,12 @@ class Scheduler:
         # streamed: one page of episodes in memory at a time, reduced into running sums (reduce.AlgorithmTally)
         tallies = {a: AlgorithmTally(steps, run.scenario.rf_period_s) for a in c["algorithms"]}
         latencies: list[float] = []
+        checks: list[tuple[str | None, dict | None]] = []
         for row in self.store.episode_outcomes(run.id):
             tallies[row["algorithm"]].add(row["hits"], row["in_fov"], held(row.get("confidences") or [], steps) or None,
                                           row.get("decided_step"), row["n_estimates"])
             latencies += row.get("latencies") or []
+            checks.append((row.get("rig"), row.get("model_check")))
         finished = time.time()
         elapsed = finished - (run.running_since or finished)
         steps_run = sum(t.steps_run for t in tallies.values())
@@ -568,6 +616,10 @@ class Scheduler:
         results = results_object(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, tallies, sps, run.stop_confidence)
         if latencies:
             results["latency_ms"] = {"p50": round(float(np.percentile(latencies, 50)), 4), "p99": round(float(np.percentile(latencies, 99)), 4)}
+        rig_notes(results, checks)
+        if results["pod"].get("r2") is None:
+            results["pod"]["note"] = ("R² not scored: no rig served the training truth (truth/*/training) when the model was "
+                                      "trained; a hardware rig cannot, a simulated one or an operator can")
         self.store.set_campaign(run.id, status="done", results=_json(results), finished_at=finished,
                                 steps_per_second=results["steps_per_second"])
         self.runs.pop(run.id, None)
@@ -589,6 +641,12 @@ class Scheduler:
         rig = self.rigs.setdefault(name, _Rig())
         was_live = rig.live
         setattr(rig, role, up)
+        if role == "sensors":
+            self._forget_descriptor(name)
+            if up:  # the token is declared after the queryables (docs/protocol.md): ask what the rig is
+                rig.described = "asking"
+                self.bus.query(keys.rig_info(name), b"", DESCRIPTOR_TIMEOUT_S,
+                               lambda replies: self.loop.post(self._on_descriptor, name, replies))
         if rig.live != was_live or not rig.since:
             rig.since = time.time()
         if was_live and not rig.live:
@@ -600,6 +658,34 @@ class Scheduler:
                 self._requeue(eid, count_attempt=False, reason=f"rig {name} lost")
         if rig.live:
             self._dispatch()
+
+    def _forget_descriptor(self, name: str) -> None:
+        rig = self.rigs.get(name)
+        if rig is not None:
+            rig.descriptor, rig.described = None, "unknown"
+        for run in self.runs.values():
+            run.eligible.pop(name, None)
+
+    def _on_descriptor(self, name: str, replies: list[Reply]) -> None:
+        rig = self.rigs.get(name)
+        if rig is None or not rig.sensors or rig.described != "asking":
+            return
+        descriptor, passed_over = first_valid_reply(replies, RigDescriptor, "RigDescriptor")
+        if descriptor is not None and descriptor.rig != name:
+            log.warning("rig %s describes itself as rig %s; treated as undescribed", name, descriptor.rig)
+            descriptor = None
+        rig.descriptor = descriptor
+        rig.described = "described" if descriptor is not None else "undescribed"
+        if descriptor is None:
+            log.info("rig %s is undescribed%s: its campaigns are scored under their scenarios' assumptions", name,
+                     f" ({passed_over[-1]})" if passed_over else "")
+        for run in self.runs.values():
+            run.eligible.pop(name, None)
+        self._dispatch()
+
+    def descriptors(self) -> dict[str, RigDescriptor | None]:
+        """Each known rig's descriptor (None: undescribed or not known yet); thread-safe copy."""
+        return {name: st.descriptor for name, st in list(self.rigs.items())}
 
     def _requeue(self, eid: str, count_attempt: bool, reason: str) -> None:
         flight = self.flights.get(eid)
@@ -633,7 +719,9 @@ class Scheduler:
         """Snapshot for /health (read from another thread; copies only)."""
         return {
             "rigs": {name: {"sensors": st.sensors, "controller": st.controller, "in_flight": len(st.in_flight),
-                            "since": st.since} for name, st in list(self.rigs.items())},
+                            "since": st.since, "described": st.described,
+                            "descriptor": None if st.descriptor is None else st.descriptor.model_dump(mode="json")}
+                     for name, st in list(self.rigs.items())},
             "learners": sorted(self.learners),
             "rejected": dict(self.rejected),
             "waiting_writes": len(self._deferred),

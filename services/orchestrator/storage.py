@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Iterator
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -114,6 +114,13 @@ _MIGRATIONS: dict[int, str] = {
     ALTER TABLE campaigns ADD COLUMN study_point INTEGER;
     CREATE INDEX campaigns_study ON campaigns(study_id, study_point)
     """,
+    # 6: real rigs (issue 12): a campaign's rig targeting ({"rigs": [...] | null, "rig_kind": ... | null,
+    #    "use_rig_values": bool, "rig_values": {param: value}}; NULL = any rig), and each episode's
+    #    model check as its controller sent it (EpisodeResult.model_check; NULL from a v1 controller).
+    6: """
+    ALTER TABLE campaigns ADD COLUMN targeting TEXT;
+    ALTER TABLE episodes ADD COLUMN model_check TEXT
+    """,
 }
 
 ACTIVE = ("queued", "training", "running")
@@ -124,7 +131,7 @@ EPISODE_STATES = ("pending", "running", "done", "cancelled")
 # lists leave out the results object too.
 _LIST_COLUMNS = (
     "id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at, started_at, finished_at,"
-    " pod_job, pod_r2, pod_train_seconds, error, steps_per_second, stop_confidence"
+    " pod_job, pod_r2, pod_train_seconds, error, steps_per_second, stop_confidence, targeting"
 )
 _CAMPAIGN_COLUMNS = _LIST_COLUMNS + ", results"
 
@@ -323,16 +330,19 @@ class Store:
 
     # -- campaigns --------------------------------------------------------------------------
     def create_campaign(self, *, preset: str, overrides: dict, scenario: dict, algorithms: list[str], tests: int,
-                        seed: int, mode: str, name: str | None = None, stop_confidence: float = 0.0) -> str:
-        """Insert a campaign and all its pending episodes in one transaction; return its id."""
+                        seed: int, mode: str, name: str | None = None, stop_confidence: float = 0.0,
+                        targeting: dict | None = None) -> str:
+        """Insert a campaign and all its pending episodes in one transaction; return its id.
+        ``targeting``: the rigs it may run on (``{"rigs", "rig_kind", "use_rig_values",
+        "rig_values"}``), None for any rig."""
         cid = uuid.uuid4().hex[:12]
         now = time.time()
         with self.transaction() as db:
             db.execute(
                 "INSERT INTO campaigns(id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at,"
-                " stop_confidence) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?, ?)",
+                " stop_confidence, targeting) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?, ?, ?)",
                 (cid, name, preset, json.dumps(overrides), json.dumps(scenario), json.dumps(algorithms), tests, seed, mode, now,
-                 stop_confidence),
+                 stop_confidence, None if targeting is None else json.dumps(targeting)),
             )
             db.executemany(
                 "INSERT INTO episodes(campaign_id, test_index, algorithm, status) VALUES (?, ?, ?, 'pending')",
@@ -467,21 +477,24 @@ class Store:
     def finish_episode(self, key: EpisodeKey, *, hits: list[bool], in_fov: list[bool], estimates: list[float], pans: list[float],
                        rewards: list[float], chosen: list[int], tx_index: int, bearings: list[float], ranges: list[float],
                        latencies: list[float] | None, trajectories: list[dict] | None = None,
-                       confidences: list[float] | None = None, decided_step: int | None = None) -> bool:
+                       confidences: list[float] | None = None, decided_step: int | None = None,
+                       model_check: dict | None = None) -> bool:
         """Record a finished test in one transaction; False if it was already recorded (no
         duplicate) or its campaign was cancelled. ``bearings``/``ranges`` are the targets at
         step 0; ``trajectories`` the walking ones' per-step truth, if any; ``confidences`` the
-        controller's per step (None from a v1 controller); ``decided_step`` an early decision."""
+        controller's per step (None from a v1 controller); ``decided_step`` an early decision;
+        ``model_check`` how the controller modelled the rig (None from a v1 controller)."""
         with self.transaction() as db:
             cur = db.execute(
                 "UPDATE episodes SET status='done', hits=?, in_fov=?, estimates=?, pans=?, rewards=?, chosen=?, tx_index=?,"
-                " bearings=?, ranges=?, latencies=?, trajectories=?, confidences=?, decided_step=?, finished_at=?"
+                " bearings=?, ranges=?, latencies=?, trajectories=?, confidences=?, decided_step=?, model_check=?, finished_at=?"
                 " WHERE campaign_id=? AND test_index=? AND algorithm=? AND status IN ('pending', 'running')",
                 (json.dumps([int(h) for h in hits]), json.dumps([int(f) for f in in_fov]), json.dumps(estimates), json.dumps(pans),
                  json.dumps(rewards), json.dumps(chosen), tx_index, json.dumps(bearings), json.dumps(ranges),
                  None if latencies is None else json.dumps(latencies),
                  None if trajectories is None else json.dumps(trajectories, separators=(",", ":")),
-                 None if confidences is None else json.dumps(confidences), decided_step, time.time(),
+                 None if confidences is None else json.dumps(confidences), decided_step,
+                 None if model_check is None else json.dumps(model_check), time.time(),
                  key.campaign_id, key.test_index, key.algorithm))
             return cur.rowcount == 1
 
@@ -496,8 +509,8 @@ class Store:
     def episode_outcomes(self, cid: str, page: int = 500) -> Iterator[dict[str, Any]]:
         """A campaign's done episodes in (test index, algorithm) order, a page at a time (the lock
         is released between pages), each with only what its reduction needs: ``hits``,
-        ``in_fov``, ``confidences`` (None from a v1 controller), ``decided_step``, ``latencies``
-        and ``n_estimates`` (control steps run). Memory holds one page, whatever the campaign's size.
+        ``in_fov``, ``confidences`` (None from a v1 controller), ``decided_step``, ``latencies``,
+        ``rig``, ``model_check`` (None from a v1 controller) and ``n_estimates`` (control steps run). Memory holds one page, whatever the campaign's size.
 
         Raises
         ------
@@ -508,7 +521,7 @@ class Store:
         while True:
             with self._reading() as db:
                 rows = db.execute(
-                    "SELECT test_index, algorithm, hits, in_fov, confidences, decided_step, latencies,"
+                    "SELECT test_index, algorithm, rig, hits, in_fov, confidences, decided_step, latencies, model_check,"
                     " json_array_length(estimates) AS n_estimates FROM episodes"
                     " WHERE campaign_id=? AND status='done' AND (test_index, algorithm) > (?, ?)"
                     " ORDER BY test_index, algorithm LIMIT ?", (cid, *after, page)).fetchall()
@@ -602,7 +615,7 @@ def _where(**equal: Any) -> tuple[str, list[Any]]:
 
 def _campaign_dict(row: sqlite3.Row, counts: dict[str, int]) -> dict[str, Any]:
     d = dict(row)
-    for k in ("overrides", "scenario", "algorithms", "results"):
+    for k in ("overrides", "scenario", "algorithms", "results", "targeting"):
         if d.get(k) is not None:
             d[k] = json.loads(d[k])
     total = sum(counts.values())
@@ -613,7 +626,7 @@ def _campaign_dict(row: sqlite3.Row, counts: dict[str, int]) -> dict[str, Any]:
 def _episode_dict(row: sqlite3.Row) -> dict[str, Any]:
     d = dict(row)
     for k in ("hits", "in_fov", "estimates", "pans", "rewards", "chosen", "bearings", "ranges", "latencies", "trajectories",
-              "confidences"):
+              "confidences", "model_check"):
         if d.get(k) is not None:
             d[k] = json.loads(d[k])
     return d

@@ -13,6 +13,7 @@ result    the controller's per-episode trace (estimates, pans), for scoring
 truth     the simulator's ground truth, for scoring only; never read by a controller or
           a learner
 model     the learner's queryable serving the POD model
+rig       what each rig says about itself (its ``RigDescriptor``), a queryable
 alive     liveliness tokens: who is up
 ========  =============================================================================
 
@@ -26,7 +27,7 @@ import re
 
 PREFIX = "ra2vipas/v1"
 
-PLANES = ("data", "control", "result", "truth", "model", "alive")
+PLANES = ("data", "control", "result", "truth", "model", "rig", "alive")
 
 _CHUNK = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
@@ -129,6 +130,21 @@ def pod_model() -> str:
     return f"{PREFIX}/model/pod"
 
 
+# -- rig plane ---------------------------------------------------------------------------------
+
+def rig_info(rig: str) -> str:
+    """Queryable of a rig's sensors: what the rig is (``RigDescriptor``: kind, nu, T_RF, half-FoV,
+    box noise, Rx(dir) response, ...). Any query payload (empty is fine); reply ``RigDescriptor``.
+    The rig's controller and the orchestrator query it. A v1 sensors node serves none: the rig is
+    then *undescribed* and its controller models it from the campaign's scenario."""
+    return f"{PREFIX}/rig/{check_chunk(rig)}/info"
+
+
+def rig_info_any() -> str:
+    """Every rig's descriptor queryable (what the orchestrator may query)."""
+    return f"{PREFIX}/rig/*/info"
+
+
 # -- liveliness --------------------------------------------------------------------------------
 
 ROLES = ("sensors", "controller", "learner", "orchestrator")
@@ -161,8 +177,8 @@ def parse_alive(key: str) -> tuple[str, str] | None:
 
 
 def rig_of(key: str) -> str | None:
-    """The rig chunk of a data/control/result/truth key, or None."""
+    """The rig chunk of a data/control/result/truth/rig key, or None."""
     parts = str(key).split("/")
-    if len(parts) >= 4 and "/".join(parts[:2]) == PREFIX and parts[2] in ("data", "control", "result", "truth"):
+    if len(parts) >= 4 and "/".join(parts[:2]) == PREFIX and parts[2] in ("data", "control", "result", "truth", "rig"):
         return parts[3]
     return None

@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
 from ra2vipas.services.protocol.pod import PODModel
+from ra2vipas.services.protocol.rig import RigDescriptor, RxDirResponse
 from ra2vipas.services.protocol.scenario import Scenario
 
 MAX_STEPS = 10000
@@ -130,6 +131,22 @@ class ErrorReply(_Message):
 
 # -- result plane ------------------------------------------------------------------------------
 
+class ModelCheck(_Message):
+    """How the controller modelled its rig in one episode, and whether the data agreed (optional
+    part of ``EpisodeResult``; a v1 controller sends none, meaning ``sensor_model: scenario``)."""
+
+    sensor_model: Literal["descriptor", "scenario"] = Field(
+        description="where the controller's sensor model came from: the rig's descriptor, or the campaign's scenario "
+                    "(an undescribed rig: the results say it was scored under the scenario's assumptions)")
+    rx_dir: Literal["paper", "db-gain", "unknown"] = Field(description="the Rx(dir) response the controller assumed")
+    lobe: Literal["peak", "dip"] | None = Field(None, description="the lobe orientation it used at the end: given by the response, "
+                                                "or learned from the data when the response is unknown; null without Rx(dir)")
+    lobe_evidence: float | None = Field(None, ge=-1e9, le=1e9, description=(
+        "log-likelihood ratio of the lobe orientation used against the opposite one over the episode's Rx(dir) samples "
+        "(positive: the data agree with it; strongly negative: the directional RSSI contradicts the assumed antenna model); "
+        "null without Rx(dir)"))
+
+
 class EpisodeResult(_Message):
     """The controller's trace of one episode (controller -> orchestrator).
 
@@ -151,6 +168,7 @@ class EpisodeResult(_Message):
     rewards: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
     confidences: tuple[Annotated[float, Field(ge=0.0, le=1.0)], ...] = Field(default=(), max_length=MAX_STEPS)
     decided_step: int | None = Field(default=None, ge=0, le=MAX_STEPS)
+    model_check: ModelCheck | None = Field(default=None, description="how the rig was modelled (optional; v1 controllers send none)")
 
 
 class EpisodeTiming(_Message):
@@ -200,7 +218,7 @@ class TrainingTruth(_Message):
 WIRE_MESSAGES: tuple[type[BaseModel], ...] = (
     EpisodeStart, EpisodeStop, Command, Measurement, TrainingRequest, TrainingStream,
     PODRequest, PODResponse, ErrorReply, EpisodeResult, EpisodeTiming, EpisodeTruth, TrainingTruth,
-    RFSample, CameraFrame, TrainingSample, TargetTrajectory, PODModel, Scenario,
+    RFSample, CameraFrame, TrainingSample, TargetTrajectory, PODModel, Scenario, RigDescriptor, RxDirResponse, ModelCheck,
 )
 
 

@@ -11,13 +11,19 @@ would use (docs/protocol.md):
   ``realtime`` mode, where the platform samples at the last commanded pan and the node
   records how long each command took to come back;
 * ``data/<rig>/training`` (queryable): runs the POD training episode and replies with its
-  stream, publishing the training truth on the truth plane.
+  stream, publishing the training truth on the truth plane;
+* ``rig/<rig>/info`` (queryable): the rig's ``RigDescriptor``. By default a simulated rig is
+  *configurable*: it simulates whatever hardware each campaign's scenario describes. Given a
+  descriptor with fixed values (``ra2vipas sensors --hardware antenna_model=db-gain``) it
+  simulates that hardware whatever the scenario says, as a real platform would;
+  ``describe=False`` serves no descriptor (a v1 node).
 """
 
 from __future__ import annotations
 
 import heapq
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -27,6 +33,9 @@ from ra2vipas.services.protocol.messages import (
     Command, EpisodeStart, EpisodeStop, EpisodeTiming, Measurement, Mode, TrainingRequest,
     TrainingStream, TrainingTruth, decode, dump, episode_control_adapter,
 )
+from ra2vipas.services.protocol.rig import RigDescriptor, apply_rig_values
+from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.sensors.physics import wrap
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode, episode_truth
 from ra2vipas.services.transport.bus import Bus, QueryError, undeclare_all
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop
@@ -52,9 +61,13 @@ class _Episode:
 class SensorsNode:
     """One rig's simulated sensors. All state lives on ``self.loop``'s thread."""
 
-    def __init__(self, bus: Bus, rig: str, clock=time.monotonic) -> None:
+    def __init__(self, bus: Bus, rig: str, clock=time.monotonic, descriptor: RigDescriptor | None = None,
+                 describe: bool = True) -> None:
         self.bus = bus
         self.rig = keys.check_chunk(rig)
+        self.descriptor = descriptor or simulated_descriptor(rig)
+        if self.descriptor.rig != rig:
+            raise ValueError(f"the descriptor names rig {self.descriptor.rig!r}, this node is rig {rig!r}")
         self.clock = clock
         self.loop = EventLoop(f"sensors-{rig}")
         self.episodes: dict[str, _Episode] = {}
@@ -71,8 +84,12 @@ class SensorsNode:
             bus.subscribe(keys.command(rig), lambda _k, p: self.loop.post(self._on_command, p)),
             bus.serve(keys.training(rig), self._on_training),
             bus.serve(keys.training_truth(rig), self._on_training_truth),
-            bus.announce(keys.alive("sensors", rig)),
         ]
+        if describe:
+            info = dump(self.descriptor)
+            self._handles.append(bus.serve(keys.rig_info(rig), lambda _k, _p: info))
+        # the token last: whoever sees the rig alive finds its subscriptions and queryables in place
+        self._handles.append(bus.announce(keys.alive("sensors", rig)))
 
     # -- episodes ---------------------------------------------------------------------------
     def _on_control(self, payload: bytes) -> None:
@@ -84,7 +101,7 @@ class SensorsNode:
             return
         if msg.episode_id in self.episodes:
             return  # duplicate start
-        platform = SimulatedPlatform(msg.scenario, msg.seed, msg.test_index)
+        platform = SimulatedPlatform(self.hardware(msg.scenario), msg.seed, msg.test_index)
         self.episodes[msg.episode_id] = _Episode(start=msg, platform=platform, pan=msg.scenario.initial_pan_rad)
         self._finished.pop(msg.episode_id, None)
         self.bus.publish(keys.episode_truth(self.rig), dump(episode_truth(platform.truth, msg.episode_id)))
@@ -121,6 +138,8 @@ class SensorsNode:
             self._end(cmd.episode_id)
 
     def _sense(self, ep: _Episode, step: int, pan: float) -> Measurement:
+        if not -math.pi <= pan < math.pi:  # the pan unit reaches the commanded angle, reported wrapped (docs/protocol.md)
+            pan = float(wrap(pan))
         m = ep.platform.sense(step, pan)
         return Measurement.model_construct(episode_id=ep.start.episode_id, step=m.step, pan_rad=m.pan_rad, rf=m.rf, frames=m.frames)
 
@@ -195,15 +214,20 @@ class SensorsNode:
     def _on_training(self, _key: str, payload: bytes) -> bytes:
         """Queryable handler (runs on the bus's worker pool, touches no episode state)."""
         req = _training_request(payload)
-        samples = tuple(TrainingEpisode(req.scenario, req.seed).samples())
+        samples = tuple(TrainingEpisode(self.hardware(req.scenario), req.seed).samples())
         return TrainingStream.model_construct(job_id=req.job_id, samples=samples).model_dump_json().encode()
 
     def _on_training_truth(self, _key: str, payload: bytes) -> bytes:
         """Truth-plane queryable: the noiseless RSSI and POD behind the training episode of
         (scenario, seed), regenerated deterministically, for the orchestrator's R^2."""
         req = _training_request(payload)
-        truth = TrainingEpisode(req.scenario, req.seed).truth
+        truth = TrainingEpisode(self.hardware(req.scenario), req.seed).truth
         return dump(TrainingTruth(job_id=req.job_id, rssi_dbm=tuple(float(v) for v in truth.rssi_dbm), pod=tuple(float(v) for v in truth.pod)))
+
+    def hardware(self, scenario: Scenario) -> Scenario:
+        """The world this rig simulates for ``scenario``: its own fixed hardware values in place of
+        the campaign's (nothing changes for a configurable rig)."""
+        return apply_rig_values(self.descriptor, scenario)
 
     def close(self) -> None:
         with self._timer_cv:
@@ -211,6 +235,47 @@ class SensorsNode:
             self._timer_cv.notify()
         undeclare_all(self._handles)
         self.loop.stop()
+
+
+def simulated_descriptor(rig: str, **fixed) -> RigDescriptor:
+    """The descriptor of a simulated rig: every hardware field configurable unless ``fixed``
+    (descriptor fields, e.g. ``rx_dir={"model": "db-gain"}``); it knows the truth."""
+    return RigDescriptor.model_validate({"rig": rig, "kind": "simulated", "vendor": "ra2vipas", "model": "simulator",
+                                         "episode_truth": True, "training_truth": True, **fixed})
+
+
+HARDWARE_PARAMETERS = ("frames_per_rf", "rf_period_s", "fov_half_angle_deg", "box_bearing_noise_deg", "antenna_model",
+                       "antenna_curvature", "antenna_floor_db")
+"""The scenario parameters a simulated rig can pin (``ra2vipas sensors --hardware NAME=VALUE``)."""
+
+
+def pinned_descriptor(rig: str, values: dict) -> RigDescriptor:
+    """A simulated rig's descriptor with hardware ``values`` (scenario parameter names, typed) pinned.
+
+    Raises
+    ------
+    ValueError
+        A parameter that is not hardware, or a value out of range (one line naming it).
+    """
+    from pydantic import ValidationError
+
+    fixed: dict = {}
+    rx: dict = {}
+    for name, value in values.items():
+        if name not in HARDWARE_PARAMETERS:
+            raise ValueError(f"{name!r} is not a hardware parameter; pin one of {', '.join(HARDWARE_PARAMETERS)}")
+        if name.startswith("antenna_"):
+            rx[{"antenna_model": "model", "antenna_curvature": "curvature", "antenna_floor_db": "floor_db"}[name]] = value
+        else:
+            fixed[name] = value
+    if rx:
+        rx.setdefault("model", "paper")
+        fixed["rx_dir"] = rx
+    try:
+        return simulated_descriptor(rig, **fixed)
+    except ValidationError as err:
+        first = err.errors()[0]
+        raise ValueError(f"{'.'.join(str(p) for p in first.get('loc', ()))}: {first.get('msg')}") from None
 
 
 def _training_request(payload: bytes) -> TrainingRequest:

@@ -27,15 +27,17 @@ role           may
 =============  ===============================================================================
 sensors        put ``data/{rig}/measurement``, ``truth/{rig}/episode`` (a *simulated* sensor
                knows the truth), ``result/{rig}/timing``; subscribe to its rig's
-               ``control`` and ``data/{rig}/command``; serve ``data/{rig}/training`` and
-               ``truth/{rig}/training``; hold the token ``alive/sensors/{rig}``
+               ``control`` and ``data/{rig}/command``; serve ``data/{rig}/training``,
+               ``truth/{rig}/training`` and ``rig/{rig}/info`` (its descriptor); hold the
+               token ``alive/sensors/{rig}``
 controller     put ``data/{rig}/command`` and ``result/{rig}/episode``; subscribe to its
-               rig's ``control`` and ``data/{rig}/measurement``; query ``model/pod``; hold
-               ``alive/controller/{rig}``
+               rig's ``control`` and ``data/{rig}/measurement``; query ``model/pod`` and
+               ``rig/{rig}/info``; hold ``alive/controller/{rig}``
 rig            both of the above for one rig (``ra2vipas rig``: one process, two sessions)
 learner        serve ``model/pod``; query ``data/*/training``; hold ``alive/learner/{name}``
 orchestrator   put ``control/*/episode``; subscribe to ``result/*/…`` and
-               ``truth/*/episode``; query ``model/pod`` and ``truth/*/training``; watch
+               ``truth/*/episode``; query ``model/pod``, ``truth/*/training`` and
+               ``rig/*/info``; watch
                ``alive/**``; hold ``alive/orchestrator/{name}``
 operator       put ``truth/*/episode`` and serve ``truth/*/training`` (ground truth entered
                for real rigs); nothing else
@@ -126,9 +128,10 @@ def _sensors(rig: str) -> list[Grant]:
         Grant(INGRESS, (PUT,), (keys.measurement(rig), keys.episode_truth(rig), keys.episode_timing(rig))),
         Grant(INGRESS, (SUBSCRIBE,), (keys.episode_control(rig), keys.command(rig))),
         Grant(EGRESS, (PUT,), (keys.episode_control(rig), keys.command(rig))),
-        Grant(INGRESS, (QUERYABLE, REPLY), (keys.training(rig), keys.training_truth(rig))),
+        Grant(INGRESS, (QUERYABLE, REPLY), (keys.training(rig), keys.training_truth(rig), keys.rig_info(rig))),
         # queries reach a queryable with the querier's key expression: the learner's wildcard
-        Grant(EGRESS, (QUERY,), (keys.training(rig), keys.training_any(), keys.training_truth(rig), keys.training_truth_any())),
+        Grant(EGRESS, (QUERY,), (keys.training(rig), keys.training_any(), keys.training_truth(rig), keys.training_truth_any(),
+                                 keys.rig_info(rig), keys.rig_info_any())),
         Grant(INGRESS, (TOKEN,), (keys.alive("sensors", rig),)),
     ]
 
@@ -138,8 +141,8 @@ def _controller(rig: str) -> list[Grant]:
         Grant(INGRESS, (PUT,), (keys.command(rig), keys.episode_result(rig))),
         Grant(INGRESS, (SUBSCRIBE,), (keys.episode_control(rig), keys.measurement(rig))),
         Grant(EGRESS, (PUT,), (keys.episode_control(rig), keys.measurement(rig))),
-        Grant(INGRESS, (QUERY,), (keys.pod_model(),)),
-        Grant(EGRESS, (REPLY,), (keys.pod_model(),)),
+        Grant(INGRESS, (QUERY,), (keys.pod_model(), keys.rig_info(rig))),
+        Grant(EGRESS, (REPLY,), (keys.pod_model(), keys.rig_info(rig))),
         Grant(INGRESS, (TOKEN,), (keys.alive("controller", rig),)),
     ]
 
@@ -160,8 +163,8 @@ def _orchestrator(name: str) -> list[Grant]:
         Grant(INGRESS, (PUT,), (keys.episode_control_all(),)),
         Grant(INGRESS, (SUBSCRIBE,), observed),
         Grant(EGRESS, (PUT,), observed),
-        Grant(INGRESS, (QUERY,), (keys.pod_model(), keys.training_truth_any())),
-        Grant(EGRESS, (REPLY,), (keys.pod_model(), keys.training_truth_any())),
+        Grant(INGRESS, (QUERY,), (keys.pod_model(), keys.training_truth_any(), keys.rig_info_any())),
+        Grant(EGRESS, (REPLY,), (keys.pod_model(), keys.training_truth_any(), keys.rig_info_any())),
         Grant(INGRESS, (LIVELINESS_SUBSCRIBER, LIVELINESS_QUERY), (keys.alive_all(),)),
         Grant(EGRESS, (TOKEN,), (keys.alive_all(),)),
         Grant(INGRESS, (TOKEN,), (keys.alive("orchestrator", name),)),

@@ -240,11 +240,12 @@ def test_a_campaign_under_attack_by_an_authenticated_rig_equals_simulate(deploym
         results = run("campaign", "start", "--api", deployment.api, *args, "--wait")
         rigs = deployment.rigs()
         assert "evil" not in rigs and [name for name, r in rigs.items() if r["live"]] == ["rig-2"], rigs
+        assert rigs["rig-2"]["described"] == "described", rigs  # the orchestrator may query rig/*/info
     finally:
         seen = stop_attacker(attacker, report)
     assert seen["attempts"] > 0 and seen["forged"] > 0, seen  # it kept trying ...
     assert seen["heard"] == 0 and seen["heard_starts"] == 0, seen  # ... blind: no episode id, no data
-    assert untimed(results) == untimed(run("simulate", *args))
+    assert untimed(results) == untimed(run("simulate", *args))  # no "assumptions": the controller had its rig's descriptor
 
 
 def test_without_the_access_control_the_same_attacker_wins(deployment):

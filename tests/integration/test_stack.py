@@ -45,6 +45,10 @@ def test_up_starts_router_orchestrator_learner_and_two_rigs(stack):
     body = health.json()
     assert body["ready"] and body["database"] and body["zenoh"]
     assert body["rigs"] == ["rig-1", "rig-2"] and body["learners"] == ["learner"]
+    # each rig's descriptor reached the orchestrator through the stack's access control
+    rigs = httpx.get(f"{stack['api']}/rigs", timeout=10).json()["rigs"]
+    assert [(r["name"], r["described"], r["descriptor"]["kind"]) for r in rigs] == [("rig-1", "described", "simulated"),
+                                                                                   ("rig-2", "described", "simulated")]
 
 
 def test_campaign_through_the_cli_equals_simulate_value_for_value(stack):

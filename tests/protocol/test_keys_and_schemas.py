@@ -27,6 +27,7 @@ CONCRETE = {
     "result": [keys.episode_result(RIG), keys.episode_timing(RIG)],
     "truth": [keys.episode_truth(RIG), keys.training_truth(RIG)],
     "model": [keys.pod_model()],
+    "rig": [keys.rig_info(RIG)],
     "alive": [keys.alive(role, "x") for role in keys.ROLES],
 }
 WILDCARDS = {
@@ -34,6 +35,7 @@ WILDCARDS = {
     "control": [keys.episode_control_all()],
     "result": [keys.episode_result_all(), keys.episode_timing_all()],
     "truth": [keys.episode_truth_all(), keys.training_truth_any()],
+    "rig": [keys.rig_info_any()],
     "alive": [keys.alive_all()],
 }
 
@@ -66,7 +68,7 @@ def test_every_key_covers_every_plane_and_nothing_else():
 
 
 def test_what_controllers_and_learners_subscribe_to_never_touches_the_truth_plane():
-    controller = [keys.episode_control(RIG), keys.measurement(RIG), keys.pod_model()]
+    controller = [keys.episode_control(RIG), keys.measurement(RIG), keys.pod_model(), keys.rig_info(RIG)]
     learner = [keys.pod_model(), keys.training_any()]
     for pattern in controller + learner:
         for k in CONCRETE["truth"]:

@@ -89,6 +89,7 @@ def test_measurements_reject_extra_fields():
 def test_sensor_config_describes_only_the_platform():
     assert {f for f in SensorConfig.__dataclass_fields__} == {
         "steps", "frames_per_rf", "fov_half_angle_rad", "box_bearing_noise_rad", "initial_pan_rad", "rssi_grows_with_alignment", "rf_period_s",
+        "source", "rx_dir",  # where the description came from (descriptor | scenario) and the Rx(dir) response it names
     }
     sc = small_scenario(initial_pan_deg=45.0)
     cfg = sensor_config_from_scenario(sc)

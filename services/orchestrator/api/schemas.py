@@ -58,6 +58,18 @@ class CampaignCreate(BaseModel):
     name: Optional[str] = Field(None, max_length=100, strict=True, description="a label")
     stop_confidence: float = Field(0.0, ge=0.0, lt=1.0, strict=True, description="end each episode at the first step whose confidence "
                                    "reaches this, its answer final (0: off); results then carry `decision` per algorithm")
+    rigs: Optional[list[Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_-]{1,64}$")]]] = Field(
+        None, min_length=1, max_length=256, description="run only on these rigs (default: any live rig)")
+    rig_kind: Optional[Literal["simulated", "hardware", "survey"]] = Field(None, description="run only on rigs of this kind")
+    use_rig_values: bool = Field(False, strict=True, description="where the scenario contradicts a targeted rig's descriptor, take the "
+                                 "rig's values (else such a campaign is refused with a 422 naming each conflicting field)")
+
+
+class Targeting(BaseModel):
+    rigs: Optional[list[str]] = Field(None, description="the rigs it may run on (null: any)")
+    rig_kind: Optional[str] = Field(None, description="the kind of rig it may run on (null: any)")
+    use_rig_values: bool = False
+    rig_values: dict[str, Any] = Field(default_factory=dict, description="scenario parameters taken from the rigs' descriptors")
 
 
 class Progress(BaseModel):
@@ -70,6 +82,10 @@ class Progress(BaseModel):
 class PODSummary(BaseModel):
     r2: Optional[float] = Field(None, description="R^2 of the learned POD against the truth of its training episode (eq. 23)")
     train_seconds: Optional[float] = None
+
+
+class ResultsPOD(PODSummary):
+    note: Optional[str] = Field(None, description="why r2 is null (no rig served the training truth)")
 
 
 class CampaignProgress(BaseModel):
@@ -100,6 +116,7 @@ class CampaignPublic(CampaignProgress):
     elapsed_s: Optional[float] = Field(description="from start to finish (or to now while it runs)")
     steps_per_second: Optional[float]
     stop_confidence: float = Field(0.0, description="early decision threshold (0: off)")
+    targeting: Optional[Targeting] = Field(None, description="which rigs it runs on (null: any live rig)")
 
 
 class CampaignPage(BaseModel):
@@ -157,7 +174,7 @@ class ResultsPublic(BaseModel):
     scenario: dict[str, Any]
     tests: int
     seed: int
-    pod: PODSummary
+    pod: ResultsPOD
     algorithms: dict[str, AlgorithmResults]
     steps_per_second: Optional[float]
     latency_ms: Optional[LatencySummary] = Field(None, description="realtime campaigns only: sample -> command latency")
@@ -165,6 +182,10 @@ class ResultsPublic(BaseModel):
     partial: Optional[bool] = Field(None, description="true for a cancelled or failed campaign: the reduction of the episodes "
                                                       "recorded before it stopped (tests_recorded says how many per algorithm)")
     tests_recorded: Optional[dict[str, int]] = Field(None, description="partial results only: tests recorded per algorithm")
+    warnings: Optional[list[str]] = Field(None, description="what makes these numbers suspect, e.g. every radio algorithm far below "
+                                                            "chance, or Rx(dir)'s samples contradicting the assumed antenna model")
+    assumptions: Optional[dict[str, Any]] = Field(None, description="present when some episodes ran on undescribed rigs: they were "
+                                                                    "modelled and scored under the scenario's assumptions")
 
 
 class OutcomePublic(BaseModel):
@@ -225,6 +246,9 @@ class TracePublic(BaseModel):
     tx_index: int
     targets: list[TargetPublic]
     steps: list[TraceStep]
+    decided_step: Optional[int] = Field(None, description="the step of an early decision (stop_confidence), else null")
+    model_check: Optional[dict[str, Any]] = Field(None, description="how the controller modelled the rig (EpisodeResult.model_check; "
+                                                                   "null from a v1 controller)")
 
 
 # -- presets, rigs, health -----------------------------------------------------------------------
@@ -250,6 +274,9 @@ class RigPublic(BaseModel):
     sensors: bool
     controller: bool
     in_flight: int = Field(description="episodes running on it now")
+    described: str = Field("unknown", description="described (it serves its descriptor) | undescribed (a v1 node: modelled from "
+                                                  "each campaign's scenario) | asking | unknown (its sensors are down)")
+    descriptor: Optional[dict[str, Any]] = Field(None, description="its RigDescriptor (docs/protocol.md), when described")
 
 
 class RigsPublic(BaseModel):

@@ -41,6 +41,7 @@ def campaign_public(row: dict[str, Any], now: float | None = None, storage_fault
         scenario=row["scenario"], algorithms=row["algorithms"], tests=row["tests"], seed=row["seed"], mode=row["mode"],
         created_at=row["created_at"], elapsed_s=None if elapsed is None else round(elapsed, 3),
         steps_per_second=row["steps_per_second"], stop_confidence=row.get("stop_confidence") or 0.0,
+        targeting=row.get("targeting"),
     )
 
 
@@ -83,13 +84,14 @@ def trace_public(row: dict[str, Any], rf_period_s: float) -> TracePublic:
                             ranges_m=walks[i]["ranges_m"] if i in walks else None)
                for i, (b, r) in enumerate(zip(row["bearings"], row["ranges"]))]
     return TracePublic(campaign_id=row["campaign_id"], test_index=row["test_index"], algorithm=row["algorithm"], rig=row["rig"],
-                       attempt=row["attempt"], tx_index=row["tx_index"], targets=targets, steps=steps)
+                       attempt=row["attempt"], tx_index=row["tx_index"], targets=targets, steps=steps,
+                       decided_step=row.get("decided_step"), model_check=row.get("model_check"))
 
 
 def rigs_public(status: dict[str, Any]) -> RigsPublic:
     """The scheduler's view of the mesh (from Zenoh liveliness) as the API shows it."""
     rigs = [RigPublic(name=name, live=st["sensors"] and st["controller"], sensors=st["sensors"], controller=st["controller"],
-                      in_flight=st["in_flight"])
+                      in_flight=st["in_flight"], described=st.get("described", "unknown"), descriptor=st.get("descriptor"))
             for name, st in sorted(status["rigs"].items())]
     return RigsPublic(rigs=rigs, learners=list(status["learners"]))
 

@@ -11,6 +11,7 @@ from ra2vipas.services.orchestrator.api.deps import Authorized, CampaignDep, Sch
 from ra2vipas.services.orchestrator.api.errors import responses
 from ra2vipas.services.orchestrator.api.schemas import MAX_OFFSET, MAX_PAGE, CampaignCreate, CampaignPage, CampaignPublic, CampaignStatus
 from ra2vipas.services.orchestrator.api.views import campaign_public
+from ra2vipas.services.orchestrator.rigcheck import TargetingError, resolve_targeting
 from ra2vipas.services.orchestrator.storage import CampaignActiveError, CampaignInStudyError
 from ra2vipas.services.protocol.scenario import ScenarioError, build_scenario
 
@@ -26,18 +27,32 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
     The preset and overrides are resolved into the full scenario first: an unknown preset or
     parameter, or a value out of its range, is a 422 naming it and what it accepts, and
     nothing is stored.
+
+    Then it is checked against the rigs it targets (``rigs``, ``rig_kind``, or every live rig):
+    a scenario parameter (or the mode) that contradicts a targeted rig's descriptor is a 422
+    naming the field, the rig and both values, unless ``use_rig_values`` takes the rig's values
+    into the scenario (docs/protocol.md, "Rig descriptor").
     """
     try:
         scenario = build_scenario(body.preset, body.overrides)
     except ScenarioError as err:
         loc = ["body", "preset"] if str(err).startswith("unknown preset") else ["body", "overrides"]
         raise RequestValidationError([{"loc": tuple(loc), "msg": str(err), "type": "value_error"}]) from None
+    live = set(scheduler.live_rigs())
+    descriptors = {name: d for name, d in scheduler.descriptors().items() if name in live}
+    try:
+        scenario, targeting = resolve_targeting(scenario, body.mode, body.rigs, body.rig_kind, body.use_rig_values, descriptors)
+    except TargetingError as err:
+        raise RequestValidationError([{"loc": ("body", *where.split(".")), "msg": msg, "type": "value_error"}
+                                      for where, msg in err.errors]) from None
     algorithms = list(dict.fromkeys(body.algorithms))
     resolved = scenario.model_dump(mode="json")
-    overrides = {name: resolved[name] for name in body.overrides}  # stored with the scenario's types (3 -> 3.0)
+    taken = list((targeting or {}).get("rig_values", {}))  # the rigs' values count as overrides of the preset
+    overrides = {name: resolved[name] for name in [*body.overrides, *taken]}  # stored with the scenario's types (3 -> 3.0)
     cid = store.create_campaign(
         preset=body.preset, overrides=overrides, scenario=resolved, algorithms=algorithms,
         tests=body.tests, seed=body.seed, mode=body.mode, name=body.name, stop_confidence=body.stop_confidence,
+        targeting=targeting,
     )
     scheduler.submit(cid)
     response.headers["Location"] = f"/campaigns/{cid}"

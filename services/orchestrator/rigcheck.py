@@ -1,0 +1,170 @@
+"""No silent DR 0.00: what the results say about how the rig was modelled.
+
+Two things can make a campaign's numbers meaningless without any service failing:
+
+* the controller modelled the rig wrongly, e.g. a dB-gain Rx(dir), whose reading *peaks* when
+  aligned, under the paper's antenna model, where it *dips*: every radio algorithm then points
+  away from the Tx and its DR falls far *below chance* (1/N);
+* the rig is undescribed (a v1 sensors node): its controller took the hardware from the
+  campaign's scenario, so the campaign was scored under the scenario's assumptions.
+
+``dr_warnings`` finds the first from the DR alone (any campaign, in-process or on the mesh);
+``rig_notes`` adds what the controllers reported per episode (``EpisodeResult.model_check``):
+the lobe evidence (``Controller.lobe_evidence``: how much better the opposite lobe orientation
+fits Rx(dir)'s samples) and whether each episode used a descriptor or the scenario.
+"""
+
+from __future__ import annotations
+
+import statistics
+from collections import Counter
+from typing import Any, Iterable
+
+from scipy.stats import binom
+
+RADIO_ALGORITHMS = ("ra2vipas", "rapas", "sweep")
+"""The algorithms that use Rx(dir) (RaViPAS uses the camera and Rx(iso) only)."""
+CHANCE_P_VALUE = 1e-3  # one-sided binomial test of "no better than below chance"
+CONTRADICTION_NATS = 3.0  # lobe evidence below -this: the opposite orientation fits e^3 = 20 times better
+CONTRADICTED_SHARE = 0.5  # warn when at least this share of the radio episodes is contradicted
+
+
+def _other_model(rx_dir: str) -> str:
+    return {"paper": "db-gain (a gain in dB: its reading peaks when aligned)",
+            "db-gain": "the paper's model (a dBm value scaled by rho: its reading dips when aligned)"}.get(rx_dir, "another model")
+
+
+def dr_warnings(results: dict[str, Any]) -> list[str]:
+    """A warning when every radio algorithm's final DR is far below chance, 1/N (the Tx is one
+    of N targets): pooled over the radio algorithms, P(X <= hits | tests, 1/N) < 1e-3 and the DR
+    is below half of chance. Such a DR is not bad luck: the controller points *away* from the
+    Tx, which is what a wrong Rx(dir) model does."""
+    scenario = results.get("scenario") or {}
+    n_targets = int(scenario.get("n_targets") or 0)
+    tests = int(results.get("tests") or 0)
+    radio = {a: block for a, block in (results.get("algorithms") or {}).items() if a in RADIO_ALGORITHMS}
+    if n_targets < 2 or not radio or tests < 1:
+        return []
+    chance = 1.0 / n_targets
+    counted = {a: int(round(block["dr_final"] * tests)) for a, block in radio.items()}
+    hits, trials = sum(counted.values()), tests * len(counted)
+    p_value = float(binom.cdf(hits, trials, chance))
+    if p_value >= CHANCE_P_VALUE or hits / trials >= chance / 2.0:
+        return []
+    rx_dir = scenario.get("antenna_model", "paper")
+    listed = ", ".join(f"{a} {block['dr_final']:.2f}" for a, block in radio.items())
+    return [f"every radio algorithm's final DR ({listed}) is far below chance (1/N = {chance:.3g}; binomial p = {p_value:.1g}): "
+            f"the controllers point away from the Tx, which is what a wrong Rx(dir) model does. The antenna model assumed is "
+            f"{rx_dir!r}; if the rig's antenna is {_other_model(rx_dir)}, describe the rig (rx_dir in its descriptor) or set "
+            f"antenna_model"]
+
+
+def rig_notes(results: dict[str, Any], checks: Iterable[tuple[str | None, dict | None]]) -> dict[str, Any]:
+    """Add to ``results`` (in place; also returned) what the episodes' model checks say.
+
+    ``checks``: per recorded episode, the rig it ran on and its ``model_check`` (None from a v1
+    controller). Adds ``assumptions`` when some episodes were modelled from the scenario (an
+    undescribed rig or a v1 controller): how many, on which rigs; and a warning when Rx(dir)'s
+    samples contradict the assumed response in at least half of the radio episodes.
+    """
+    scenario_rigs: Counter = Counter()
+    evidence: list[float] = []
+    assumed: Counter = Counter()
+    total = 0
+    for rig, check in checks:
+        total += 1
+        if check is None or check.get("sensor_model") != "descriptor":
+            scenario_rigs[rig or "?"] += 1
+        if check is not None and check.get("lobe_evidence") is not None:
+            evidence.append(float(check["lobe_evidence"]))
+            assumed[check.get("rx_dir", "paper")] += 1
+    if scenario_rigs:
+        results["assumptions"] = {
+            "sensor_model": "scenario", "episodes": sum(scenario_rigs.values()), "of": total, "rigs": sorted(scenario_rigs),
+            "note": "these episodes ran on undescribed rigs (or v1 controllers): their controllers took the hardware "
+                    "(nu, T_RF, field of view, box noise, Rx(dir) response) from the campaign's scenario, and they were "
+                    "scored under the scenario's assumptions",
+        }
+    warnings = list(results.get("warnings") or [])
+    contradicted = [e for e in evidence if e < -CONTRADICTION_NATS]
+    if evidence and len(contradicted) >= max(1, CONTRADICTED_SHARE * len(evidence)):
+        rx_dir = assumed.most_common(1)[0][0]
+        warnings.append(
+            f"the directional RSSI contradicts the assumed Rx(dir) response {rx_dir!r} in {len(contradicted)} of {len(evidence)} "
+            f"radio episodes (the opposite lobe orientation fits their samples better, by a median of "
+            f"{-statistics.median(contradicted):.1f} nats): the rig's antenna is likely {_other_model(rx_dir)}; describe the rig "
+            f"(rx_dir: its model, or 'unknown' to have the controller learn it) or set antenna_model")
+    if warnings:
+        results["warnings"] = warnings
+    return results
+
+
+class TargetingError(ValueError):
+    """A campaign contradicts the rigs it targets; ``errors`` are (field, message) pairs, one per
+    conflicting field and rig."""
+
+    def __init__(self, errors: list[tuple[str, str]]) -> None:
+        super().__init__("; ".join(f"{f}: {m}" for f, m in errors))
+        self.errors = errors
+
+
+def resolve_targeting(scenario, mode: str, rigs: list[str] | None, rig_kind: str | None, use_rig_values: bool,
+                      descriptors: dict[str, Any]):
+    """Check a new campaign against the rigs it targets; return ``(scenario, targeting)``.
+
+    ``descriptors``: every live rig's ``RigDescriptor`` (None: undescribed). The rigs targeted
+    are ``rigs`` (those of them that are live), else the live rigs of ``rig_kind``, else every
+    live rig. Each targeted rig with a descriptor must agree with the scenario (and support
+    ``mode``): a contradicted field is a ``TargetingError`` naming the field, the rig and both
+    values, unless ``use_rig_values``, which takes the rigs' values (they must agree among
+    themselves). A campaign that targets no rig in particular runs on the live rigs it agrees
+    with, and is refused only when it agrees with none of them. Rigs not live now are checked
+    when they come up (the scheduler skips the ones that contradict the campaign).
+
+    Raises
+    ------
+    TargetingError
+    """
+    from ra2vipas.services.protocol.rig import conflicts, rig_values
+
+    if rigs:
+        targeted = [r for r in rigs if r in descriptors]
+    elif rig_kind:
+        targeted = [r for r, d in descriptors.items() if d is not None and d.kind == rig_kind]
+    else:
+        targeted = list(descriptors)
+    described = {r: descriptors[r] for r in sorted(targeted) if descriptors.get(r) is not None}
+    values: dict[str, tuple[Any, str]] = {}
+    errors: list[tuple[str, str]] = []
+    if use_rig_values:
+        for rig, d in described.items():
+            for name, value in rig_values(d).items():
+                if name in values and values[name][0] != value:
+                    errors.append((f"scenario.{name}", f"rigs {values[name][1]} and {rig} disagree ({values[name][0]!r} vs {value!r}); "
+                                                       f"target one of them with rigs"))
+                values.setdefault(name, (value, rig))
+        if errors:
+            raise TargetingError(errors)
+        if values:
+            scenario = apply_rig_values_dict(scenario, {k: v for k, (v, _) in values.items()})
+    found = {rig: conflicts(d, scenario, mode) for rig, d in described.items()}
+    bad = {rig: c for rig, c in found.items() if c}
+    if bad and (rigs or rig_kind or len(bad) == len(targeted)):
+        for rig, cs in bad.items():
+            for c in cs:
+                where = "mode" if c.field == "mode" else f"scenario.{c.field}"
+                hint = "" if c.field == "mode" else " (use_rig_values takes the rig's)"
+                errors.append((where, f"rig {rig} is {c.rig!r}, the campaign says {c.campaign!r}{hint}"))
+        raise TargetingError(errors)
+    targeting = None
+    if rigs or rig_kind or use_rig_values:
+        targeting = {"rigs": list(rigs) if rigs else None, "rig_kind": rig_kind, "use_rig_values": bool(use_rig_values),
+                     "rig_values": {k: v for k, (v, _) in values.items()}}
+    return scenario, targeting
+
+
+def apply_rig_values_dict(scenario, values: dict[str, Any]):
+    """``scenario`` with ``values`` (scenario parameters) in place."""
+    from ra2vipas.services.protocol.scenario import Scenario
+
+    return Scenario.model_validate({**scenario.model_dump(mode="json"), **values})

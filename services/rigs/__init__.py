@@ -1,0 +1,1 @@
+"""Real rigs: the conformance kit, record and replay (MCAP), surveys."""

@@ -1,0 +1,451 @@
+"""The conformance kit: drive a live sensors node through scripted episodes and say, rule by
+rule, whether it speaks the protocol of docs/protocol.md (``ra2vipas protocol check``).
+
+The kit plays the orchestrator and the controller of one rig on any ``Bus`` (Zenoh, or the
+in-memory bus in tests). It uses its own episode ids (``conformance.*``), so it never touches a
+campaign's episodes, but it does move the rig: run it on a rig no campaign is using.
+
+Every rule has a name (``RULES``), and ``check_rig`` returns one ``RuleResult`` per rule:
+passed, failed (with what was seen), or skipped (the rig's descriptor says it does not do that,
+e.g. realtime).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from pydantic import ValidationError
+
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import (
+    Command, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Measurement, TrainingRequest, TrainingStream, dump,
+)
+from ra2vipas.services.protocol.rig import RigDescriptor, apply_rig_values
+from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.transport.bus import Bus
+
+RULES: dict[str, str] = {
+    "liveliness": "the sensors hold the liveliness token alive/sensors/{rig}",
+    "descriptor": "rig/{rig}/info answers a valid RigDescriptor naming the rig",
+    "fast-lockstep": "fast mode: each Command(t) is answered by one Measurement(t) with the same episode_id, valid against its schema",
+    "frames": "every Measurement carries nu frames whose box bearings are sorted ascending",
+    "pan-wrapped": "Measurement.pan_rad is the commanded pan, wrapped to [-pi, pi)",
+    "command-before-start": "a Command(0) that arrives before its EpisodeStart is answered once the start arrives",
+    "duplicate-command": "a repeated Command(t) does not advance the episode (at most the same sample again)",
+    "duplicate-start": "a repeated EpisodeStart does not restart the episode",
+    "stop-mid-episode": "after an EpisodeStop, commands of that episode get no measurement",
+    "malformed": "malformed control and command messages are dropped: the node stays up and runs the next episode",
+    "realtime-sample-0": "realtime: sample 0 is taken when Command(0) arrives, not T_RF later",
+    "realtime-grid": "realtime: sample k arrives at t0 + k T_RF (within max(30 ms, T_RF/4))",
+    "realtime-pan": "realtime: each sample is taken at the last commanded pan",
+    "realtime-timing": "realtime: one EpisodeTiming after the last sample, at most steps-1 latencies, no late command when every "
+                       "command came at once",
+    "training": "data/{rig}/training answers a TrainingStream of n_train samples (indices 0..n-1, nu frames each, job_id echoed)",
+    "truth": "a rig that says it publishes EpisodeTruth does so for every episode; one that says it does not, publishes none",
+}
+
+
+@dataclass
+class RuleResult:
+    rule: str
+    status: str  # pass | fail | skip
+    detail: str = ""
+
+    def as_dict(self) -> dict[str, str]:
+        return {"rule": self.rule, "status": self.status, "detail": self.detail, "what": RULES[self.rule]}
+
+
+@dataclass
+class _Seen:
+    key: str
+    payload: bytes
+    at: float
+
+
+@dataclass
+class _Inbox:
+    """Everything the rig published on its measurement, timing and truth keys."""
+
+    items: "queue.Queue[_Seen]" = field(default_factory=queue.Queue)
+    log: list = field(default_factory=list)
+
+
+class ConformanceKit:
+    """One run of the kit against ``rig`` on ``bus``. ``timeout``: how long to wait for any
+    single answer [s]."""
+
+    def __init__(self, bus: Bus, rig: str, timeout: float = 5.0, clock=time.monotonic) -> None:
+        self.bus, self.rig, self.timeout, self.clock = bus, keys.check_chunk(rig), timeout, clock
+        self.results: dict[str, RuleResult] = {}
+        self.measurements: list[tuple[_Seen, dict | None]] = []  # (seen, parsed JSON)
+        self._lock = threading.Condition()
+        self._timing: list[_Seen] = []
+        self._truth: list[_Seen] = []
+        self._nonce = f"{int(time.time() * 1000) % 10**9}"
+        self.episodes: list[str] = []
+        self._handles = [
+            bus.subscribe(keys.measurement(rig), lambda k, p: self._note(self.measurements, k, p)),
+            bus.subscribe(keys.episode_timing(rig), lambda k, p: self._note(self._timing, k, p)),
+            bus.subscribe(keys.episode_truth(rig), lambda k, p: self._note(self._truth, k, p)),
+        ]
+
+    # -- plumbing ------------------------------------------------------------------------------
+    def _note(self, target: list, key: str, payload: bytes) -> None:
+        seen = _Seen(key, payload, self.clock())
+        with self._lock:
+            if target is self.measurements:
+                try:
+                    parsed = json.loads(payload)
+                except ValueError:
+                    parsed = None
+                target.append((seen, parsed if isinstance(parsed, dict) else None))
+            else:
+                target.append(seen)
+            self._lock.notify_all()
+
+    def _wait_measurement(self, episode_id: str, step: int, since: int, timeout: float | None = None) -> tuple[_Seen, dict] | None:
+        """The first measurement of (episode, step) at index >= ``since`` of the log."""
+        deadline = self.clock() + (self.timeout if timeout is None else timeout)
+        with self._lock:
+            while True:
+                for seen, parsed in self.measurements[since:]:
+                    if parsed and parsed.get("episode_id") == episode_id and parsed.get("step") == step:
+                        return seen, parsed
+                left = deadline - self.clock()
+                if left <= 0:
+                    return None
+                self._lock.wait(left)
+
+    def _of(self, episode_id: str, step: int | None = None) -> list[tuple[_Seen, dict]]:
+        with self._lock:
+            return [(s, p) for s, p in self.measurements if p and p.get("episode_id") == episode_id and (step is None or p.get("step") == step)]
+
+    def _id(self, what: str) -> str:
+        eid = f"conformance.{self._nonce}.{what}"
+        self.episodes.append(eid)
+        return eid
+
+    def _start(self, eid: str, scenario: Scenario, mode: str = "fast", index: int = 0) -> bytes:
+        payload = dump(EpisodeStart(episode_id=eid, campaign_id=f"conformance-{self._nonce}", test_index=index, algorithm="rapas",
+                                    seed=7, scenario=scenario, mode=mode))
+        self.bus.publish(keys.episode_control(self.rig), payload)
+        return payload
+
+    def _command(self, eid: str, step: int, pan: float) -> None:
+        self.bus.publish(keys.command(self.rig), dump(Command(episode_id=eid, step=step, pan_rad=pan)), express=True)
+
+    def _result(self, rule: str, ok: bool | None, detail: str = "") -> None:
+        if rule in self.results and self.results[rule].status == "fail":
+            return  # the first failure stands
+        self.results[rule] = RuleResult(rule, "skip" if ok is None else ("pass" if ok else "fail"), detail)
+
+    def close(self) -> None:
+        for h in self._handles:
+            try:
+                h.undeclare()
+            except Exception:
+                pass
+
+    # -- the script ----------------------------------------------------------------------------
+    def run(self, steps: int = 6, realtime_steps: int = 8) -> list[RuleResult]:
+        """Run every rule; return the results in ``RULES`` order."""
+        descriptor = self._liveliness_and_descriptor()
+        base = Scenario(steps=steps, n_train=25, n_targets=6)
+        scenario = apply_rig_values(descriptor, base) if descriptor is not None else base
+        nu = scenario.frames_per_rf
+        self._fast(scenario, nu, steps)
+        self._early_duplicates_stop(scenario)
+        self._malformed(scenario)
+        modes = descriptor.modes if descriptor is not None else ("fast", "realtime")
+        if "realtime" in modes:
+            self._realtime(scenario.model_copy(update={"steps": realtime_steps}), realtime_steps)
+        else:
+            for rule in ("realtime-sample-0", "realtime-grid", "realtime-pan", "realtime-timing"):
+                self._result(rule, None, "the rig does not run realtime episodes (its descriptor's modes)")
+        if descriptor is None or descriptor.training:
+            self._training(scenario, nu)
+        else:
+            self._result("training", None, "the rig serves no training episode (its descriptor)")
+        self._truth_rule(descriptor)
+        return [self.results.get(rule, RuleResult(rule, "fail", "not checked")) for rule in RULES]
+
+    def _liveliness_and_descriptor(self) -> RigDescriptor | None:
+        up = threading.Event()
+        handle = self.bus.watch_alive(keys.alive("sensors", self.rig), lambda _k, alive: up.set() if alive else None)
+        self._result("liveliness", up.wait(self.timeout), "" if up.is_set() else f"no token alive/sensors/{self.rig}")
+        handle.undeclare()
+        self._alive = up.is_set()
+        got: "queue.Queue[list]" = queue.Queue()
+        self.bus.query(keys.rig_info(self.rig), b"", self.timeout, got.put)
+        try:
+            replies = got.get(timeout=self.timeout + 5.0)
+        except queue.Empty:
+            replies = []
+        descriptor, why = None, "no reply (a v1 node serves no descriptor)"
+        for reply in replies:
+            if not reply.ok:
+                why = f"error reply: {reply.payload[:200].decode(errors='replace')}"
+                continue
+            try:
+                descriptor = RigDescriptor.model_validate_json(reply.payload)
+            except ValidationError as err:
+                why = f"invalid RigDescriptor: {_first(err)}"
+                continue
+            if descriptor.rig != self.rig:
+                why, descriptor = f"the descriptor names rig {descriptor.rig!r}", None
+                continue
+            break
+        self._result("descriptor", descriptor is not None, "" if descriptor is not None else why)
+        return descriptor
+
+    def _check_measurement(self, parsed: dict, raw: bytes, nu: int, pan: float) -> None:
+        try:
+            Measurement.model_validate_json(raw)
+        except ValidationError as err:
+            self._result("fast-lockstep", False, f"step {parsed.get('step')}: invalid Measurement: {_first(err)}")
+            return
+        frames = parsed["frames"]
+        if len(frames) != nu:
+            self._result("frames", False, f"step {parsed['step']}: {len(frames)} frames, expected nu = {nu}")
+        elif any(list(f["box_bearings_rad"]) != sorted(f["box_bearings_rad"]) for f in frames):
+            self._result("frames", False, f"step {parsed['step']}: box bearings not sorted ascending")
+        else:
+            self._result("frames", True)
+        reported = float(parsed["pan_rad"])
+        expected = (pan + math.pi) % (2.0 * math.pi) - math.pi
+        if not -math.pi <= reported < math.pi:
+            self._result("pan-wrapped", False, f"step {parsed['step']}: pan_rad {reported:.4f} is outside [-pi, pi)")
+        elif abs((reported - expected + math.pi) % (2.0 * math.pi) - math.pi) > 0.05:
+            self._result("pan-wrapped", False, f"step {parsed['step']}: pan_rad {reported:.4f}, commanded {pan:.4f}")
+        else:
+            self._result("pan-wrapped", True)
+
+    def _fast(self, scenario: Scenario, nu: int, steps: int) -> None:
+        eid = self._id("fast")
+        self._start(eid, scenario)
+        time.sleep(0.2)
+        pans = [0.0, 1.0, 3.5, -2.0, -3.6, 2.9] * (steps // 6 + 1)  # 3.5 and -3.6: the node must wrap them
+        for t in range(steps):
+            mark = len(self.measurements)
+            self._command(eid, t, pans[t])
+            got = self._wait_measurement(eid, t, mark)
+            if got is None:
+                self._result("fast-lockstep", False, f"no Measurement for step {t} within {self.timeout:g} s")
+                return
+            self._check_measurement(got[1], got[0].payload, nu, pans[t])
+        time.sleep(0.3)
+        counts = [len(self._of(eid, t)) for t in range(steps)]
+        if any(c != 1 for c in counts):
+            self._result("fast-lockstep", False, f"measurements per step {counts}, expected one each")
+        others = [p.get("step") for _, p in self._of(eid) if p.get("step") not in range(steps)]
+        if others:
+            self._result("fast-lockstep", False, f"measurements for steps never commanded: {others}")
+        self._result("fast-lockstep", True)
+        self._fast_id = eid
+
+    def _early_duplicates_stop(self, scenario: Scenario) -> None:
+        eid = self._id("early")
+        mark = len(self.measurements)
+        self._command(eid, 0, 0.5)
+        time.sleep(0.3)
+        start = self._start(eid, scenario, index=1)
+        got = self._wait_measurement(eid, 0, mark)
+        self._result("command-before-start", got is not None,
+                     "" if got else f"Command(0) sent 0.3 s before its EpisodeStart got no Measurement within {self.timeout:g} s")
+        if got is None:
+            for rule in ("duplicate-command", "duplicate-start", "stop-mid-episode"):
+                self._result(rule, False, "could not run: the episode did not start")
+            return
+        # duplicate command
+        mark = len(self.measurements)
+        self._command(eid, 1, 0.7)
+        if self._wait_measurement(eid, 1, mark) is None:
+            self._result("duplicate-command", False, "no Measurement for step 1")
+            return
+        self._command(eid, 1, 0.7)
+        time.sleep(0.3)
+        again = self._of(eid, 1)
+        mark = len(self.measurements)
+        self._command(eid, 2, 0.9)
+        two = self._wait_measurement(eid, 2, mark)
+        if len(again) > 2 or any(p != again[0][1] for _, p in again):
+            self._result("duplicate-command", False, f"a repeated Command(1) gave {len(again)} different samples")
+        elif two is None:
+            self._result("duplicate-command", False, "after a repeated Command(1), Command(2) got no Measurement (the episode advanced?)")
+        else:
+            self._result("duplicate-command", True)
+        # duplicate start
+        self.bus.publish(keys.episode_control(self.rig), start)
+        time.sleep(0.3)
+        mark = len(self.measurements)
+        self._command(eid, 3, 1.1)
+        three = self._wait_measurement(eid, 3, mark)
+        restarted = self._wait_measurement(eid, 0, mark, timeout=0.0)
+        self._result("duplicate-start", three is not None and restarted is None,
+                     "" if three is not None else "after a repeated EpisodeStart, Command(3) got no Measurement (restarted?)")
+        # stop mid-episode
+        self.bus.publish(keys.episode_control(self.rig), dump(EpisodeStop(episode_id=eid, reason="conformance: stop mid-episode")))
+        time.sleep(0.3)
+        mark = len(self.measurements)
+        self._command(eid, 4, 1.3)
+        late = self._wait_measurement(eid, 4, mark, timeout=1.0)
+        self._result("stop-mid-episode", late is None, "" if late is None else "Command(4) after EpisodeStop got a Measurement")
+
+    def _malformed(self, scenario: Scenario) -> None:
+        control, command = keys.episode_control(self.rig), keys.command(self.rig)
+        garbage = [
+            (control, b"not json"), (control, b"[]"), (control, b'{"kind": "start"}'), (control, b'{"episode_id": "x"}'),
+            (control, json.dumps({"kind": "start", "episode_id": "bad", "campaign_id": "c", "test_index": -1, "algorithm": "rapas",
+                                  "seed": 1, "scenario": {"steps": "many"}}).encode()),
+            (command, b"\xff\xfe"), (command, b"{}"), (command, b'{"episode_id": "x", "step": "one", "pan_rad": 0}'),
+            (command, json.dumps({"episode_id": self._fast_id if hasattr(self, "_fast_id") else "x", "step": 0, "pan_rad": 1e9}).encode()),
+        ]
+        for key, payload in garbage:
+            self.bus.publish(key, payload)
+        time.sleep(0.5)
+        eid = self._id("after-garbage")
+        self._start(eid, scenario.model_copy(update={"steps": 2}), index=2)
+        time.sleep(0.2)
+        mark = len(self.measurements)
+        self._command(eid, 0, 0.0)
+        got = self._wait_measurement(eid, 0, mark)
+        alive = threading.Event()
+        handle = self.bus.watch_alive(keys.alive("sensors", self.rig), lambda _k, up: alive.set() if up else None)
+        alive.wait(2.0)
+        handle.undeclare()
+        if not alive.is_set() and self._alive:
+            self._result("malformed", False, "the liveliness token is gone after malformed messages (the node died?)")
+        else:
+            self._result("malformed", got is not None, "" if got else "after malformed messages, a new episode got no Measurement")
+
+    def _realtime(self, scenario: Scenario, steps: int) -> None:
+        period = scenario.rf_period_s
+        eid = self._id("realtime")
+        self._start(eid, scenario, mode="realtime", index=3)
+        time.sleep(0.3)
+        pans = [0.1 * (k + 1) * (-1) ** k for k in range(steps)]
+        mark = len(self.measurements)
+        sent0 = self.clock()
+        self._command(eid, 0, pans[0])
+        arrivals, reported = [], []
+        for k in range(steps):
+            got = self._wait_measurement(eid, k, mark, timeout=self.timeout + period)
+            if got is None:
+                self._result("realtime-grid", False, f"no Measurement for step {k}")
+                break
+            arrivals.append(got[0].at)
+            reported.append(float(got[1]["pan_rad"]))
+            if k + 1 < steps:
+                self._command(eid, k + 1, pans[k + 1])
+        if arrivals:
+            first = arrivals[0] - sent0
+            self._result("realtime-sample-0", first < max(0.5 * period, 0.05),
+                         f"sample 0 came {first * 1e3:.0f} ms after Command(0)")
+        if len(arrivals) == steps:
+            tolerance = max(0.03, period / 4.0)
+            off = [a - arrivals[0] - k * period for k, a in enumerate(arrivals)]
+            worst = max(off, key=abs)
+            self._result("realtime-grid", abs(worst) <= tolerance,
+                         f"worst offset from t0 + k T_RF: {worst * 1e3:+.1f} ms (tolerance {tolerance * 1e3:.0f} ms)")
+            # sample k is taken at the last commanded pan: pans[k] (sent as soon as sample k-1 arrived)
+            wrong = [k for k in range(steps) if abs(reported[k] - pans[k]) > 0.05]
+            self._result("realtime-pan", not wrong, f"samples at another pan than the last commanded: steps {wrong}" if wrong else "")
+        else:
+            self._result("realtime-pan", False, "the episode did not run to its end")
+        deadline = self.clock() + period * 2 + self.timeout
+        timing = None
+        while self.clock() < deadline and timing is None:
+            with self._lock:
+                for seen in self._timing:
+                    try:
+                        msg = EpisodeTiming.model_validate_json(seen.payload)
+                    except ValidationError as err:
+                        self._result("realtime-timing", False, f"invalid EpisodeTiming: {_first(err)}")
+                        return
+                    if msg.episode_id == eid:
+                        timing = msg
+                if timing is None:
+                    self._lock.wait(0.05)
+        if timing is None:
+            self._result("realtime-timing", False, "no EpisodeTiming")
+        elif len(timing.latencies_ms) > steps - 1:
+            self._result("realtime-timing", False, f"{len(timing.latencies_ms)} latencies for {steps} steps (at most {steps - 1})")
+        elif timing.late_commands:
+            self._result("realtime-timing", False, f"late_commands = {timing.late_commands} though every command came at once")
+        else:
+            self._result("realtime-timing", True, f"{len(timing.latencies_ms)} latencies, p50 "
+                         f"{sorted(timing.latencies_ms)[len(timing.latencies_ms) // 2]:.2f} ms" if timing.latencies_ms else "")
+
+    def _training(self, scenario: Scenario, nu: int) -> None:
+        job = f"conformance-{self._nonce}"
+        request = dump(TrainingRequest(job_id=job, scenario=scenario, seed=3))
+        got: "queue.Queue[list]" = queue.Queue()
+        self.bus.query(keys.training(self.rig), request, max(self.timeout, 60.0), got.put)
+        try:
+            replies = got.get(timeout=max(self.timeout, 60.0) + 5.0)
+        except queue.Empty:
+            replies = []
+        ok = [r for r in replies if r.ok]
+        if not ok:
+            self._result("training", False, "no reply" if not replies else f"error reply: {replies[0].payload[:200].decode(errors='replace')}")
+            return
+        try:
+            stream = TrainingStream.model_validate_json(ok[0].payload)
+        except ValidationError as err:
+            self._result("training", False, f"invalid TrainingStream: {_first(err)}")
+            return
+        n = scenario.n_train
+        problems = []
+        if stream.job_id != job:
+            problems.append(f"job_id {stream.job_id!r}, expected {job!r}")
+        if [s.index for s in stream.samples] != list(range(n)):
+            problems.append(f"{len(stream.samples)} samples, expected indices 0..{n - 1}")
+        if any(len(s.frames) != nu for s in stream.samples):
+            problems.append(f"samples whose frames are not nu = {nu}")
+        self._result("training", not problems, "; ".join(problems))
+
+    def _truth_rule(self, descriptor: RigDescriptor | None) -> None:
+        time.sleep(0.2)
+        with self._lock:
+            truths = {}
+            for seen in self._truth:
+                try:
+                    msg = EpisodeTruth.model_validate_json(seen.payload)
+                except ValidationError as err:
+                    self._result("truth", False, f"invalid EpisodeTruth: {_first(err)}")
+                    return
+                truths[msg.episode_id] = msg
+        says = descriptor.episode_truth if descriptor is not None else None
+        if says is None:
+            self._result("truth", None, "undescribed rig: nothing to hold it to")
+        elif says:
+            missing = [e for e in self.episodes if e not in truths]
+            self._result("truth", not missing, f"no EpisodeTruth for {missing}" if missing else "")
+        else:
+            self._result("truth", not truths, f"published EpisodeTruth for {sorted(truths)} though its descriptor says it does not"
+                         if truths else "")
+
+
+def _first(err: ValidationError) -> str:
+    e = err.errors()[0] if err.errors() else {}
+    return f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', 'invalid')}"
+
+
+def check_rig(bus: Bus, rig: str, timeout: float = 5.0, steps: int = 6, realtime_steps: int = 8) -> list[RuleResult]:
+    """Run the kit against ``rig``; one ``RuleResult`` per rule of ``RULES``."""
+    kit = ConformanceKit(bus, rig, timeout)
+    try:
+        return kit.run(steps=steps, realtime_steps=realtime_steps)
+    finally:
+        kit.close()
+
+
+def report(results: list[RuleResult]) -> dict[str, Any]:
+    """The JSON report: every rule's result and whether the rig passed (no rule failed)."""
+    return {"passed": all(r.status != "fail" for r in results), "rules": [r.as_dict() for r in results]}

@@ -1,0 +1,130 @@
+"""Real rigs through the API: descriptors in ``GET /rigs``, campaigns checked against the rigs
+they target (422 naming each conflicting field, or the rig's values taken), a v1 node without
+a descriptor still running (scored under the scenario's assumptions), and no silent DR 0.00."""
+
+from __future__ import annotations
+
+import pytest
+
+from ra2vipas.services.sensors.node import simulated_descriptor
+from tests.api.live import SMALL, LiveAPI
+
+DB_GAIN = simulated_descriptor("db-1", rx_dir={"model": "db-gain"})
+
+
+@pytest.fixture(scope="module")
+def rigs(tmp_path_factory):
+    """sim-1: a configurable simulated rig; db-1: a simulated rig whose Rx(dir) is a dB-gain antenna
+    (it says so); old-1: a v1 node (no descriptor); hidden-1: a v1 node that is, unknown to
+    everyone, a dB-gain rig."""
+    server = LiveAPI(tmp_path_factory.mktemp("rigs") / "rigs.db", rigs=("sim-1", "db-1", "old-1", "hidden-1"), window=4, sensors={
+        "db-1": {"descriptor": DB_GAIN},
+        "old-1": {"describe": False},
+        "hidden-1": {"descriptor": simulated_descriptor("hidden-1", rx_dir={"model": "db-gain"}), "describe": False},
+    }).start()
+    server.settle()
+    yield server
+    server.stop()
+
+
+def _start(server, **body):
+    with server.client() as http:
+        return http.post("/campaigns", json={"preset": "paper", "overrides": SMALL, "tests": 3, "seed": 4, **body})
+
+
+def _tests(server, cid):
+    with server.client() as http:
+        return http.get(f"/campaigns/{cid}/tests", params={"limit": 200}).json()["items"]
+
+
+def test_rigs_show_their_descriptors_and_v1_nodes_are_undescribed(rigs):
+    with rigs.client() as http:
+        body = http.get("/rigs").json()
+    by_name = {r["name"]: r for r in body["rigs"]}
+    assert by_name["sim-1"]["described"] == "described" and by_name["sim-1"]["descriptor"]["kind"] == "simulated"
+    assert by_name["sim-1"]["descriptor"]["rx_dir"] is None  # configurable: simulates the campaign's antenna
+    assert by_name["db-1"]["descriptor"]["rx_dir"]["model"] == "db-gain"
+    for v1 in ("old-1", "hidden-1"):
+        assert by_name[v1]["described"] == "undescribed" and by_name[v1]["descriptor"] is None and by_name[v1]["live"]
+
+
+def test_a_campaign_that_contradicts_its_rig_is_refused_naming_the_field(rigs):
+    r = _start(rigs, rigs=["db-1"])
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"] == ("scenario.antenna_model: rig db-1 is 'db-gain', the campaign says 'paper' "
+                                  "(use_rig_values takes the rig's)")
+    assert r.json()["errors"][0]["loc"] == ["body", "scenario", "antenna_model"]
+    r = _start(rigs, rig_kind="simulated", mode="fast")  # sim-1 agrees, db-1 does not: every targeted rig must
+    assert r.status_code == 422 and "rig db-1" in r.json()["detail"]
+
+
+def test_with_the_rigs_values_it_runs_there_only_and_scores_well(rigs):
+    r = _start(rigs, rigs=["db-1"], use_rig_values=True, algorithms=["ra2vipas", "rapas"])
+    assert r.status_code == 201, r.text
+    c = r.json()
+    assert c["scenario"]["antenna_model"] == "db-gain" and c["overrides"]["antenna_model"] == "db-gain"
+    assert c["targeting"] == {"rigs": ["db-1"], "rig_kind": None, "use_rig_values": True, "rig_values": {"antenna_model": "db-gain"}}
+    done = rigs.wait(c["id"])
+    assert done["status"] == "done", done["error"]
+    assert {t["rig"] for t in _tests(rigs, c["id"])} == {"db-1"}
+    results = done["results"] if "results" in done else None
+    with rigs.client() as http:
+        results = http.get(f"/campaigns/{c['id']}/results").json()
+    assert "warnings" not in results and "assumptions" not in results
+    assert results["algorithms"]["rapas"]["dr_final"] >= 2 / 3
+
+
+def test_a_v1_node_still_runs_and_the_results_say_it_was_scored_under_the_scenario(rigs):
+    r = _start(rigs, rigs=["old-1"], algorithms=["rapas"])
+    assert r.status_code == 201, r.text
+    done = rigs.wait(r.json()["id"])
+    assert done["status"] == "done", done["error"]
+    with rigs.client() as http:
+        results = http.get(f"/campaigns/{done['id']}/results").json()
+    assert results["assumptions"]["sensor_model"] == "scenario" and results["assumptions"]["rigs"] == ["old-1"]
+    assert results["assumptions"]["episodes"] == 3 and "undescribed" in results["assumptions"]["note"]
+
+
+def test_an_untargeted_campaign_skips_the_rigs_it_contradicts(rigs):
+    r = _start(rigs, algorithms=["rapas"], tests=6)
+    assert r.status_code == 201, r.text
+    done = rigs.wait(r.json()["id"])
+    assert done["status"] == "done"
+    assert "db-1" not in {t["rig"] for t in _tests(rigs, done["id"])}
+
+
+def test_a_db_gain_rig_under_the_paper_model_is_not_a_silent_dr_zero(rigs):
+    """The issue's case: a dB-gain antenna run under the default paper model. The rig is a v1 node,
+    so nobody can refuse the campaign; the results must say what is wrong."""
+    r = _start(rigs, rigs=["hidden-1"], algorithms=["ra2vipas", "rapas", "sweep"], tests=18,
+               overrides={**SMALL, "steps": 40})
+    assert r.status_code == 201, r.text
+    done = rigs.wait(r.json()["id"], timeout=300)
+    assert done["status"] == "done", done["error"]
+    with rigs.client() as http:
+        results = http.get(f"/campaigns/{done['id']}/results").json()
+    assert all(results["algorithms"][a]["dr_final"] < 0.1 for a in ("ra2vipas", "rapas", "sweep"))
+    text = " ".join(results["warnings"])
+    assert "far below chance" in text
+    assert "contradicts the assumed Rx(dir) response 'paper'" in text and "db-gain" in text
+    assert results["assumptions"]["rigs"] == ["hidden-1"]
+    from typer.testing import CliRunner
+
+    from ra2vipas.cli.main import app
+
+    out = CliRunner().invoke(app, ["campaign", "results", done["id"], "--api", rigs.url], env={"COLUMNS": "250"})
+    assert out.exit_code == 0 and "warning:" in out.output and "far below chance" in out.output
+    assert "undescribed rigs (hidden-1)" in out.output
+
+
+def test_the_cli_shows_descriptors_and_warnings(rigs, capsys):
+    from typer.testing import CliRunner
+
+    from ra2vipas.cli.main import app
+
+    out = CliRunner().invoke(app, ["rigs", "--api", rigs.url], env={"COLUMNS": "250"})
+    assert out.exit_code == 0, out.output
+    assert "undescribed" in out.output and "Rx(dir) db-gain" in out.output and "=campaign" in out.output
+    out = CliRunner().invoke(app, ["campaign", "start", "--api", rigs.url, "--rig", "db-1", "--tests", "1", "--set", "steps=20",
+                                   "--set", "n_train=200", "-a", "rapas"])
+    assert out.exit_code == 2 and "scenario.antenna_model: rig db-1 is 'db-gain'" in out.output

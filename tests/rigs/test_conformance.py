@@ -1,0 +1,112 @@
+"""The conformance kit against real nodes over a real Zenoh router: our sensors node and the
+reference hardware node of examples/ pass every rule; a deliberately broken node fails, and the
+report names the rule it breaks."""
+
+from __future__ import annotations
+
+import ast
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from ra2vipas.cli.stack import free_port
+from ra2vipas.services.rigs.conformance import RULES, check_rig
+from ra2vipas.services.sensors.node import SensorsNode
+from ra2vipas.services.transport.bus import MemoryBus
+from tests.integration.conftest import ROOT, Procs, wait_for_line
+
+EXAMPLE = ROOT / "examples" / "hardware_node" / "hardware_node.py"
+BROKEN = ROOT / "tests" / "rigs" / "broken_node.py"
+
+
+class Scripts(Procs):
+    """Also runs plain scripts (the example node), each in its own process group, killed at teardown."""
+
+    def script(self, path: Path, *args: str) -> subprocess.Popen:
+        p = subprocess.Popen([sys.executable, str(path), *args], cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": ""})
+        self.procs.append(p)
+        return p
+
+
+@pytest.fixture(scope="module")
+def router():
+    registry = Scripts()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = registry.start("router", "--listen", endpoint)
+    wait_for_line(proc, "zenoh router up", 60)
+    yield registry, endpoint
+    registry.cleanup()
+
+
+def kit(endpoint: str, rig: str) -> dict:
+    out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", "--rig", rig, "--connect", endpoint,
+                          "--mode", "client", "--json", "--timeout", "5"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    body = json.loads(out.stdout.strip().splitlines()[-1])
+    assert out.returncode == (0 if body["passed"] else 1), out.stderr
+    return body
+
+
+def statuses(body: dict) -> dict[str, str]:
+    return {r["rule"]: r["status"] for r in body["rules"]}
+
+
+def test_the_example_node_imports_only_zenoh_numpy_and_the_standard_library():
+    tree = ast.parse(EXAMPLE.read_text())
+    roots = {alias.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
+    roots |= {node.module.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.ImportFrom) and node.module}
+    assert roots - sys.stdlib_module_names - {"__future__"} == {"zenoh", "numpy"}
+
+
+def test_our_sensors_node_passes_on_the_in_memory_bus():
+    bus = MemoryBus()
+    node = SensorsNode(bus, "rig-1")
+    try:
+        results = check_rig(bus, "rig-1", timeout=3.0)
+    finally:
+        node.close()
+        bus.close()
+    assert [r.rule for r in results] == list(RULES)
+    assert {r.rule: r.status for r in results} == dict.fromkeys(RULES, "pass"), [r for r in results if r.status != "pass"]
+
+
+def test_our_sensors_node_passes_over_zenoh(router):
+    registry, endpoint = router
+    node = registry.start("sensors", "--rig", "sim-1", "--connect", endpoint, "--mode", "client")
+    wait_for_line(node, "up (zenoh", 60)
+    body = kit(endpoint, "sim-1")
+    assert statuses(body) == dict.fromkeys(RULES, "pass"), body
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
+
+
+def test_the_reference_hardware_node_passes(router, record_property):
+    registry, endpoint = router
+    began = time.monotonic()
+    node = registry.script(EXAMPLE, "--rig", "cam-1", "--connect", endpoint)
+    wait_for_line(node, "hardware node cam-1 up", 60)
+    record_property("example_node_up_s", round(time.monotonic() - began, 3))
+    body = kit(endpoint, "cam-1")
+    # a hardware rig publishes no truth, and the kit checks it does not
+    assert statuses(body) == dict.fromkeys(RULES, "pass"), body
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
+
+
+def test_a_broken_node_fails_naming_the_rule(router):
+    registry, endpoint = router
+    node = registry.script(BROKEN, "--rig", "bad-1", "--connect", endpoint)
+    wait_for_line(node, "hardware node bad-1 up", 60)
+    body = kit(endpoint, "bad-1")
+    assert not body["passed"]
+    failed = {r["rule"]: r["detail"] for r in body["rules"] if r["status"] == "fail"}
+    assert failed == {"stop-mid-episode": "Command(4) after EpisodeStop got a Measurement"}
+    out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", "--rig", "bad-1", "--connect", endpoint,
+                          "--mode", "client"], cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ, "COLUMNS": "200"})
+    assert out.returncode == 1 and "1 rule(s) failed: stop-mid-episode" in out.stdout

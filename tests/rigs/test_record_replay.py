@@ -1,0 +1,127 @@
+"""Record and replay: a campaign recorded as it runs (every message, JSON Schemas embedded in the
+MCAP file) re-scores to the results it recorded, and the current controller re-run on the
+recorded measurements takes every recorded pan and gives the recorded estimates; a campaign
+recorded afterwards from the store re-scores the same but cannot be re-run."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+
+import pytest
+from mcap.reader import make_reader
+
+from ra2vipas.cli.client import Client
+from ra2vipas.cli.record import save_recording
+from ra2vipas.services.rigs.recording import Recorder, RecordingError, read_mcap, replay_scores, rerun, rerun_summary
+from tests.api.live import SMALL, LiveAPI
+from tests.conftest import untimed
+from tests.integration.conftest import ROOT, Procs, wait_for_line
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("record")
+    server = LiveAPI(tmp / "rec.db", rigs=("rig-1", "rig-2")).start()
+    recorder = Recorder(server.bus)
+    try:
+        with server.client() as http:
+            r = http.post("/campaigns", json={"preset": "dynamic", "overrides": {**SMALL, "walking_fraction": 0.25}, "tests": 3,
+                                              "seed": 6, "algorithms": ["ra2vipas", "rapas", "sweep"], "stop_confidence": 0.97})
+        assert r.status_code == 201, r.text
+        done = server.wait(r.json()["id"])
+        assert done["status"] == "done", done["error"]
+        server.settle()
+        recorder.stop()
+        client = Client(server.url, None)
+        live, store = tmp / "live.mcap", tmp / "store.mcap"
+        save_recording(client, done["id"], live, recorder, server.bus)
+        save_recording(client, done["id"], store, None, None)
+        results = client.request("GET", f"/campaigns/{done['id']}/results")
+        yield {"live": live, "store": store, "results": results, "id": done["id"]}
+    finally:
+        server.stop()
+
+
+def test_the_file_is_mcap_with_json_schemas_embedded(recorded):
+    with open(recorded["live"], "rb") as f:
+        summary = make_reader(f).get_summary()
+    schemas = {s.name: s for s in summary.schemas.values()}
+    assert {"EpisodeControl", "Command", "Measurement", "EpisodeResult", "EpisodeTruth", "RigDescriptor", "PODResponse"} <= set(schemas)
+    assert all(s.encoding == "jsonschema" for s in schemas.values())
+    assert json.loads(schemas["Measurement"].data)["title"] == "Measurement"
+    topics = {c.topic for c in summary.channels.values()}
+    assert "ra2vipas/v1/data/rig-1/measurement" in topics or "ra2vipas/v1/data/rig-2/measurement" in topics
+    assert all(c.message_encoding == "json" for c in summary.channels.values())
+
+
+def test_replay_reproduces_the_recorded_results(recorded):
+    rec = read_mcap(recorded["live"])
+    assert rec.source == "live" and rec.pod is not None and set(rec.descriptors) == {"rig-1", "rig-2"}
+    assert untimed(replay_scores(rec)) == untimed(recorded["results"])
+    store = read_mcap(recorded["store"])
+    assert store.source == "store"
+    assert untimed(replay_scores(store)) == untimed(recorded["results"])
+
+
+def test_the_same_controller_rerun_takes_every_recorded_pan(recorded):
+    rec = read_mcap(recorded["live"])
+    runs = rerun(rec)
+    assert runs and all(r.matched == r.steps and r.same_estimates for r in runs), [(r.episode_id, r.matched, r.steps) for r in runs]
+    summary = rerun_summary(runs)
+    for name in ("ra2vipas", "rapas", "sweep"):
+        assert summary[name]["episodes_matched"] == summary[name]["same_estimates"] == 3
+        assert summary[name]["dr_final_matched"] == recorded["results"]["algorithms"][name]["dr_final"]
+    # another algorithm on the same measurements follows the recorded pans only while it asks for them
+    other = rerun_summary(rerun(rec, "rapas"))["rapas"]
+    assert other["episodes"] == 9 and other["steps_matched"] < 1.0
+
+
+def test_a_recording_from_the_store_cannot_be_rerun(recorded):
+    with pytest.raises(RecordingError, match="no measurements"):
+        rerun(read_mcap(recorded["store"]))
+    out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "replay", str(recorded["store"]), "--rerun", "same"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1 and out.stderr.startswith("error: the recording holds no measurements")
+    out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "replay", str(ROOT / "pyproject.toml")], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1 and out.stderr.count("\n") == 1 and "not a readable ra2vipas recording" in out.stderr
+
+
+def test_campaign_start_record_then_replay_through_real_processes(tmp_path):
+    """The commands as a user runs them: an insecure local stack, `campaign start --record`,
+    `replay` (re-score and re-run)."""
+    registry = Procs()
+    try:
+        from ra2vipas.cli.stack import free_port
+
+        up = registry.start("up", "--rigs", "1", "--port", str(free_port()), "--db", str(tmp_path / "s.db"), "--insecure",
+                            "--log-dir", str(tmp_path / "logs"))
+        line = wait_for_line(up, "API on http://", 120)
+        api = re.search(r"(http://[0-9.:]+)", line).group(1)
+        router = re.search(r"Zenoh router (tcp/127\.0\.0\.1:\d+)", line)
+        assert router, line
+        env = {"RA2VIPAS_ZENOH_MODE": "client", "RA2VIPAS_ZENOH_CONNECT": router.group(1)}
+        file = tmp_path / "c.mcap"
+        args = ["--preset", "paper", "--tests", "2", "--seed", "3", "-a", "ra2vipas,rapas", "--set", "steps=20", "--set", "n_train=200",
+                "--set", "n_targets=8"]
+        started = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "campaign", "start", "--api", api, *args,
+                                  "--record", str(file), "--json"], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                                 env={**__import__("os").environ, **env})
+        assert started.returncode == 0, started.stderr
+        results = json.loads(started.stdout.strip().splitlines()[-1])
+        replayed = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "replay", str(file), "--json"], cwd=ROOT,
+                                  capture_output=True, text=True, timeout=120)
+        assert replayed.returncode == 0, replayed.stderr
+        body = json.loads(replayed.stdout.strip().splitlines()[-1])
+        assert body["source"] == "live" and body["matches_recorded_results"] is True
+        assert untimed(body["results"]) == untimed(results)
+        again = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "replay", str(file), "--rerun", "same", "--json"], cwd=ROOT,
+                               capture_output=True, text=True, timeout=120)
+        assert again.returncode == 0, again.stderr
+        rerun_body = json.loads(again.stdout.strip().splitlines()[-1])["rerun"]
+        assert {a: (s["episodes_matched"], s["same_estimates"]) for a, s in rerun_body.items()} == {"ra2vipas": (2, 2), "rapas": (2, 2)}
+    finally:
+        registry.cleanup()
