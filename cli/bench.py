@@ -9,6 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stdout
 
 app = typer.Typer(help="Speed benchmarks (print JSON with --json).", no_args_is_help=True)
@@ -453,7 +454,7 @@ def bench_plots(
 
 @app.command("robustness")
 def bench_robustness(
-    tests: Annotated[int, typer.Option(min=2, max=10000, help="Paired tests per scenario.")] = 200,
+    tests: Annotated[int, typer.Option(min=2, max=MAX_TESTS, help="Paired tests per scenario.")] = 200,
     seed: Annotated[int, typer.Option(min=0, help="Campaign seed of every scenario.")] = 1,
     scenario: Annotated[Optional[list[str]], typer.Option("--scenario", help="Run only these scenarios (repeatable; default: all).")] = None,
     workers: Annotated[int, typer.Option(min=0, max=256, help="Worker processes (0: one per CPU core).")] = 0,
@@ -498,7 +499,7 @@ def bench_robustness(
 
 @app.command("calibrate")
 def bench_calibrate(
-    tests: Annotated[int, typer.Option(min=2, max=10000, help="Tests per scenario.")] = 40,
+    tests: Annotated[int, typer.Option(min=2, max=MAX_TESTS, help="Tests per scenario.")] = 40,
     seed: Annotated[int, typer.Option(min=0, help="Seed (use one no benchmark uses).")] = 1001,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
@@ -519,7 +520,7 @@ def bench_calibrate(
 
 @app.command("dashboard")
 def bench_dashboard(
-    tests: Annotated[int, typer.Option(min=1, max=10000, help="Tests per algorithm of the synthetic finished campaign (4 algorithms, 120 steps).")] = 10000,
+    tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Tests per algorithm of the synthetic finished campaign (4 algorithms, 120 steps).")] = 10000,
     repeats: Annotated[int, typer.Option(min=1, max=1000, help="Requests per page for the server's render time.")] = 10,
     chromium: Annotated[Optional[str], typer.Option(envvar="RA2VIPAS_CHROMIUM", help="Chromium executable for first paint and page weight.")] = "/usr/bin/chromium",
     no_browser: Annotated[bool, typer.Option("--no-browser", help="Time the server only.")] = False,
@@ -602,7 +603,7 @@ def _cpu_available(workers: int) -> float:
 
 @app.command("simulate")
 def bench_simulate(
-    tests: Annotated[int, typer.Option(min=1, max=10000, help="Tests of the speed campaign (paper scenario, every algorithm).")] = 30,
+    tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Tests of the speed campaign (paper scenario, every algorithm).")] = 30,
     workers: Annotated[int, typer.Option(min=0, max=1024, help="Workers of the parallel run (0: one per CPU core).")] = 0,
     seed: Annotated[int, typer.Option(min=0)] = 1,
     memory_tests: Annotated[str, typer.Option(help="Campaign sizes whose peak memory to measure, comma-separated ('' for none).")] = "1000,10000",

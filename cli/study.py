@@ -15,6 +15,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.cli.client import DEFAULT_API, FINISHED, ApiOpt, Client, JsonOpt, TokenOpt
 from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stderr, stdout, write_file
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
@@ -198,7 +199,7 @@ def _check_plot(plot: str | None) -> None:
 def start(
     vary: VaryOpt = None,
     preset: Annotated[str, typer.Option(help=f"Scenario preset: {', '.join(PRESETS)}.")] = "paper",
-    tests: Annotated[int, typer.Option(min=1, max=10000, help="Monte Carlo tests per point and algorithm.")] = 50,
+    tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Monte Carlo tests per point and algorithm.")] = 50,
     seed: Annotated[int, typer.Option(min=0, help="The seed of every point (points are paired test by test).")] = 1,
     algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of ra2vipas, rapas, ravipas, sweep (default: all).")] = None,
     overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help="Override a scenario parameter at every point (repeatable).")] = None,

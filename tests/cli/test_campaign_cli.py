@@ -108,7 +108,7 @@ def test_export_json_and_csv(live, done_campaign, tmp_path):
     to_file = ra2vipas("campaign", "export", cid, "--api", live.url, "-o", str(out))
     assert to_file.returncode == 0, to_file.stderr
     meta = read_results_csv(out.read_text())
-    assert meta["seed"] == 3 and meta["scenario"] == done_campaign["scenario"]
+    assert meta["seed"] == 3 and meta["scenario"] == done_campaign["scenario"] and meta["campaign_id"] == cid
     bad = ra2vipas("campaign", "export", cid, "--api", live.url, "--format", "xml")
     assert bad.returncode == 2 and "--format must be json or csv" in one_error_line(bad)
 

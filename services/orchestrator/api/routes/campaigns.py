@@ -51,11 +51,12 @@ def list_campaigns(
     store: StoreDep,
     status_: Annotated[Optional[CampaignStatus], Query(alias="status", description="only campaigns in this state")] = None,
     preset: Annotated[Optional[str], Query(max_length=64, description="only campaigns of this preset")] = None,
+    name: Annotated[Optional[str], Query(max_length=100, description="only campaigns with exactly this name")] = None,
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description="page size")] = 50,
     offset: Annotated[int, Query(ge=0, le=MAX_OFFSET, description="campaigns to skip")] = 0,
 ) -> CampaignPage:
     """Campaigns, newest first, one page at a time."""
-    rows, total = store.campaigns(status=status_, preset=preset, limit=limit, offset=offset)
+    rows, total = store.campaigns(status=status_, preset=preset, name=name, limit=limit, offset=offset)
     return CampaignPage(items=[campaign_public(r, storage_fault=store.fault) for r in rows], total=total, limit=limit, offset=offset)
 
 

@@ -28,13 +28,14 @@ def list_outcomes(
     store: StoreDep,
     algorithm: Annotated[Optional[AlgorithmName], Query(description="only this algorithm")] = None,
     status_: Annotated[Optional[EpisodeStatus], Query(alias="status", description="only tests in this state")] = None,
+    hit: Annotated[Optional[bool], Query(description="only finished tests whose final answer was (true) or was not (false) the Tx")] = None,
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 50,
     offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
 ) -> OutcomePage:
     """One row per (test, algorithm), ordered by test index: the Tx's index, the final choice
     î, whether it hit, the hit rate over the test, the first hit and the time after which it
     stays on the Tx."""
-    rows, total = store.episode_page(campaign["id"], algorithm=algorithm, status=status_, limit=limit, offset=offset)
+    rows, total = store.episode_page(campaign["id"], algorithm=algorithm, status=status_, hit=hit, limit=limit, offset=offset)
     period = campaign["scenario"]["rf_period_s"]
     return OutcomePage(items=[outcome_public(r, period) for r in rows], total=total, limit=limit, offset=offset)
 
