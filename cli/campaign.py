@@ -157,7 +157,7 @@ def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: boo
 def list_campaigns(
     status: Annotated[Optional[str], typer.Option(help=f"Only campaigns in this state: {', '.join(STATUSES)}.", autocompletion=_complete(STATUSES))] = None,
     preset: Annotated[Optional[str], typer.Option(help="Only campaigns of this preset.", autocompletion=_complete(PRESETS))] = None,
-    name: Annotated[Optional[str], typer.Option(help="Only campaigns with exactly this name (see campaign start --name).")] = None,
+    name: Annotated[Optional[str], typer.Option(help="Only campaigns with exactly this name.")] = None,
     limit: Annotated[int, typer.Option(min=1, max=200, help="Page size.")] = 20,
     offset: Annotated[int, typer.Option(min=0, help="Campaigns to skip (newest first).")] = 0,
     as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
@@ -166,7 +166,7 @@ def list_campaigns(
     if status is not None and status not in STATUSES:
         fail(f"--status must be one of {', '.join(STATUSES)}, got {status!r}", EXIT_USAGE)
     params = {"limit": limit, "offset": offset, **({"status": status} if status else {}), **({"preset": preset} if preset else {}),
-              **({"name": name} if name is not None else {})}
+              **({"name": name} if name else {})}
     page = Client(api, token).request("GET", "/campaigns", params=params)
     if as_json:
         print_json(page)
@@ -216,7 +216,7 @@ def watch(campaign_id: IdArg,
 def results(
     campaign_id: IdArg,
     per_test: Annotated[bool, typer.Option("--per-test", help="The per-test outcome table instead of the DR table.")] = False,
-    algorithm: Annotated[Optional[str], typer.Option(help="Only this algorithm.", autocompletion=_complete(ALGORITHMS))] = None,
+    algorithm: Annotated[Optional[str], typer.Option(help="Only this algorithm (its DR row, or with --per-test its tests).", autocompletion=_complete(ALGORITHMS))] = None,
     hit: Annotated[Optional[bool], typer.Option("--hit/--miss", show_default=False, help="With --per-test: only the tests whose final answer was (--hit) or was not (--miss) the Tx.")] = None,
     limit: Annotated[int, typer.Option(min=1, max=200, help="With --per-test: page size.")] = 50,
     offset: Annotated[int, typer.Option(min=0, help="With --per-test: rows to skip.")] = 0,
@@ -249,8 +249,8 @@ def results(
     body = client.request("GET", f"/campaigns/{campaign_id}/results")
     if algorithm is not None:
         if algorithm not in body["algorithms"]:
-            fail(f"campaign {campaign_id} did not run {algorithm} (it ran {', '.join(body['algorithms'])})")
-        body["algorithms"] = {algorithm: body["algorithms"][algorithm]}
+            fail(f"campaign {campaign_id} has no results for {algorithm!r}; it ran {', '.join(body['algorithms'])}", EXIT_USAGE)
+        body = {**body, "algorithms": {algorithm: body["algorithms"][algorithm]}}
     if as_json:
         print_json(body)
     else:

@@ -26,6 +26,8 @@ class Client:
     """HTTP calls; every failure ends the command with one stderr line."""
 
     def __init__(self, api: str, token: str | None) -> None:
+        if not api.startswith(("http://", "https://")):
+            fail(f"--api {api!r}: expected the API's URL with its scheme, e.g. http://{api or '127.0.0.1:8080'}", EXIT_USAGE)
         self.api = api.rstrip("/")
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.http = httpx.Client(base_url=self.api, headers=headers, timeout=30.0)

@@ -16,6 +16,22 @@ app = typer.Typer(
     no_args_is_help=True,
     pretty_exceptions_enable=False,
 )
+
+
+def _version(value: bool) -> None:
+    if value:
+        import ra2vipas
+
+        print(f"ra2vipas {ra2vipas.__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    """Find which target around a pan camera carries the radio transmitter (Ra²ViPAS)."""
+
+
 app.command("simulate")(simulate)
 app.command("up")(up)
 app.add_typer(campaign.app, name="campaign")

@@ -7,7 +7,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from ra2vipas.cli.output import EXIT_FAILED, fail, print_json, stdout
+from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stdout
 from ra2vipas.services.orchestrator.presets import preset_object, preset_summaries
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError
 
@@ -37,7 +37,7 @@ def show_preset(
     try:
         obj = preset_object(name)
     except ScenarioError as err:
-        fail(str(err), EXIT_FAILED)
+        fail(str(err), EXIT_USAGE)
     if as_json:
         print_json(obj)
         return

@@ -126,8 +126,13 @@ def orchestrator(
     # not niced like the learner and router: the API's latency matters (issue 14: at nice 5, any
     # nice-0 process on a busy 2-core machine pushed the read p99 past 1 s); figures are drawn by
     # its renderer processes at nice 19 instead
-    settings = OrchestratorSettings.from_sources(host=host, port=port, db_path=db, window=window, expect_rigs=expect_rigs,
-                                                 token=token, zenoh=zenoh_settings(mode, connect, listen, zenoh_config))
+    from ra2vipas.services.orchestrator.settings import SettingsError
+
+    try:
+        settings = OrchestratorSettings.from_sources(host=host, port=port, db_path=db, window=window, expect_rigs=expect_rigs,
+                                                     token=token, zenoh=zenoh_settings(mode, connect, listen, zenoh_config))
+    except SettingsError as err:
+        fail(str(err), EXIT_USAGE)
     from ra2vipas.services.orchestrator.dblock import DatabaseInUse, DatabaseLock
 
     folder = Path(settings.db_path).expanduser().resolve().parent

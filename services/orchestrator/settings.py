@@ -6,6 +6,8 @@ import os
 import secrets
 from dataclasses import dataclass, field
 
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
 
@@ -28,21 +30,56 @@ class OrchestratorSettings:
                      window: int | None = None, expect_rigs: int | None = None, token: str | None = None,
                      plot_workers: int | None = None, zenoh: ZenohSettings | None = None,
                      env: dict | None = None) -> "OrchestratorSettings":
+        """CLI flag > environment (``RA2VIPAS_*``) > default, validated by pydantic.
+
+        Raises
+        ------
+        SettingsError
+            A value out of range or not a number: one line naming the flag or variable.
+        """
         env = os.environ if env is None else env
-        workers = int(plot_workers or env.get("RA2VIPAS_PLOT_WORKERS") or default_plot_workers())
-        if workers < 1:
-            raise ValueError(f"RA2VIPAS_PLOT_WORKERS: expected an integer >= 1, got {workers}")
+        given = {"host": host, "port": port, "db_path": db_path, "window": window, "expect_rigs": expect_rigs,
+                 "plot_workers": plot_workers}
+        raw: dict[str, object] = {}
+        where: dict[str, str] = {}
+        for name, value in given.items():
+            if value is not None:
+                raw[name], where[name] = value, f"--{name.replace('_path', '').replace('_', '-')}"
+            elif env.get(ENV[name]):
+                raw[name], where[name] = env[ENV[name]], ENV[name]
+        try:
+            checked = _Checked.model_validate(raw)
+        except ValidationError as err:
+            first = err.errors()[0]
+            name = str(first["loc"][0])
+            raise SettingsError(f"{where.get(name, name)}: {first['msg'].lower()}, got {first.get('input')!r}") from None
         return cls(
-            host=host or env.get("RA2VIPAS_HOST") or "127.0.0.1",
-            port=int(port or env.get("RA2VIPAS_PORT") or 8080),
-            db_path=db_path or env.get("RA2VIPAS_DB") or "ra2vipas.db",
-            window=int(window or env.get("RA2VIPAS_WINDOW") or 8),
-            expect_rigs=int(expect_rigs if expect_rigs is not None else env.get("RA2VIPAS_EXPECT_RIGS") or 1),
+            host=checked.host, port=checked.port, db_path=checked.db_path, window=checked.window, expect_rigs=checked.expect_rigs,
             token=token or env.get("RA2VIPAS_TOKEN") or None,
-            plot_workers=workers,
+            plot_workers=checked.plot_workers or default_plot_workers(),
             instance_id=env.get("RA2VIPAS_INSTANCE_ID") or secrets.token_hex(8),
             zenoh=zenoh or ZenohSettings.from_sources(env=env),
         )
+
+
+class SettingsError(ValueError):
+    """A setting is invalid; the message is one line naming it."""
+
+
+ENV = {"host": "RA2VIPAS_HOST", "port": "RA2VIPAS_PORT", "db_path": "RA2VIPAS_DB", "window": "RA2VIPAS_WINDOW",
+       "expect_rigs": "RA2VIPAS_EXPECT_RIGS", "plot_workers": "RA2VIPAS_PLOT_WORKERS"}
+
+
+class _Checked(BaseModel):
+    """The orchestrator's settings as they arrive (strings from the environment are parsed)."""
+
+    model_config = ConfigDict(extra="forbid")
+    host: str = Field("127.0.0.1", min_length=1)
+    port: int = Field(8080, ge=1, le=65535)
+    db_path: str = Field("ra2vipas.db", min_length=1)
+    window: int = Field(8, ge=1, le=1024)
+    expect_rigs: int = Field(1, ge=0, le=1000)
+    plot_workers: int | None = Field(None, ge=1, le=64)
 
 
 def default_plot_workers() -> int:

@@ -352,7 +352,7 @@ class Store:
     def campaigns(self, *, status: str | None = None, preset: str | None = None, name: str | None = None, limit: int = 50,
                   offset: int = 0) -> tuple[list[dict], int]:
         """One page of campaigns (without their results objects), newest first, optionally
-        filtered (``name``: exactly this name); and how many match in all."""
+        filtered (``name``: exact); and how many match in all."""
         clause, args = _where(status=status, preset=preset, name=name)
         with self._reading() as db:
             total = db.execute(f"SELECT COUNT(*) FROM campaigns{clause}", args).fetchone()[0]
@@ -521,14 +521,13 @@ class Store:
     def episode_page(self, cid: str, *, algorithm: str | None = None, status: str | None = None, hit: bool | None = None,
                      limit: int = 50, offset: int = 0) -> tuple[list[dict[str, Any]], int]:
         """One page of a campaign's episodes ordered by (test index, algorithm), optionally
-        filtered (``hit``: only finished episodes whose last step did, or did not, name the Tx);
-        and how many match in all. Rows are summaries: ``hits`` per step and the last step's
-        ``final_choice`` (î), ``final_in_fov`` and ``final_estimate`` (gamma_hat), not the
-        whole trace."""
+        filtered (``hit``: finished on the Tx or not; implies done); and how many match in all.
+        Rows are summaries: ``hits`` per step and the last step's ``final_choice`` (î),
+        ``final_in_fov`` and ``final_estimate`` (gamma_hat), not the whole trace."""
         clause, args = _where(campaign_id=cid, algorithm=algorithm, status=status)
         if hit is not None:
             clause += " AND status='done' AND json_extract(hits, '$[#-1]')=?"
-            args.append(1 if hit else 0)
+            args = [*args, 1 if hit else 0]
         with self._reading() as db:
             total = db.execute(f"SELECT COUNT(*) FROM episodes{clause}", args).fetchone()[0]
             rows = db.execute(

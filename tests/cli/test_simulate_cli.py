@@ -87,7 +87,7 @@ def test_presets_show_lists_every_parameter_with_its_range():
     assert params["n_targets"] == {"value": 20, "allowed": "an integer in [1, 500]", "description": params["n_targets"]["description"]}
     assert params["antenna_curvature"]["value"] == 0.5
     assert params["placement"]["allowed"] == "one of reference|uniform"
-    assert ra2vipas("presets", "show", "nope").returncode == 1
+    assert ra2vipas("presets", "show", "nope").returncode == 2
 
 
 def test_bench_step_prints_timings_as_json():

@@ -51,7 +51,7 @@ def list_campaigns(
     store: StoreDep,
     status_: Annotated[Optional[CampaignStatus], Query(alias="status", description="only campaigns in this state")] = None,
     preset: Annotated[Optional[str], Query(max_length=64, description="only campaigns of this preset")] = None,
-    name: Annotated[Optional[str], Query(max_length=100, description="only campaigns with exactly this name")] = None,
+    name: Annotated[Optional[str], Query(max_length=200, description="only campaigns with exactly this name")] = None,
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description="page size")] = 50,
     offset: Annotated[int, Query(ge=0, le=MAX_OFFSET, description="campaigns to skip")] = 0,
 ) -> CampaignPage:

@@ -28,7 +28,7 @@ def list_outcomes(
     store: StoreDep,
     algorithm: Annotated[Optional[AlgorithmName], Query(description="only this algorithm")] = None,
     status_: Annotated[Optional[EpisodeStatus], Query(alias="status", description="only tests in this state")] = None,
-    hit: Annotated[Optional[bool], Query(description="only finished tests whose final answer was (true) or was not (false) the Tx")] = None,
+    hit: Annotated[Optional[bool], Query(description="only finished tests whose final choice was (true) or was not (false) the Tx")] = None,
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 50,
     offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
 ) -> OutcomePage:
