@@ -13,12 +13,13 @@ from typing import Annotated, Optional
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.cli.client import DEFAULT_API, ApiOpt, Client, JsonOpt, TokenOpt
 from ra2vipas.cli.output import (
     EXIT_FAILED, EXIT_USAGE, campaign_tables, campaigns_table, emit_results, fail, outcomes_table, print_json, print_results, stderr, stdout,
     trace_table, write_file,
 )
+from ra2vipas.cli.polish import deprecated, prefer
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.protocol.messages import ALGORITHMS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
@@ -79,7 +80,8 @@ def start(
     plot: Annotated[Optional[str], typer.Option(metavar="FILE", help="With --wait: also write the DR curves to FILE (.png or .svg).")] = None,
     embedded: Annotated[bool, typer.Option("--embedded", help="Start a local stack (Zenoh router, services, SQLite file) just for this campaign and stop it afterwards; implies --wait.")] = False,
     db: Annotated[str, typer.Option("--db", envvar="RA2VIPAS_DB", help="With --embedded: the SQLite file the results go to.")] = "ra2vipas.db",
-    rigs: Annotated[int, typer.Option(min=0, max=64, help="With --embedded: sensor+controller pairs (0: one per CPU core).")] = 0,
+    rigs: Annotated[int, typer.Option("--rig-count", min=0, max=64, help="With --embedded: sensor+controller pairs (0: one per CPU core).")] = 0,
+    old_rigs: Annotated[Optional[int], deprecated("--rigs", "--rig-count", min=0, max=64)] = None,
     insecure: Annotated[bool, typer.Option("--insecure", help="With --embedded: no Zenoh credentials for the local stack (any local process may join it).")] = False,
     as_json: JsonOpt = False,
     api: ApiOpt = DEFAULT_API,
@@ -89,10 +91,20 @@ def start(
     --wait, follows it with a progress bar and prints the results.
 
     With --embedded the stack runs inside this command: the quickest way to run the paper
-    campaign on a laptop (`make campaign`).
+    campaign on a laptop (`make campaign`). Ctrl-C while it waits stops following, not the
+    campaign, and says how to follow or cancel it.
+
+    Examples:
+
+        ra2vipas campaign start --preset paper --tests 50 --seed 1 --wait --plot dr.png
+
+        ra2vipas campaign start --set n_targets=30 --name crowd-30 --json
+
+        ra2vipas campaign start --embedded --tests 50 --db results/ra2vipas.db
     """
     from ra2vipas.cli.simulate import parse_algorithms
 
+    rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count")
     if plot is not None and not plot.lower().endswith((".png", ".svg")):
         fail(f"--plot expects a .png or .svg file name, got {plot!r}", EXIT_USAGE)
     try:
@@ -162,7 +174,13 @@ def list_campaigns(
     offset: Annotated[int, typer.Option(min=0, help="Campaigns to skip (newest first).")] = 0,
     as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
 ) -> None:
-    """List campaigns, newest first (with --json: the page object, items and total)."""
+    """List campaigns, newest first, with what each ran (preset, overrides, tests, seed); with
+    --json: the page object, items and total.
+
+    Example:
+
+        ra2vipas campaign list --status done --name crowd-30
+    """
     if status is not None and status not in STATUSES:
         fail(f"--status must be one of {', '.join(STATUSES)}, got {status!r}", EXIT_USAGE)
     params = {"limit": limit, "offset": offset, **({"status": status} if status else {}), **({"preset": preset} if preset else {}),
@@ -204,7 +222,12 @@ def watch(campaign_id: IdArg,
           as_json: Annotated[bool, typer.Option("--json", help="Print every progress update as one JSON line; the last is the final state.")] = False,
           api: ApiOpt = DEFAULT_API, token: TokenOpt = None) -> None:
     """Follow a campaign with a live progress bar until it finishes. Exit code 0 if it is
-    done, 1 if it failed or was cancelled."""
+    done, 1 if it failed or was cancelled; Ctrl-C stops following (exit 130), not the campaign.
+
+    Example:
+
+        ra2vipas campaign watch 3f2a9c0d1b7e --api http://127.0.0.1:8080
+    """
     client = Client(api, token)
     final = _follow(client, campaign_id, as_json_lines=as_json)
     if not as_json:

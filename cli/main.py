@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import typer  # noqa: E402  (ra2vipas/__init__ pins BLAS to one thread before numpy loads)
 
-from ra2vipas.cli import bench, campaign, presets, protocol, security, services, study  # noqa: E402
+from ra2vipas.cli import bench, campaign, presets, protocol, rigs, security, services, study  # noqa: E402
 from ra2vipas.cli.rig import rig  # noqa: E402
-from ra2vipas.cli.rigs import rigs  # noqa: E402
 from ra2vipas.cli.simulate import simulate  # noqa: E402
 from ra2vipas.cli.up import up  # noqa: E402
 
@@ -36,7 +35,7 @@ app.command("simulate")(simulate)
 app.command("up")(up)
 app.add_typer(campaign.app, name="campaign")
 app.add_typer(study.app, name="study")
-app.command("rigs")(rigs)
+app.add_typer(rigs.app, name="rigs")
 app.add_typer(presets.app, name="presets")
 app.add_typer(bench.app, name="bench")
 app.add_typer(protocol.app, name="protocol")
@@ -47,7 +46,9 @@ app.command("rig")(rig)
 
 
 def main() -> None:
-    app()
+    from ra2vipas.cli.polish import run
+
+    run(app)
 
 
 if __name__ == "__main__":

@@ -7,8 +7,8 @@ from typing import Annotated, Optional
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.cli.output import EXIT_USAGE, emit_results, fail, stderr
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.protocol.messages import ALGORITHMS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, build_scenario, parse_overrides
 
@@ -46,6 +46,14 @@ def simulate(
     every algorithm on its own seeded world, on every core, and scores DR_t by the paper's
     association rule. With --vary, runs a parameter study: one campaign per grid point, all
     with the same seed.
+
+    Examples:
+
+        ra2vipas simulate --preset paper --tests 200 --seed 1 --plot dr.png
+
+        ra2vipas simulate --set n_targets=30 --set antenna_model=db-gain -a ra2vipas,rapas --json
+
+        ra2vipas simulate --vary n_targets=10,20,40 --tests 100 --plot crowd.png
     """
     try:
         names = parse_algorithms(algorithms)

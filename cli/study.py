@@ -15,9 +15,9 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.cli.client import DEFAULT_API, FINISHED, ApiOpt, Client, JsonOpt, TokenOpt
 from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stderr, stdout, write_file
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
 app = typer.Typer(help="Parameter studies: DR against scenario parameters, one campaign per grid point (see `ra2vipas up`).",
@@ -215,7 +215,9 @@ def start(
     """Start a study: one campaign per point of the grid of --vary values, all with the same seed.
     Prints its id (with --json: the study object); with --wait, follows it and prints its table.
 
-    Example: ra2vipas study start --vary n_targets=10,20,40 --vary rf_noise_db=2:6:1 --tests 100 --wait
+    Example:
+
+        ra2vipas study start --vary n_targets=10,20,40 --vary rf_noise_db=2:6:1 --tests 100 --wait
     """
     from ra2vipas.cli.simulate import parse_algorithms
     from ra2vipas.services.orchestrator.study import StudyError

@@ -38,8 +38,9 @@ def test_simulate_with_two_workers_and_early_decisions():
     ({"overrides": {"n_target": 30}}, "n_target"),
     ({"overrides": {"n_targets": 0}}, "n_targets"),
     ({"algorithms": ["ra2vipas", "nope"]}, "unknown algorithm 'nope'"),
-    ({"tests": 0}, "tests: expected a positive integer"),
-    ({"tests": "10"}, "tests: expected a positive integer"),
+    ({"tests": 0}, "tests: expected an integer from 1 to 10000"),
+    ({"tests": "10"}, "tests: expected an integer from 1 to 10000"),
+    ({"tests": 10001}, "tests: expected an integer from 1 to 10000"),  # the CLI's cap
     ({"seed": -1}, "seed: expected an integer >= 0"),
     ({"stop_confidence": 1.5}, "stop_confidence"),
     ({"workers": 0}, "workers: expected a positive integer"),
