@@ -21,6 +21,7 @@ class OrchestratorSettings:
     token: str | None = None  # RA2VIPAS_TOKEN: bearer token required by state-changing requests
     name: str = "orchestrator"
     plot_workers: int = 1  # RA2VIPAS_PLOT_WORKERS: figure renderer processes (from_sources: default_plot_workers())
+    plot_rate: float = 40.0  # RA2VIPAS_PLOT_RATE: figure requests served per second (beyond: 503 + Retry-After)
     # RA2VIPAS_INSTANCE_ID: shown by /health, so `ra2vipas up` knows it reached its own orchestrator
     instance_id: str = field(default_factory=lambda: secrets.token_hex(8))
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
@@ -39,7 +40,7 @@ class OrchestratorSettings:
         """
         env = os.environ if env is None else env
         given = {"host": host, "port": port, "db_path": db_path, "window": window, "expect_rigs": expect_rigs,
-                 "plot_workers": plot_workers}
+                 "plot_workers": plot_workers, "plot_rate": None}
         raw: dict[str, object] = {}
         where: dict[str, str] = {}
         for name, value in given.items():
@@ -56,7 +57,7 @@ class OrchestratorSettings:
         return cls(
             host=checked.host, port=checked.port, db_path=checked.db_path, window=checked.window, expect_rigs=checked.expect_rigs,
             token=token or env.get("RA2VIPAS_TOKEN") or None,
-            plot_workers=checked.plot_workers or default_plot_workers(),
+            plot_workers=checked.plot_workers or default_plot_workers(), plot_rate=checked.plot_rate,
             instance_id=env.get("RA2VIPAS_INSTANCE_ID") or secrets.token_hex(8),
             zenoh=zenoh or ZenohSettings.from_sources(env=env),
         )
@@ -67,7 +68,7 @@ class SettingsError(ValueError):
 
 
 ENV = {"host": "RA2VIPAS_HOST", "port": "RA2VIPAS_PORT", "db_path": "RA2VIPAS_DB", "window": "RA2VIPAS_WINDOW",
-       "expect_rigs": "RA2VIPAS_EXPECT_RIGS", "plot_workers": "RA2VIPAS_PLOT_WORKERS"}
+       "expect_rigs": "RA2VIPAS_EXPECT_RIGS", "plot_workers": "RA2VIPAS_PLOT_WORKERS", "plot_rate": "RA2VIPAS_PLOT_RATE"}
 
 
 class _Checked(BaseModel):
@@ -80,6 +81,7 @@ class _Checked(BaseModel):
     window: int = Field(8, ge=1, le=1024)
     expect_rigs: int = Field(1, ge=0, le=1000)
     plot_workers: int | None = Field(None, ge=1, le=64)
+    plot_rate: float = Field(40.0, gt=0, le=100000)
 
 
 def default_plot_workers() -> int:

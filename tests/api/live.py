@@ -28,7 +28,7 @@ SMALL = {"steps": 20, "n_train": 200, "n_targets": 8}
 
 class LiveAPI:
     def __init__(self, db_path: Path | str, *, rigs: tuple[str, ...] = ("rig-1",), learner: bool = True,
-                 token: str | None = None, window: int = 4) -> None:
+                 token: str | None = None, window: int = 4, plot_rate: float = 10000.0) -> None:
         self.db_path = str(db_path)
         self.bus = MemoryBus()
         self.nodes: list = []
@@ -37,7 +37,7 @@ class LiveAPI:
         if learner:
             self.nodes.append(LearnerNode(self.bus))
         settings = OrchestratorSettings(host="127.0.0.1", port=0, db_path=self.db_path, window=window, expect_rigs=len(rigs),
-                                        token=token)
+                                        token=token, plot_rate=plot_rate)  # high by default: the rate limit has its own test
         self.app = create_app(settings, bus_factory=lambda: self.bus)
         config = uvicorn.Config(self.app, host="127.0.0.1", port=0, log_level="warning", lifespan="on",
                                 timeout_graceful_shutdown=2, timeout_keep_alive=2)

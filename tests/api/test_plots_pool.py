@@ -371,3 +371,40 @@ def test_renderer_processes_exit_when_the_api_process_is_killed(tmp_path):
         proc.stdout.close()
         if renderer_pid is not None and not gone(renderer_pid):
             os.kill(renderer_pid, signal.SIGKILL)
+
+
+def test_the_rate_limit_refuses_beyond_its_rate_and_refills():
+    from ra2vipas.services.orchestrator.api.render import RateLimit
+
+    limit = RateLimit(10.0, burst=3.0)
+    t = 100.0
+    limit._at = t
+    assert [limit.try_acquire(now=t) for _ in range(4)] == [True, True, True, False]
+    assert limit.try_acquire(now=t + 0.05) is False  # half a token
+    assert limit.try_acquire(now=t + 0.15) is True  # refilled at 10 per second
+    assert [limit.try_acquire(now=t + 10.0) for _ in range(4)] == [True, True, True, False]  # never more than the burst
+
+
+def test_figure_requests_beyond_the_rate_get_503_with_retry_after(tmp_path):
+    """An orchestrator serving at most 2 figure requests per second refuses the rest of a burst
+    with 503 and Retry-After, before any work, and serves again a second later."""
+    import time
+
+    import httpx
+
+    from tests.api.live import SMALL, LiveAPI
+
+    server = LiveAPI(tmp_path / "rate.db", plot_rate=2.0).start()
+    try:
+        body = {"preset": "paper", "overrides": SMALL, "algorithms": ["rapas"], "tests": 1, "seed": 1}
+        cid = httpx.post(f"{server.url}/campaigns", json=body, timeout=30).json()["id"]
+        assert server.wait(cid)["status"] == "done"
+        time.sleep(1.1)  # a full bucket
+        codes = [httpx.get(f"{server.url}/campaigns/{cid}/plots/dr", timeout=60) for _ in range(6)]
+        refused = [r for r in codes if r.status_code == 503]
+        assert [r.status_code for r in codes[:2]] == [200, 200] and len(refused) >= 3
+        assert all(r.headers["Retry-After"] == "1" and "figure requests per second" in r.json()["detail"] for r in refused)
+        time.sleep(1.1)
+        assert httpx.get(f"{server.url}/campaigns/{cid}/plots/dr", timeout=60).status_code == 200
+    finally:
+        server.stop()

@@ -99,7 +99,7 @@ def _recorded_once(db: Path, cid: str) -> None:
 
 @pytest.mark.parametrize("victim", [("controller", "rig-1"), ("sensors", "rig-2")])
 def test_killing_a_rig_process_loses_nothing_and_changes_nothing(stack, undisturbed, victim):
-    c, results = _campaign_with_a_kill(stack, victim, 0.3)
+    c, results = _campaign_with_a_kill(stack, victim, 0.15)
     assert c["status"] == "done", c["error"]
     _recorded_once(stack["db"], c["id"])
     assert not differences(untimed(results), undisturbed), differences(untimed(results), undisturbed)

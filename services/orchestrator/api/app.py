@@ -47,7 +47,7 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
         else:
             bus = bus_factory()
         scheduler = Scheduler(bus, store, window=settings.window, name=settings.name)
-        renderer = PlotRenderer(settings.plot_workers).start()
+        renderer = PlotRenderer(settings.plot_workers, rate=settings.plot_rate).start()
         app.state.renderer = renderer
         app.state.settings = settings
         app.state.store = store

@@ -144,6 +144,34 @@ def _timed(render: Callable[[plots.PlotJob], bytes], job: plots.PlotJob) -> tupl
 
 # -- in the API process ------------------------------------------------------------------------------
 
+class RateLimit:
+    """A token bucket: at most ``rate`` acquisitions per second on average, ``burst`` at once
+    (``limits`` would do the same; this is the dozen lines it takes). Thread-safe."""
+
+    def __init__(self, rate: float, burst: float | None = None) -> None:
+        self.rate = float(rate)
+        self.burst = float(burst if burst is not None else max(1.0, rate))
+        self._tokens = self.burst
+        self._at = time.monotonic()
+        self._lock = threading.Lock()
+
+    def try_acquire(self, now: float | None = None) -> bool:
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            self._tokens = min(self.burst, self._tokens + (now - self._at) * self.rate)
+            self._at = now
+            if self._tokens >= 1.0:
+                self._tokens -= 1.0
+                return True
+            return False
+
+
+# Figure requests served per second, cached or not (OrchestratorSettings.plot_rate,
+# RA2VIPAS_PLOT_RATE): every request costs the orchestrator's CPU even when its bytes are cached,
+# and on a small machine that CPU is the rigs'. Beyond it: 503 with Retry-After, before any work.
+PLOT_RATE = 40.0
+
+
 class PlotRenderer:
     """Renders figures in a pool of ``workers`` processes, at most ``capacity`` at a time
     (running or queued), and caches the bytes (at most ``cache_bytes`` in total).
@@ -155,7 +183,8 @@ class PlotRenderer:
     """
 
     def __init__(self, workers: int = 1, *, capacity: int | None = None, cache_bytes: int = CACHE_BYTES,
-                 niceness: int = NICENESS, render: Callable[[plots.PlotJob], bytes] = plots.draw_job) -> None:
+                 niceness: int = NICENESS, render: Callable[[plots.PlotJob], bytes] = plots.draw_job,
+                 rate: float = PLOT_RATE) -> None:
         if workers < 1:
             raise ValueError(f"plot workers must be >= 1, got {workers}")
         self.workers = workers
@@ -165,6 +194,7 @@ class PlotRenderer:
         self.niceness = niceness
         self.render = render
         self.stats = RenderStats()
+        self.limit = RateLimit(rate)  # figure requests per second, checked before anything else
         self._cache: cachetools.LRUCache = cachetools.LRUCache(maxsize=cache_bytes, getsizeof=len)
         self._lock = threading.Lock()
         self._inflight: dict[PlotKey, asyncio.Future] = {}  # what identical requests can share
@@ -362,10 +392,15 @@ async def serve_figure(request: Request, key: PlotKey, read: Callable[[], Figure
     """The figure ``key`` as a response (``PlotRenderer.figure``); ``read`` runs in a worker
     thread only when the figure must be drawn, and raises the route's 404/409.
 
-    Raises 503 with ``Retry-After`` when the renderers are saturated.
+    Raises 503 with ``Retry-After`` when the renderers are saturated, or when figure requests
+    come faster than ``PLOT_RATE`` per second (checked first: a refused request costs nothing).
     """
+    renderer = get_renderer(request)
+    if not renderer.limit.try_acquire():
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE,
+                            f"more than {renderer.limit.rate:g} figure requests per second: retry later", headers={"Retry-After": "1"})
     try:
-        data = await get_renderer(request).figure(key, functools.partial(run_in_threadpool, read))
+        data = await renderer.figure(key, functools.partial(run_in_threadpool, read))
     except Saturated as err:
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(err),
                             headers={"Retry-After": str(err.retry_after)}) from None
