@@ -149,3 +149,12 @@ def test_python_m_services_run_the_same_commands():
     bad = subprocess.run([sys.executable, "-m", "ra2vipas.services.learner", "--frobnicate"], capture_output=True, text=True,
                          timeout=60)
     assert bad.returncode == 2 and one_error_line(bad).startswith("error: No such option: --frobnicate")
+
+
+@pytest.mark.parametrize("variable, value, words", [
+    ("RA2VIPAS_PORT", "80a", "Invalid value for '--port' (env var: 'RA2VIPAS_PORT')"),
+    ("RA2VIPAS_PORT", "0", "Invalid value for '--port' (env var: 'RA2VIPAS_PORT')"),
+])
+def test_bad_environment_values_for_up_are_one_line(variable, value, words):
+    proc = ra2vipas("up", env={variable: value})
+    assert proc.returncode == 2 and words in one_error_line(proc)
