@@ -10,6 +10,8 @@ from typing import Annotated, Optional
 import typer
 
 from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stdout
+from ra2vipas.cli.polish import deprecated, prefer
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 
 app = typer.Typer(help="Speed benchmarks (print JSON with --json).", no_args_is_help=True)
 
@@ -106,7 +108,8 @@ def _run_campaign_id(api: str, body: dict, timeout: float, poll: float = 0.1) ->
 
 @app.command("mesh")
 def bench_mesh(
-    rigs: Annotated[int, typer.Option(min=0, max=16, help="Sensor+controller pairs for fast mode (0: one per CPU core).")] = 0,
+    rigs: Annotated[int, typer.Option("--rig-count", min=0, max=16, help="Sensor+controller pairs for fast mode (0: one per CPU core).")] = 0,
+    old_rigs: Annotated[Optional[int], deprecated("--rigs", "--rig-count", min=0, max=16)] = None,
     window: Annotated[int, typer.Option(min=1, max=256, help="Episodes in flight per rig.")] = 8,
     tests: Annotated[int, typer.Option(min=1, max=1000, help="Tests of the fast-mode campaign.")] = 50,
     realtime_tests: Annotated[int, typer.Option(min=0, max=64, help="Tests of the realtime campaign (0: skip); 8 tests give ~950 samples, so p99 rests on ~10 of them.")] = 8,
@@ -115,7 +118,7 @@ def bench_mesh(
     """Start local stacks and measure them through the real processes.
 
     Fast mode: the paper campaign (TESTS tests x ra2vipas, rapas, ravipas x 120 steps) in
-    lockstep on RIGS rigs; reports control steps per second (target >= 2 200 on 2 cores).
+    lockstep on RIG_COUNT rigs; reports control steps per second (target >= 2 200 on 2 cores).
     Realtime mode: REALTIME_TESTS tests paced at T_RF on one rig (one platform in the loop);
     reports the sample-to-command latency p50/p99 measured by the sensors (target p99 <= 5
     ms). Every stack is stopped afterwards.
@@ -125,7 +128,7 @@ def bench_mesh(
 
     from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
 
-    rigs = rigs or max(1, min(os.cpu_count() or 1, 16))
+    rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count") or max(1, min(os.cpu_count() or 1, 16))
     algorithms = ["ra2vipas", "rapas", "ravipas"]
     report: dict = {"benchmark": "mesh", "rigs": rigs, "window": window, "targets": {"steps_per_second": 2200, "latency_p99_ms": 5.0}}
     with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
@@ -328,7 +331,8 @@ def bench_plots(
                                                              "alternating.")] = 3,
     fixtures: Annotated[int, typer.Option(min=1, max=10, help="Finished campaigns whose figures the plot clients ask for.")] = 2,
     fixture_tests: Annotated[int, typer.Option(min=1, max=1000, help="Tests of each finished campaign.")] = 20,
-    rigs: Annotated[int, typer.Option(min=0, max=16, help="Rigs (0: one per CPU core).")] = 0,
+    rigs: Annotated[int, typer.Option("--rig-count", min=0, max=16, help="Rigs (0: one per CPU core).")] = 0,
+    old_rigs: Annotated[Optional[int], deprecated("--rigs", "--rig-count", min=0, max=16)] = None,
     retry_cap: Annotated[float, typer.Option(min=0.0, max=60.0, help="Longest wait of a plot client after a 503 "
                                                                      "(it honours Retry-After up to this).")] = 1.0,
     client_nice: Annotated[int, typer.Option(min=0, max=19, help="Niceness of the plot clients' process (0: they compete "
@@ -353,7 +357,7 @@ def bench_plots(
 
     from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
 
-    rigs = rigs or max(1, min(os.cpu_count() or 1, 16))
+    rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count") or max(1, min(os.cpu_count() or 1, 16))
     algorithms = ["ra2vipas", "rapas", "ravipas"]
     body = {"preset": "paper", "tests": tests, "seed": seed, "algorithms": algorithms}
     report: dict = {"benchmark": "plots", "rigs": rigs, "plot_clients": clients, "readers": readers,
@@ -453,7 +457,7 @@ def bench_plots(
 
 @app.command("robustness")
 def bench_robustness(
-    tests: Annotated[int, typer.Option(min=2, max=10000, help="Paired tests per scenario.")] = 200,
+    tests: Annotated[int, typer.Option(min=2, max=MAX_TESTS, help="Paired tests per scenario.")] = 200,
     seed: Annotated[int, typer.Option(min=0, help="Campaign seed of every scenario.")] = 1,
     scenario: Annotated[Optional[list[str]], typer.Option("--scenario", help="Run only these scenarios (repeatable; default: all).")] = None,
     workers: Annotated[int, typer.Option(min=0, max=256, help="Worker processes (0: one per CPU core).")] = 0,
@@ -498,7 +502,7 @@ def bench_robustness(
 
 @app.command("calibrate")
 def bench_calibrate(
-    tests: Annotated[int, typer.Option(min=2, max=10000, help="Tests per scenario.")] = 40,
+    tests: Annotated[int, typer.Option(min=2, max=MAX_TESTS, help="Tests per scenario.")] = 40,
     seed: Annotated[int, typer.Option(min=0, help="Seed (use one no benchmark uses).")] = 1001,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
@@ -519,7 +523,7 @@ def bench_calibrate(
 
 @app.command("dashboard")
 def bench_dashboard(
-    tests: Annotated[int, typer.Option(min=1, max=10000, help="Tests per algorithm of the synthetic finished campaign (4 algorithms, 120 steps).")] = 10000,
+    tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Tests per algorithm of the synthetic finished campaign (4 algorithms, 120 steps).")] = 10000,
     repeats: Annotated[int, typer.Option(min=1, max=1000, help="Requests per page for the server's render time.")] = 10,
     chromium: Annotated[Optional[str], typer.Option(envvar="RA2VIPAS_CHROMIUM", help="Chromium executable for first paint and page weight.")] = "/usr/bin/chromium",
     no_browser: Annotated[bool, typer.Option("--no-browser", help="Time the server only.")] = False,
@@ -602,7 +606,7 @@ def _cpu_available(workers: int) -> float:
 
 @app.command("simulate")
 def bench_simulate(
-    tests: Annotated[int, typer.Option(min=1, max=10000, help="Tests of the speed campaign (paper scenario, every algorithm).")] = 30,
+    tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Tests of the speed campaign (paper scenario, every algorithm).")] = 30,
     workers: Annotated[int, typer.Option(min=0, max=1024, help="Workers of the parallel run (0: one per CPU core).")] = 0,
     seed: Annotated[int, typer.Option(min=0)] = 1,
     memory_tests: Annotated[str, typer.Option(help="Campaign sizes whose peak memory to measure, comma-separated ('' for none).")] = "1000,10000",

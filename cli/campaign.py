@@ -18,6 +18,8 @@ from ra2vipas.cli.output import (
     EXIT_FAILED, EXIT_USAGE, campaign_tables, campaigns_table, emit_results, fail, outcomes_table, print_json, print_results, stderr, stdout,
     trace_table, write_file,
 )
+from ra2vipas.cli.polish import deprecated, prefer
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.protocol.messages import ALGORITHMS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
@@ -67,7 +69,7 @@ def _check_finished(c: dict) -> None:
 @app.command("start")
 def start(
     preset: Annotated[str, typer.Option(help=f"Scenario preset: {', '.join(PRESETS)}.", autocompletion=_complete(PRESETS))] = "paper",
-    tests: Annotated[int, typer.Option(min=1, max=10000, help="Monte Carlo tests per algorithm.")] = 50,
+    tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Monte Carlo tests per algorithm.")] = 50,
     seed: Annotated[int, typer.Option(min=0, help="Campaign seed.")] = 1,
     algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of ra2vipas, rapas, ravipas, sweep (default: all).")] = None,
     overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help="Override a scenario parameter (repeatable).")] = None,
@@ -82,7 +84,8 @@ def start(
     plot: Annotated[Optional[str], typer.Option(metavar="FILE", help="With --wait: also write the DR curves to FILE (.png or .svg).")] = None,
     embedded: Annotated[bool, typer.Option("--embedded", help="Start a local stack (Zenoh router, services, SQLite file) just for this campaign and stop it afterwards; implies --wait.")] = False,
     db: Annotated[str, typer.Option("--db", envvar="RA2VIPAS_DB", help="With --embedded: the SQLite file the results go to.")] = "ra2vipas.db",
-    rigs: Annotated[int, typer.Option(min=0, max=64, help="With --embedded: sensor+controller pairs (0: one per CPU core).")] = 0,
+    rigs: Annotated[int, typer.Option("--rig-count", min=0, max=64, help="With --embedded: sensor+controller pairs (0: one per CPU core).")] = 0,
+    old_rigs: Annotated[Optional[int], deprecated("--rigs", "--rig-count", min=0, max=64)] = None,
     insecure: Annotated[bool, typer.Option("--insecure", help="With --embedded: no Zenoh credentials for the local stack (any local process may join it).")] = False,
     as_json: JsonOpt = False,
     api: ApiOpt = DEFAULT_API,
@@ -92,10 +95,20 @@ def start(
     --wait, follows it with a progress bar and prints the results.
 
     With --embedded the stack runs inside this command: the quickest way to run the paper
-    campaign on a laptop (`make campaign`).
+    campaign on a laptop (`make campaign`). Ctrl-C while it waits stops following, not the
+    campaign, and says how to follow or cancel it.
+
+    Examples:
+
+        ra2vipas campaign start --preset paper --tests 50 --seed 1 --wait --plot dr.png
+
+        ra2vipas campaign start --set n_targets=30 --name crowd-30 --json
+
+        ra2vipas campaign start --embedded --tests 50 --db results/ra2vipas.db
     """
     from ra2vipas.cli.simulate import parse_algorithms
 
+    rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count")
     if plot is not None and not plot.lower().endswith((".png", ".svg")):
         fail(f"--plot expects a .png or .svg file name, got {plot!r}", EXIT_USAGE)
     try:
@@ -200,7 +213,13 @@ def list_campaigns(
     offset: Annotated[int, typer.Option(min=0, help="Campaigns to skip (newest first).")] = 0,
     as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
 ) -> None:
-    """List campaigns, newest first (with --json: the page object, items and total)."""
+    """List campaigns, newest first, with what each ran (preset, overrides, tests, seed); with
+    --json: the page object, items and total.
+
+    Example:
+
+        ra2vipas campaign list --status done --name crowd-30
+    """
     if status is not None and status not in STATUSES:
         fail(f"--status must be one of {', '.join(STATUSES)}, got {status!r}", EXIT_USAGE)
     params = {"limit": limit, "offset": offset, **({"status": status} if status else {}), **({"preset": preset} if preset else {}),
@@ -242,7 +261,12 @@ def watch(campaign_id: IdArg,
           as_json: Annotated[bool, typer.Option("--json", help="Print every progress update as one JSON line; the last is the final state.")] = False,
           api: ApiOpt = DEFAULT_API, token: TokenOpt = None) -> None:
     """Follow a campaign with a live progress bar until it finishes. Exit code 0 if it is
-    done, 1 if it failed or was cancelled."""
+    done, 1 if it failed or was cancelled; Ctrl-C stops following (exit 130), not the campaign.
+
+    Example:
+
+        ra2vipas campaign watch 3f2a9c0d1b7e --api http://127.0.0.1:8080
+    """
     client = Client(api, token)
     final = _follow(client, campaign_id, as_json_lines=as_json)
     if not as_json:
@@ -255,15 +279,29 @@ def results(
     campaign_id: IdArg,
     per_test: Annotated[bool, typer.Option("--per-test", help="The per-test outcome table instead of the DR table.")] = False,
     algorithm: Annotated[Optional[str], typer.Option(help="Only this algorithm (its DR row, or with --per-test its tests).", autocompletion=_complete(ALGORITHMS))] = None,
+    hit: Annotated[Optional[bool], typer.Option("--hit/--miss", show_default=False, help="With --per-test: only the tests whose final answer was (--hit) or was not (--miss) the Tx.")] = None,
     limit: Annotated[int, typer.Option(min=1, max=200, help="With --per-test: page size.")] = 50,
     offset: Annotated[int, typer.Option(min=0, help="With --per-test: rows to skip.")] = 0,
     as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
 ) -> None:
     """The DR table of a finished campaign (with --json: the results object); with --per-test,
-    how each test ended."""
+    how each test ended. A cancelled or failed campaign's results are those of the tests it
+    recorded, marked partial.
+
+    Examples:
+
+        ra2vipas campaign results 3f2a9c0d1b7e --algorithm rapas
+
+        ra2vipas campaign results 3f2a9c0d1b7e --per-test --algorithm ra2vipas --miss
+    """
+    if algorithm is not None and algorithm not in ALGORITHMS:
+        fail(f"--algorithm must be one of {', '.join(ALGORITHMS)}, got {algorithm!r}", EXIT_USAGE)
     client = Client(api, token)
+    if hit is not None and not per_test:
+        fail("--hit/--miss select rows of the per-test table: add --per-test", EXIT_USAGE)
     if per_test:
-        params = {"limit": limit, "offset": offset, **({"algorithm": algorithm} if algorithm else {})}
+        params = {"limit": limit, "offset": offset, **({"algorithm": algorithm} if algorithm else {}),
+                  **({"hit": "true" if hit else "false"} if hit is not None else {})}
         page = client.request("GET", f"/campaigns/{campaign_id}/tests", params=params)
         if as_json:
             print_json(page)
@@ -284,7 +322,7 @@ def results(
 @app.command("trace")
 def trace(
     campaign_id: IdArg,
-    test: Annotated[int, typer.Option("--test", min=0, max=9999, help="The test index k.")] = 0,
+    test: Annotated[int, typer.Option("--test", min=0, max=MAX_TESTS - 1, help="The test index k.")] = 0,
     algorithm: Annotated[str, typer.Option(help="The algorithm.", autocompletion=_complete(ALGORITHMS))] = "ra2vipas",
     as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
 ) -> None:
@@ -321,16 +359,31 @@ def delete(campaign_id: IdArg, as_json: JsonOpt = False, api: ApiOpt = DEFAULT_A
 def export(
     campaign_id: IdArg,
     fmt: Annotated[Optional[str], typer.Option("--format", "-f", help="json or csv (default: from the file extension, else json).", autocompletion=_complete(("json", "csv")))] = None,
+    table: Annotated[str, typer.Option("--table", help="With csv: dr (one row per algorithm x time step) or summary (one row per algorithm: final DR, CI, t90, ...).", autocompletion=_complete(("dr", "summary")))] = "dr",
     output: Annotated[Optional[str], typer.Option("--output", "-o", metavar="FILE", help="Write here instead of stdout.")] = None,
     api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
 ) -> None:
-    """Export the results of a finished campaign as JSON or CSV, with the scenario and seed in
-    the file so it can be reproduced from it alone."""
+    """Export the results of a finished (or, marked partial, a cancelled) campaign as JSON or
+    as a tidy CSV table whose every row says what was run (campaign id, name, preset, seed,
+    tests, one column per overridden parameter), so it can be reproduced from the file alone
+    and several campaigns' files concatenate into one table.
+
+    Examples:
+
+        ra2vipas campaign export 3f2a9c0d1b7e -o dr.csv
+
+        ra2vipas campaign export 3f2a9c0d1b7e --table summary -o summary.csv
+    """
     if fmt is None:
         fmt = "csv" if output and output.lower().endswith(".csv") else "json"
     if fmt not in ("json", "csv"):
         fail(f"--format must be json or csv, got {fmt!r}", EXIT_USAGE)
-    r = Client(api, token).response("GET", f"/campaigns/{campaign_id}/results", params={"format": fmt})
+    if table not in ("dr", "summary"):
+        fail(f"--table must be dr or summary, got {table!r}", EXIT_USAGE)
+    if table != "dr" and fmt != "csv":
+        fail("--table selects a CSV table; the JSON has both (add --format csv)", EXIT_USAGE)
+    params = {"format": fmt, **({"table": table} if fmt == "csv" else {})}
+    r = Client(api, token).response("GET", f"/campaigns/{campaign_id}/results", params=params)
     data = r.content if fmt == "csv" else (r.text.strip() + "\n").encode()
     if output in (None, "-"):
         sys.stdout.buffer.write(data)
@@ -340,28 +393,100 @@ def export(
     print(f"{fmt.upper()} written to {output}", file=sys.stderr)
 
 
+RUN_FIELDS = ("name", "id", "preset", "seed", "tests")
+
+
+def label_value(param: str, campaign: dict, results: dict) -> str:
+    """The value of ``param`` (a scenario parameter, or name / id / preset / seed / tests) for a
+    campaign, as a legend label."""
+    if param in RUN_FIELDS:
+        value = campaign.get(param) if param in ("name", "id") else results.get(param)
+        return f"{param} {value}" if param in ("seed", "tests") else str(value or campaign["id"])
+    return f"{param}={results['scenario'][param]}"
+
+
+def check_label(param: str) -> None:
+    from difflib import get_close_matches
+
+    from ra2vipas.services.protocol.scenario import Scenario
+
+    known = (*RUN_FIELDS, *Scenario.model_fields)
+    if param not in known:
+        near = get_close_matches(param, known, n=1)
+        fail(f"--label {param!r} is not a scenario parameter nor one of {', '.join(RUN_FIELDS)}"
+             + (f"; did you mean {near[0]!r}?" if near else " (see `ra2vipas presets show paper`)"), EXIT_USAGE)
+
+
 @app.command("plot")
 def plot(
-    campaign_id: IdArg,
+    campaign_ids: Annotated[list[str], typer.Argument(metavar="CAMPAIGN_ID...", help="One campaign id, or several to overlay their DR curves on one figure.", show_default=False)],
     kind: Annotated[str, typer.Option("--kind", "-k", help="dr: DR curves (Fig. 4); pod: learned POD (Fig. 3); reliability: calibration of the final confidences; episode: one test (needs --test and --algorithm).", autocompletion=_complete(("dr", "pod", "reliability", "episode")))] = "dr",
-    test: Annotated[Optional[int], typer.Option("--test", min=0, max=9999, help="With --kind episode: the test index.")] = None,
-    algorithm: Annotated[Optional[str], typer.Option(help="With --kind episode: the algorithm.", autocompletion=_complete(ALGORITHMS))] = None,
+    label: Annotated[Optional[str], typer.Option("--label", metavar="PARAM", help="Overlay: name each campaign's curves by this scenario parameter (e.g. n_targets) or by name, id, preset, seed or tests (default: name, else id, with the overrides).")] = None,
+    test: Annotated[Optional[int], typer.Option("--test", min=0, max=MAX_TESTS - 1, help="With --kind episode: the test index.")] = None,
+    algorithm: Annotated[Optional[str], typer.Option(help="With --kind episode: the algorithm; with several campaigns: draw only this algorithm.", autocompletion=_complete(ALGORITHMS))] = None,
     output: Annotated[Optional[str], typer.Option("--output", "-o", metavar="FILE", help="PNG or SVG file (default: campaign-ID-KIND.png).")] = None,
     api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
 ) -> None:
-    """Fetch a figure rendered by the server and write it to a file (.png or .svg)."""
-    output = output or f"campaign-{campaign_id}-{kind}.png"
+    """Write a campaign's figure (rendered by the server) to a file (.png or .svg); with several
+    campaign ids (or --label), overlay their DR curves on one figure, drawn here.
+
+    Examples:
+
+        ra2vipas campaign plot 3f2a9c0d1b7e --kind pod -o pod.svg
+
+        ra2vipas campaign plot 3f2a9c0d1b7e 8e1d0b5a9c2f 77ab01cd23ef --label n_targets -o crowd.png
+    """
+    overlay = len(campaign_ids) > 1 or label is not None
+    first = campaign_ids[0]
+    output = output or (f"campaign-{first}-{kind}.png" if not overlay else f"campaigns-{'-'.join(campaign_ids[:3])}-dr.png")
     if not output.lower().endswith((".png", ".svg")):
         fail(f"--output expects a .png or .svg file name, got {output!r}", EXIT_USAGE)
+    if overlay:
+        if kind != "dr":
+            fail(f"several campaigns (or --label) overlay DR curves: --kind {kind} draws one campaign", EXIT_USAGE)
+        if label is not None:
+            check_label(label)
+        _overlay(Client(api, token), campaign_ids, label, algorithm, output)
+        return
     fmt = "svg" if output.lower().endswith(".svg") else "png"
     if kind in ("dr", "pod", "reliability"):
-        path = f"/campaigns/{campaign_id}/plots/{kind}"
+        path = f"/campaigns/{first}/plots/{kind}"
     elif kind == "episode":
         if test is None or algorithm is None:
             fail("--kind episode needs --test K and --algorithm NAME", EXIT_USAGE)
-        path = f"/campaigns/{campaign_id}/tests/{test}/{algorithm}/plot"
+        path = f"/campaigns/{first}/tests/{test}/{algorithm}/plot"
     else:
         fail(f"--kind must be dr, pod, reliability or episode, got {kind!r}", EXIT_USAGE)
     r = Client(api, token).response("GET", path, params={"format": fmt})
     write_file(r.content, output)
     print(f"{kind} plot written to {output}")
+
+
+def _overlay(client: Client, campaign_ids: list[str], label: str | None, algorithm: str | None, output: str) -> None:
+    from ra2vipas.services.orchestrator.plots import write_overlay_plot
+
+    from ra2vipas.cli.output import overrides_text
+
+    runs = []
+    for cid in dict.fromkeys(campaign_ids):
+        campaign = client.request("GET", f"/campaigns/{cid}")
+        results = client.request("GET", f"/campaigns/{cid}/results")
+        if algorithm is not None:
+            if algorithm not in results["algorithms"]:
+                fail(f"campaign {cid} did not run {algorithm} (it ran {', '.join(results['algorithms'])})")
+            results["algorithms"] = {algorithm: results["algorithms"][algorithm]}
+        if label is not None:
+            text = label_value(label, campaign, results)
+        else:
+            over = overrides_text(results.get("overrides"))
+            text = (campaign["name"] or cid) + ("" if over == "—" else f" ({over})")
+        if results.get("partial"):
+            text += " [partial]"
+        runs.append((text, results))
+    shared = [f"{k} {runs[0][1][k]}" for k in ("preset", "tests", "seed") if len({str(r[k]) for _, r in runs}) == 1]
+    title = "DR_t" + (f" by {label}" if label else "") + (f": {', '.join(shared)}" if shared else "")
+    try:
+        write_overlay_plot(runs, title, output)
+    except OSError as err:
+        fail(f"cannot write {output}: {err.strerror or err}")
+    print(f"dr plot of {len(runs)} campaigns written to {output}")

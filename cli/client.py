@@ -33,7 +33,13 @@ class Client:
         self.http = httpx.Client(base_url=self.api, headers=headers, timeout=30.0)
 
     def _unreachable(self, err: Exception) -> None:
+        if isinstance(err, httpx.ProtocolError):  # something answered, but not in HTTP
+            self._not_ours("it does not answer HTTP")
         fail(f"cannot reach the API at {self.api} ({type(err).__name__}); is `ra2vipas up` running? (--api / RA2VIPAS_API)")
+
+    def _not_ours(self, why: str) -> None:
+        fail(f"{self.api} is not a ra2vipas API ({why}); --api takes the orchestrator's base URL, e.g. {DEFAULT_API}",
+             EXIT_FAILED)
 
     def response(self, method: str, path: str, **kw) -> httpx.Response:
         """The raw response of a successful request."""
@@ -42,13 +48,31 @@ class Client:
         except httpx.HTTPError as err:
             self._unreachable(err)
         if r.status_code >= 400:
+            self._check_error(r, method, path)
             _raise_for(r, method, path)
         return r
+
+    def _check_error(self, r: httpx.Response, method: str, path: str) -> None:
+        """Every error of a ra2vipas API is JSON ``{"detail": ...}``, and a path it does not
+        serve answers exactly ``Not Found``: anything else means --api points elsewhere."""
+        try:
+            body = r.json()
+        except ValueError:
+            self._not_ours(f"{method} {path} answered HTTP {r.status_code} with {r.headers.get('content-type') or 'no'} content")
+        if not isinstance(body, dict) or "detail" not in body:
+            self._not_ours(f"{method} {path} answered HTTP {r.status_code} without a detail")
+        if r.status_code == 404 and body["detail"] == "Not Found":
+            self._not_ours(f"it does not serve {method} {path}")
 
     def request(self, method: str, path: str, **kw) -> Any:
         """The decoded JSON body of a successful request (None for 204)."""
         r = self.response(method, path, **kw)
-        return None if r.status_code == 204 or not r.content else r.json()
+        if r.status_code == 204 or not r.content:
+            return None
+        try:
+            return r.json()
+        except ValueError:
+            self._not_ours(f"{method} {path} answered {r.headers.get('content-type') or 'something'}, not JSON")
 
     def events(self, path: str) -> Iterator[tuple[str, dict]]:
         """Server-sent events of ``path`` as (event name, JSON data) until the server ends the stream."""
@@ -57,6 +81,7 @@ class Client:
                                   timeout=httpx.Timeout(30.0, read=120.0)) as r:
                 if r.status_code >= 400:
                     r.read()
+                    self._check_error(r, "GET", path)
                     _raise_for(r, "GET", path)
                 name, data = "message", []
                 for line in r.iter_lines():

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import typer  # noqa: E402  (ra2vipas/__init__ pins BLAS to one thread before numpy loads)
 
-from ra2vipas.cli import bench, campaign, presets, protocol, security, services, study, survey  # noqa: E402
+from ra2vipas.cli import bench, campaign, presets, protocol, rigs, security, services, study, survey  # noqa: E402
 from ra2vipas.cli.record import record, replay  # noqa: E402
 from ra2vipas.cli.rig import rig  # noqa: E402
-from ra2vipas.cli.rigs import rigs  # noqa: E402
 from ra2vipas.cli.simulate import simulate  # noqa: E402
 from ra2vipas.cli.up import up  # noqa: E402
 
@@ -37,7 +36,7 @@ app.command("simulate")(simulate)
 app.command("up")(up)
 app.add_typer(campaign.app, name="campaign")
 app.add_typer(study.app, name="study")
-app.command("rigs")(rigs)
+app.add_typer(rigs.app, name="rigs")
 app.add_typer(presets.app, name="presets")
 app.add_typer(bench.app, name="bench")
 app.add_typer(protocol.app, name="protocol")
@@ -51,7 +50,9 @@ app.command("replay")(replay)
 
 
 def main() -> None:
-    app()
+    from ra2vipas.cli.polish import run
+
+    run(app)
 
 
 if __name__ == "__main__":

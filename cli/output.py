@@ -61,7 +61,8 @@ def dr_table(results: dict[str, Any]) -> Table:
     times = [t for t in REPORT_TIMES_S if round(t / period) <= steps]
     if not times or abs(times[-1] - steps * period) > 1e-9:
         times.append(round(steps * period, 6))
-    table = Table(title=f"Discovery rate DR_t, {results['preset']} ({results['tests']} tests, seed {results['seed']})")
+    over = "".join(f", {k}={v}" for k, v in (results.get("overrides") or {}).items())
+    table = Table(title=f"Discovery rate DR_t, {results['preset']}{over} ({results['tests']} tests, seed {results['seed']})")
     table.add_column("algorithm", no_wrap=True)
     for t in times:
         table.add_column(f"{t:g} s", justify="right")
@@ -148,12 +149,17 @@ def print_results(results: dict[str, Any]) -> None:
 
 # -- campaigns ---------------------------------------------------------------------------------
 
-def _when(ts: float | None) -> str:
-    return "—" if ts is None else time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(ts))
+def _when(ts: float | None, fmt: str = "%Y-%m-%d %H:%M:%S") -> str:
+    return "—" if ts is None else time.strftime(fmt, time.localtime(ts))
 
 
 def _r2(pod: dict[str, Any]) -> str:
     return "—" if pod.get("r2") is None else f"{pod['r2']:.4f}"
+
+
+def overrides_text(overrides: dict[str, Any] | None) -> str:
+    """``n_targets=30, antenna_model=db-gain`` (``—`` for none)."""
+    return ", ".join(f"{k}={v}" for k, v in (overrides or {}).items()) or "—"
 
 
 def progress_text(c: dict[str, Any]) -> str:
@@ -166,11 +172,12 @@ def campaigns_table(page: dict[str, Any]) -> Table:
     items = page["items"]
     first = page["offset"] + 1 if items else 0
     table = Table(title=f"Campaigns {first}–{page['offset'] + len(items)} of {page['total']}")
-    for col in ("id", "name", "status", "preset", "tests", "seed", "algorithms", "episodes", "POD R²", "created"):
-        table.add_column(col, no_wrap=col in ("id", "created"))
+    for col in ("id", "name", "status", "preset", "overrides", "tests", "seed", "episodes", "POD R²", "created"):
+        table.add_column(col, no_wrap=col in ("id", "status"), overflow="fold",
+                         min_width=22 if col == "overrides" else None)
     for c in items:
-        table.add_row(c["id"], c["name"] or "", c["status"], c["preset"], str(c["tests"]), str(c["seed"]), ",".join(c["algorithms"]),
-                      progress_text(c), _r2(c["pod"]), _when(c["created_at"]))
+        table.add_row(c["id"], c["name"] or "", c["status"], c["preset"], overrides_text(c.get("overrides")), str(c["tests"]),
+                      str(c["seed"]), progress_text(c), _r2(c["pod"]), _when(c["created_at"], "%Y-%m-%d %H:%M"))
     return table
 
 

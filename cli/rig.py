@@ -27,7 +27,9 @@ from typing import Annotated, Optional
 import typer
 
 from ra2vipas.cli.output import EXIT_USAGE, fail
-from ra2vipas.cli.services import ConfigOpt, ConnectOpt, ListenOpt, LogOpt, ModeOpt, zenoh_settings
+from ra2vipas.cli.services import (
+    ConfigOpt, ConnectOpt, ListenOpt, LogOpt, ModeOpt, OldModeOpt, open_error, warn_while_alone, zenoh_settings,
+)
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
 log = logging.getLogger("ra2vipas")
@@ -55,7 +57,7 @@ def rig(
     rig: Annotated[Optional[str], typer.Option("--rig", envvar="RA2VIPAS_RIG",
                                                help="Rig name (default: this host's name, e.g. the container's).")] = None,
     beta: Annotated[float, typer.Option(min=0.0, help="UCB exploration weight beta.")] = 4.0,
-    mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+    mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
     zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO",
 ) -> None:
     """Run one rig, its simulated sensors and its Ra²ViPAS controller, in one process."""
@@ -72,7 +74,7 @@ def rig(
         check_chunk(name, "rig")
     except ValueError as err:
         fail(str(err), EXIT_USAGE)
-    settings = zenoh_settings(mode, connect, listen, zenoh_config)
+    settings = zenoh_settings(mode, connect, listen, zenoh_config, old_mode)
     try:
         os.nice(-5)  # like `ra2vipas sensors|controller`: the control loop first, where allowed
     except OSError:
@@ -84,8 +86,9 @@ def rig(
         try:
             buses.append(ZenohBus(settings))
             buses.append(ZenohBus(controller_settings(settings)))
-        except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, ...
-            fail(f"cannot open the Zenoh session: {err}")
+        except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, unreachable routers, ...
+            fail(open_error(err, settings))
+        warn_while_alone(buses[0].session, settings)
         nodes.append(ControllerNode(buses[1], name, ControllerSettings(beta=beta)))
         nodes.append(SensorsNode(buses[0], name))
         gc.collect()

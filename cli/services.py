@@ -1,7 +1,7 @@
 """``ra2vipas sensors|learner|controller|orchestrator|router``: start one service process.
 
 Every service takes the same Zenoh options (flag > environment > default):
-``--mode`` (RA2VIPAS_ZENOH_MODE), ``--connect`` (repeatable; RA2VIPAS_ZENOH_CONNECT,
+``--zenoh-mode`` (RA2VIPAS_ZENOH_MODE; ``--mode`` is its deprecated spelling), ``--connect`` (repeatable; RA2VIPAS_ZENOH_CONNECT,
 comma-separated), ``--listen`` (repeatable; RA2VIPAS_ZENOH_LISTEN), ``--zenoh-config``
 (RA2VIPAS_ZENOH_CONFIG, a Zenoh JSON5 file). SIGINT/SIGTERM close the session and exit 0.
 """
@@ -11,18 +11,24 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import re
+import socket
 import sys
+import threading
+import time
 from pathlib import Path
 from typing import Annotated, Callable, Optional
 
 import typer
 
 from ra2vipas.cli.output import EXIT_USAGE, fail
+from ra2vipas.cli.polish import deprecated, prefer
 from ra2vipas.services.transport.zenoh_config import ZenohSettings, ZenohSettingsError
 
 log = logging.getLogger("ra2vipas")
 
-ModeOpt = Annotated[Optional[str], typer.Option("--mode", help="Zenoh mode: peer|client|router [env RA2VIPAS_ZENOH_MODE; default peer].")]
+ModeOpt = Annotated[Optional[str], typer.Option("--zenoh-mode", help="Zenoh mode: peer|client|router [env RA2VIPAS_ZENOH_MODE; default peer].")]
+OldModeOpt = Annotated[Optional[str], deprecated("--mode", "--zenoh-mode")]  # renamed: campaign start --mode is fast|realtime
 ConnectOpt = Annotated[Optional[list[str]], typer.Option("--connect", "-e", metavar="ENDPOINT", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable) [env RA2VIPAS_ZENOH_CONNECT].")]
 ListenOpt = Annotated[Optional[list[str]], typer.Option("--listen", "-l", metavar="ENDPOINT", help="Zenoh endpoint to listen on (repeatable) [env RA2VIPAS_ZENOH_LISTEN].")]
 ConfigOpt = Annotated[Optional[str], typer.Option("--zenoh-config", metavar="FILE", help="Zenoh JSON5 configuration file, applied first [env RA2VIPAS_ZENOH_CONFIG].")]
@@ -30,11 +36,73 @@ LogOpt = Annotated[str, typer.Option("--log-level", envvar="RA2VIPAS_LOG_LEVEL",
 RigOpt = Annotated[str, typer.Option("--rig", envvar="RA2VIPAS_RIG", help="Rig name (one sensing platform and its controller).")]
 
 
-def zenoh_settings(mode, connect, listen, config) -> ZenohSettings:
+def zenoh_settings(mode, connect, listen, config, old_mode: str | None = None) -> ZenohSettings:
+    """The Zenoh options (flag > environment > default) as settings; ``old_mode`` is the value of
+    the deprecated ``--mode`` spelling of ``--zenoh-mode``."""
+    mode = prefer(mode, old_mode, "--mode", "--zenoh-mode")
     try:
         return ZenohSettings.from_sources(mode=mode, connect=connect, listen=listen, config_file=config)
     except ZenohSettingsError as err:
         fail(str(err), EXIT_USAGE)
+
+
+_RUST_WHERE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+
+
+def endpoint_answers(endpoint: str, timeout_s: float = 2.0) -> bool | None:
+    """Whether something accepts TCP connections at a ``tcp/`` or ``tls/`` Zenoh endpoint
+    (None for other protocols)."""
+    proto, _, address = endpoint.partition("/")
+    if proto not in ("tcp", "tls"):
+        return None
+    host, _, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
+def not_joined(zenoh: ZenohSettings) -> str:
+    """One line: why this node is not connected to any of its ``--connect`` endpoints."""
+    eps = list(zenoh.connect)
+    answering = [ep for ep in eps if endpoint_answers(ep)]
+    if answering:
+        creds = ("its user/password (RA2VIPAS_ZENOH_USER, RA2VIPAS_ZENOH_PASSWORD or _PASSWORD_FILE)" if zenoh.user
+                 else "whether it requires a user/password (RA2VIPAS_ZENOH_USER, RA2VIPAS_ZENOH_PASSWORD), which this node did not give")
+        return (f"{answering[0]} accepts connections but did not let this node's Zenoh session in: check {creds} "
+                "and its TLS settings")
+    return (f"nothing answers at {', '.join(eps)}: check --connect (RA2VIPAS_ZENOH_CONNECT) and that the router there is "
+            "running")
+
+
+def open_error(err: Exception, zenoh: ZenohSettings) -> str:
+    """The one-line error for a Zenoh session that did not open (no Rust source path)."""
+    text = _RUST_WHERE.sub("", " ".join(str(err).split())).strip()
+    if zenoh.connect and ("Unable to connect" in text or "Timeout" in text):
+        return f"cannot join the Zenoh network: {not_joined(zenoh)}"
+    return f"cannot open the Zenoh session: {text}"
+
+
+def warn_while_alone(session, zenoh: ZenohSettings, after_s: float = 10.0) -> None:
+    """A peer whose ``--connect`` endpoints are unreachable still opens (Zenoh keeps trying in
+    the background): log one error line if it has joined nobody after ``after_s``."""
+    if zenoh.mode != "peer" or not zenoh.connect:
+        return
+
+    def check() -> None:
+        deadline = time.monotonic() + after_s
+        while time.monotonic() < deadline:
+            try:
+                info = session.info
+                if info.routers_zid() or info.peers_zid():
+                    return
+            except Exception:  # the session closed meanwhile
+                return
+            time.sleep(0.5)
+        log.error("not connected to any Zenoh node after %.0f s (still trying): %s", after_s, not_joined(zenoh))
+
+    threading.Thread(target=check, name="zenoh-join-check", daemon=True).start()
 
 
 def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
@@ -44,8 +112,9 @@ def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
 
     try:
         bus = ZenohBus(zenoh)
-    except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, ...
-        fail(f"cannot open the Zenoh session: {err}")
+    except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, unreachable routers, ...
+        fail(open_error(err, zenoh))
+    warn_while_alone(bus.session, zenoh)
     node = None
     try:
         node = build(bus)
@@ -64,7 +133,7 @@ def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
 def sensors(rig: RigOpt = "rig-1",
             hardware: Annotated[Optional[list[str]], typer.Option("--hardware", metavar="NAME=VALUE", help="Pin a hardware parameter of this simulated rig (repeatable): frames_per_rf, rf_period_s, fov_half_angle_deg, box_bearing_noise_deg, antenna_model (paper|db-gain|unknown), antenna_curvature, antenna_floor_db. Its descriptor says so, and it simulates that hardware whatever a campaign's scenario says.")] = None,
             undescribed: Annotated[bool, typer.Option("--undescribed", help="Serve no rig descriptor (behave as a v1 node).")] = False,
-            mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+            mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
             zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
     """Run a rig's simulated sensors: the world, the camera detector, Rx(iso) and Rx(dir)."""
     from ra2vipas.services.protocol.keys import check_chunk
@@ -86,12 +155,12 @@ def sensors(rig: RigOpt = "rig-1",
     except (ValueError, ScenarioError) as err:
         fail(str(err), EXIT_USAGE)
     _claim_cpu()
-    run_node(f"sensors[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config),
+    run_node(f"sensors[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config, old_mode),
              lambda bus: SensorsNode(bus, rig, descriptor=descriptor, describe=not undescribed))
 
 
 def controller(rig: RigOpt = "rig-1", beta: Annotated[float, typer.Option(min=0.0, help="UCB exploration weight beta.")] = 4.0,
-               mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+               mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
                zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
     """Run a rig's Ra²ViPAS controller: measurements in, pan commands out."""
     from ra2vipas.services.controller.node import ControllerNode
@@ -102,13 +171,13 @@ def controller(rig: RigOpt = "rig-1", beta: Annotated[float, typer.Option(min=0.
     configure_logging(log_level)
     _check_rig(rig, check_chunk)
     _claim_cpu()
-    run_node(f"controller[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config),
+    run_node(f"controller[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config, old_mode),
              lambda bus: ControllerNode(bus, rig, ControllerSettings(beta=beta)))
 
 
 def learner(name: Annotated[str, typer.Option("--name", envvar="RA2VIPAS_LEARNER_NAME", help="Instance name.")] = "learner",
             cache_dir: Annotated[Optional[str], typer.Option("--cache-dir", envvar="RA2VIPAS_MODEL_CACHE", help="Keep trained POD models here across restarts.")] = None,
-            mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+            mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
             zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
     """Run the POD learner: trains p_hat_D(r) once per scenario and seed, serves it."""
     from ra2vipas.services.learner.node import LearnerNode
@@ -118,7 +187,7 @@ def learner(name: Annotated[str, typer.Option("--name", envvar="RA2VIPAS_LEARNER
     configure_logging(log_level)
     _check_rig(name, check_chunk, "learner name")
     _yield_cpu()
-    run_node(f"learner[{name}]", zenoh_settings(mode, connect, listen, zenoh_config), lambda bus: LearnerNode(bus, name, cache_dir))
+    run_node(f"learner[{name}]", zenoh_settings(mode, connect, listen, zenoh_config, old_mode), lambda bus: LearnerNode(bus, name, cache_dir))
 
 
 def orchestrator(
@@ -128,7 +197,7 @@ def orchestrator(
     window: Annotated[Optional[int], typer.Option(min=1, max=1024, help="Episodes in flight per rig [env RA2VIPAS_WINDOW; default 8].")] = None,
     expect_rigs: Annotated[Optional[int], typer.Option(min=0, max=1000, help="Rigs that must be live for /health to be 200 [env RA2VIPAS_EXPECT_RIGS; default 1].")] = None,
     token: Annotated[Optional[str], typer.Option("--token", help="Require `Authorization: Bearer TOKEN` on every request that changes state [env RA2VIPAS_TOKEN; default: none].")] = None,
-    mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+    mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
     zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO",
 ) -> None:
     """Run the orchestrator: schedules campaigns over the rigs, stores results, serves the REST API."""
@@ -146,7 +215,7 @@ def orchestrator(
 
     try:
         settings = OrchestratorSettings.from_sources(host=host, port=port, db_path=db, window=window, expect_rigs=expect_rigs,
-                                                     token=token, zenoh=zenoh_settings(mode, connect, listen, zenoh_config))
+                                                     token=token, zenoh=zenoh_settings(mode, connect, listen, zenoh_config, old_mode))
     except SettingsError as err:
         fail(str(err), EXIT_USAGE)
     from ra2vipas.services.orchestrator.dblock import DatabaseInUse, DatabaseLock
@@ -179,8 +248,14 @@ def orchestrator(
 
 def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
     """Run a standalone Zenoh router (Python) for hosts without the official zenohd binary.
+
     Without --listen it listens on tcp/127.0.0.1:7447 only: give e.g. --listen tcp/0.0.0.0:7447
-    to accept other machines."""
+    to accept other machines.
+
+    Example:
+
+        ra2vipas router --listen tcp/0.0.0.0:7447
+    """
     from ra2vipas.services.transport.runtime import configure_logging, wait_for_shutdown_signal
 
     configure_logging(log_level)

@@ -8,6 +8,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from ra2vipas.cli.output import EXIT_USAGE, emit_results, fail, stderr
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.protocol.messages import ALGORITHMS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, build_scenario, parse_overrides
 
@@ -28,7 +29,7 @@ def parse_algorithms(value: str | None) -> list[str]:
 
 def simulate(
     preset: Annotated[str, typer.Option(help=f"Scenario preset: {', '.join(PRESETS)}.")] = "paper",
-    tests: Annotated[int, typer.Option(min=1, max=100000, help="Monte Carlo tests per algorithm (N_tests).")] = 50,
+    tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Monte Carlo tests per algorithm (N_tests).")] = 50,
     seed: Annotated[int, typer.Option(min=0, help="Campaign seed; fixes every random draw of every test.")] = 1,
     algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of: " + ", ".join(ALGORITHMS) + " (default: all).")] = None,
     overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help="Override a scenario parameter, e.g. --set n_targets=30 (repeatable; see `ra2vipas presets show paper`).")] = None,
@@ -45,6 +46,14 @@ def simulate(
     every algorithm on its own seeded world, on every core, and scores DR_t by the paper's
     association rule. With --vary, runs a parameter study: one campaign per grid point, all
     with the same seed.
+
+    Examples:
+
+        ra2vipas simulate --preset paper --tests 200 --seed 1 --plot dr.png
+
+        ra2vipas simulate --set n_targets=30 --set antenna_model=db-gain -a ra2vipas,rapas --json
+
+        ra2vipas simulate --vary n_targets=10,20,40 --tests 100 --plot crowd.png
     """
     try:
         names = parse_algorithms(algorithms)

@@ -17,6 +17,7 @@ from rich.table import Table
 
 from ra2vipas.cli.client import DEFAULT_API, FINISHED, ApiOpt, Client, JsonOpt, TokenOpt
 from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stderr, stdout, write_file
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
 app = typer.Typer(help="Parameter studies: DR against scenario parameters, one campaign per grid point (see `ra2vipas up`).",
@@ -198,7 +199,7 @@ def _check_plot(plot: str | None) -> None:
 def start(
     vary: VaryOpt = None,
     preset: Annotated[str, typer.Option(help=f"Scenario preset: {', '.join(PRESETS)}.")] = "paper",
-    tests: Annotated[int, typer.Option(min=1, max=10000, help="Monte Carlo tests per point and algorithm.")] = 50,
+    tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Monte Carlo tests per point and algorithm.")] = 50,
     seed: Annotated[int, typer.Option(min=0, help="The seed of every point (points are paired test by test).")] = 1,
     algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of ra2vipas, rapas, ravipas, sweep (default: all).")] = None,
     overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help="Override a scenario parameter at every point (repeatable).")] = None,
@@ -214,7 +215,9 @@ def start(
     """Start a study: one campaign per point of the grid of --vary values, all with the same seed.
     Prints its id (with --json: the study object); with --wait, follows it and prints its table.
 
-    Example: ra2vipas study start --vary n_targets=10,20,40 --vary rf_noise_db=2:6:1 --tests 100 --wait
+    Example:
+
+        ra2vipas study start --vary n_targets=10,20,40 --vary rf_noise_db=2:6:1 --tests 100 --wait
     """
     from ra2vipas.cli.simulate import parse_algorithms
     from ra2vipas.services.orchestrator.study import StudyError

@@ -10,11 +10,13 @@ from typing import Annotated, Optional
 import typer
 
 from ra2vipas.cli.output import fail
+from ra2vipas.cli.polish import deprecated, prefer
 from ra2vipas.cli.stack import CRASH_LIMIT, CRASH_WINDOW_S, Stack, StackConfig, StackError
 
 
 def up(
-    rigs: Annotated[int, typer.Option(min=1, max=64, help="Sensor+controller pairs to start.")] = 1,
+    rigs: Annotated[int, typer.Option("--rig-count", min=1, max=64, help="Sensor+controller pairs (rigs) to start.")] = 1,
+    old_rigs: Annotated[Optional[int], deprecated("--rigs", "--rig-count", min=1, max=64)] = None,
     port: Annotated[int, typer.Option(min=1, max=65535, envvar="RA2VIPAS_PORT", help="API port.")] = 8080,
     host: Annotated[str, typer.Option(envvar="RA2VIPAS_HOST", help="API bind address.")] = "127.0.0.1",
     db: Annotated[str, typer.Option("--db", envvar="RA2VIPAS_DB", help="SQLite file of campaigns and results.")] = "ra2vipas.db",
@@ -23,18 +25,27 @@ def up(
     log_dir: Annotated[Optional[str], typer.Option(help="Directory for the services' logs (default: a new temporary directory).")] = None,
     insecure: Annotated[bool, typer.Option("--insecure", help="No Zenoh credentials: any local process may join the stack's Zenoh network (by default the stack makes up its own, readable by you only).")] = False,
 ) -> None:
-    """Run a local stack in the foreground: a Zenoh router on loopback, the orchestrator (REST
-    API), the learner and RIGS sensor+controller pairs. Prints the API address once
-    GET /health answers 200; Ctrl-C or SIGTERM stops every process it started.
-    A service that crashes is restarted after a delay that doubles with each crash (0.5 s to
-    30 s); one that crashes 5 times within a minute stops the stack, with its last log lines.
-    Before starting anything it checks that the API port is free (else one line naming who
-    holds it), creates the database's folder, and refuses a database another orchestrator
-    holds.
+    """Run a local stack in the foreground: Zenoh router, orchestrator (REST API), learner and rigs.
+
+    Starts a Zenoh router on loopback, the orchestrator, the learner and RIG_COUNT
+    sensor+controller pairs, and prints the API address once GET /health answers 200; Ctrl-C
+    or SIGTERM stops every process it started. A service that crashes is restarted after a
+    delay that doubles with each crash (0.5 s to 30 s); one that crashes 5 times within a
+    minute stops the stack, with its last log lines. Before starting anything it checks that
+    the API port is free (else one line naming who holds it), creates the database's folder,
+    and refuses a database another orchestrator holds.
 
     Everything listens on 127.0.0.1 only, and the stack's Zenoh network is closed to any
     process without its credentials (made up at start, in a file only you can read, deleted
-    at stop); another process joins it with the environment in the printed zenoh.env file."""
+    at stop); another process joins it with the environment in the printed zenoh.env file.
+
+    Examples:
+
+        ra2vipas up --rig-count 2 --port 8080 --db ra2vipas.db
+
+        ra2vipas up --db /var/lib/ra2vipas/ra2vipas.db --log-dir logs
+    """
+    rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count")
     stop = threading.Event()
     gave_up = False
 

@@ -17,8 +17,10 @@ def _check_run(algorithms: Iterable[str] | None, tests: int, seed: int, stop_con
     unknown = [a for a in names if a not in ALGORITHMS]
     if unknown or not names:
         raise ValueError(f"unknown algorithm {unknown[0]!r}; choose from {', '.join(ALGORITHMS)}" if unknown else "no algorithm given")
-    if isinstance(tests, bool) or not isinstance(tests, int) or tests < 1:
-        raise ValueError(f"tests: expected a positive integer, got {tests!r}")
+    from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
+
+    if isinstance(tests, bool) or not isinstance(tests, int) or not 1 <= tests <= MAX_TESTS:
+        raise ValueError(f"tests: expected an integer from 1 to {MAX_TESTS}, got {tests!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
     if isinstance(stop_confidence, bool) or not isinstance(stop_confidence, (int, float)) or not 0.0 <= stop_confidence < 1.0:
@@ -240,15 +242,14 @@ class Client:
 def to_dataframe(results: Mapping[str, Any]):
     """A results object as a tidy pandas DataFrame (needs pandas: ``pip install
     'ra2vipas[pandas]'``): a campaign's, one row per (algorithm, step) with time, DR and its
-    Wilson band; a study's, its ``rows`` (one per point x algorithm)."""
+    Wilson band, led by what was run (preset, seed, tests, one column per override: the CSV
+    ``dr`` table); a study's, its ``rows`` (one per point x algorithm)."""
     try:
         import pandas as pd
     except ImportError:
         raise ImportError("to_dataframe needs pandas: pip install 'ra2vipas[pandas]'") from None
     if "rows" in results and "points" in results:  # a study
         return pd.DataFrame(list(results["rows"]))
-    period = results["scenario"]["rf_period_s"]
-    rows = [{"algorithm": name, "step": t + 1, "time_s": round((t + 1) * period, 10), "dr": dr, "ci_lo": lo, "ci_hi": hi}
-            for name, block in results["algorithms"].items()
-            for t, (dr, (lo, hi)) in enumerate(zip(block["dr"], block["dr_ci95"]))]
-    return pd.DataFrame(rows)
+    from ra2vipas.services.orchestrator.api.export import curve_rows
+
+    return pd.DataFrame(curve_rows(dict(results)))

@@ -1,8 +1,7 @@
 """`python -m ra2vipas.services.controller`: the same as `ra2vipas controller`."""
 
-import typer
-
+from ra2vipas.cli.polish import run_function
 from ra2vipas.cli.services import controller
 
 if __name__ == "__main__":
-    typer.run(controller)
+    run_function(controller, "python -m ra2vipas.services.controller")

@@ -1,8 +1,7 @@
 """`python -m ra2vipas.services.learner`: the same as `ra2vipas learner`."""
 
-import typer
-
+from ra2vipas.cli.polish import run_function
 from ra2vipas.cli.services import learner
 
 if __name__ == "__main__":
-    typer.run(learner)
+    run_function(learner, "python -m ra2vipas.services.learner")

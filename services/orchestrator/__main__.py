@@ -1,8 +1,7 @@
 """`python -m ra2vipas.services.orchestrator`: the same as `ra2vipas orchestrator`."""
 
-import typer
-
+from ra2vipas.cli.polish import run_function
 from ra2vipas.cli.services import orchestrator
 
 if __name__ == "__main__":
-    typer.run(orchestrator)
+    run_function(orchestrator, "python -m ra2vipas.services.orchestrator")

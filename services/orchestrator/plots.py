@@ -36,15 +36,31 @@ MAX_SCATTER = 3000  # truth points drawn in the POD figure (a uniform subsample 
 _RENDER_LOCK = threading.RLock()
 
 
-def dr_figure(results: dict[str, Any]) -> Figure:
-    """DR_t of every algorithm against time, with its Wilson 95 % band (paper Fig. 4)."""
+def run_title(results: dict[str, Any], name: str | None = None, width: int = 90) -> str:
+    """What was run, for a figure's title: the campaign's name, the preset and every override,
+    tests and seed (and "partial" for a cancelled or failed campaign), wrapped to ``width``."""
+    import textwrap
+
+    overrides = results.get("overrides") or {}
+    what = results["preset"] + "".join(f", {k}={v}" for k, v in overrides.items())
+    tests = f"{results['tests']} tests"
+    if results.get("partial"):
+        recorded = sorted(set((results.get("tests_recorded") or {}).values()))
+        tests = f"partial: {'/'.join(map(str, recorded)) or 0} of {results['tests']} tests"
+    line = f"{name + ' — ' if name else ''}{what}: {tests}, seed {results['seed']}"
+    return "\n".join(textwrap.wrap(line, width)) or line
+
+
+def dr_figure(results: dict[str, Any], name: str | None = None) -> Figure:
+    """DR_t of every algorithm against time, with its Wilson 95 % band (paper Fig. 4); the
+    title says what was run (``run_title``)."""
     period = results["scenario"]["rf_period_s"]
     fig = Figure(figsize=(7.0, 4.2), dpi=120)
     ax = fig.subplots()
-    for name, block in results["algorithms"].items():
+    for algorithm, block in results["algorithms"].items():
         dr = block["dr"]
         t = [(i + 1) * period for i in range(len(dr))]
-        line = ax.plot(t, dr, label=f"{LABELS.get(name, name)} (final {block['dr_final']:.3f})", linewidth=1.8)[0]
+        line = ax.plot(t, dr, label=f"{LABELS.get(algorithm, algorithm)} (final {block['dr_final']:.3f})", linewidth=1.8)[0]
         lo = [b[0] for b in block["dr_ci95"]]
         hi = [b[1] for b in block["dr_ci95"]]
         ax.fill_between(t, lo, hi, color=line.get_color(), alpha=0.15, linewidth=0)
@@ -54,22 +70,60 @@ def dr_figure(results: dict[str, Any]) -> Figure:
     ax.set_xlabel("time [s]")
     ax.set_ylabel("discovery rate DR$_t$ (association rule)")
     r2 = results["pod"]["r2"]
-    ax.set_title(f"{results['preset']}: {results['tests']} tests, seed {results['seed']}"
-                 + ("" if r2 is None else f", POD R² {r2:.3f}"))
+    ax.set_title(run_title(results, name) + ("" if r2 is None else f", POD R² {r2:.3f}"), fontsize=10)
     ax.grid(True, linestyle=":", linewidth=0.6)
     ax.legend(loc="lower right", fontsize=9)
     fig.tight_layout()
     return fig
 
 
-def reliability_figure(results: dict[str, Any]) -> Figure:
+_ALGORITHM_STYLES = {"ra2vipas": "-", "rapas": "--", "ravipas": "-.", "sweep": ":"}
+
+
+def overlay_figure(runs: list[tuple[str, dict[str, Any]]], title: str = "") -> Figure:
+    """DR_t of several campaigns on one axis (``runs``: (label, results object) pairs): one
+    colour per campaign, one line style per algorithm, each with its Wilson 95 % band."""
+    fig = Figure(figsize=(7.6, 4.6), dpi=120)
+    ax = fig.subplots()
+    colours = [f"C{i % 10}" for i in range(len(runs))]
+    x_max = 0.0
+    for colour, (label, results) in zip(colours, runs):
+        period = results["scenario"]["rf_period_s"]
+        for algorithm, block in results["algorithms"].items():
+            dr = block["dr"]
+            t = [(i + 1) * period for i in range(len(dr))]
+            x_max = max(x_max, len(dr) * period)
+            ax.plot(t, dr, color=colour, linestyle=_ALGORITHM_STYLES.get(algorithm, "-"), linewidth=1.6,
+                    label=f"{label}, {LABELS.get(algorithm, algorithm)} (final {block['dr_final']:.3f})")
+            ax.fill_between(t, [b[0] for b in block["dr_ci95"]], [b[1] for b in block["dr_ci95"]], color=colour, alpha=0.08,
+                            linewidth=0)
+    ax.axhline(0.9, color="0.5", linestyle=":", linewidth=1)
+    ax.set_ylim(0.0, 1.02)
+    ax.set_xlim(0.0, x_max or 1.0)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("discovery rate DR$_t$ (association rule)")
+    if title:
+        ax.set_title(title, fontsize=10)
+    ax.grid(True, linestyle=":", linewidth=0.6)
+    ax.legend(loc="lower right", fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def write_overlay_plot(runs: list[tuple[str, dict[str, Any]]], title: str, path: str) -> None:
+    """Write ``overlay_figure`` to ``path`` (.png or .svg)."""
+    fmt = "svg" if str(path).lower().endswith(".svg") else "png"
+    write_bytes(draw(lambda: overlay_figure(runs, title), fmt), path)
+
+
+def reliability_figure(results: dict[str, Any], name: str | None = None) -> Figure:
     """Reliability diagram of the final confidences: per bin, the share of final hits against
     the mean confidence, one line per algorithm (the diagonal is perfect calibration); ECE in
     the legend."""
     fig = Figure(figsize=(5.6, 5.0), dpi=120)
     ax = fig.subplots()
     ax.plot([0, 1], [0, 1], color="0.6", linestyle=":", linewidth=1, label="perfectly calibrated")
-    for name, block in results["algorithms"].items():
+    for algorithm, block in results["algorithms"].items():
         cal = block.get("calibration")
         if not cal:
             continue
@@ -77,14 +131,14 @@ def reliability_figure(results: dict[str, Any]) -> Figure:
         if not pts:
             continue
         x, y, n = zip(*pts)
-        line = ax.plot(x, y, marker="o", linewidth=1.5, label=f"{LABELS.get(name, name)} (ECE {cal['ece_final']:.3f})")[0]
+        line = ax.plot(x, y, marker="o", linewidth=1.5, label=f"{LABELS.get(algorithm, algorithm)} (ECE {cal['ece_final']:.3f})")[0]
         total = sum(n)
         ax.scatter(x, y, s=[20 + 300 * k / total for k in n], color=line.get_color(), alpha=0.35)
     ax.set_xlim(0.0, 1.0)
     ax.set_ylim(0.0, 1.02)
     ax.set_xlabel("confidence in the final answer")
     ax.set_ylabel("share of final answers that are the Tx")
-    ax.set_title(f"{results['preset']}: {results['tests']} tests, seed {results['seed']}")
+    ax.set_title(run_title(results, name), fontsize=10)
     ax.grid(True, linestyle=":", linewidth=0.6)
     ax.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
@@ -327,7 +381,8 @@ class PlotJob:
 
     ``data`` by ``kind``:
 
-    * ``"dr"``, ``"reliability"``: ``results`` (the results object of a finished campaign);
+    * ``"dr"``, ``"reliability"``: ``results`` (the results object of a finished campaign) and
+      optionally ``name`` (the campaign's name, for the title);
     * ``"pod"``: ``scenario`` (Scenario as JSON data), ``model`` (PODModel as JSON data),
       ``truth`` (``{"rssi_dbm", "pod"}`` or None), ``title``;
     * ``"episode"``: ``scenario`` and ``episode`` (a finished episode row);
@@ -343,9 +398,9 @@ def build_figure(job: PlotJob) -> Figure:
     """The figure a job describes."""
     d = job.data
     if job.kind == "dr":
-        return dr_figure(d["results"])
+        return dr_figure(d["results"], d.get("name"))
     if job.kind == "reliability":
-        return reliability_figure(d["results"])
+        return reliability_figure(d["results"], d.get("name"))
     if job.kind == "pod":
         return pod_figure(Scenario.model_validate(d["scenario"]), d["model"], d["truth"], d.get("title", ""))
     if job.kind == "episode":

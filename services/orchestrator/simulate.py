@@ -17,7 +17,7 @@ from ra2vipas.services.controller.policy import ALGORITHMS, Controller, Controll
 from ra2vipas.services.learner.pod import LearnedPOD, LearnerSettings, fit_pod, predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, summarize_algorithm
 from ra2vipas.services.protocol.pod import PODModel
-from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.protocol.scenario import Scenario, ScenarioError, build_scenario
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode
 
 
@@ -101,9 +101,11 @@ def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: Train
             np.array([o.hits for o in runs]), np.array([o.in_fov for o in runs]), scenario.rf_period_s, confidences,
             [o.decided_step for o in runs] if stop_confidence > 0.0 else None,
         )
+    resolved = scenario.model_dump(mode="json")
     out = {
         "preset": preset,
-        "scenario": scenario.model_dump(mode="json"),
+        "overrides": overrides_of(preset, resolved),
+        "scenario": resolved,
         "tests": tests,
         "seed": seed,
         "pod": {"r2": pod.r2, "train_seconds": round(pod.train_seconds, 4)},
@@ -113,6 +115,17 @@ def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: Train
     if stop_confidence > 0.0:
         out["stop_confidence"] = stop_confidence
     return out
+
+
+def overrides_of(preset: str, scenario: dict[str, Any]) -> dict[str, Any]:
+    """What was run besides the preset: the parameters of ``scenario`` (JSON data) whose value
+    differs from the preset's, with the scenario's types, in the scenario's order; the
+    ``--set NAME=VALUE`` options that rebuild it from the preset. Empty for an unknown preset."""
+    try:
+        base = build_scenario(preset, {}).model_dump(mode="json")
+    except ScenarioError:
+        return {}
+    return {name: value for name, value in scenario.items() if base.get(name) != value}
 
 
 def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = ALGORITHMS,

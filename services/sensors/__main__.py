@@ -1,8 +1,7 @@
 """`python -m ra2vipas.services.sensors`: the same as `ra2vipas sensors`."""
 
-import typer
-
+from ra2vipas.cli.polish import run_function
 from ra2vipas.cli.services import sensors
 
 if __name__ == "__main__":
-    typer.run(sensors)
+    run_function(sensors, "python -m ra2vipas.services.sensors")

@@ -38,8 +38,9 @@ def test_simulate_with_two_workers_and_early_decisions():
     ({"overrides": {"n_target": 30}}, "n_target"),
     ({"overrides": {"n_targets": 0}}, "n_targets"),
     ({"algorithms": ["ra2vipas", "nope"]}, "unknown algorithm 'nope'"),
-    ({"tests": 0}, "tests: expected a positive integer"),
-    ({"tests": "10"}, "tests: expected a positive integer"),
+    ({"tests": 0}, "tests: expected an integer from 1 to 10000"),
+    ({"tests": "10"}, "tests: expected an integer from 1 to 10000"),
+    ({"tests": 10001}, "tests: expected an integer from 1 to 10000"),  # the CLI's cap
     ({"seed": -1}, "seed: expected an integer >= 0"),
     ({"stop_confidence": 1.5}, "stop_confidence"),
     ({"workers": 0}, "workers: expected a positive integer"),
@@ -69,7 +70,8 @@ def test_to_dataframe_of_a_campaign_and_of_a_study():
     results = ra2vipas.simulate(overrides=SMALL, tests=2, seed=1, algorithms=["ra2vipas", "rapas"])
     curves = ra2vipas.to_dataframe(results)
     assert len(curves) == 2 * SMALL["steps"]
-    assert list(curves.columns) == ["algorithm", "step", "time_s", "dr", "ci_lo", "ci_hi"]
+    assert list(curves.columns) == ["preset", "seed", "tests", *SMALL, "algorithm", "step", "time_s", "dr", "ci_lo", "ci_hi"]
+    assert set(curves.steps) == {SMALL["steps"]} and set(curves.seed) == {1}  # what was run, on every row
     last = curves[(curves.algorithm == "rapas") & (curves.step == SMALL["steps"])].iloc[0]
     assert last.dr == results["algorithms"]["rapas"]["dr_final"]
     study = ra2vipas.study({"rf_noise_db": [2.0, 4.0]}, overrides=SMALL, tests=2, seed=1, algorithms=["rapas"])

@@ -40,20 +40,46 @@ def test_csv_export_by_query_or_accept_reproduces_the_campaign_from_the_file_alo
     assert by_query.headers["content-type"].startswith("text/csv")
     assert by_query.text == by_accept.text
     lines = by_query.text.splitlines()
-    assert lines[0] == "# ra2vipas results (CSV v1)"
-    assert "algorithm,step,time_s,dr,ci_lo,ci_hi" in lines
+    overridden = list(done_campaign["overrides"])
+    # tidy: one header row, no comment lines; what was run leads every row, the overrides as columns
+    assert lines[0] == ",".join(["campaign_id", "name", "preset", "seed", "tests", *overridden,
+                                 "algorithm", "step", "time_s", "dr", "ci_lo", "ci_hi"])
+    assert not any(line.startswith("#") for line in lines)
     steps = done_campaign["scenario"]["steps"]
-    assert sum(1 for line in lines if line.startswith(("ra2vipas,", "rapas,"))) == 2 * steps
+    assert len(lines) == 1 + 2 * steps
+    assert all(line.startswith(f"{cid},fixture,paper,3,3,") for line in lines[1:])
 
     meta = read_results_csv(by_query.text)
-    assert meta["campaign_id"] == cid and meta["seed"] == 3 and meta["tests"] == 3
+    assert meta["campaign_id"] == cid and meta["name"] == "fixture" and meta["seed"] == 3 and meta["tests"] == 3
+    assert meta["overrides"] == done_campaign["overrides"] and meta["scenario"] == done_campaign["scenario"]
     results = http.get(f"/campaigns/{cid}/results").json()
+    assert results["overrides"] == done_campaign["overrides"]
     for name, block in results["algorithms"].items():
         assert meta["curves"][name]["dr"] == block["dr"]
         assert meta["curves"][name]["dr_ci95"] == block["dr_ci95"]
     rerun = run_campaign(meta["preset"], Scenario.model_validate(meta["scenario"]), meta["tests"], meta["seed"], meta["algorithms"])
     for name in meta["algorithms"]:
         assert rerun["algorithms"][name]["dr"] == meta["curves"][name]["dr"]
+
+
+def test_the_summary_is_its_own_csv_table_one_row_per_algorithm(http, done_campaign):
+    import csv
+    import io
+
+    cid = done_campaign["id"]
+    r = http.get(f"/campaigns/{cid}/results", params={"format": "csv", "table": "summary"})
+    assert r.status_code == 200 and 'filename="campaign-' + cid + '-summary.csv"' in r.headers["content-disposition"]
+    rows = list(csv.DictReader(io.StringIO(r.text)))
+    results = http.get(f"/campaigns/{cid}/results").json()
+    assert [row["algorithm"] for row in rows] == list(results["algorithms"])
+    for row in rows:
+        block = results["algorithms"][row["algorithm"]]
+        assert row["campaign_id"] == cid and row["name"] == "fixture" and row["preset"] == "paper"
+        assert all(row[k] == str(v) for k, v in done_campaign["overrides"].items())
+        assert float(row["dr_final"]) == block["dr_final"] and [float(row["ci_lo"]), float(row["ci_hi"])] == block["ci95"]
+        assert float(row["ece_final"]) == block["calibration"]["ece_final"]
+        assert row["partial"] == "False" and row["tests_recorded"] == "3"
+    assert http.get(f"/campaigns/{cid}/results", params={"format": "csv", "table": "totals"}).status_code == 422
 
 
 def test_outcome_table_has_one_row_per_test_and_algorithm(http, done_campaign):

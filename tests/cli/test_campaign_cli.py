@@ -108,7 +108,7 @@ def test_export_json_and_csv(live, done_campaign, tmp_path):
     to_file = ra2vipas("campaign", "export", cid, "--api", live.url, "-o", str(out))
     assert to_file.returncode == 0, to_file.stderr
     meta = read_results_csv(out.read_text())
-    assert meta["seed"] == 3 and meta["scenario"] == done_campaign["scenario"]
+    assert meta["seed"] == 3 and meta["scenario"] == done_campaign["scenario"] and meta["campaign_id"] == cid
     bad = ra2vipas("campaign", "export", cid, "--api", live.url, "--format", "xml")
     assert bad.returncode == 2 and "--format must be json or csv" in one_error_line(bad)
 
@@ -161,14 +161,17 @@ def test_usage_errors_are_exit_2():
 
 
 def test_rigs_table_and_json(live):
-    table = ra2vipas("rigs", "--api", live.url)
+    table = ra2vipas("rigs", "list", "--api", live.url)
     assert table.returncode == 0 and "rig-1" in table.stdout and "learners: learner" in table.stdout
-    body = last_json(ra2vipas("rigs", "--json", env={"RA2VIPAS_API": live.url}).stdout)
+    body = last_json(ra2vipas("rigs", "list", "--json", env={"RA2VIPAS_API": live.url}).stdout)
     assert body["rigs"][0]["name"] == "rig-1" and body["rigs"][0]["live"] is True
+    old = ra2vipas("rigs", "--json", "--api", live.url)  # the old spelling still lists, with a warning
+    assert old.returncode == 0 and [r["name"] for r in last_json(old.stdout)["rigs"]] == [r["name"] for r in body["rigs"]]
+    assert old.stderr.strip() == "warning: `ra2vipas rigs` is deprecated; use `ra2vipas rigs list`"
 
 
 def test_an_unreachable_api_is_one_line_and_exit_1():
-    proc = ra2vipas("rigs", "--api", "http://127.0.0.1:9")
+    proc = ra2vipas("rigs", "list", "--api", "http://127.0.0.1:9")
     assert proc.returncode == 1 and "cannot reach the API at http://127.0.0.1:9" in one_error_line(proc)
 
 

@@ -47,7 +47,7 @@ def test_service_announces_itself_and_stops_on_signal(procs, name, sig):
 
 
 def test_bad_zenoh_settings_are_one_line_errors(procs):
-    p = procs.start("learner", "--mode", "satellite")
+    p = procs.start("learner", "--zenoh-mode", "satellite")
     assert p.wait(30) == 2
     out = p.stdout.read()
     assert out.strip().splitlines()[-1].startswith("error: zenoh mode must be one of")

@@ -47,7 +47,7 @@ def router():
 
 def kit(endpoint: str, rig: str) -> dict:
     out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", "--rig", rig, "--connect", endpoint,
-                          "--mode", "client", "--json", "--timeout", "5"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+                          "--zenoh-mode", "client", "--json", "--timeout", "5"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     body = json.loads(out.stdout.strip().splitlines()[-1])
     assert out.returncode == (0 if body["passed"] else 1), out.stderr
     return body
@@ -78,7 +78,7 @@ def test_our_sensors_node_passes_on_the_in_memory_bus():
 
 def test_our_sensors_node_passes_over_zenoh(router):
     registry, endpoint = router
-    node = registry.start("sensors", "--rig", "sim-1", "--connect", endpoint, "--mode", "client")
+    node = registry.start("sensors", "--rig", "sim-1", "--connect", endpoint, "--zenoh-mode", "client")
     wait_for_line(node, "up (zenoh", 60)
     body = kit(endpoint, "sim-1")
     assert statuses(body) == dict.fromkeys(RULES, "pass"), body
@@ -108,5 +108,5 @@ def test_a_broken_node_fails_naming_the_rule(router):
     failed = {r["rule"]: r["detail"] for r in body["rules"] if r["status"] == "fail"}
     assert failed == {"stop-mid-episode": "Command(4) after EpisodeStop got a Measurement"}
     out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", "--rig", "bad-1", "--connect", endpoint,
-                          "--mode", "client"], cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ, "COLUMNS": "200"})
+                          "--zenoh-mode", "client"], cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ, "COLUMNS": "200"})
     assert out.returncode == 1 and "1 rule(s) failed: stop-mid-episode" in out.stdout

@@ -171,6 +171,8 @@ class ResultsPublic(BaseModel):
     """The results object, the same as ``ra2vipas simulate --json`` prints."""
 
     preset: str
+    overrides: dict[str, Any] = Field(default_factory=dict, description="the scenario's parameters that differ from the preset's "
+                                                                          "(what --set would say to rebuild it), typed")
     scenario: dict[str, Any]
     tests: int
     seed: int

@@ -11,7 +11,7 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response, status
 from ra2vipas.services.orchestrator import plots
 from ra2vipas.services.orchestrator.api.deps import CampaignDep, get_campaign
 from ra2vipas.services.orchestrator.api.errors import responses
-from ra2vipas.services.orchestrator.api.export import write_results_csv
+from ra2vipas.services.orchestrator.api.export import Table, write_results_csv
 from ra2vipas.services.orchestrator.api.negotiate import ImageFormat, ResultsFormat, image_format, results_format
 from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, plot_responses, serve_figure
 from ra2vipas.services.orchestrator.api.schemas import ResultsPublic
@@ -26,17 +26,26 @@ def finished_results(campaign: dict[str, Any], store: Any = None) -> dict[str, A
     ``store``), the reduction of the episodes it recorded, marked ``partial`` with
     ``tests_recorded``; 409 while it runs or if nothing was recorded."""
     if campaign["status"] == "done" and campaign["results"] is not None:
-        return campaign["results"]
+        return _with_overrides(campaign["results"])
     p = campaign["progress"]
     if store is not None and campaign["status"] in ("cancelled", "failed") and p["done"]:
         from ra2vipas.services.orchestrator.study_store import point_results
 
         results, tests, _ = point_results(store, campaign)
         if results is not None:
-            return {**results, "partial": True, "tests_recorded": tests}
+            return {**_with_overrides(results), "partial": True, "tests_recorded": tests}
     raise HTTPException(status.HTTP_409_CONFLICT,
                         f"campaign {campaign['id']} is {campaign['status']} ({p['done']}/{p['total']} episodes done): no results"
                         + (" yet" if campaign["status"] in ("queued", "running") else ""))
+
+
+def _with_overrides(results: dict[str, Any]) -> dict[str, Any]:
+    """Results stored before they carried their ``overrides`` get them from their scenario."""
+    if "overrides" in results:
+        return results
+    from ra2vipas.services.orchestrator.simulate import overrides_of
+
+    return {"preset": results["preset"], "overrides": overrides_of(results["preset"], results["scenario"]), **results}
 
 
 @router.get("/results", response_model=ResultsPublic, response_model_exclude_unset=True,
@@ -44,16 +53,22 @@ def finished_results(campaign: dict[str, Any], store: Any = None) -> dict[str, A
                              "description": "the results object (JSON), or as CSV with `?format=csv` or `Accept: text/csv`"},
                        **responses(404, 409, 422, e409=NOT_DONE)})
 def campaign_results(campaign: CampaignDep, request: Request,
-                     fmt: Annotated[Optional[ResultsFormat], Query(alias="format", description="json (default) or csv")] = None) -> Any:
+                     fmt: Annotated[Optional[ResultsFormat], Query(alias="format", description="json (default) or csv")] = None,
+                     table: Annotated[Table, Query(description="with CSV: dr (one row per algorithm x step, default) or summary "
+                                                               "(one row per algorithm)")] = "dr") -> Any:
     """Per algorithm: the DR curve with Wilson 95 % bands, the final DR, the time to DR ≥ 0.9 and
     the in-FoV rate, with the preset, the full scenario and the seed (the same object as
-    ``ra2vipas simulate --json``). The CSV carries the scenario and seed in its header lines.
+    ``ra2vipas simulate --json``), with ``overrides``: the parameters that differ from the
+    preset. The CSV is a tidy table (``?table=dr``: one row per algorithm x step;
+    ``?table=summary``: one row per algorithm), each row led by the campaign's id, name, preset,
+    seed, tests and one column per override.
     A cancelled or failed campaign's results are those of the episodes it recorded, with
     ``partial: true`` and ``tests_recorded``."""
     results = finished_results(campaign, request.app.state.store)
     if results_format(request, fmt) == "csv":
-        return Response(write_results_csv(results, campaign["id"]), media_type="text/csv",
-                        headers={"Content-Disposition": f'inline; filename="campaign-{campaign["id"]}.csv"'})
+        suffix = "" if table == "dr" else f"-{table}"
+        return Response(write_results_csv(results, campaign["id"], campaign["name"], table), media_type="text/csv",
+                        headers={"Content-Disposition": f'inline; filename="campaign-{campaign["id"]}{suffix}.csv"'})
     return results
 
 
@@ -68,8 +83,10 @@ async def dr_plot(campaign_id: str, request: Request,
     store = request.app.state.store
 
     def read() -> FigureSource:
-        results = finished_results(get_campaign(campaign_id, store))
-        return FigureSource(plots.PlotJob("dr", kind, {"results": results}))
+        campaign = get_campaign(campaign_id, store)
+        results = finished_results(campaign, store)
+        return FigureSource(plots.PlotJob("dr", kind, {"results": results, "name": campaign["name"]}),
+                            cacheable=not results.get("partial"))  # partial: an episode in flight may still land
 
     return await serve_figure(request, PlotKey(campaign_id, "dr", kind), read)
 
@@ -84,8 +101,10 @@ async def reliability_plot(campaign_id: str, request: Request,
     store = request.app.state.store
 
     def read() -> FigureSource:
-        results = finished_results(get_campaign(campaign_id, store))
-        return FigureSource(plots.PlotJob("reliability", kind, {"results": results}))
+        campaign = get_campaign(campaign_id, store)
+        results = finished_results(campaign, store)
+        return FigureSource(plots.PlotJob("reliability", kind, {"results": results, "name": campaign["name"]}),
+                            cacheable=not results.get("partial"))  # partial: an episode in flight may still land
 
     return await serve_figure(request, PlotKey(campaign_id, "reliability", kind), read)
 
@@ -110,7 +129,9 @@ async def pod_plot(campaign_id: str, request: Request,
             raise HTTPException(status.HTTP_409_CONFLICT,
                                 f"campaign {campaign['id']} has no POD model yet ({campaign['status']})")
         r2 = campaign["pod_r2"]
-        title = f"POD regression, {campaign['preset']} seed {campaign['seed']}" + ("" if r2 is None else f": R² {r2:.3f}")
+        what = campaign["preset"] + "".join(f", {k}={v}" for k, v in (campaign["overrides"] or {}).items())
+        title = (f"POD regression, {campaign['name'] + ' — ' if campaign['name'] else ''}{what}, seed {campaign['seed']}"
+                 + ("" if r2 is None else f": R² {r2:.3f}"))
         job = plots.PlotJob("pod", kind, {"scenario": campaign["scenario"], "model": artifacts["model"],
                                           "truth": artifacts["truth"], "title": title})
         return FigureSource(job, cacheable=campaign["pod_job"] is not None)
