@@ -13,11 +13,11 @@ ENV PYTHONUNBUFFERED=1 \
     NUMBA_CACHE_DIR=/var/cache/ra2vipas/numba
 
 WORKDIR /src
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md constraints.txt ./
 COPY ra2vipas ./ra2vipas
 COPY services ./services
 COPY cli ./cli
-RUN pip install . \
+RUN pip install -c constraints.txt . \
     && rm -rf /src \
     && useradd --system --uid 10001 --create-home --home-dir /home/ra2vipas ra2vipas \
     && mkdir -p /data /models "$NUMBA_CACHE_DIR" \

@@ -141,7 +141,7 @@ def test_a_service_joins_with_credentials_from_its_environment_and_not_without(s
     bad = procs.start_cli("learner-bad", "learner", "--name", "learner-bad",
                           env=clean_env({**base, "RA2VIPAS_ZENOH_PASSWORD": "guess"}))
     assert bad.proc.wait(60) == 1, bad.tail()
-    assert bad.output().strip().splitlines()[-1].startswith("error: cannot open the Zenoh session"), bad.tail()
+    assert bad.output().strip().splitlines()[-1].startswith("error: cannot join the Zenoh network: "), bad.tail()
     good.wait_for_output(" up (zenoh", 60)
     with session(secure_router, tls_ca=pki.ca, user=USER, password=PASSWORD) as observer:
         seen: list[str] = []
