@@ -218,10 +218,11 @@ def test_the_image_installs_the_project():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())
     packages = set(project["tool"]["setuptools"]["package-dir"].values())  # the folders the packages come from
     assert packages | {"pyproject.toml", project["project"]["readme"]} <= copied, f"the image must get {sorted(packages)} and the project files"
-    assert any("pip install ." in ln for ln in lines)
+    assert any("pip install -c constraints.txt ." in ln for ln in lines), "the image installs the pinned versions the tests ran"
+    assert "constraints.txt" in copied
     ignored = {ln.strip() for ln in (ROOT / ".dockerignore").read_text().splitlines()}
     assert {".git", ".venv"} <= ignored
-    assert not ({"ra2vipas", "services", "cli", "pyproject.toml", "README.md"} & ignored)
+    assert not ({"ra2vipas", "services", "cli", "pyproject.toml", "README.md", "constraints.txt"} & ignored)
 
 
 def test_the_secured_deployment_names_every_rig_and_gives_each_service_only_its_own_secrets():
