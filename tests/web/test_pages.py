@@ -13,6 +13,7 @@ import pytest
 from ra2vipas.services.orchestrator.dashboard import data
 from ra2vipas.services.orchestrator.dashboard.routes import ASSET_VERSION, STATIC
 from ra2vipas.services.orchestrator.storage import Store
+from ra2vipas.services.sensors.node import simulated_descriptor
 from tests.api.live import SMALL, LiveAPI
 
 
@@ -168,6 +169,44 @@ def test_static_files_are_versioned_cached_and_compressed(http):
     licenses = (STATIC / "vendor/LICENSES.txt").read_text()
     for name in ("htmx.org 2.0.11", "htmx-ext-sse 2.2.4", "uplot 1.6.32", "Leon Sorokin", "Zero-Clause BSD"):
         assert name in licenses
+
+
+def test_warnings_and_the_scenarios_assumptions_are_shown_on_the_campaign_page_and_marked_on_home(tmp_path):
+    """The issue's silent DR 0.00 case, small: a v1 rig (no descriptor) whose antenna is, unknown
+    to everyone, a dB-gain one, run under the paper model. The results carry a warning and the
+    scenario's assumptions; the campaign page shows both above the curves, and its row on the
+    home page links to them. A campaign without either shows no such box."""
+    from markupsafe import escape  # as the templates escape
+
+    hidden = {"descriptor": simulated_descriptor("hidden-1", rx_dir={"model": "db-gain"}), "describe": False}
+    server = LiveAPI(tmp_path / "w.db", rigs=("hidden-1",), sensors={"hidden-1": hidden}).start()
+    try:
+        server.settle()
+        with server.client() as http:
+            r = http.post("/campaigns", json={"overrides": {**SMALL, "steps": 30}, "algorithms": ["rapas"], "tests": 3, "seed": 4,
+                                              "name": "warned"})
+            assert r.status_code == 201, r.text
+            cid = r.json()["id"]
+            assert server.wait(cid)["status"] == "done"
+            results = http.get(f"/campaigns/{cid}/results").json()
+            assert results["warnings"] and results["assumptions"]["rigs"] == ["hidden-1"]
+            page = http.get(f"/ui/campaigns/{cid}").text
+            box = page[page.index('id="warnings"'):page.index('id="progress-title"')]  # above the progress and the curves
+            for warning in results["warnings"]:
+                assert str(escape(warning)) in box
+            assert "3 of 3 episodes</strong>" in box and "(rig <code>hidden-1</code>): these episodes ran on undescribed rigs" in box
+            row = http.get("/").text
+            row = row[row.index(f'id="campaign-{cid}"'):]
+            row = row[:row.index("</tr>")]
+            assert f'href="/ui/campaigns/{cid}#warnings"' in row and "⚠ 1 warning<" in row
+            clean = http.post("/campaigns", json={"overrides": SMALL, "algorithms": ["ravipas"], "tests": 1, "seed": 4}).json()["id"]
+            assert server.wait(clean)["status"] == "done"
+            assert "warnings" not in http.get(f"/campaigns/{clean}/results").json()
+            # ... but still assumptions: the only rig is undescribed
+            page = http.get(f"/ui/campaigns/{clean}").text
+            assert 'id="warnings-list"' not in page and "Scored under the scenario's assumptions</h2>" in page
+    finally:
+        server.stop()
 
 
 def test_the_token_is_never_rendered_into_a_page(tmp_path):

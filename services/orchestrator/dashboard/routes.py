@@ -163,15 +163,18 @@ def _pages(total: int, offset: int, size: int = PAGE) -> dict[str, Any]:
 StatusFilter = Optional[Literal["", "queued", "training", "running", "done", "failed", "cancelled"]]  # "": any
 
 
-_FINALS: LRUCache = LRUCache(maxsize=4096)  # campaign id -> its final DR block (a done campaign's results never change)
+_FINALS: LRUCache = LRUCache(maxsize=4096)  # campaign id -> what its row shows of its results (a done campaign's never change)
 
 
-def _final_dr(store: Store, cid: str) -> dict[str, Any] | None:
-    """Ra²ViPAS's final DR and interval in a done campaign's results (None without Ra²ViPAS)."""
+def _final(store: Store, cid: str) -> dict[str, Any]:
+    """What the home page shows of a done campaign's results: Ra²ViPAS's final DR and interval
+    (``dr`` None without Ra²ViPAS), its warnings, and whether some episodes were scored under
+    the scenario's assumptions (undescribed rigs)."""
     if cid not in _FINALS:
         results = (store.campaign(cid) or {}).get("results") or {}
         block = results.get("algorithms", {}).get("ra2vipas")
-        _FINALS[cid] = None if block is None else {"dr": block["dr_final"], "ci": block["ci95"]}
+        _FINALS[cid] = {"dr": None if block is None else block["dr_final"], "ci": None if block is None else block["ci95"],
+                        "warnings": list(results.get("warnings") or []), "assumptions": bool(results.get("assumptions"))}
     return _FINALS[cid]
 
 
@@ -180,7 +183,7 @@ def _campaign_list(store: Store, status_: str | None, preset: str | None, offset
     items = []
     for row in rows:
         c = campaign_public(row, storage_fault=store.fault)
-        items.append({"c": c, "final": _final_dr(store, c.id) if c.status == "done" else None})
+        items.append({"c": c, "final": _final(store, c.id) if c.status == "done" else None})
     return {"items": items, "pages": _pages(total, offset)}
 
 
