@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 
+import httpx
 import pytest
 from mcap.reader import make_reader
 
@@ -18,7 +19,8 @@ from ra2vipas.cli.record import save_recording
 from ra2vipas.services.rigs.recording import Recorder, RecordingError, read_mcap, replay_scores, rerun, rerun_summary
 from tests.api.live import SMALL, LiveAPI
 from tests.conftest import untimed
-from tests.integration.conftest import ROOT, Procs, wait_for_line
+from tests.integration.conftest import ROOT
+from tests.rigs.conftest import cli
 
 
 @pytest.fixture(scope="module")
@@ -90,38 +92,50 @@ def test_a_recording_from_the_store_cannot_be_rerun(recorded):
     assert out.returncode == 1 and out.stderr.count("\n") == 1 and "not a readable ra2vipas recording" in out.stderr
 
 
-def test_campaign_start_record_then_replay_through_real_processes(tmp_path):
+def test_campaign_start_record_then_replay_through_real_processes(local_stack, tmp_path):
     """The commands as a user runs them: an insecure local stack, `campaign start --record`,
     `replay` (re-score and re-run)."""
-    registry = Procs()
-    try:
-        from ra2vipas.cli.stack import free_port
+    api, env = local_stack["api"], local_stack["env"]
+    file = tmp_path / "c.mcap"
+    args = ["--preset", "paper", "--tests", "2", "--seed", "3", "-a", "ra2vipas,rapas", "--set", "steps=20", "--set", "n_train=200",
+            "--set", "n_targets=8"]
+    started = cli("campaign", "start", "--api", api, *args, "--record", str(file), "--json", env=env, timeout=300)
+    assert started.returncode == 0, started.stderr
+    results = json.loads(started.stdout.strip().splitlines()[-1])
+    replayed = cli("replay", str(file), "--json")
+    assert replayed.returncode == 0, replayed.stderr
+    body = json.loads(replayed.stdout.strip().splitlines()[-1])
+    assert body["source"] == "live" and body["matches_recorded_results"] is True
+    assert untimed(body["results"]) == untimed(results)
+    again = cli("replay", str(file), "--rerun", "same", "--json")
+    assert again.returncode == 0, again.stderr
+    rerun_body = json.loads(again.stdout.strip().splitlines()[-1])["rerun"]
+    assert {a: (s["episodes_matched"], s["same_estimates"]) for a, s in rerun_body.items()} == {"ra2vipas": (2, 2), "rapas": (2, 2)}
 
-        up = registry.start("up", "--rigs", "1", "--port", str(free_port()), "--db", str(tmp_path / "s.db"), "--insecure",
-                            "--log-dir", str(tmp_path / "logs"))
-        line = wait_for_line(up, "API on http://", 120)
-        api = re.search(r"(http://[0-9.:]+)", line).group(1)
-        router = re.search(r"Zenoh router (tcp/127\.0\.0\.1:\d+)", line)
-        assert router, line
-        env = {"RA2VIPAS_ZENOH_MODE": "client", "RA2VIPAS_ZENOH_CONNECT": router.group(1)}
-        file = tmp_path / "c.mcap"
-        args = ["--preset", "paper", "--tests", "2", "--seed", "3", "-a", "ra2vipas,rapas", "--set", "steps=20", "--set", "n_train=200",
-                "--set", "n_targets=8"]
-        started = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "campaign", "start", "--api", api, *args,
-                                  "--record", str(file), "--json"], cwd=ROOT, capture_output=True, text=True, timeout=300,
-                                 env={**__import__("os").environ, **env})
-        assert started.returncode == 0, started.stderr
-        results = json.loads(started.stdout.strip().splitlines()[-1])
-        replayed = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "replay", str(file), "--json"], cwd=ROOT,
-                                  capture_output=True, text=True, timeout=120)
-        assert replayed.returncode == 0, replayed.stderr
-        body = json.loads(replayed.stdout.strip().splitlines()[-1])
-        assert body["source"] == "live" and body["matches_recorded_results"] is True
-        assert untimed(body["results"]) == untimed(results)
-        again = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "replay", str(file), "--rerun", "same", "--json"], cwd=ROOT,
-                               capture_output=True, text=True, timeout=120)
-        assert again.returncode == 0, again.stderr
-        rerun_body = json.loads(again.stdout.strip().splitlines()[-1])["rerun"]
-        assert {a: (s["episodes_matched"], s["same_estimates"]) for a, s in rerun_body.items()} == {"ra2vipas": (2, 2), "rapas": (2, 2)}
-    finally:
-        registry.cleanup()
+
+def test_record_a_running_campaign_then_the_finished_one_with_the_command(local_stack, tmp_path):
+    """`ra2vipas record --campaign ID`: on a running campaign (realtime: it runs for 4 s at least)
+    it records live until the campaign finishes; on the finished one, from what the orchestrator
+    kept plus the POD model from the learner. Both re-score to the campaign's results."""
+    api, env = local_stack["api"], local_stack["env"]
+    with httpx.Client(base_url=api, timeout=30) as http:
+        r = http.post("/campaigns", json={"overrides": {"steps": 20, "rf_period_s": 0.05, "n_train": 200, "n_targets": 6}, "tests": 4, "seed": 5,
+                                          "algorithms": ["rapas"], "mode": "realtime"})
+        assert r.status_code == 201, r.text
+        cid = r.json()["id"]
+        live = cli("record", "--campaign", cid, "-o", str(tmp_path / "live.mcap"), "--api", api, env=env, timeout=300)
+        assert live.returncode == 0, live.stderr
+        assert f"recording campaign {cid} live until it finishes" in live.stderr  # it was still running
+        assert re.fullmatch(rf"wrote \d+ messages of campaign {cid} to .*live\.mcap", live.stdout.strip()), live.stdout
+        done = http.get(f"/campaigns/{cid}").json()
+        assert done["status"] == "done", done
+        results = http.get(f"/campaigns/{cid}/results").json()
+    rec = read_mcap(tmp_path / "live.mcap")
+    assert rec.source in ("live", "live+store") and rec.campaign["id"] == cid and rec.campaign["mode"] == "realtime"
+    assert any(ep.measurements for ep in rec.episodes.values()), "no measurement recorded live"
+    assert untimed(replay_scores(rec)) == untimed(results)
+    kept = cli("record", "--campaign", cid, "--output", str(tmp_path / "kept.mcap"), "--api", api, env=env)
+    assert kept.returncode == 0 and "live" not in kept.stderr, kept.stderr
+    rec = read_mcap(tmp_path / "kept.mcap")
+    assert rec.source == "store" and rec.pod is not None and set(rec.descriptors) == {"rig-1"}
+    assert untimed(replay_scores(rec)) == untimed(results)

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import time
 
 import numpy as np
 import pytest
@@ -123,3 +125,63 @@ def test_a_campaign_on_the_survey_rig_matches_the_live_simulator(tmp_path, surve
         assert lo <= survey_dr <= hi, (algorithm, survey_dr, hits / n, (lo, hi))
         s_lo, s_hi = results["algorithms"][algorithm]["ci95"]
         assert s_lo <= hits / n <= s_hi, (algorithm, hits / n, (s_lo, s_hi))
+
+
+def test_survey_record_with_an_operators_layout_then_serve_it_as_a_rig(local_stack, tmp_path):
+    """The commands as an operator runs them on a local stack: `survey record` drives the stack's
+    rig through a small sweep with the scene's layout from a file (`--layout`, as for a real
+    scene), `survey serve` serves the file as rig survey-1 (with `ra2vipas controller` for it),
+    and a campaign on survey-1 is scored from that layout. A layout that is not one is a usage
+    error."""
+    import signal
+
+    import httpx
+
+    from tests.integration.conftest import wait_for_line
+    from tests.rigs.conftest import cli
+
+    api, env, registry = local_stack["api"], local_stack["env"], local_stack["registry"]
+    bad = tmp_path / "bad-layout.json"
+    bad.write_text(json.dumps({"bearings_rad": [0.5], "tx_index": 3}))
+    refused = cli("survey", "record", "--rig", "rig-1", "-o", str(tmp_path / "never.json"), "--layout", str(bad), env=env)
+    assert refused.returncode == 2 and refused.stderr.startswith(f"error: cannot read the layout {bad}"), refused.stderr
+    layout = {"bearings_rad": [-2.0, -0.4, 1.1, 2.6], "ranges_m": [3.0, 2.0, 4.5, 1.5], "tx_index": 2}
+    (tmp_path / "layout.json").write_text(json.dumps(layout))
+    file = tmp_path / "scene.json"
+    recorded = cli("survey", "record", "--rig", "rig-1", "-o", str(file), "--pans", "12", "--passes", "2", "--n-train", "40",
+                   "--layout", str(tmp_path / "layout.json"), "--set", "n_targets=4", env=env)
+    assert recorded.returncode == 0, recorded.stderr
+    assert recorded.stdout.strip() == f"wrote a survey of 4 targets, 2 passes of 12 pans, 40 training samples to {file}"
+    survey = load(file)
+    assert survey.layout.model_dump() == {**layout, "bearings_rad": tuple(layout["bearings_rad"]), "ranges_m": tuple(layout["ranges_m"])}
+    assert len(survey.pans_rad) == 12 and len(survey.passes) == 2 and survey.rig.kind == "hardware"
+
+    served = registry.start("survey", "serve", str(file), "--rig", "survey-1", env=env)
+    controller = registry.start("controller", "--rig", "survey-1", env=env)
+    wait_for_line(served, "survey[survey-1] up", 60)
+    with httpx.Client(base_url=api, timeout=30) as http:
+        def survey_rig():
+            rig = {r["name"]: r for r in http.get("/rigs").json()["rigs"]}.get("survey-1")
+            return rig if rig and rig["live"] and rig["descriptor"] else None
+
+        deadline = time.monotonic() + 60
+        while (rig := survey_rig()) is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert rig is not None, http.get("/rigs").json()
+        assert rig["descriptor"]["kind"] == "survey" and rig["descriptor"]["modes"] == ["fast"]
+        r = http.post("/campaigns", json={"overrides": {"steps": 12, "n_train": 40, "n_targets": 4}, "tests": 2, "seed": 1,
+                                          "algorithms": ["rapas"], "rigs": ["survey-1"], "use_rig_values": True})
+        assert r.status_code == 201, r.text
+        cid = r.json()["id"]
+        deadline = time.monotonic() + 120
+        while (c := http.get(f"/campaigns/{cid}").json())["status"] not in ("done", "failed", "cancelled") and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert c["status"] == "done", c
+        for k in range(2):
+            trace = http.get(f"/campaigns/{cid}/tests/{k}/rapas").json()
+            assert trace["rig"] == "survey-1" and trace["tx_index"] == layout["tx_index"]
+            assert [t["bearing_rad"] for t in trace["targets"]] == pytest.approx(layout["bearings_rad"])
+            assert [t["range_m"] for t in trace["targets"]] == pytest.approx(layout["ranges_m"])
+    for proc in (served, controller):
+        os.killpg(proc.pid, signal.SIGTERM)
+        assert proc.wait(30) == 0
