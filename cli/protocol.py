@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Optional
 
 import typer
 
@@ -42,19 +42,21 @@ def schemas(outdir: Annotated[Path, typer.Argument(help="Directory to write one 
 def check(
     rig: Annotated[str, typer.Option("--rig", help="The rig (sensors node) to check.")],
     timeout: Annotated[float, typer.Option(min=0.5, max=600.0, help="How long to wait for any one answer [s].")] = 5.0,
+    wait: Annotated[Optional[float], typer.Option(min=0.5, max=3600.0, help="How long to wait for the rig to come up (its liveliness token) [s; default: --timeout]. Start the kit, then the node: the kit probes it the moment its token appears, which checks that the token is declared last.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the report as one JSON line.")] = False,
     mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None, zenoh_config: ConfigOpt = None,
 ) -> None:
     """Drive a live sensors node through scripted episodes (fast and realtime, a command before
     its start, duplicates, an EpisodeStop mid-episode, malformed messages, a training episode)
     and print a pass/fail report per protocol rule. Exit 0 if no rule failed, 1 otherwise. Run it
-    on a rig no campaign is using (it moves the rig)."""
+    on a rig no campaign is using (it moves the rig). To check that the node declares its
+    liveliness token last, start the kit first (with --wait) and then the node."""
     import logging
 
-    from ra2vipas.cli.output import stdout
+    from ra2vipas.cli.output import stderr, stdout
     from ra2vipas.cli.services import zenoh_settings
     from ra2vipas.services.protocol.keys import check_chunk
-    from ra2vipas.services.rigs.conformance import check_rig, report
+    from ra2vipas.services.rigs.conformance import ConformanceKit, report
     from ra2vipas.services.transport.zenoh_bus import ZenohBus
 
     try:
@@ -68,7 +70,12 @@ def check(
     except Exception as err:  # zenoh raises ZError for bad endpoints, unreachable routers, ...
         fail(f"cannot open the Zenoh session: {err}")
     try:
-        results = check_rig(bus, rig, timeout=timeout)
+        kit = ConformanceKit(bus, rig, timeout)
+        stderr.print(f"watching for rig {rig} (its token alive/sensors/{rig}, up to {timeout if wait is None else wait:g} s) ...")
+        try:
+            results = kit.run(wait=wait)
+        finally:
+            kit.close()
     finally:
         bus.close()
     body = report(results)

@@ -31,7 +31,8 @@ from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.transport.bus import Bus
 
 RULES: dict[str, str] = {
-    "liveliness": "the sensors hold the liveliness token alive/sensors/{rig}",
+    "liveliness": "the sensors hold the liveliness token alive/sensors/{rig}, declared last: as soon as it appears, rig/{rig}/info "
+                  "and an episode's start and Command(0) are answered",
     "descriptor": "rig/{rig}/info answers a valid RigDescriptor naming the rig",
     "fast-lockstep": "fast mode: each Command(t) is answered by one Measurement(t) with the same episode_id, valid against its schema",
     "frames": "every Measurement carries nu frames whose box bearings are sorted ascending",
@@ -89,11 +90,19 @@ class ConformanceKit:
         self._truth: list[_Seen] = []
         self._nonce = f"{int(time.time() * 1000) % 10**9}"
         self.episodes: list[str] = []
+        self._token_up = threading.Event()
         self._handles = [
             bus.subscribe(keys.measurement(rig), lambda k, p: self._note(self.measurements, k, p)),
             bus.subscribe(keys.episode_timing(rig), lambda k, p: self._note(self._timing, k, p)),
             bus.subscribe(keys.episode_truth(rig), lambda k, p: self._note(self._truth, k, p)),
         ]
+        # watched from now on (after the kit's own subscriptions): when the node comes up after
+        # the kit, the kit probes it the moment its token appears
+        self._handles.append(bus.watch_alive(keys.alive("sensors", rig), self._on_token))
+
+    def _on_token(self, _key: str, alive: bool) -> None:
+        if alive:
+            self._token_up.set()
 
     # -- plumbing ------------------------------------------------------------------------------
     def _note(self, target: list, key: str, payload: bytes) -> None:
@@ -153,9 +162,11 @@ class ConformanceKit:
                 pass
 
     # -- the script ----------------------------------------------------------------------------
-    def run(self, steps: int = 6, realtime_steps: int = 8) -> list[RuleResult]:
-        """Run every rule; return the results in ``RULES`` order."""
-        descriptor = self._liveliness_and_descriptor()
+    def run(self, steps: int = 6, realtime_steps: int = 8, wait: float | None = None) -> list[RuleResult]:
+        """Run every rule; return the results in ``RULES`` order. ``wait``: how long to wait for
+        the node's liveliness token [s] (default: ``timeout``); a node started while the kit
+        waits is probed the moment its token appears, which checks that it declares it last."""
+        descriptor = self._liveliness_and_descriptor(self.timeout if wait is None else wait)
         base = Scenario(steps=steps, n_train=25, n_targets=6)
         scenario = apply_rig_values(descriptor, base) if descriptor is not None else base
         nu = scenario.frames_per_rf
@@ -175,19 +186,59 @@ class ConformanceKit:
         self._truth_rule(descriptor)
         return [self.results.get(rule, RuleResult(rule, "fail", "not checked")) for rule in RULES]
 
-    def _liveliness_and_descriptor(self) -> RigDescriptor | None:
-        up = threading.Event()
-        handle = self.bus.watch_alive(keys.alive("sensors", self.rig), lambda _k, alive: up.set() if alive else None)
-        self._result("liveliness", up.wait(self.timeout), "" if up.is_set() else f"no token alive/sensors/{self.rig}")
-        handle.undeclare()
-        self._alive = up.is_set()
+    def _liveliness_and_descriptor(self, wait: float) -> RigDescriptor | None:
+        """The liveliness rule and the descriptor rule. On first seeing the token the kit at once
+        asks rig/{rig}/info and sends a probe episode (EpisodeStart and Command(0)): a node that
+        declares its token before its subscriptions and queryables (docs/protocol.md, "Liveliness
+        last") misses them, as the orchestrator's first query and episode would be missed."""
+        self._alive = self._token_up.wait(wait)
+        at_token: list | None = None
+        probed = None
+        if self._alive:
+            got: "queue.Queue[list]" = queue.Queue()
+            self.bus.query(keys.rig_info(self.rig), b"", self.timeout, got.put)
+            eid = f"conformance.{self._nonce}.at-token"
+            mark = len(self.measurements)
+            self._start(eid, Scenario(steps=2, n_train=25, n_targets=6), index=4)
+            self._command(eid, 0, 0.0)
+            probed = self._wait_measurement(eid, 0, mark)
+            self.bus.publish(keys.episode_control(self.rig), dump(EpisodeStop(episode_id=eid, reason="conformance: probe done")))
+            if probed is not None:
+                self.episodes.append(eid)  # the truth rule holds it to this episode only if it ran
+            try:
+                at_token = got.get(timeout=self.timeout + 5.0)
+            except queue.Empty:
+                at_token = []
+        descriptor, why = self._descriptor(self._info(self.timeout))
+        self._result("descriptor", descriptor is not None, "" if descriptor is not None else why)
+        if not self._alive:
+            self._result("liveliness", False, f"no token alive/sensors/{self.rig} within {wait:g} s")
+            return descriptor
+        problems = []
+        if probed is None:
+            problems.append(f"an EpisodeStart and Command(0) sent as soon as the token appeared got no Measurement within "
+                            f"{self.timeout:g} s")
+        if descriptor is not None and not any(r.ok for r in at_token or []):
+            problems.append(f"rig/{self.rig}/info did not answer when the token appeared (it does later)")
+        if problems:
+            self._result("liveliness", False, "; ".join(problems) + ": declare the token only after every subscription and queryable")
+            return descriptor
+        self._result("liveliness", True, f"rig/{self.rig}/info and a probe episode were answered as soon as the token was seen "
+                                          "(which shows the token is declared last if the kit was started before the node)")
+        return descriptor
+
+    def _info(self, timeout: float) -> list:
+        """The replies to a query of rig/{rig}/info."""
         got: "queue.Queue[list]" = queue.Queue()
-        self.bus.query(keys.rig_info(self.rig), b"", self.timeout, got.put)
+        self.bus.query(keys.rig_info(self.rig), b"", timeout, got.put)
         try:
-            replies = got.get(timeout=self.timeout + 5.0)
+            return got.get(timeout=timeout + 5.0)
         except queue.Empty:
-            replies = []
-        descriptor, why = None, "no reply (a v1 node serves no descriptor)"
+            return []
+
+    def _descriptor(self, replies: list) -> tuple[RigDescriptor | None, str]:
+        """The first valid descriptor naming this rig among ``replies``, else None and why not."""
+        why = "no reply (a v1 node serves no descriptor)"
         for reply in replies:
             if not reply.ok:
                 why = f"error reply: {reply.payload[:200].decode(errors='replace')}"
@@ -198,11 +249,10 @@ class ConformanceKit:
                 why = f"invalid RigDescriptor: {_first(err)}"
                 continue
             if descriptor.rig != self.rig:
-                why, descriptor = f"the descriptor names rig {descriptor.rig!r}", None
+                why = f"the descriptor names rig {descriptor.rig!r}"
                 continue
-            break
-        self._result("descriptor", descriptor is not None, "" if descriptor is not None else why)
-        return descriptor
+            return descriptor, ""
+        return None, why
 
     def _check_measurement(self, parsed: dict, raw: bytes, nu: int, pan: float) -> None:
         try:
@@ -437,11 +487,12 @@ def _first(err: ValidationError) -> str:
     return f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', 'invalid')}"
 
 
-def check_rig(bus: Bus, rig: str, timeout: float = 5.0, steps: int = 6, realtime_steps: int = 8) -> list[RuleResult]:
+def check_rig(bus: Bus, rig: str, timeout: float = 5.0, steps: int = 6, realtime_steps: int = 8,
+              wait: float | None = None) -> list[RuleResult]:
     """Run the kit against ``rig``; one ``RuleResult`` per rule of ``RULES``."""
     kit = ConformanceKit(bus, rig, timeout)
     try:
-        return kit.run(steps=steps, realtime_steps=realtime_steps)
+        return kit.run(steps=steps, realtime_steps=realtime_steps, wait=wait)
     finally:
         kit.close()
 

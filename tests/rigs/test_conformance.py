@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from ra2vipas.cli.stack import free_port
-from ra2vipas.services.rigs.conformance import RULES, check_rig
+from ra2vipas.services.rigs.conformance import RULES, ConformanceKit
 from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
 from tests.integration.conftest import ROOT, Procs, wait_for_line
@@ -53,6 +53,19 @@ def kit(endpoint: str, rig: str) -> dict:
     return body
 
 
+def kit_first(registry: Scripts, endpoint: str, rig: str, start_node, timeout: float = 5) -> tuple[dict, subprocess.Popen]:
+    """The kit started before the node (``--wait``), so it probes the node the moment its token
+    appears; then ``start_node()``. Returns the kit's report and the node's process."""
+    kit_proc = registry.start("protocol", "check", "--rig", rig, "--connect", endpoint, "--zenoh-mode", "client", "--json",
+                              "--timeout", f"{timeout:g}", "--wait", "120")
+    wait_for_line(kit_proc, f"watching for rig {rig}", 60)
+    node = start_node()
+    out, _ = kit_proc.communicate(timeout=300)
+    body = json.loads(out.strip().splitlines()[-1])
+    assert kit_proc.returncode == (0 if body["passed"] else 1), out
+    return body, node
+
+
 def statuses(body: dict) -> dict[str, str]:
     return {r["rule"]: r["status"] for r in body["rules"]}
 
@@ -66,10 +79,12 @@ def test_the_example_node_imports_only_zenoh_numpy_and_the_standard_library():
 
 def test_our_sensors_node_passes_on_the_in_memory_bus():
     bus = MemoryBus()
+    kit = ConformanceKit(bus, "rig-1", timeout=3.0)  # watching before the node comes up: probed as its token appears
     node = SensorsNode(bus, "rig-1")
     try:
-        results = check_rig(bus, "rig-1", timeout=3.0)
+        results = kit.run()
     finally:
+        kit.close()
         node.close()
         bus.close()
     assert [r.rule for r in results] == list(RULES)
@@ -88,11 +103,16 @@ def test_our_sensors_node_passes_over_zenoh(router):
 
 def test_the_reference_hardware_node_passes(router, record_property):
     registry, endpoint = router
-    began = time.monotonic()
-    node = registry.script(EXAMPLE, "--rig", "cam-1", "--connect", endpoint)
-    wait_for_line(node, "hardware node cam-1 up", 60)
-    record_property("example_node_up_s", round(time.monotonic() - began, 3))
-    body = kit(endpoint, "cam-1")
+    began = []
+
+    def start():
+        began.append(time.monotonic())
+        node = registry.script(EXAMPLE, "--rig", "cam-1", "--connect", endpoint)
+        wait_for_line(node, "hardware node cam-1 up", 60)
+        record_property("example_node_up_s", round(time.monotonic() - began[0], 3))
+        return node
+
+    body, node = kit_first(registry, endpoint, "cam-1", start)  # probed as its token appears: the token is declared last
     # a hardware rig publishes no truth, and the kit checks it does not
     assert statuses(body) == dict.fromkeys(RULES, "pass"), body
     os.killpg(node.pid, signal.SIGTERM)
@@ -101,7 +121,7 @@ def test_the_reference_hardware_node_passes(router, record_property):
 
 def test_a_broken_node_fails_naming_the_rule(router):
     registry, endpoint = router
-    node = registry.script(BROKEN, "--rig", "bad-1", "--connect", endpoint)
+    node = registry.script(BROKEN, "ignores-stop", "--rig", "bad-1", "--connect", endpoint)
     wait_for_line(node, "hardware node bad-1 up", 60)
     body = kit(endpoint, "bad-1")
     assert not body["passed"]
@@ -110,3 +130,19 @@ def test_a_broken_node_fails_naming_the_rule(router):
     out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", "--rig", "bad-1", "--connect", endpoint,
                           "--zenoh-mode", "client"], cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ, "COLUMNS": "200"})
     assert out.returncode == 1 and "1 rule(s) failed: stop-mid-episode" in out.stdout
+
+
+def test_a_node_that_declares_its_token_first_fails_the_liveliness_rule(router):
+    """docs/protocol.md, "Liveliness last": a node whose token is up before its subscriptions and
+    queryables misses what the kit sends the moment the token appears (as it would miss the
+    orchestrator's descriptor query and first episode); every other rule passes once it is set up."""
+    registry, endpoint = router
+    body, node = kit_first(registry, endpoint, "bad-2", lambda: registry.script(BROKEN, "token-first", "--rig", "bad-2", "--connect", endpoint),
+                           timeout=2)
+    failed = {r["rule"]: r["detail"] for r in body["rules"] if r["status"] == "fail"}
+    assert set(failed) == {"liveliness"}, body
+    assert failed["liveliness"] == ("an EpisodeStart and Command(0) sent as soon as the token appeared got no Measurement within 2 s; "
+                                    "rig/bad-2/info did not answer when the token appeared (it does later): declare the token only "
+                                    "after every subscription and queryable")
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
