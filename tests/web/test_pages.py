@@ -209,6 +209,45 @@ def test_warnings_and_the_scenarios_assumptions_are_shown_on_the_campaign_page_a
         server.stop()
 
 
+def test_the_home_page_pages_and_filters_by_preset_server_side(tmp_path):
+    """57 campaigns (55 paper, then 2 dynamic; no rig, so they stay queued): pages of 50, newest
+    first, with previous/next links; the live table's stream serves the same page; the preset
+    filter keeps the dynamic ones only."""
+    import re
+
+    server = LiveAPI(tmp_path / "p.db", rigs=(), learner=False).start()
+    try:
+        with server.client() as http:
+            names = [f"page-{k:02d}" for k in range(57)]
+            for k, name in enumerate(names):
+                r = http.post("/campaigns", json={"preset": "dynamic" if k >= 55 else "paper", "overrides": SMALL, "tests": 1,
+                                                  "algorithms": ["rapas"], "name": name})
+                assert r.status_code == 201, r.text
+
+            def rows(text: str) -> list[str]:
+                return re.findall(r'<tr id="campaign-[0-9a-f]+"[^>]*>\s*<td><a href="[^"]+">(page-\d\d)</a>', text)
+
+            first = http.get("/").text
+            assert rows(first) == names[::-1][:50] and "1–50 of 57" in first
+            assert 'href="/?status=&amp;preset=&amp;offset=50" rel="next"' in first and 'rel="prev"' not in first
+            second = http.get("/", params={"status": "", "preset": "", "offset": 50}).text
+            assert rows(second) == names[::-1][50:] and "51–57 of 57" in second
+            assert 'href="/?status=&amp;preset=&amp;offset=0" rel="prev"' in second and 'rel="next"' not in second
+            assert 'sse-connect="/ui/streams/campaigns?status=&amp;preset=&amp;offset=50"' in second  # the live table keeps its page
+            with http.stream("GET", "/ui/streams/campaigns", params={"offset": 50}) as stream:
+                event = []
+                for line in stream.iter_lines():
+                    if not line and event:
+                        break
+                    event.append(line)
+            assert event[0] == "event: rows" and rows("\n".join(line[6:] for line in event[1:])) == names[::-1][50:]
+            dynamic = http.get("/", params={"preset": "dynamic"}).text
+            assert rows(dynamic) == ["page-56", "page-55"] and "1–2 of 2" in dynamic
+            assert '<option value="dynamic" selected>' in dynamic
+    finally:
+        server.stop()
+
+
 def test_the_token_is_never_rendered_into_a_page(tmp_path):
     server = LiveAPI(tmp_path / "t.db", rigs=(), learner=False, token="page-secret-91").start()
     try:
