@@ -4,8 +4,9 @@ Chromium driven by Playwright.
 
 The browser is the system's (Debian package ``chromium``, which ``make test`` installs when it
 is missing), never one Playwright downloads; ``RA2VIPAS_CHROMIUM`` names another executable.
-Every page a test opens records its console errors, uncaught exceptions and failed requests,
-and the test fails on any of them; screenshots go to a temporary directory (printed).
+Every page a test opens records its console errors, uncaught exceptions, failed requests and
+every URL it requests, and the test fails on any error, or on any request to another host
+or port than the orchestrator's; screenshots go to a temporary directory (printed).
 """
 
 from __future__ import annotations
@@ -84,11 +85,22 @@ class Watched:
             self.problems.append(f"HTTP {response.status} for {response.request.method} {response.url}")
 
 
+def _to_the_orchestrator(url: str, api: str) -> bool:
+    """Whether a page's request stays on the orchestrator (its scheme, host and port), or needs
+    no network at all (``data:``, ``blob:``, ``about:``): the dashboard works offline."""
+    from urllib.parse import urlsplit
+
+    u, own = urlsplit(url), urlsplit(api)
+    return u.scheme in ("data", "blob", "about") or (u.scheme, u.netloc) == (own.scheme, own.netloc)
+
+
 @pytest.fixture()
 def watched(browser, stack, request):
     """``watched(viewport=WIDE, expect=())``: a new browser context and page on the stack's
     API; at teardown, the test fails if the page logged a console error, raised, got an
-    unexpected error response, or put the token in a URL."""
+    unexpected error response, put the token in a URL, or requested anything from another host
+    or port than the orchestrator's (every script, style, stream and fetch is served by it:
+    offline by construction)."""
     opened: list[tuple] = []
 
     def open_page(viewport: dict = WIDE, expect: tuple[int, ...] = ()) -> Watched:
@@ -108,5 +120,6 @@ def watched(browser, stack, request):
                             and any(f"status of {s}" in p for s in w.expected)]
         problems += [p for p in w.problems if p not in expected_console]
         problems += [f"token in URL: {u}" for u in w.urls if TOKEN in u]
+        problems += [f"a request that leaves the orchestrator: {u}" for u in w.urls if not _to_the_orchestrator(u, stack["api"])]
         context.close()
     assert not problems, "\n".join(problems)

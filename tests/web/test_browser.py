@@ -1,10 +1,11 @@
 """The dashboard in a real headless Chromium against a real stack (``ra2vipas up``: router,
-orchestrator, learner, two rigs, SQLite file, an API token): the home page, creating a
-campaign through the form (a 422 shown next to its field), progress and DR curves updating
-without a reload, the campaign page, the episode player, cancelling and deleting, the rigs
-page, phone width and the keyboard; a study started through the API progressing on the studies
-page, its plot and a point's campaign page, cancelling and deleting a study; no console errors
-anywhere (``conftest.watched``)."""
+orchestrator, learner, two rigs, SQLite file, an API token): the home page (filters, a
+campaign appearing and progressing live), creating a campaign through the form (a 422 shown
+next to its field), progress and DR curves updating without a reload, the campaign page (hover
+values, zoom, exports), the episode player, cancelling and deleting, the rigs page (idle,
+episode running), phone width and the keyboard; a study started through the API progressing
+on the studies page, its plot and a point's campaign page, cancelling and deleting a study; no
+console errors and no request leaving the orchestrator anywhere (``conftest.watched``)."""
 
 from __future__ import annotations
 
@@ -94,6 +95,14 @@ def test_home_page_lists_campaigns_with_their_final_dr(watched, done_campaign, s
     assert w.page.evaluate("window.__marker") == "same page" and "status=failed" in w.page.url
     w.page.select_option("select[name=status]", "")
     row.wait_for()
+    # so does the preset filter: the fixture (preset paper) leaves, only dynamic campaigns remain
+    w.page.select_option("select[name=preset]", "dynamic")
+    row.wait_for(state="detached")
+    assert "preset=dynamic" in w.page.url and w.page.evaluate("window.__marker") == "same page"
+    presets = w.page.locator("#campaign-rows tr[id^=campaign-] td:nth-child(2)").all_inner_texts()
+    assert set(presets) <= {"dynamic"}
+    w.page.select_option("select[name=preset]", "paper")
+    row.wait_for()
     w.page.screenshot(path=screenshots / "home.png", full_page=True)
 
 
@@ -162,6 +171,36 @@ def test_campaign_page_curves_summary_tests_and_exports(watched, api, done_campa
     page.locator("#dr-chart canvas").wait_for()
     # the legend shows each algorithm's final DR; unticking one redraws the plot without it
     assert f"DR {results['algorithms']['ra2vipas']['dr_final']:.3f}" in page.locator("#dr-legend").inner_text()
+    # hovering shows the values under the cursor, the API's at that time; a drag zooms, "reset zoom" undoes it
+    over = page.locator("#dr-chart .u-over").bounding_box()
+    value = page.locator('#dr-legend [data-alg="ra2vipas"]')
+    block, period = results["algorithms"]["ra2vipas"], results["scenario"]["rf_period_s"]
+
+    def at(fraction: float) -> None:
+        page.mouse.move(over["x"] + over["width"] * fraction, over["y"] + over["height"] / 2)
+
+    def shown() -> tuple[float, str, str, str]:
+        m = re.fullmatch(r"DR (\S+) \[(\S+), (\S+)\] at (\S+) s, n=6", value.inner_text())
+        assert m, value.inner_text()
+        return float(m.group(4)), m.group(1), m.group(2), m.group(3)
+
+    def hovered_time(fraction: float, predicate) -> float:
+        at(fraction)
+        return wait_until(lambda: predicate(shown()[0]) and shown()[0], 10, what=f"the legend's value at {fraction:.0%} of the plot")
+
+    t = hovered_time(0.5, lambda t: 0.3 * len(block["dr"]) * period < t < 0.7 * len(block["dr"]) * period)
+    k = round(t / period) - 1
+    assert shown()[1:] == (f"{block['dr'][k]:.3f}", f"{block['dr_ci95'][k][0]:.3f}", f"{block['dr_ci95'][k][1]:.3f}")
+    first = hovered_time(0.01, lambda t: t < 2.5 * period)
+    at(0.4)
+    page.mouse.down()
+    at(0.7)
+    page.mouse.up()
+    zoomed = hovered_time(0.01, lambda t: t > first + 5 * period)  # the plot's left edge is now 40 % in
+    assert zoomed == pytest.approx(0.4 * len(block["dr"]) * period, abs=0.1 * len(block["dr"]) * period)
+    page.click("#dr-reset")
+    hovered_time(0.01, lambda t: t == first)
+    page.mouse.move(0, 0)
     before = page.locator("#dr-chart canvas").evaluate("c => c.toDataURL()")
     page.locator("#dr-legend input").first.uncheck()
     after = page.locator("#dr-chart canvas").evaluate("c => c.toDataURL()")
@@ -185,9 +224,17 @@ def test_campaign_page_curves_summary_tests_and_exports(watched, api, done_campa
     assert shown == missed
     page.uncheck("#tests-filters input[name=missed]")
     page.locator("#tests-table tbody tr").nth(5).wait_for()
-    for link in ("results JSON", "CSV"):
-        href = page.get_by_role("link", name=link).get_attribute("href")
-        assert page.request.get(href).status == 200
+    for link, kind in (("results JSON", "application/json"), ("CSV", "text/csv")):
+        r = page.request.get(page.get_by_role("link", name=link).get_attribute("href"))
+        assert r.status == 200 and r.headers["content-type"].startswith(kind)
+    # every figure's PNG and SVG: the DR curves, the POD plot (and the reliability diagram when there is one)
+    figures = [a.get_attribute("href") for a in page.locator(".exports a[href*='/plots/']").all()]
+    assert {f"/campaigns/{cid}/plots/{name}?format={fmt}" for name in ("dr", "pod") for fmt in ("png", "svg")} <= set(figures)
+    for href in figures:
+        r = page.request.get(href)
+        png = href.endswith("png")
+        assert r.status == 200 and r.headers["content-type"].startswith("image/png" if png else "image/svg+xml"), href
+        assert r.body().startswith(b"\x89PNG\r\n\x1a\n") if png else b"<svg" in r.body()[:2000], href
     page.screenshot(path=screenshots / "campaign.png", full_page=True)
 
 
@@ -225,14 +272,46 @@ def test_episode_player_slider_play_and_keyboard(watched, api, done_campaign, sc
     page.screenshot(path=screenshots / "episode.png", full_page=True)
 
 
-def test_cancel_a_running_campaign_then_delete_it(watched, api, screenshots):
-    r = api.post("/campaigns", json={"tests": 400, "seed": 9, "name": "to cancel"})
-    assert r.status_code == 201
-    cid = r.json()["id"]
+def test_a_campaign_appears_on_home_live_runs_on_the_rigs_page_then_is_cancelled_and_deleted(watched, api, screenshots):
+    """Started through the API while the home page is open: its row appears and progresses
+    without a reload; the rigs page shows episodes running, then idle rigs once it is cancelled
+    from its page (reached from its row)."""
     w = watched()
     page = w.page
     page.on("dialog", lambda d: d.accept())
-    page.goto(f"/ui/campaigns/{cid}")
+    page.goto("/")
+    page.evaluate("window.__marker = 'same page'")
+    # every progress text any campaign row shows, from the row's first rendering on
+    page.evaluate("""() => {
+        window.__progress = [];
+        const note = () => document.querySelectorAll('#campaign-rows tr[id^="campaign-"]').forEach(row => {
+            const m = row.innerText.match(/(\\d+)\\/(\\d+)/);
+            if (m) window.__progress.push([row.id, row.dataset.status, +m[1], +m[2]]);
+        });
+        new MutationObserver(note).observe(document.body, {subtree: true, childList: true, characterData: true, attributes: true});
+    }""")
+    # realtime: the rigs spend their time waiting for T_RF rather than computing, and it runs for minutes
+    r = api.post("/campaigns", json={"tests": 400, "seed": 9, "name": "to cancel", "mode": "realtime", "overrides": {"steps": 10}})
+    assert r.status_code == 201
+    cid = r.json()["id"]
+    row = page.locator(f"#campaign-{cid}")
+    row.wait_for()
+
+    def progressed():
+        seen = {(status, done) for rid, status, done, _ in page.evaluate("window.__progress") if rid == f"campaign-{cid}"}
+        return len(seen) >= 3 and any(status == "running" and done > 0 for status, done in seen)
+
+    wait_until(progressed, 120, every=0.1, what="the campaign's row progressing live")
+    assert page.evaluate("window.__marker") == "same page"
+    page.screenshot(path=screenshots / "home-live.png", full_page=True)
+    rigs = watched().page
+    rigs.goto("/ui/rigs")
+    rigs.locator('#rigs-table tbody tr[data-state="running"]').first.wait_for()
+    assert "episode running" in rigs.locator('#rigs-table tbody tr[data-state="running"]').first.inner_text()
+    rigs.screenshot(path=screenshots / "rigs-running.png", full_page=True)
+
+    row.get_by_role("link", name="to cancel").click()
+    page.wait_for_url(re.compile(rf"/ui/campaigns/{cid}$"))
     page.wait_for_function("() => document.querySelector('#status').textContent === 'running'", timeout=120_000)
     page.click("#cancel-button")
     enter_token(page)  # a new tab: asked again
@@ -240,6 +319,8 @@ def test_cancel_a_running_campaign_then_delete_it(watched, api, screenshots):
     page.locator("#delete-button").wait_for()  # the finished page swapped in: delete is offered now
     assert api.get(f"/campaigns/{cid}").json()["status"] == "cancelled"
     page.screenshot(path=screenshots / "campaign-cancelled.png", full_page=True)
+    # the rigs page, still open, follows: no episode in flight any more
+    rigs.wait_for_function("() => [...document.querySelectorAll('#rigs-table tbody tr')].map(r => r.dataset.state).join() === 'idle,idle'")
     page.click("#delete-button")
     page.wait_for_url(re.compile(r"/$"))
     assert api.get(f"/campaigns/{cid}").status_code == 404
@@ -270,6 +351,11 @@ def test_rigs_page_shows_the_live_rigs_and_learner(watched, screenshots):
     rows.first.wait_for()
     text = w.page.locator("#rigs").inner_text()
     assert "rig-1" in text and "rig-2" in text and "live since" in text and "learner" in text
+    # no campaign is running: both rigs idle, their sensors and controllers up
+    w.page.wait_for_function("() => [...document.querySelectorAll('#rigs-table tbody tr')].map(r => r.dataset.state).join() === 'idle,idle'")
+    for name in ("rig-1", "rig-2"):
+        cells = w.page.locator(f'#rigs-table tr[data-rig="{name}"] td').all_inner_texts()
+        assert cells[:4] == ["idle", "up", "up", "0"], cells
     w.page.screenshot(path=screenshots / "rigs.png", full_page=True)
 
 
