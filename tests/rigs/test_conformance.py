@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from ra2vipas.cli.stack import free_port
-from ra2vipas.services.rigs.conformance import RULES, ConformanceKit
+from ra2vipas.services.rigs.conformance import RULES, check_rig
 from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
 from tests.integration.conftest import ROOT, Procs, wait_for_line
@@ -79,12 +79,10 @@ def test_the_example_node_imports_only_zenoh_numpy_and_the_standard_library():
 
 def test_our_sensors_node_passes_on_the_in_memory_bus():
     bus = MemoryBus()
-    kit = ConformanceKit(bus, "rig-1", timeout=3.0)  # watching before the node comes up: probed as its token appears
     node = SensorsNode(bus, "rig-1")
     try:
-        results = kit.run()
+        results = check_rig(bus, "rig-1", timeout=3.0)
     finally:
-        kit.close()
         node.close()
         bus.close()
     assert [r.rule for r in results] == list(RULES)
