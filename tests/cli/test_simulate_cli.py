@@ -98,6 +98,26 @@ def test_bench_step_prints_timings_as_json():
     assert 0 < report["median_ms"] <= report["p99_ms"]
 
 
+def test_bench_simulate_reports_both_speeds_the_speedup_and_peak_memory_as_json():
+    """A small `bench simulate` (2 tests, one memory run of 3 short tests; one worker, so it
+    stays cheap on a shared machine: `--workers 2 == --workers 1` has its own test): the keys
+    issue 10 names; no speed is asserted."""
+    proc = ra2vipas("bench", "simulate", "--tests", "2", "--workers", "1", "--memory-tests", "3", "--memory-steps", "5", "--json",
+                    timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["benchmark"] == "simulate" and report["workers"] == 1 and report["tests"] == 2
+    assert report["steps"] == 2 * 4 * 120 and report["identical"] is True
+    assert report["steps_per_second_1"] > 0 and report["steps_per_second_n"] > 0
+    assert report["speedup"] == round(report["steps_per_second_n"] / report["steps_per_second_1"], 3)
+    assert len(report["cpu_loop_speedup"]) == 2 and report["target_speedup"] == 1.7
+    [memory] = report["memory"]
+    assert {k: memory[k] for k in ("tests", "steps", "algorithm", "workers", "episodes")} == {
+        "tests": 3, "steps": 5, "algorithm": "rapas", "workers": 1, "episodes": 3}
+    assert 0 < memory["parent_peak_rss_before_run_mb"] <= memory["parent_peak_rss_mb"] and memory["worker_peak_rss_mb"] > 0
+    assert 0.0 <= memory["dr_final"] <= 1.0 and "parent_rss_growth_mb" in memory
+
+
 def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
     """A small `bench mesh`: both parts run on their own stacks, the report carries the two
     measured figures (and the DR the mesh reached, equal to the in-process campaign's)."""
