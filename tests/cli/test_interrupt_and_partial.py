@@ -37,11 +37,17 @@ def _open_streams(live) -> int:
     return 0 if streams is None else streams.open
 
 
-def _until(condition, timeout: float = 60.0) -> None:
+def _until(condition, timeout: float = 60.0, what: str = "a condition") -> None:
     deadline = time.monotonic() + timeout
     while not condition():
-        assert time.monotonic() < deadline, "timed out waiting"
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
         time.sleep(0.05)
+
+
+def _no_stream_open(live) -> None:
+    """Wait until the streams of earlier followers are closed, so that the next one open is
+    the CLI's under test."""
+    _until(lambda: _open_streams(live) == 0, what="the earlier event streams to close")
 
 
 def _interrupt(proc: subprocess.Popen) -> tuple[str, str]:
@@ -70,9 +76,9 @@ def _says_how_to_come_back(err: str, cid: str, api: str) -> None:
 
 def test_ctrl_c_on_watch_prints_the_id_and_the_commands_and_leaves_the_campaign_running(live):
     cid = _start(live)
-    streams = _open_streams(live)
+    _no_stream_open(live)
     proc = _cli("campaign", "watch", cid, "--api", live.url)
-    _until(lambda: _open_streams(live) > streams and _progress(live, cid)["progress"]["done"] >= 1)  # following
+    _until(lambda: _open_streams(live) == 1 and _progress(live, cid)["progress"]["done"] >= 1, what="the CLI to follow")
     out, err = _interrupt(proc)
     assert proc.returncode == 130, (out, err)
     _says_how_to_come_back(err, cid, live.url)
@@ -84,14 +90,14 @@ def test_ctrl_c_on_start_wait_prints_the_id_and_the_commands_and_leaves_the_camp
     """`campaign start --wait` follows through the same code as `watch`; the id it never printed
     (only its vanished progress bar showed it) is in the message."""
     name = "ctrl-c-on-start-wait"
-    streams = _open_streams(live)
+    _no_stream_open(live)
     proc = _cli("campaign", "start", "--wait", "--name", name, "--algorithms", "ra2vipas", "--tests", "400", "--seed", "9",
                 *(f"--set={k}={v}" for k, v in LONG.items()), "--api", live.url)
 
     def started() -> list[dict]:
         return httpx.get(f"{live.url}/campaigns", params={"name": name}, timeout=30).json()["items"]
 
-    _until(lambda: started() and _open_streams(live) > streams and started()[0]["progress"]["done"] >= 1)
+    _until(lambda: _open_streams(live) == 1 and started() and started()[0]["progress"]["done"] >= 1, what="the CLI to follow")
     out, err = _interrupt(proc)
     [c] = started()
     cid = c["id"]
@@ -157,7 +163,7 @@ def test_a_failed_campaign_has_partial_results_of_its_recorded_episodes(live, mo
     r = httpx.post(f"{live.url}/campaigns", json=body, timeout=30)
     assert r.status_code == 201, r.text
     cid = r.json()["id"]
-    _until(lambda: _progress(live, cid)["progress"]["done"] >= 3)
+    _until(lambda: _progress(live, cid)["progress"]["done"] >= 3, what="tests 0-2 to be recorded")
     controller.loop.post(unplug)
     c = live.wait(cid)
     assert c["status"] == "failed", c
