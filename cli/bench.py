@@ -146,8 +146,8 @@ def bench_mesh(
     sizes = _sizes(memory_tests, "--memory-tests")
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count") or max(1, min(os.cpu_count() or 1, 16))
     algorithms = ["ra2vipas", "rapas", "ravipas"]
-    report: dict = {"benchmark": "mesh", "rigs": rigs, "window": window, "targets": {"steps_per_second": 2200, "latency_p99_ms": 5.0},
-                    "steps_per_second": None}
+    report: dict = {"benchmark": "mesh", "rigs": rigs, "window": window,
+                    "targets": {"steps_per_second": 2200, "latency_p99_ms": 5.0}, "steps_per_second": None}
     with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
 
         def stack_of(n: int, name: str) -> Stack:
@@ -158,8 +158,8 @@ def bench_mesh(
             stack = stack_of(rigs, "fast")
             try:
                 stack.start()
-                fast, fast_wall = _run_campaign(stack.api_url, {"preset": "paper", "tests": tests, "seed": 1, "algorithms": algorithms},
-                                                1800)
+                body = {"preset": "paper", "tests": tests, "seed": 1, "algorithms": algorithms}
+                fast, fast_wall = _run_campaign(stack.api_url, body, 1800)
                 report["fast"] = {
                     "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
                     "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),

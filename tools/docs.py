@@ -86,7 +86,8 @@ def first_tests(preset: str, overrides: dict[str, Any], seed: int, tests: int, s
         hits[name] = "".join("1" if o.hits[-1] else "0" for o in outcomes)
         choices[name] = [[o.chosen, o.decided_step] for o in outcomes]
     if oracle:
-        hits["oracle"] = "".join("1" if choice == tx else "0" for choice, tx in (oracle_choice(scenario, seed, k) for k in range(tests)))
+        oracle_hits = (choice == tx for choice, tx in (oracle_choice(scenario, seed, k) for k in range(tests)))
+        hits["oracle"] = "".join("1" if hit else "0" for hit in oracle_hits)
     digest = hashlib.sha256(json.dumps(choices, separators=(",", ":")).encode()).hexdigest()[:16]
     return {"tests": tests, "pod_r2": pod.r2, "final_hits": hits, "choices_sha256": digest}
 

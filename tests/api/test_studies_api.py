@@ -149,7 +149,8 @@ def test_a_study_with_stop_confidence_reports_decisions_in_its_rows(grid_study, 
         assert row["decision_median_s"] == decision["median_s"]
     text = http.get(f"/studies/{grid_study['id']}/results", params={"format": "csv"}).text
     rows = list(csv.DictReader(io.StringIO("\n".join(ln for ln in text.splitlines() if not ln.startswith("#")))))
-    assert "# stop_confidence: 0.9" in text and [float(r["decision_accuracy"]) for r in rows] == [r["decision_accuracy"] for r in res["rows"]]
+    assert "# stop_confidence: 0.9" in text
+    assert [float(r["decision_accuracy"]) for r in rows] == [r["decision_accuracy"] for r in res["rows"]]
 
 
 def test_a_study_in_realtime_mode_runs_its_points_in_realtime(grid_study, live, http):
@@ -162,8 +163,10 @@ def test_a_study_in_realtime_mode_runs_its_points_in_realtime(grid_study, live, 
         assert http.get(f"/campaigns/{cid}").json()["mode"] == "realtime"
         latency = http.get(f"/campaigns/{cid}/results").json()["latency_ms"]  # only a realtime campaign has one
         with sqlite3.connect(live.db_path) as db:
-            recorded = [v for (text,) in db.execute("SELECT latencies FROM episodes WHERE campaign_id=?", (cid,)) for v in json.loads(text)]
-        assert recorded and latency == {"p50": round(float(np.percentile(recorded, 50)), 4), "p99": round(float(np.percentile(recorded, 99)), 4)}
+            stored = db.execute("SELECT latencies FROM episodes WHERE campaign_id=?", (cid,)).fetchall()
+        recorded = [v for (text,) in stored for v in json.loads(text)]
+        assert recorded and latency == {"p50": round(float(np.percentile(recorded, 50)), 4),
+                                        "p99": round(float(np.percentile(recorded, 99)), 4)}
 
 
 def test_studies_come_in_pages_newest_first(done_study, grid_study, http):
@@ -174,7 +177,8 @@ def test_studies_come_in_pages_newest_first(done_study, grid_study, http):
     created = [s["created_at"] for s in everything["items"]]
     assert created == sorted(created, reverse=True)  # newest first
     pages = [http.get("/studies", params={"limit": 1, "offset": k}).json() for k in range(len(ids))]
-    assert [p["items"][0]["id"] for p in pages] == ids and all(p["total"] == len(ids) and p["offset"] == k for k, p in enumerate(pages))
+    assert [p["items"][0]["id"] for p in pages] == ids
+    assert all(p["total"] == len(ids) and p["offset"] == k for k, p in enumerate(pages))
     two = http.get("/studies", params={"limit": 2, "offset": 1}).json()
     assert [s["id"] for s in two["items"]] == ids[1:3] and two["limit"] == 2
     past = http.get("/studies", params={"offset": len(ids)}).json()
@@ -356,7 +360,8 @@ def test_a_study_survives_a_restart_of_the_orchestrator_in_the_middle_of_running
     finally:
         second.stop()
     with sqlite3.connect(db) as conn:
-        recorded = conn.execute("SELECT campaign_id, test_index, COUNT(*) FROM episodes WHERE status='done' GROUP BY 1, 2").fetchall()
+        recorded = conn.execute("SELECT campaign_id, test_index, COUNT(*) FROM episodes WHERE status='done'"
+                                " GROUP BY campaign_id, test_index").fetchall()
     assert len(recorded) == 10 and all(n == 1 for *_, n in recorded)
     in_one_go = ra2vipas.study(body["vary"], preset="paper", overrides=BASE, tests=5, seed=body["seed"], algorithms=["rapas"])
     resumed = [{k: v for k, v in row.items() if k != "campaign_id"} for row in res["rows"]]

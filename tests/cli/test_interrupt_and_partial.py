@@ -183,4 +183,5 @@ def test_a_failed_campaign_has_partial_results_of_its_recorded_episodes(live, mo
 
     shown = ra2vipas("campaign", "results", cid, "--api", live.url)
     assert shown.returncode == 0, shown.stderr
-    assert f"partial results: the campaign stopped before its end; tests recorded: ra2vipas 3 (of {tests})" in " ".join(shown.stdout.split())
+    said = " ".join(shown.stdout.split())
+    assert f"partial results: the campaign stopped before its end; tests recorded: ra2vipas 3 (of {tests})" in said

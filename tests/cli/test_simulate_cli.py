@@ -135,7 +135,8 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
     expected = run_campaign("paper", build_scenario("paper"), 2, 1, ["ra2vipas", "rapas", "ravipas"])
     assert report["fast"]["dr_final"] == {a: s["dr_final"] for a, s in expected["algorithms"].items()}
     [memory] = report["memory"]
-    assert {k: memory[k] for k in ("tests", "steps", "algorithm", "episodes")} == {"tests": 3, "steps": 5, "algorithm": "rapas", "episodes": 3}
+    assert {k: memory[k] for k in ("tests", "steps", "algorithm", "episodes")} == {
+        "tests": 3, "steps": 5, "algorithm": "rapas", "episodes": 3}
     assert 0 < memory["orchestrator_rss_before_mb"] <= memory["orchestrator_peak_rss_mb"]
     assert 0 < memory["orchestrator_rss_after_mb"] <= memory["orchestrator_peak_rss_mb"]
     assert memory["orchestrator_pid"] not in before and memory["seconds"] > 0

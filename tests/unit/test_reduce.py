@@ -128,7 +128,8 @@ def test_latency_tally_is_np_percentile_value_for_value_in_any_batching(seed):
         assert tally.count == n
         for q in (0, 1, 25, 50, 90, 99, 99.9, 100):
             assert tally.percentiles([q]) == [float(np.percentile(values, q))], (n, q)
-        assert tally.summary() == {"p50": round(float(np.percentile(values, 50)), 4), "p99": round(float(np.percentile(values, 99)), 4)}
+        assert tally.summary() == {"p50": round(float(np.percentile(values, 50)), 4),
+                                   "p99": round(float(np.percentile(values, 99)), 4)}
     assert LatencyTally().summary() is None
 
 
@@ -151,7 +152,8 @@ def test_the_end_of_campaign_reduction_holds_no_per_step_latency():
     def recorded(episodes: int):
         for k in range(episodes):  # rows as Store.episode_outcomes yields them, one at a time, decoded
             yield {"algorithm": "ra2vipas", "hits": list(hits), "in_fov": list(hits), "confidences": None, "decided_step": None,
-                   "n_estimates": 120, "latencies": json.loads(stored[k % len(stored)]), "rig": "rig-1", "model_check": json.loads(check)}
+                   "n_estimates": 120, "latencies": json.loads(stored[k % len(stored)]), "rig": "rig-1",
+                   "model_check": json.loads(check)}
 
     def peak_kib(episodes: int) -> float:
         tracemalloc.start()
@@ -166,4 +168,5 @@ def test_the_end_of_campaign_reduction_holds_no_per_step_latency():
     assert large - small < 512, f"peak {small:.0f} KiB for 500 episodes, {large:.0f} KiB for 2 000"
     _, latencies, _ = reduce_recorded(recorded(700), ["ra2vipas"], scenario)
     every = [v for row in recorded(700) for v in row["latencies"]]
-    assert latencies.summary() == {"p50": round(float(np.percentile(every, 50)), 4), "p99": round(float(np.percentile(every, 99)), 4)}
+    assert latencies.summary() == {"p50": round(float(np.percentile(every, 50)), 4),
+                                   "p99": round(float(np.percentile(every, 99)), 4)}
