@@ -111,8 +111,11 @@ def bench_mesh(
     rigs: Annotated[int, typer.Option("--rig-count", min=0, max=16, help="Sensor+controller pairs for fast mode (0: one per CPU core).")] = 0,
     old_rigs: Annotated[Optional[int], deprecated("--rigs", "--rig-count", min=0, max=16)] = None,
     window: Annotated[int, typer.Option(min=1, max=256, help="Episodes in flight per rig.")] = 8,
-    tests: Annotated[int, typer.Option(min=1, max=1000, help="Tests of the fast-mode campaign.")] = 50,
+    tests: Annotated[int, typer.Option(min=0, max=1000, help="Tests of the fast-mode campaign (0: skip).")] = 50,
     realtime_tests: Annotated[int, typer.Option(min=0, max=64, help="Tests of the realtime campaign (0: skip); 8 tests give ~950 samples, so p99 rests on ~10 of them.")] = 8,
+    memory_tests: Annotated[str, typer.Option(help="Campaign sizes whose orchestrator peak memory to measure, comma-separated, e.g. 1000,10000 (default: none).")] = "",
+    memory_steps: Annotated[int, typer.Option(min=1, max=1000, help="n_test of the memory campaigns (short, so 10 000 tests take minutes).")] = 20,
+    memory_algorithm: Annotated[str, typer.Option(help="The algorithm of the memory campaigns.")] = "rapas",
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Start local stacks and measure them through the real processes.
@@ -121,36 +124,52 @@ def bench_mesh(
     lockstep on RIG_COUNT rigs; reports control steps per second (target >= 2 200 on 2 cores).
     Realtime mode: REALTIME_TESTS tests paced at T_RF on one rig (one platform in the loop);
     reports the sample-to-command latency p50/p99 measured by the sensors (target p99 <= 5
-    ms). Every stack is stopped afterwards.
+    ms). Memory (with --memory-tests): one campaign of each size (MEMORY_STEPS steps,
+    MEMORY_ALGORITHM) on RIG_COUNT rigs, each on a fresh stack; reports the orchestrator
+    process's peak resident memory (VmHWM) and its resident memory before and after (VmRSS).
+    Every stack is stopped afterwards.
+
+    Examples:
+
+        ra2vipas bench mesh --json
+
+        ra2vipas bench mesh --tests 0 --realtime-tests 0 --memory-tests 1000,10000 --json
     """
     import os
     import tempfile
 
     from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
+    from ra2vipas.services.protocol.messages import ALGORITHMS
 
+    if memory_algorithm not in ALGORITHMS:
+        fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
+    sizes = _sizes(memory_tests, "--memory-tests")
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count") or max(1, min(os.cpu_count() or 1, 16))
     algorithms = ["ra2vipas", "rapas", "ravipas"]
-    report: dict = {"benchmark": "mesh", "rigs": rigs, "window": window, "targets": {"steps_per_second": 2200, "latency_p99_ms": 5.0}}
+    report: dict = {"benchmark": "mesh", "rigs": rigs, "window": window,
+                    "targets": {"steps_per_second": 2200, "latency_p99_ms": 5.0}, "steps_per_second": None}
     with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
 
         def stack_of(n: int, name: str) -> Stack:
             return Stack(StackConfig(rigs=n, port=free_port(), db_path=os.path.join(tmp, f"{name}.db"), window=window,
                                      log_dir=os.path.join(tmp, f"logs-{name}"), log_level="WARNING"))
 
-        stack = stack_of(rigs, "fast")
-        try:
-            stack.start()
-            fast, fast_wall = _run_campaign(stack.api_url, {"preset": "paper", "tests": tests, "seed": 1, "algorithms": algorithms}, 1800)
-            report["fast"] = {
-                "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
-                "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
-                "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
-            }
-            report["steps_per_second"] = fast["steps_per_second"]
-        except (StackError, TimeoutError, RuntimeError) as err:
-            fail(f"bench mesh (fast): {err}")
-        finally:
-            stack.stop()
+        if tests:
+            stack = stack_of(rigs, "fast")
+            try:
+                stack.start()
+                body = {"preset": "paper", "tests": tests, "seed": 1, "algorithms": algorithms}
+                fast, fast_wall = _run_campaign(stack.api_url, body, 1800)
+                report["fast"] = {
+                    "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
+                    "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
+                    "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
+                }
+                report["steps_per_second"] = fast["steps_per_second"]
+            except (StackError, TimeoutError, RuntimeError) as err:
+                fail(f"bench mesh (fast): {err}")
+            finally:
+                stack.stop()
         report["latency_ms"] = None
         if realtime_tests:
             stack = stack_of(1, "realtime")
@@ -165,12 +184,71 @@ def bench_mesh(
                 fail(f"bench mesh (realtime): {err}")
             finally:
                 stack.stop()
+        if sizes:
+            report["memory"] = []
+        for size in sizes:
+            stack = stack_of(rigs, f"memory-{size}")
+            try:
+                stack.start()
+                report["memory"].append(_mesh_memory(stack, size, memory_steps, memory_algorithm))
+            except (StackError, TimeoutError, RuntimeError) as err:
+                fail(f"bench mesh (memory, {size} tests): {err}")
+            finally:
+                stack.stop()
     if as_json:
         print_json(report)
-    else:
+        return
+    if tests or realtime_tests:
         lat = report["latency_ms"] or {}
         stdout.print(f"mesh ({rigs} rigs): {report['steps_per_second']} control steps/s in fast mode (target 2200); "
                      f"realtime sample->command latency p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms (target p99 <= 5)")
+    for m in report.get("memory") or []:
+        stdout.print(f"{m['tests']} tests ({m['steps']} steps, {m['algorithm']}, {rigs} rigs): orchestrator peak RSS "
+                     f"{m['orchestrator_peak_rss_mb']} MB ({m['orchestrator_rss_before_mb']} MB before the campaign, "
+                     f"{m['orchestrator_rss_after_mb']} MB after), {m['seconds']} s")
+
+
+def _sizes(text: str, option: str) -> list[int]:
+    """Comma-separated campaign sizes (tests) of a memory benchmark; a usage error if malformed."""
+    try:
+        sizes = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        fail(f"{option} expects comma-separated integers, got {text!r}", EXIT_USAGE)
+    bad = [n for n in sizes if not 1 <= n <= MAX_TESTS]
+    if bad:
+        fail(f"{option}: a campaign has 1 to {MAX_TESTS} tests, got {bad[0]}", EXIT_USAGE)
+    return sizes
+
+
+def _status_kb(pid: int, field: str) -> int | None:
+    """A ``/proc/PID/status`` field in kB (``VmRSS``: resident now, ``VmHWM``: its peak), None if unreadable."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith(f"{field}:"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        return None
+
+
+def _mb(kb: int | None) -> float | None:
+    return None if kb is None else round(kb / 1024, 1)
+
+
+def _mesh_memory(stack, tests: int, steps: int, algorithm: str) -> dict:
+    """One campaign of ``tests`` tests on a freshly started stack: the orchestrator process's
+    resident memory before the campaign, after it, and its peak over its whole life (VmHWM)."""
+    pid = next((c.proc.pid for c in stack.children if c.name == "orchestrator" and c.proc is not None), None)
+    if pid is None:
+        raise RuntimeError("the stack has no orchestrator process")
+    before = _status_kb(pid, "VmRSS")
+    body = {"preset": "paper", "overrides": {"steps": steps}, "tests": tests, "seed": 1, "algorithms": [algorithm]}
+    results, wall = _run_campaign(stack.api_url, body, 7200, poll=0.5)
+    after, peak = _status_kb(pid, "VmRSS"), _status_kb(pid, "VmHWM")
+    if peak is None:
+        raise RuntimeError(f"cannot read /proc/{pid}/status (the orchestrator's memory)")
+    return {"tests": tests, "steps": steps, "algorithm": algorithm, "episodes": tests, "seconds": round(wall, 2),
+            "steps_per_second": results["steps_per_second"], "orchestrator_pid": pid, "orchestrator_peak_rss_mb": _mb(peak),
+            "orchestrator_rss_before_mb": _mb(before), "orchestrator_rss_after_mb": _mb(after),
+            "dr_final": results["algorithms"][algorithm]["dr_final"]}
 
 
 # -- bench plots ---------------------------------------------------------------------------------
@@ -633,10 +711,7 @@ def bench_simulate(
 
     if memory_algorithm not in ALGORITHMS:
         fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
-    try:
-        sizes = [int(v) for v in memory_tests.split(",") if v.strip()]
-    except ValueError:
-        fail(f"--memory-tests expects comma-separated integers, got {memory_tests!r}", EXIT_USAGE)
+    sizes = _sizes(memory_tests, "--memory-tests")
     n = workers or default_workers()
     scenario = build_scenario("paper")
     point = Point("paper", scenario, tests, seed, tuple(ALGORITHMS))

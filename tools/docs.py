@@ -4,16 +4,19 @@
                                     # write docs/results.json, the figure, and the README blocks
     python tools/docs.py --render   # only re-render the README blocks from docs/results.json
     python tools/docs.py --check    # exit 1 when the README's blocks differ from docs/results.json
+    python tools/docs.py --first-tests  # add the missing ``first_tests`` records (seconds), nothing else
 
 Each generated block of README.md sits between ``<!-- docs:NAME -->`` and ``<!-- /docs:NAME -->``
 and is rendered from docs/results.json only, so the README cannot say anything the JSON does
-not. tests/docs/test_readme_numbers.py checks README == render(JSON) exactly, and reruns the
-JSON's small ``check`` campaign to show the JSON is what the current code prints.
+not. tests/docs/test_readme_numbers.py checks README == render(JSON) exactly, reruns the
+JSON's small ``check`` campaign, and reruns the first tests of every documented campaign (each
+one's ``first_tests`` record) to show the JSON is what the current code prints.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import re
@@ -32,6 +35,9 @@ TIMES_S = (1, 2, 4, 8, 12)
 ALGORITHMS = ("ra2vipas", "rapas", "ravipas", "sweep")
 # the small campaign the test suite reruns (seconds) to show the JSON is what the code prints
 CHECK = {"preset": "paper", "overrides": {"steps": 60}, "tests": 12, "seed": 1}
+# the first tests of every documented campaign (robustness: of every world) that the suite reruns
+FIRST_TESTS = 3
+FIRST_TESTS_ROBUSTNESS = 1
 
 
 # -- collecting -------------------------------------------------------------------------------------
@@ -58,6 +64,65 @@ def _campaign_summary(results: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def first_tests(preset: str, overrides: dict[str, Any], seed: int, tests: int, stop_confidence: float = 0.0,
+                oracle: bool = False) -> dict[str, Any]:
+    """Tests 0 .. ``tests``-1 of a documented campaign, rerun on their own: the POD R² (eq. 23;
+    the model depends on (scenario, seed) only, so it is the whole campaign's), each
+    algorithm's (and with ``oracle``, the oracle's) final hits [î = i*] (one character per
+    test, "1": a hit), and a digest of every step's choice î_t (eq. 11) and early decision
+    step of every test. Every draw of test k depends only on (seed, k), so these are the first
+    tests of the documented campaign, and a change to the code that moves any of them moves
+    this record."""
+    from ra2vipas.services.orchestrator.oracle import oracle_choice
+    from ra2vipas.services.orchestrator.simulate import run_test, train_pod
+    from ra2vipas.services.protocol.scenario import build_scenario
+
+    scenario = build_scenario(preset, overrides)
+    pod = train_pod(scenario, seed)
+    hits: dict[str, str] = {}
+    choices: dict[str, list[Any]] = {}
+    for name in ALGORITHMS:
+        outcomes = [run_test(scenario, seed, k, name, pod.model, stop_confidence=stop_confidence) for k in range(tests)]
+        hits[name] = "".join("1" if o.hits[-1] else "0" for o in outcomes)
+        choices[name] = [[o.chosen, o.decided_step] for o in outcomes]
+    if oracle:
+        oracle_hits = (choice == tx for choice, tx in (oracle_choice(scenario, seed, k) for k in range(tests)))
+        hits["oracle"] = "".join("1" if hit else "0" for hit in oracle_hits)
+    digest = hashlib.sha256(json.dumps(choices, separators=(",", ":")).encode()).hexdigest()[:16]
+    return {"tests": tests, "pod_r2": pod.r2, "final_hits": hits, "choices_sha256": digest}
+
+
+def documented_campaigns(data: dict[str, Any]) -> list[tuple[str, dict[str, Any], dict[str, Any]]]:
+    """Every documented campaign as (label, ``first_tests`` arguments, its entry in ``data``)."""
+    out = [(f"{preset} seed {seed}", {"preset": preset, "overrides": {}, "seed": int(seed), "tests": FIRST_TESTS}, entry)
+           for preset in ("paper", "dynamic") for seed, entry in data[preset].items()]
+    early = data["early_decision"]
+    out.append((f"paper seed {early['seed']} --stop-confidence {early['stop_confidence']}",
+                {"preset": "paper", "overrides": {}, "seed": early["seed"], "tests": FIRST_TESTS,
+                 "stop_confidence": early["stop_confidence"]}, early))
+    robustness = data["robustness"]
+    out += [(f"robustness {name}", {"preset": s["preset"], "overrides": s["overrides"], "seed": robustness["seed"],
+                                    "tests": FIRST_TESTS_ROBUSTNESS, "oracle": True}, s)
+            for name, s in robustness["scenarios"].items()]
+    return out
+
+
+def fill_first_tests(data: dict[str, Any], progress: Callable[[str], None] = print) -> dict[str, Any]:
+    """Add the ``first_tests`` record of every documented campaign that has none (seconds),
+    leaving every other number as it is; a record already there is kept (a change that moves
+    it needs `make docs`). Raises ``SystemExit`` when a rerun's POD R² is not the campaign's:
+    then the JSON is not what this code printed, and only `make docs` can say what it prints."""
+    for label, spec, entry in documented_campaigns(data):
+        if "first_tests" in entry:
+            continue
+        progress(f"first {spec['tests']} tests of {label}")
+        record = first_tests(**spec)
+        if "pod_r2" in entry and record["pod_r2"] != entry["pod_r2"]:
+            raise SystemExit(f"error: {label}: POD R² {record['pod_r2']} now, {entry['pod_r2']} recorded: run `make docs`")
+        entry["first_tests"] = record
+    return data
+
+
 def collect(progress: Callable[[str], None] = print) -> dict[str, Any]:
     """Run everything the README documents (minutes on 2 cores)."""
     import ra2vipas
@@ -80,7 +145,7 @@ def collect(progress: Callable[[str], None] = print) -> dict[str, Any]:
     data["robustness"] = run_robustness(tests=TESTS, seed=1, workers=workers)
     progress("the check campaign")
     data["check"] = {**CHECK, "results": _untimed(ra2vipas.simulate(**CHECK, workers=1))}
-    return data
+    return fill_first_tests(data, progress)
 
 
 # -- rendering --------------------------------------------------------------------------------------
@@ -178,7 +243,13 @@ def main(argv: list[str] | None = None) -> int:
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--render", action="store_true", help="only re-render the README blocks from docs/results.json")
     mode.add_argument("--check", action="store_true", help="exit 1 if the README blocks differ from docs/results.json")
+    mode.add_argument("--first-tests", action="store_true",
+                      help="add the missing first_tests records to docs/results.json (seconds), nothing else")
     args = parser.parse_args(argv)
+    if args.first_tests:
+        data = fill_first_tests(json.loads(RESULTS.read_text()), lambda what: print(f"docs: {what}", file=sys.stderr))
+        RESULTS.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+        return 0
     if args.check or args.render:
         data = json.loads(RESULTS.read_text())
     else:

@@ -14,6 +14,9 @@ episode at a time and keeps only running sums over steps and one scalar per test
   scalars, never O(tests x T));
 * early decisions: each test's decided step.
 
+``LatencyTally`` does the same for a realtime campaign's sample-to-command latencies: a count
+per 0.1 µs bin instead of every (test, step) latency, and the same p50/p99.
+
 ``AlgorithmTally.summary()`` returns the same block, value for value, as
 ``summarize_algorithm`` on the whole array, whatever order the episodes arrive in (unit tests
 check both on random outcomes). Every sum it keeps is exact: counts are integers, and the
@@ -28,7 +31,8 @@ from __future__ import annotations
 
 import math
 from array import array
-from typing import Any, Mapping
+from collections import Counter
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 
@@ -170,6 +174,93 @@ class AlgorithmTally:
             "in_fov_final": round(self._final_in_fov / tests, 6),
             **extra,
         }
+
+
+class LatencyTally:
+    """A realtime campaign's sample-to-command latencies [ms], reduced as they arrive: a count
+    per bin of width 10**-DECIMALS ms (0.1 µs: the sensors report latencies rounded to it and
+    the results print them so), kept sparse. Memory grows with the distinct latencies seen (at
+    most one bin per 0.1 µs of the range they span), never with tests x steps, and
+    ``percentile`` is ``np.percentile``'s (linear interpolation between order statistics,
+    Hyndman & Fan's 7th method) of the latencies rounded to the bin width: exact, value for
+    value, for the latencies the sensors send. Non-finite values are ignored (the protocol
+    refuses them).
+    """
+
+    DECIMALS = 4
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._bins: Counter[int] = Counter()  # bin index (latency x 10**DECIMALS, rounded) -> samples
+
+    @property
+    def bins(self) -> int:
+        """How many distinct bins are held (what the memory grows with)."""
+        return len(self._bins)
+
+    def add(self, latencies_ms: Iterable[float]) -> None:
+        """One episode's latencies (or any batch of them), in any order."""
+        scale = 10 ** self.DECIMALS
+        bins = self._bins
+        for value in latencies_ms:
+            if math.isfinite(value):
+                bins[round(value * scale)] += 1
+                self.count += 1
+
+    def _order_statistics(self, ranks: Iterable[int]) -> dict[int, float]:
+        """The latencies at the given 0-based ranks of the sorted sample."""
+        wanted = sorted(set(ranks))
+        out: dict[int, float] = {}
+        seen = 0
+        i = 0
+        for key in sorted(self._bins):
+            seen += self._bins[key]
+            while i < len(wanted) and wanted[i] < seen:
+                out[wanted[i]] = key / 10 ** self.DECIMALS  # the nearest double to the rounded decimal, as round(v, 4) gives
+                i += 1
+            if i == len(wanted):
+                break
+        return out
+
+    def percentiles(self, qs: Iterable[float]) -> list[float]:
+        """``np.percentile(latencies, q)`` for each q in ``qs`` (percent), with numpy's operations
+        in numpy's order: virtual index (n - 1) q / 100, gamma its fractional part, and the
+        interpolation computed from the nearer neighbour (``numpy.lib._function_base_impl._lerp``).
+
+        Raises
+        ------
+        ValueError
+            No latency was added.
+        """
+        n = self.count
+        if n == 0:
+            raise ValueError("no latency to summarize")
+        plan = []
+        for q in qs:
+            virtual = (n - 1) * (q / 100)
+            below = math.floor(virtual)
+            if virtual >= n - 1:
+                lo = hi = n - 1
+            elif virtual < 0:
+                lo = hi = 0
+            else:
+                lo, hi = below, below + 1
+            plan.append((lo, hi, virtual - below))
+        values = self._order_statistics(r for lo, hi, _ in plan for r in (lo, hi))
+        out = []
+        for lo, hi, gamma in plan:
+            a, b = values[lo], values[hi]
+            diff = b - a
+            out.append(b - diff * (1 - gamma) if gamma >= 0.5 else a + diff * gamma)
+        return out
+
+    def summary(self) -> dict[str, float] | None:
+        """The results object's ``latency_ms`` block, ``{"p50", "p99"}`` rounded to 4 decimals;
+        None if no latency was added."""
+        if self.count == 0:
+            return None
+        p50, p99 = self.percentiles((50, 99))
+        return {"p50": round(float(p50), 4), "p99": round(float(p99), 4)}
 
 
 def results_object(preset: str, scenario, tests: int, seed: int, pod, tallies: Mapping[str, AlgorithmTally],

@@ -17,6 +17,7 @@ fits Rx(dir)'s samples) and whether each episode used a descriptor or the scenar
 from __future__ import annotations
 
 import statistics
+from array import array
 from collections import Counter
 from typing import Any, Iterable
 
@@ -59,44 +60,66 @@ def dr_warnings(results: dict[str, Any]) -> list[str]:
             f"antenna_model"]
 
 
-def rig_notes(results: dict[str, Any], checks: Iterable[tuple[str | None, dict | None]]) -> dict[str, Any]:
-    """Add to ``results`` (in place; also returned) what the episodes' model checks say.
+class RigChecks:
+    """What the episodes' model checks say, reduced as the episodes arrive (``add``), in
+    memory that does not grow with what a check carries: counts per rig and per assumed Rx(dir)
+    response, and the lobe evidence of the contradicted radio episodes only (one float each)."""
 
-    ``checks``: per recorded episode, the rig it ran on and its ``model_check`` (None from a v1
-    controller). Adds ``assumptions`` when some episodes were modelled from the scenario (an
-    undescribed rig or a v1 controller): how many, on which rigs; and a warning when Rx(dir)'s
-    samples contradict the assumed response in at least half of the radio episodes.
-    """
-    scenario_rigs: Counter = Counter()
-    evidence: list[float] = []
-    assumed: Counter = Counter()
-    total = 0
-    for rig, check in checks:
-        total += 1
+    def __init__(self) -> None:
+        self.total = 0
+        self.with_evidence = 0  # radio episodes that reported lobe evidence
+        self.scenario_rigs: Counter = Counter()  # rig -> episodes modelled from the scenario
+        self.assumed: Counter = Counter()  # Rx(dir) response assumed -> episodes with lobe evidence
+        self.contradicted = array("d")  # lobe evidence below -CONTRADICTION_NATS
+
+    def add(self, rig: str | None, check: dict | None) -> None:
+        """One recorded episode: the rig it ran on and its ``model_check`` (None from a v1
+        controller)."""
+        self.total += 1
         if check is None or check.get("sensor_model") != "descriptor":
-            scenario_rigs[rig or "?"] += 1
+            self.scenario_rigs[rig or "?"] += 1
         if check is not None and check.get("lobe_evidence") is not None:
-            evidence.append(float(check["lobe_evidence"]))
-            assumed[check.get("rx_dir", "paper")] += 1
-    if scenario_rigs:
-        results["assumptions"] = {
-            "sensor_model": "scenario", "episodes": sum(scenario_rigs.values()), "of": total, "rigs": sorted(scenario_rigs),
-            "note": "these episodes ran on undescribed rigs (or v1 controllers): their controllers took the hardware "
-                    "(nu, T_RF, field of view, box noise, Rx(dir) response) from the campaign's scenario, and they were "
-                    "scored under the scenario's assumptions",
-        }
-    warnings = list(results.get("warnings") or [])
-    contradicted = [e for e in evidence if e < -CONTRADICTION_NATS]
-    if evidence and len(contradicted) >= max(1, CONTRADICTED_SHARE * len(evidence)):
-        rx_dir = assumed.most_common(1)[0][0]
-        warnings.append(
-            f"the directional RSSI contradicts the assumed Rx(dir) response {rx_dir!r} in {len(contradicted)} of {len(evidence)} "
-            f"radio episodes (the opposite lobe orientation fits their samples better, by a median of "
-            f"{-statistics.median(contradicted):.1f} nats): the rig's antenna is likely {_other_model(rx_dir)}; describe the rig "
-            f"(rx_dir: its model, or 'unknown' to have the controller learn it) or set antenna_model")
-    if warnings:
-        results["warnings"] = warnings
-    return results
+            evidence = float(check["lobe_evidence"])
+            self.with_evidence += 1
+            self.assumed[check.get("rx_dir", "paper")] += 1
+            if evidence < -CONTRADICTION_NATS:
+                self.contradicted.append(evidence)
+
+    def notes(self, results: dict[str, Any]) -> dict[str, Any]:
+        """Add to ``results`` (in place; also returned) ``assumptions`` when some episodes were
+        modelled from the scenario (an undescribed rig or a v1 controller): how many, on which
+        rigs; and a warning when Rx(dir)'s samples contradict the assumed response in at least
+        half of the radio episodes."""
+        if self.scenario_rigs:
+            results["assumptions"] = {
+                "sensor_model": "scenario", "episodes": sum(self.scenario_rigs.values()), "of": self.total,
+                "rigs": sorted(self.scenario_rigs),
+                "note": "these episodes ran on undescribed rigs (or v1 controllers): their controllers took the hardware "
+                        "(nu, T_RF, field of view, box noise, Rx(dir) response) from the campaign's scenario, and they were "
+                        "scored under the scenario's assumptions",
+            }
+        warnings = list(results.get("warnings") or [])
+        contradicted = self.contradicted
+        if self.with_evidence and len(contradicted) >= max(1, CONTRADICTED_SHARE * self.with_evidence):
+            rx_dir = self.assumed.most_common(1)[0][0]
+            warnings.append(
+                f"the directional RSSI contradicts the assumed Rx(dir) response {rx_dir!r} in {len(contradicted)} of "
+                f"{self.with_evidence} radio episodes (the opposite lobe orientation fits their samples better, by a median of "
+                f"{-statistics.median(contradicted):.1f} nats): the rig's antenna is likely {_other_model(rx_dir)}; describe the "
+                f"rig (rx_dir: its model, or 'unknown' to have the controller learn it) or set antenna_model")
+        if warnings:
+            results["warnings"] = warnings
+        return results
+
+
+def rig_notes(results: dict[str, Any], checks: Iterable[tuple[str | None, dict | None]]) -> dict[str, Any]:
+    """Add to ``results`` (in place; also returned) what the episodes' model checks say
+    (``RigChecks.notes``). ``checks``: per recorded episode, the rig it ran on and its
+    ``model_check`` (None from a v1 controller)."""
+    reduced = RigChecks()
+    for rig, check in checks:
+        reduced.add(rig, check)
+    return reduced.notes(results)
 
 
 class TargetingError(ValueError):

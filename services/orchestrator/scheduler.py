@@ -43,18 +43,18 @@ import threading
 import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
 from ra2vipas.services.learner.pod import predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
-from ra2vipas.services.orchestrator.reduce import AlgorithmTally, results_object
+from ra2vipas.services.orchestrator.reduce import AlgorithmTally, LatencyTally, results_object
 from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
 from ra2vipas.services.orchestrator.storage import EpisodeKey, StorageFault, Store
 from ra2vipas.services.orchestrator.study_store import StudyStore
 from ra2vipas.services.protocol import keys
-from ra2vipas.services.orchestrator.rigcheck import rig_notes
+from ra2vipas.services.orchestrator.rigcheck import RigChecks
 from ra2vipas.services.protocol.messages import (
     EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Mode, PODRequest, PODResponse,
     TrainingRequest, TrainingTruth, dump,
@@ -599,24 +599,15 @@ class Scheduler:
         c = self.store.campaign(run.id)
         if c is None or c["progress"]["done"] < c["progress"]["total"]:
             return
-        steps = run.scenario.steps
-        # streamed: one page of episodes in memory at a time, reduced into running sums (reduce.AlgorithmTally)
-        tallies = {a: AlgorithmTally(steps, run.scenario.rf_period_s) for a in c["algorithms"]}
-        latencies: list[float] = []
-        checks: list[tuple[str | None, dict | None]] = []
-        for row in self.store.episode_outcomes(run.id):
-            tallies[row["algorithm"]].add(row["hits"], row["in_fov"], held(row.get("confidences") or [], steps) or None,
-                                          row.get("decided_step"), row["n_estimates"])
-            latencies += row.get("latencies") or []
-            checks.append((row.get("rig"), row.get("model_check")))
+        tallies, latencies, checks = reduce_recorded(self.store.episode_outcomes(run.id), c["algorithms"], run.scenario)
         finished = time.time()
         elapsed = finished - (run.running_since or finished)
         steps_run = sum(t.steps_run for t in tallies.values())
         sps = (steps_run / elapsed) if elapsed > 0 else None
         results = results_object(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, tallies, sps, run.stop_confidence)
-        if latencies:
-            results["latency_ms"] = {"p50": round(float(np.percentile(latencies, 50)), 4), "p99": round(float(np.percentile(latencies, 99)), 4)}
-        rig_notes(results, checks)
+        if latencies.count:
+            results["latency_ms"] = latencies.summary()
+        checks.notes(results)
         if results["pod"].get("r2") is None:
             results["pod"]["note"] = ("R² not scored: no rig served the training truth (truth/*/training) when the model was "
                                       "trained; a hardware rig cannot, a simulated one or an operator can")
@@ -726,6 +717,25 @@ class Scheduler:
             "rejected": dict(self.rejected),
             "waiting_writes": len(self._deferred),
         }
+
+
+def reduce_recorded(rows: Iterable[dict[str, Any]], algorithms: Iterable[str],
+                    scenario: Scenario) -> tuple[dict[str, AlgorithmTally], LatencyTally, RigChecks]:
+    """A campaign's recorded episodes (``Store.episode_outcomes``: read a page at a time)
+    reduced as they stream past, in memory that does not grow with tests x steps: per
+    algorithm its running sums (``reduce.AlgorithmTally``), the realtime latencies as a
+    histogram (``reduce.LatencyTally``) and the controllers' model checks as counts
+    (``rigcheck.RigChecks``)."""
+    steps = scenario.steps
+    tallies = {a: AlgorithmTally(steps, scenario.rf_period_s) for a in algorithms}
+    latencies = LatencyTally()
+    checks = RigChecks()
+    for row in rows:
+        tallies[row["algorithm"]].add(row["hits"], row["in_fov"], held(row.get("confidences") or [], steps) or None,
+                                      row.get("decided_step"), row["n_estimates"])
+        latencies.add(row.get("latencies") or ())
+        checks.add(row.get("rig"), row.get("model_check"))
+    return tallies, latencies, checks
 
 
 def episode_id(key: EpisodeKey, attempt: int) -> str:

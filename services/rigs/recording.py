@@ -302,8 +302,8 @@ def replay_scores(rec: Recording) -> dict[str, Any]:
         A test of the campaign has no recorded episode.
     """
     from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
-    from ra2vipas.services.orchestrator.reduce import AlgorithmTally, results_object
-    from ra2vipas.services.orchestrator.rigcheck import rig_notes
+    from ra2vipas.services.orchestrator.reduce import AlgorithmTally, LatencyTally, results_object
+    from ra2vipas.services.orchestrator.rigcheck import RigChecks
     from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
     from ra2vipas.services.protocol.scenario import Scenario
 
@@ -311,8 +311,8 @@ def replay_scores(rec: Recording) -> dict[str, Any]:
     scenario = Scenario.model_validate(c["scenario"])
     steps = scenario.steps
     tallies = {a: AlgorithmTally(steps, scenario.rf_period_s) for a in c["algorithms"]}
-    checks = []
-    latencies: list[float] = []
+    checks = RigChecks()
+    latencies = LatencyTally()
     episodes = rec.recorded()
     have = {(ep.start.test_index, ep.start.algorithm) for ep in episodes}
     missing = [(k, a) for k in range(c["tests"]) for a in c["algorithms"] if (k, a) not in have]
@@ -324,15 +324,15 @@ def replay_scores(rec: Recording) -> dict[str, Any]:
                                         scenario.fov_half_angle_rad, steps, res.decided_step)
         tallies[ep.start.algorithm].add(hits, in_fov, held(list(res.confidences), steps) or None, res.decided_step,
                                         len(res.estimates_rad))
-        checks.append((res.rig, None if res.model_check is None else res.model_check.model_dump(mode="json")))
+        checks.add(res.rig, None if res.model_check is None else res.model_check.model_dump(mode="json"))
         if ep.timing is not None:
-            latencies += list(ep.timing.latencies_ms)
+            latencies.add(ep.timing.latencies_ms)
     pod_block = (rec.results or {}).get("pod") or {}
     pod = TrainedPOD(model=None, r2=pod_block.get("r2"), train_seconds=pod_block.get("train_seconds") or 0.0)
     results = results_object(c["preset"], scenario, c["tests"], c["seed"], pod, tallies, None, c.get("stop_confidence") or 0.0)
-    if latencies:
-        results["latency_ms"] = {"p50": round(float(np.percentile(latencies, 50)), 4), "p99": round(float(np.percentile(latencies, 99)), 4)}
-    rig_notes(results, checks)
+    if latencies.count:
+        results["latency_ms"] = latencies.summary()
+    checks.notes(results)
     if pod_block.get("note"):
         results["pod"]["note"] = pod_block["note"]
     return results

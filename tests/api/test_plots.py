@@ -61,3 +61,25 @@ def test_figures_render_concurrently_from_worker_threads():
 def test_an_unknown_format_is_refused():
     with pytest.raises(ValueError, match="png, svg"):
         plots.render(plots.episode_figure(SCENARIO, episode()), "gif")
+
+
+def test_a_study_varying_two_parameters_is_a_heat_map_per_algorithm():
+    """First parameter on y, second on x, both in sorted order; a cell per point (empty where a
+    point has no value yet); one colour scale, [0, 1] for the final DR."""
+    rows = [{"algorithm": a, "n_targets": n, "rf_noise_db": s, "dr_final": round(0.1 * i + (0.05 if a == "rapas" else 0.0), 3)}
+            for i, (n, s) in enumerate([(8, 4.0), (8, 2.0), (4, 4.0), (4, 2.0), (12, 2.0)]) for a in ("ra2vipas", "rapas")]
+    results = {"preset": "paper", "tests": 3, "seed": 1, "parameters": ["n_targets", "rf_noise_db"],
+               "algorithms": ["ra2vipas", "rapas"], "rows": rows}
+    fig = plots.study_figure(results, "dr_final")
+    maps = [ax for ax in fig.axes if ax.images]
+    assert [ax.get_title() for ax in maps] == [plots.LABELS.get(a, a) for a in ("ra2vipas", "rapas")]
+    assert [ax.get_xlabel() for ax in maps] == ["rf_noise_db"] * 2 and maps[0].get_ylabel() == "n_targets"
+    for ax, offset in zip(maps, (0.0, 0.05)):
+        grid = np.ma.filled(ax.images[0].get_array().astype(float), np.nan)
+        expected = np.array([[0.3, 0.2], [0.1, 0.0], [0.4, np.nan]]) + offset  # y: 4, 8, 12; x: 2.0, 4.0
+        np.testing.assert_allclose(grid, expected, equal_nan=True)
+        assert ax.images[0].get_clim() == (0.0, 1.0)
+    assert len(fig.axes) == len(maps) + 1  # and one colour bar
+    assert plots.render(fig, "png")[:4] == b"\x89PNG"
+    with pytest.raises(ValueError, match="varies 3"):
+        plots.study_figure({**results, "parameters": ["n_targets", "rf_noise_db", "steps"]}, "dr_final")

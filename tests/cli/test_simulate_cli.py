@@ -12,6 +12,7 @@ import pytest
 
 from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.protocol.scenario import build_scenario
+from tests.cli.conftest import one_error_line
 
 SMALL = ["--set", "steps=20", "--set", "n_train=200", "--set", "n_targets=8"]
 
@@ -98,11 +99,33 @@ def test_bench_step_prints_timings_as_json():
     assert 0 < report["median_ms"] <= report["p99_ms"]
 
 
+def test_bench_simulate_reports_both_speeds_the_speedup_and_peak_memory_as_json():
+    """A small `bench simulate` (2 tests, one memory run of 3 short tests; one worker, so it
+    stays cheap on a shared machine: `--workers 2 == --workers 1` has its own test): the keys
+    issue 10 names; no speed is asserted."""
+    proc = ra2vipas("bench", "simulate", "--tests", "2", "--workers", "1", "--memory-tests", "3", "--memory-steps", "5", "--json",
+                    timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["benchmark"] == "simulate" and report["workers"] == 1 and report["tests"] == 2
+    assert report["steps"] == 2 * 4 * 120 and report["identical"] is True
+    assert report["steps_per_second_1"] > 0 and report["steps_per_second_n"] > 0
+    assert report["speedup"] == round(report["steps_per_second_n"] / report["steps_per_second_1"], 3)
+    assert len(report["cpu_loop_speedup"]) == 2 and report["target_speedup"] == 1.7
+    [memory] = report["memory"]
+    assert {k: memory[k] for k in ("tests", "steps", "algorithm", "workers", "episodes")} == {
+        "tests": 3, "steps": 5, "algorithm": "rapas", "workers": 1, "episodes": 3}
+    assert 0 < memory["parent_peak_rss_before_run_mb"] <= memory["parent_peak_rss_mb"] and memory["worker_peak_rss_mb"] > 0
+    assert 0.0 <= memory["dr_final"] <= 1.0 and "parent_rss_growth_mb" in memory
+
+
 def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
-    """A small `bench mesh`: both parts run on their own stacks, the report carries the two
-    measured figures (and the DR the mesh reached, equal to the in-process campaign's)."""
+    """A small `bench mesh`: its three parts run on their own stacks, the report carries the
+    measured figures (and the DR the mesh reached, equal to the in-process campaign's): fast
+    steps/s, realtime latency, and the orchestrator's peak memory over a campaign (VmHWM)."""
     before = _ra2vipas_processes()
-    proc = ra2vipas("bench", "mesh", "--rigs", "1", "--tests", "2", "--realtime-tests", "1", "--json", timeout=300)
+    proc = ra2vipas("bench", "mesh", "--rigs", "1", "--tests", "2", "--realtime-tests", "1", "--memory-tests", "3",
+                    "--memory-steps", "5", "--json", timeout=300)
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["benchmark"] == "mesh" and report["rigs"] == 1
@@ -111,7 +134,25 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
     assert 0 < report["latency_ms"]["p50"] <= report["latency_ms"]["p99"]
     expected = run_campaign("paper", build_scenario("paper"), 2, 1, ["ra2vipas", "rapas", "ravipas"])
     assert report["fast"]["dr_final"] == {a: s["dr_final"] for a, s in expected["algorithms"].items()}
+    [memory] = report["memory"]
+    assert {k: memory[k] for k in ("tests", "steps", "algorithm", "episodes")} == {
+        "tests": 3, "steps": 5, "algorithm": "rapas", "episodes": 3}
+    assert 0 < memory["orchestrator_rss_before_mb"] <= memory["orchestrator_peak_rss_mb"]
+    assert 0 < memory["orchestrator_rss_after_mb"] <= memory["orchestrator_peak_rss_mb"]
+    assert memory["orchestrator_pid"] not in before and memory["seconds"] > 0
+    small = run_campaign("paper", build_scenario("paper", {"steps": 5}), 3, 1, ["rapas"])
+    assert memory["dr_final"] == small["algorithms"]["rapas"]["dr_final"]
     assert _ra2vipas_processes() == before, "the benchmark's stacks left processes behind"
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--memory-tests", "1000,ten"], "--memory-tests expects comma-separated integers, got '1000,ten'"),
+    (["--memory-tests", "0"], "--memory-tests: a campaign has 1 to 10000 tests, got 0"),
+    (["--memory-algorithm", "rapaz"], "unknown algorithm 'rapaz'"),
+])
+def test_bench_mesh_memory_usage_errors_are_one_line(args, words):
+    proc = ra2vipas("bench", "mesh", *args)
+    assert proc.returncode == 2 and words in one_error_line(proc)
 
 
 def _ra2vipas_processes() -> set[int]:

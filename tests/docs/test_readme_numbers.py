@@ -1,7 +1,9 @@
 """The README's result tables are what the code prints (issue 13): its generated blocks equal
-``tools/docs.py``'s rendering of docs/results.json, and the JSON's small check campaign, rerun
-now, equals what the JSON recorded (a change to the controller that moves any number fails
-here until `make docs` is run)."""
+``tools/docs.py``'s rendering of docs/results.json; the JSON's small check campaign, rerun
+now, equals what the JSON recorded; and the first tests of every documented campaign (paper
+and dynamic seeds, early decisions, every robustness world), rerun now, are the ones the JSON
+recorded with it (a change to the code that moves any number fails here until `make docs` is
+run)."""
 
 from __future__ import annotations
 
@@ -57,13 +59,27 @@ def test_the_recorded_check_campaign_is_what_the_code_prints_now(data):
     assert not differences(untimed(now), check["results"]), differences(untimed(now), check["results"])
 
 
-def test_the_documented_tables_agree_with_the_recorded_campaigns(data):
-    """The rendered numbers come from the recorded results: e.g. the paper table's 12 s column
-    is each algorithm's final DR, and seeds 1-3 are all there."""
-    for preset in ("paper", "dynamic"):
-        assert sorted(data[preset]) == ["1", "2", "3"]
-        for seed, campaign in data[preset].items():
-            for name, a in campaign["algorithms"].items():
-                assert a["dr_at_s"]["12"] == a["dr_final"]
-                assert a["ci95"][0] <= a["dr_final"] <= a["ci95"][1]
-    assert len(data["robustness"]["scenarios"]) >= 12
+def test_the_first_tests_of_every_documented_campaign_are_what_the_code_prints_now(docs, data):
+    """Every campaign behind a README table reruns its first tests (seconds, not the 20 minutes
+    of `make docs`): their final hits and the digest of every step's choice are the recorded
+    ones, and their POD R² is the whole campaign's (it depends on the scenario and seed only)."""
+    assert sorted(data["paper"]) == sorted(data["dynamic"]) == [str(s) for s in data["seeds"]] == ["1", "2", "3"]
+    campaigns = docs.documented_campaigns(data)
+    assert len(campaigns) == 2 * 3 + 1 + len(data["robustness"]["scenarios"]) and len(data["robustness"]["scenarios"]) >= 12
+    for label, spec, entry in campaigns:
+        recorded = entry.get("first_tests")
+        assert recorded is not None, f"{label}: no first_tests record: run `python tools/docs.py --first-tests`"
+        assert recorded["pod_r2"] == entry.get("pod_r2", recorded["pod_r2"]), f"{label}: the record is not of this campaign"
+        now = docs.first_tests(**spec)
+        drift = differences(now, recorded)
+        assert not drift, f"{label}: {drift}: the code no longer prints the documented numbers: run `make docs`"
+
+
+def test_first_tests_are_not_added_to_a_campaign_this_code_did_not_print(docs, data):
+    """`tools/docs.py --first-tests` only adds records, and refuses when the rerun's POD R² is
+    not the recorded campaign's: it cannot paper over a drift that only `make docs` can redo."""
+    drifted = {**data, "paper": {"1": {"pod_r2": 0.5}}, "dynamic": {}, "robustness": {"seed": 1, "scenarios": {}}}
+    with pytest.raises(SystemExit, match=r"paper seed 1: POD R² 0.98795 now, 0.5 recorded: run `make docs`"):
+        docs.fill_first_tests(drifted, progress=lambda _: None)
+    kept = {**data, "dynamic": {}, "robustness": {"seed": 1, "scenarios": {}}, "paper": {"1": {"first_tests": {"tests": 0}}}}
+    assert docs.fill_first_tests(kept, progress=lambda _: None)["paper"]["1"]["first_tests"] == {"tests": 0}
