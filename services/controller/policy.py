@@ -7,9 +7,17 @@ Tx bearing (paper eqs. 25-27). It never sees ranges, identities or the true POD.
 
 What it believes, after t samples:
 
-* **Radio** (``LobeGP``): Rx(dir)'s RSSI over the pan angle is a GP with an explicit lobe
-  basis; its profile log-likelihood l_RF(gamma) says how well "the main lobe is centred at
-  gamma" explains the directional samples (the paper's J_RF, eq. 24, without knowing rho).
+* **Radio**, when the rig says how Rx(dir) responds (paper eq. 6 or the dB-gain model; the
+  descriptor's ``rx_dir``) and the algorithm hears both receivers (``ra2vipas``, ``sweep``):
+  ``RFBearingFilter``, a grid Bayes filter over the Tx bearing with a standing and a walking
+  motion model, each sample scored by the rig's response with the level read from Rx(iso)
+  (the same channel, eq. 5), quasi-differenced for AR(1) fading, Student-t innovations; it
+  gives l_RF(gamma) (the posterior of the Tx's bearing *now*), P(the Tx walks) as a Bayes
+  factor, and each camera track's trajectory evidence. Otherwise (an ``unknown`` response, or
+  ``rapas``, which by definition hears Rx(dir) only) ``LobeGP``: Rx(dir)'s RSSI over the pan
+  angle as a GP with an explicit generic lobe basis, whose profile log-likelihood l_RF(gamma)
+  says how well "the main lobe is centred at gamma" explains the directional samples (the
+  paper's J_RF, eq. 24, without knowing rho), beside a recent-samples lobe for a walking Tx.
 * **Vision** (``DetectionTracker`` + the learned POD): every detected target i has an
   empirical POD p~_i = k_i/n_i; the Tx's POD is predicted from the mean iso RSSI,
   p_hat = p_hat_D(z_iso) (Sec. III-A). The detectability score is the likelihood ratio
@@ -27,9 +35,11 @@ Where it looks next:
 * then GP-UCB on the fused objective (eq. 25): a(s) = U_D(s) (J_RF(s) + sqrt(beta) sigma(s)),
   with J_RF the posterior mean of the normalised lobe and U_D the posterior mass of candidate
   targets in view at s (1 where the camera has not looked yet);
-* every ``probe_every``-th step, a discrimination probe: the pan where the two leading
-  hypotheses predict the most different RSSI (Box & Hill 1967), alternating sides, because
-  samples on the flanks of the lobe locate it, samples at its flat top do not.
+* every ``probe_every``-th step, a discrimination probe: with the filter, the pan whose Rx(dir)
+  reading the posterior of gamma is least sure of (largest predictive variance: the most
+  informative sample, MacKay 1992); with the generic lobe, the pan where the two leading
+  hypotheses predict the most different RSSI (Box & Hill 1967), alternating sides. Samples on
+  the flanks of the lobe locate it, samples at its flat top do not.
 
 Algorithms (paper Sec. IV-B, plus one): ``ra2vipas`` fuses both; ``rapas`` uses Rx(dir)
 only (estimate = lobe centre on the grid); ``ravipas`` uses the camera and Rx(iso) only;
@@ -49,6 +59,7 @@ from scipy.special import gammaln
 from ra2vipas.services.controller import _kernels
 from ra2vipas.services.controller.circle_gp import LobeGP, RecentLobe
 from ra2vipas.services.controller.grid import CircleGrid
+from ra2vipas.services.controller.rf_filter import RFBearingFilter, RxDirModel, arc_indices
 from ra2vipas.services.controller.tracks import BearingTracker, wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
 from ra2vipas.services.protocol.pod import PODModel
@@ -99,6 +110,12 @@ class ControllerSettings:
     probe_rf_peaks: bool = False  # probe between the two best RF peaks, not the two best tracks (always when the Tx walks)
     walker_answer_from_rf: bool = True  # a Tx that walks is named where l_RF peaks (its track may lag or be lost)
     mass_in_acquisition: bool = True
+    # -- the Rx(dir) response known from the rig: a grid Bayes filter over the Tx bearing (rf_filter.py)
+    rf_filter: bool = True
+    informative_probe: bool = True  # probes at the pan of largest predictive variance of Rx(dir) (rf_filter only)
+    walk_std_deg: float = 2.0  # a walking Tx's bearing change per step
+    level_memory_s: float = 0.5  # memory of a walking Tx's level (range and shadowing change)
+    rf_tail_dof: float = 2.0  # Student-t degrees of freedom of an RF sample's innovation (0: Gaussian)
 
     def __post_init__(self) -> None:
         if self.beta < 0:
@@ -124,6 +141,8 @@ class SensorConfig:
     rf_period_s: float = 0.1  # T_RF, time between control steps
     source: str = "scenario"  # where this description came from: "descriptor" (the rig's) or "scenario" (an undescribed rig)
     rx_dir: str = "paper"  # the Rx(dir) response assumed: paper | db-gain | unknown
+    rx_dir_curvature: float | None = None  # a in rho = 1 - a Delta^2 (None: not known)
+    rx_dir_floor_db: float = -20.0  # db-gain: the lowest gain
 
 
 
@@ -202,6 +221,12 @@ class Controller:
         self.recent = RecentLobe(self.circle, noise_var=sigma**2, lobe_width=cfg.lobe_width_rad,
                                  lobe_sign=lobe_sign, memory_s=cfg.rf_memory_s,
                                  rf_period_s=sensors.rf_period_s)
+        self.rff = None
+        if cfg.rf_filter and self.uses_radio and sensors.rx_dir in ("paper", "db-gain") and sensors.rx_dir_curvature is not None:
+            self.rff = RFBearingFilter(self.circle, RxDirModel(sensors.rx_dir, sensors.rx_dir_curvature, sensors.rx_dir_floor_db),
+                                       noise_db=sigma, rf_period_s=sensors.rf_period_s, walk_std_rad=math.radians(cfg.walk_std_deg),
+                                       level_memory_s=cfg.level_memory_s, walk_prior=cfg.tx_walk_prior,
+                                       tail_dof=cfg.rf_tail_dof or None)
         self._iso_prev: float | None = None
         self._iso_diff_sq = 0.0
         self.tx_walks = 0.0  # probability that the Tx walks, from Rx(dir)
@@ -249,7 +274,15 @@ class Controller:
             l_static, amplitude, offset = self.rf.lobe_fit()
             best = int(np.argmax(l_static))
             lobe = (best, float(amplitude[best]), float(offset[best]))
-            l_rf = self._rf_loglik(l_static, best)
+            if self.rff is not None:
+                self.rff.add(s, m.rf.iso_rssi_dbm, m.rf.dir_rssi_dbm)
+                if self.uses_camera:
+                    self.rff.follow(self.tracks.ids.tolist(), *self.tracks.components())
+                l_rf = self.rff.log_posterior()
+                self.tx_walks = self.rff.p_walk
+                self.recent.profile()  # the recent lobe's best fit, for the acquisition of a walking Tx
+            else:
+                l_rf = self._rf_loglik(l_static, best)
         else:
             l_rf, lobe = self._flat, None
         l_tracks, l_missed = self._beliefs(l_rf)
@@ -356,7 +389,9 @@ class Controller:
         a0, b0 = cfg.null_pod_prior
         l_tracks = np.empty(len(self.tracks))
         self._track_where = np.empty(len(self.tracks))
-        if len(self.tracks):
+        if len(self.tracks) and self.rff is not None:
+            self._tracks_from_filter(l_rf, alpha, beta, a0, b0, l_tracks)
+        elif len(self.tracks):
             track_rf = self._track_rf() if self.uses_radio else np.zeros(len(self.tracks))
             means, sds, weights = self.tracks.components()
             _kernels.track_logpost(l_rf, track_rf, self.circle.step, cfg.rf_weight, means, sds, weights,
@@ -370,6 +405,29 @@ class Controller:
                                               math.log(cfg.missed_prior_per_rad * self.circle.step), self._miss_outlier(),
                                               self._missed_buffer)
         return l_tracks, l_missed
+
+    def _tracks_from_filter(self, l_rf: np.ndarray, alpha: float, beta: float, a0: float, b0: float, out: np.ndarray) -> None:
+        """Log-posteriors of "the Tx is track i" from the RF filter's trajectory evidence (on the
+        footing of ``l_rf``, the normalised posterior of the Tx's bearing) and the camera's POD
+        evidence; ``_track_where[i]`` is where that Tx is now: the track's bearing, or for a
+        walker the camera has lost sight of (its walking model dominant and wide), where Rx(dir)
+        puts it within its reach."""
+        cfg, rff, circle = self.settings, self.rff, self.circle
+        ids = self.tracks.ids.tolist()
+        joint = np.logaddexp(rff.log_joint_stand, rff.log_joint_walk)
+        out[:] = rff.track_evidence(ids) - _logsumexp(joint)
+        means, sds, weights = self.tracks.components()
+        det, frames = self.tracks.detections, self.tracks.frames_in_view
+        for i in range(len(ids)):
+            out[i] += _kernels.pod_evidence(det[i], frames[i], alpha, beta, a0, b0, cfg.pod_outlier)
+            a = 1 if weights[i, 1] > weights[i, 0] else 0
+            where, sd = float(means[i, a]), float(sds[i, a])
+            if sd > 3.0 * circle.step:  # the Tx now, if it is this track: the track's prediction times what Rx(dir) says
+                idx = arc_indices(circle, where, 3.0 * sd)
+                d = (circle.angles[idx] - where + math.pi) % (2.0 * math.pi) - math.pi
+                score = l_rf[idx] - 0.5 * (d / sd) ** 2
+                where = float(circle.angles[idx[int(np.argmax(score))]])
+            self._track_where[i] = where
 
     def _miss_outlier(self) -> np.ndarray:
         """Per grid bearing, the probability that an undetected Tx there was never visible: the
@@ -399,7 +457,7 @@ class Controller:
         if l_missed is None:  # rapas
             if not self._n:
                 return self.first_pan(), 0.0, l_tracks
-            post_grid = _softmax(cfg.rf_weight * l_rf)
+            post_grid = _softmax((1.0 if self.rff is not None else cfg.rf_weight) * l_rf)
             estimate = self._refined_argmax(l_rf)
             return estimate, _arc_mass(post_grid, self.circle.nearest(estimate), half), l_tracks
         top = max(float(l_missed.max()), float(l_tracks.max()) if l_tracks.size else -np.inf)
@@ -469,6 +527,8 @@ class Controller:
         if t + 1 < self.warmup:
             return sensors.initial_pan_rad + 2.0 * math.pi * (t + 1) / self.warmup, False
         if self.uses_radio and cfg.probe_every and (t + 1 - self.warmup) % cfg.probe_every == 0:
+            if self.rff is not None and cfg.informative_probe:
+                return self.rff.most_informative_pan(), True
             return self._probe(l_rf, l_tracks), True
         # GP-UCB on the fused objective (eq. 25): a(s) = U_D(s) (J_RF(s) + sqrt(beta) sigma(s))
         if lobe is not None and self._n:
@@ -508,7 +568,7 @@ TUNING: dict[str, dict] = {
     "ra2vipas": {"confidence_calibration": (1.5195, 1.7835, -0.5763, -0.064, -1.279)},
     # RaPAS names the peak of l_RF: with a walking Tx the white-noise fit, flattened by
     # (1 - rho) / (1 + rho), lets the recent lobe win more often than the sharper AR(1) fit
-    "rapas": {"rf_weight": 2.0, "ar1_lobe": False, "confidence_calibration": (0.8847, 1.6588, -2.4128, 1.4024, 0.0)},
+    "rapas": {"rf_weight": 2.0, "ar1_lobe": False, "rf_filter": False, "confidence_calibration": (0.8847, 1.6588, -2.4128, 1.4024, 0.0)},
     # with the camera as its only cue, RaViPAS does best trusting the POD model fully
     "ravipas": {"pod_floor_std": 0.0, "pod_outlier": 0.0, "confidence_calibration": (1.9141, 2.3863, 0.0, -0.0921, -3.4754)},
     "sweep": {"confidence_calibration": (1.3916, 1.169, 0.5574, -0.457, -0.1622)},
@@ -569,6 +629,8 @@ def sensor_config_from_scenario(scenario) -> SensorConfig:
         rf_period_s=scenario.rf_period_s,
         source="scenario",
         rx_dir=scenario.antenna_model.value,
+        rx_dir_curvature=scenario.antenna_curvature,
+        rx_dir_floor_db=scenario.antenna_floor_db,
     )
 
 
@@ -600,4 +662,7 @@ def sensor_config_from_descriptor(descriptor, scenario) -> SensorConfig:
         rf_period_s=float(value("rf_period_s")),
         source="descriptor",
         rx_dir=rx_dir,
+        rx_dir_curvature=None if rx_dir == "unknown" else float(scenario.antenna_curvature if rx is None or rx.curvature is None
+                                                                 else rx.curvature),
+        rx_dir_floor_db=float(scenario.antenna_floor_db if rx is None or rx.floor_db is None else rx.floor_db),
     )

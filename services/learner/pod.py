@@ -24,6 +24,15 @@ The learner never sees ranges or true RSSI; it uses the training stream's own st
    detection counts as emissions, Binomial(k_j; nu, p_D(r)), sharpen the input posteriors
    where p_D is steep; the GP hyperparameters stay fixed from step 2.
 
+**Fading.** When the receiver's noise is correlated in time (AR(1), n_j = phi n_{j-1} + v_j),
+a white-noise smoother takes its slow swings for the walk and blurs p_D as badly as ignoring
+the input noise would. The walk is then fitted with the noise as a second state (a two-state
+Kalman filter, ``fit_fading_walk``), and since z_j = r_j + n_j fixes n_j once r_j is known,
+the posterior of the inputs is still a chain over r alone, with the pairwise potential
+q-walk(r_j | r_{j-1}) N((z_j - r_j) - phi (z_{j-1} - r_{j-1}); 0, R (1 - phi^2))
+(``chain_posterior``). With phi below ``min_fading`` the plain model is used: a white
+receiver's fit is exactly what it was.
+
 The output is a compact ``PODModel``: mean and standard deviation of p_D on an RSSI grid.
 """
 
@@ -34,6 +43,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.optimize import minimize
 from scipy.special import gammaln
 from sklearn.gaussian_process import GaussianProcessRegressor
@@ -52,6 +62,7 @@ class LearnerSettings:
     em_iterations: int = 10
     restarts: int = 2
     min_rf_noise_db: float = 0.1
+    min_fading: float = 0.1  # phi below which the receiver noise is taken as white
 
 
 @dataclass(frozen=True)
@@ -61,6 +72,7 @@ class LearnedPOD:
     model: PODModel
     train_seconds: float
     diffusion: tuple[float, float, float]  # (a, b, R) of the latent RSSI walk
+    fading: float = 0.0  # phi of the receiver noise's AR(1) (0: white)
 
 
 def detection_counts(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndarray, int]:
@@ -180,6 +192,136 @@ def forward_backward(emission: np.ndarray, transition: np.ndarray) -> np.ndarray
     return post
 
 
+# -- 1b. the same with AR(1) receiver noise (fading) ---------------------------------------------
+
+@njit(cache=True)
+def _kalman_ar1_loglik(z, a, b, R, phi, rc):
+    """Log-likelihood of the walk r_j (diffusion exp(a + b (r - rc))) observed through AR(1)
+    noise n_j = phi n_{j-1} + v_j of stationary variance R: a Kalman filter on (r, n) with
+    z_j = r_j + n_j. phi = 0 is ``_kalman_loglik`` (same start: r_0 ~ N(z_0, 10 R))."""
+    x0 = z[0]
+    x1 = 0.0
+    p00 = 10.0 * R
+    p01 = 0.0
+    p11 = R
+    ll = 0.0
+    v = R * (1.0 - phi * phi)
+    for t in range(z.size):
+        if t > 0:  # predict
+            q = math.exp(min(a + b * (x0 - rc), 50.0))
+            x1 = phi * x1
+            p00 = p00 + q
+            p01 = phi * p01
+            p11 = phi * phi * p11 + v
+        S = p00 + 2.0 * p01 + p11 + 1e-9
+        e = z[t] - x0 - x1
+        ll -= 0.5 * (math.log(2.0 * math.pi * S) + e * e / S)
+        k0 = (p00 + p01) / S
+        k1 = (p01 + p11) / S
+        x0 += k0 * e
+        x1 += k1 * e
+        n00 = p00 - k0 * (p00 + p01)
+        n01 = p01 - k0 * (p01 + p11)
+        n11 = p11 - k1 * (p01 + p11)
+        p00, p01, p11 = n00, n01, n11
+    return ll
+
+
+def fit_fading_walk(z: np.ndarray, min_noise_var: float) -> tuple[float, float, float, float, float]:
+    """Maximum-likelihood (a, b, R, phi) of the walk seen through AR(1) noise, and r_c."""
+    rc = float(np.mean(z))
+    a0, b0, R0, _ = fit_diffusion(z, min_noise_var)
+
+    def unpack(th):
+        # b >= 0: a walk of steady steps in range moves the RSSI more where it is stronger (near),
+        # q ~ 10^((r - kappa) / (5 n)); with correlated noise a slow walk is otherwise hard to tell
+        # from the noise's swings and the fit can fall into b < 0
+        return th[0], float(np.clip(th[1], 0.0, 1.0)), max(math.exp(th[2]), min_noise_var), 0.97 * math.tanh(th[3])
+
+    def nll(th: np.ndarray) -> float:
+        a, b, R, phi = unpack(th)
+        return -_kalman_ar1_loglik(z, a, b, R, phi, rc)
+
+    # two starts: near the white fit, and a slow walk under strongly correlated noise (a walk
+    # fast enough to swallow the noise is a local optimum the first start can fall into)
+    best = None
+    b0 = min(max(b0, 0.05), 1.0)
+    for x0 in (np.array([a0 - 1.0, b0, math.log(R0 * 1.5), 0.0]),
+               np.array([math.log(max(float(np.var(np.diff(z))), 1e-3) / 20.0), b0, math.log(max(float(np.var(z)) / 3.0, min_noise_var)),
+                         math.atanh(0.8 / 0.97)])):
+        simplex = np.array([x0, x0 + [1.0, 0, 0, 0], x0 + [0, 0.15, 0, 0], x0 + [0, 0, 0.5, 0], x0 + [0, 0, 0, 0.5]])
+        res = minimize(nll, x0, method="Nelder-Mead", options={"xatol": 1e-2, "fatol": 1e-2, "maxiter": 600, "initial_simplex": simplex})
+        if best is None or res.fun < best.fun:
+            best = res
+    a, b, R, phi = unpack(best.x)
+    return float(a), b, R, max(float(phi), 0.0), rc
+
+
+@njit(cache=True)
+def chain_posterior(z, grid, transition, R, phi, node):
+    """Posterior marginals p(r_j | z, node potentials) of the chain over the RSSI grid whose
+    pairwise potential is transition[i, k] N((z_j - r_k) - phi (z_{j-1} - r_i); 0, R (1 - phi^2))
+    and whose first sample is N(z_0 - r_0; 0, R); ``node`` (n, G) are extra per-sample
+    potentials (the labels' Binomial likelihoods, or ones)."""
+    n = z.size
+    G = grid.size
+    v = R * (1.0 - phi * phi)
+    alpha = np.empty((n, G))
+    c = np.empty(n)
+    # band of the transition, per row (cells beyond it carry nothing)
+    lo = np.empty(G, dtype=np.int64)
+    hi = np.empty(G, dtype=np.int64)
+    for i in range(G):
+        top = transition[i].max()
+        lo[i] = G
+        hi[i] = -1
+        for k in range(G):
+            if transition[i, k] > 1e-12 * top:
+                lo[i] = min(lo[i], k)
+                hi[i] = max(hi[i], k)
+    total = 0.0
+    for k in range(G):
+        d = z[0] - grid[k]
+        alpha[0, k] = math.exp(-0.5 * d * d / R) * node[0, k]
+        total += alpha[0, k]
+    c[0] = max(total, 1e-300)
+    alpha[0] /= c[0]
+    for t in range(1, n):
+        row = np.zeros(G)
+        for i in range(G):
+            ai = alpha[t - 1, i]
+            if ai < 1e-300:
+                continue
+            prev = z[t - 1] - grid[i]
+            for k in range(lo[i], hi[i] + 1):
+                d = (z[t] - grid[k]) - phi * prev
+                row[k] += ai * transition[i, k] * math.exp(-0.5 * d * d / v)
+        total = 0.0
+        for k in range(G):
+            row[k] *= node[t, k]
+            total += row[k]
+        c[t] = max(total, 1e-300)
+        alpha[t] = row / c[t]
+    post = np.empty((n, G))
+    beta = np.ones(G)
+    post[n - 1] = alpha[n - 1]
+    for t in range(n - 1, 0, -1):
+        nb = np.zeros(G)
+        for i in range(G):
+            prev = z[t - 1] - grid[i]
+            acc = 0.0
+            for k in range(lo[i], hi[i] + 1):
+                d = (z[t] - grid[k]) - phi * prev
+                acc += transition[i, k] * math.exp(-0.5 * d * d / v) * node[t, k] * beta[k]
+            nb[i] = acc / c[t]
+        beta = nb
+        post[t - 1] = alpha[t - 1] * beta
+    for t in range(n):
+        s = post[t].sum()
+        post[t] /= max(s, 1e-300)
+    return post
+
+
 # -- 2. deconvolution with a GP prior on the warped axis ---------------------------------------
 
 def _matern52(u: np.ndarray, length_scale: float, amplitude: float) -> np.ndarray:
@@ -211,11 +353,17 @@ def _integral_gp(stats: tuple, K: np.ndarray, want_mean: bool):
 
 
 def _fit_integral_gp(P: np.ndarray, y: np.ndarray, u: np.ndarray, nu: int, restarts: int):
+    """GP fit of p_D on the grid from labels observed through the input posteriors ``P``; returns
+    (f, (length scale, amplitude), m0, tau2). ``tau2`` is the labels' overdispersion: variance of
+    the true POD around p_D(r) at one RSSI (0 when the POD is a function of the RSSI, as in the
+    paper; shadowing makes one RSSI come from many ranges), a method-of-moments estimate from the
+    first fit's residuals, kept in the labels' noise for the second."""
     m0 = float(np.mean(y))
     noise = np.full(y.size, max(m0 * (1.0 - m0), 0.05) / nu)
     best_theta = (0.1, 0.05)
     f = np.full(u.size, m0)
     r = y - m0
+    tau2 = 0.0
     for _ in range(2):
         winv = 1.0 / noise
         stats = ((P * winv[:, None]).T @ P, P.T @ (r * winv), float(np.sum(r * r * winv)), float(np.sum(np.log(noise))), y.size)
@@ -237,7 +385,18 @@ def _fit_integral_gp(P: np.ndarray, y: np.ndarray, u: np.ndarray, nu: int, resta
         ef = P @ fc
         input_var = np.maximum(P @ (fc * fc) - ef * ef, 0.0)
         noise = np.maximum(P @ (fc * (1.0 - fc)), 0.005) / nu + input_var
-    return f, best_theta, m0
+        if tau2 == 0.0:
+            resid = y - ef
+            tau2 = max(float(np.mean(resid**2 - noise)), 0.0)
+            if tau2 > 0.25 * float(np.mean(noise)):  # overdispersed labels: the POD is not a function of the RSSI
+                # the residuals of a Tx that lingers where the shadowing is the same are correlated in
+                # time: fewer independent labels than samples, (1 + rho) / (1 - rho) fewer for AR(1)
+                rho = min(max(float(np.corrcoef(resid[1:], resid[:-1])[0, 1]), 0.0), 0.99)
+                tau2 *= (1.0 + rho) / (1.0 - rho)
+            else:
+                tau2 = 0.0
+        noise = noise + tau2
+    return f, best_theta, m0, tau2
 
 
 # -- 3. label-informed EM ------------------------------------------------------------------------
@@ -249,13 +408,14 @@ def _binomial_loglik(k: np.ndarray, nu: int, p: np.ndarray) -> np.ndarray:
     return logc[:, None] + k[:, None] * np.log(p)[None, :] + (nu - k)[:, None] * np.log1p(-p)[None, :]
 
 
-def _gp_on_cells(u: np.ndarray, successes: np.ndarray, trials: np.ndarray, theta, m0: float):
+def _gp_on_cells(u: np.ndarray, successes: np.ndarray, trials: np.ndarray, theta, m0: float, nu: int = 1, tau2: float = 0.0):
     """GP posterior (mean, std) on the grid from Binomial cell counts: scikit-learn's GPR with
-    the kernel fixed from the deconvolution step and per-cell noise p(1-p)/N (heteroscedastic)."""
+    the kernel fixed from the deconvolution step and per-cell noise p(1-p)/N (heteroscedastic),
+    plus the labels' overdispersion ``tau2`` over the cell's N / nu samples."""
     m = trials >= 1.0
     p = successes[m] / trials[m]
     shrunk = (successes[m] + 0.5) / (trials[m] + 1.0)  # keeps the variance positive at p = 0 or 1
-    noise = shrunk * (1.0 - shrunk) / trials[m] + 1e-6
+    noise = shrunk * (1.0 - shrunk) / trials[m] + tau2 * nu / np.maximum(trials[m], nu) + 1e-6
     length_scale, amplitude = theta
     kernel = ConstantKernel(amplitude, "fixed") * Matern(length_scale=length_scale, length_scale_bounds="fixed", nu=2.5)
     gpr = GaussianProcessRegressor(kernel=kernel, alpha=noise, optimizer=None, normalize_y=False)
@@ -290,11 +450,19 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
         raise ValueError(f"need at least 10 training samples, got {z.size}")
     min_var = cfg.min_rf_noise_db**2
     a, b, R, rc = fit_diffusion(z, min_var)
+    phi = 0.0
+    if z.size >= 50:
+        fa, fb, fR, fphi, _ = fit_fading_walk(z, min_var)
+        if fphi >= cfg.min_fading:
+            a, b, R, phi = fa, fb, fR, fphi
     grid = np.linspace(z.min() - cfg.grid_margin_db, z.max() + cfg.grid_margin_db, cfg.grid_points)
     transition = _transition(grid, a, b, rc)
     log_rssi = -0.5 * (z[:, None] - grid[None, :]) ** 2 / R
-    rssi_emission = np.exp(log_rssi - log_rssi.max(axis=1, keepdims=True))
-    post = forward_backward(rssi_emission, transition)
+    if phi > 0.0:
+        post = chain_posterior(z, grid, transition, R, phi, np.ones((z.size, grid.size)))
+    else:
+        rssi_emission = np.exp(log_rssi - log_rssi.max(axis=1, keepdims=True))
+        post = forward_backward(rssi_emission, transition)
 
     if b > 0.02:
         warped = np.exp(-0.5 * b * (grid - rc))
@@ -304,14 +472,20 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
     # a frame shows a box in the gate with probability p_obs = q + (1 - q) p_D: clutter
     # corrected labels (q = 0 for a clean detector: the labels are the plain rates)
     y = (k / nu - q) / (1.0 - q)
-    f, theta, m0 = _fit_integral_gp(post, y, u, nu, cfg.restarts)
+    f, theta, m0, tau2 = _fit_integral_gp(post, y, u, nu, cfg.restarts)
     std = np.full(grid.size, math.sqrt(theta[1]))
-    for _ in range(cfg.em_iterations):
-        log_e = log_rssi + _binomial_loglik(k, nu, q + (1.0 - q) * np.clip(f, 0.0, 1.0))
-        e = np.exp(log_e - log_e.max(axis=1, keepdims=True))
-        post = forward_backward(e, transition)
+    # the label-informed refinement moves inputs to where p_D fits their labels: right when the POD
+    # is a function of the RSSI, a source of spurious wiggles when it is not (overdispersed labels)
+    for _ in range(cfg.em_iterations if tau2 == 0.0 else 0):
+        labels = _binomial_loglik(k, nu, q + (1.0 - q) * np.clip(f, 0.0, 1.0))
+        if phi > 0.0:
+            post = chain_posterior(z, grid, transition, R, phi, np.exp(labels - labels.max(axis=1, keepdims=True)))
+        else:
+            log_e = log_rssi + labels
+            e = np.exp(log_e - log_e.max(axis=1, keepdims=True))
+            post = forward_backward(e, transition)
         trials = post.sum(axis=0) * nu
-        f, std = _gp_on_cells(u, np.clip(post.T @ k - q * trials, 0.0, None), trials * (1.0 - q), theta, m0)
+        f, std = _gp_on_cells(u, np.clip(post.T @ k - q * trials, 0.0, None), trials * (1.0 - q), theta, m0, nu, tau2)
 
     model = PODModel(
         rssi_grid_dbm=tuple(float(v) for v in grid),
@@ -321,7 +495,7 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
         n_train=int(z.size),
         frames_per_rf=int(nu),
     )
-    return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R))
+    return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R), fading=phi)
 
 
 def r2_score(truth: np.ndarray, prediction: np.ndarray) -> float:

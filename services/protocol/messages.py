@@ -207,8 +207,9 @@ class EpisodeTruth(_Message):
 
 
 class TrainingTruth(_Message):
-    """Ground truth of a simulated training episode: noiseless iso RSSI r_j and p_D(d_j) per
-    sample, to score the learned POD by R^2 (eq. 23)."""
+    """Ground truth of a simulated training episode, to score the learned POD by R^2 (eq. 23):
+    per sample the noiseless iso RSSI r_j (path loss plus shadowing) and the true POD at that
+    RSSI, p_D(d_j) without shadowing, E[p_D(d) | r_j] with it (``world.TrainingTruth``)."""
 
     job_id: str = _ID
     rssi_dbm: tuple[float, ...] = Field(min_length=1, max_length=100_000)

@@ -379,11 +379,32 @@ class TrainingTruth:
     Tx's position when ``shadowing_db`` > 0 (shadowing is part of the channel the POD is
     learned over, not measurement noise: the controller too reads the POD at the Tx's
     shadowed RSSI). It excludes the receiver noise, white or AR(1).
+
+    ``pod`` is the true POD *as a function of that RSSI*, what p_hat_D(r) estimates. Without
+    shadowing it is the paper's p_D(g^{-1}(r_j)) = p_D(d_j). With shadowing one RSSI comes from
+    many ranges, so the POD is not a function of the RSSI; the function the learner estimates
+    (and the controller needs: "how likely is the camera to see the Tx, given what Rx(iso)
+    reads") is the regression function p*(r) = E[p_D(d) | g(d) + S = r], with S ~ N(0,
+    sigma_S^2) independent of the range and d distributed as the episode's ranges
+    (``pod_given_rssi``). ``pod_at_range`` keeps p_D(d_j).
     """
 
     ranges_m: np.ndarray  # d_j
     rssi_dbm: np.ndarray  # r_j = g(d_j) + S(p_j), the noiseless iso RSSI
-    pod: np.ndarray  # p_D(d_j)
+    pod: np.ndarray  # p*(r_j), = p_D(d_j) without shadowing
+    pod_at_range: np.ndarray | None = None  # p_D(d_j), when it differs from ``pod``
+    positions_m: np.ndarray | None = None  # (n, 2) where the Tx was, when it steps sideways (shadowing)
+
+
+def pod_given_rssi(sc: Scenario, ranges_m: np.ndarray, rssi_dbm: np.ndarray) -> np.ndarray:
+    """p*(r) = E[p_D(d) | g(d) + S = r] at each ``rssi_dbm`` (see ``TrainingTruth``): a mixture over
+    the ranges ``ranges_m`` (the episode's, equally likely) of the shadowing's Gaussian density,
+    sum_i p_D(d_i) N(r; g(d_i), sigma_S^2) / sum_i N(r; g(d_i), sigma_S^2)."""
+    d = np.asarray(ranges_m, dtype=float)
+    g = physics.path_loss_dbm(sc, d)
+    log_w = -0.5 * ((np.asarray(rssi_dbm, dtype=float)[:, None] - g[None, :]) / sc.shadowing_db) ** 2
+    w = np.exp(log_w - log_w.max(axis=1, keepdims=True))
+    return (w @ physics.pod(sc, d)) / w.sum(axis=1)
 
 
 class TrainingEpisode:
@@ -394,11 +415,13 @@ class TrainingEpisode:
     starts at a range drawn uniformly in that interval. Each sample is the iso RSSI and the
     nu frames the detector produced at that range.
 
-    It runs in the scenario's world: the Tx walks along a fixed bearing (the X_0 axis, in
-    front of the camera), where the shadowing field is evaluated along its path; the iso
-    RSSI noise is AR(1) when ``fading_corr_s`` > 0; every frame gets Poisson(``clutter_rate``)
-    false boxes. The Tx is the only target in training: nothing walks past it and nothing
-    occludes it.
+    It runs in the scenario's world: the iso RSSI noise is AR(1) when ``fading_corr_s`` > 0;
+    every frame gets Poisson(``clutter_rate``) false boxes; with shadowing the Tx also steps
+    sideways, as much as radially (N(0, train_step_var_m2) across its bearing, the camera
+    following it), so the episode meets the shadowing of many places rather than of one line
+    (along one line a few shadowing values would be taken for the path loss); its range still
+    moves exactly as Table I says. The Tx is the only target in training: nothing walks past
+    it and nothing occludes it.
     """
 
     def __init__(self, scenario: Scenario, seed: int) -> None:
@@ -414,15 +437,23 @@ class TrainingEpisode:
             d[j] = d_j
             d_j = min(max(d_j + steps[j], lo), hi)
         r = physics.path_loss_dbm(sc, d)
+        pod = physics.pod(sc, d)
         if sc.shadowing_db > 0.0:
-            path = np.column_stack([d, np.zeros(n)])
-            r = r + physics.ShadowingField(sc.shadowing_db, sc.shadowing_corr_m, streams.shadowing)(path)
-        self.truth = TrainingTruth(ranges_m=d, rssi_dbm=r, pod=physics.pod(sc, d))
+            bearing = np.cumsum(streams.walk.normal(0.0, math.sqrt(sc.train_step_var_m2), size=n) / d)
+            path = np.column_stack([d * np.cos(bearing), d * np.sin(bearing)])
+            self.shadowing = physics.ShadowingField(sc.shadowing_db, sc.shadowing_corr_m, streams.shadowing)
+            """The episode's shadowing field S(p) [dB] (truth; None when off)."""
+            r = r + self.shadowing(path)
+            self.truth = TrainingTruth(ranges_m=d, rssi_dbm=r, pod=pod_given_rssi(sc, d, r), pod_at_range=pod, positions_m=path)
+        else:
+            self.shadowing = None
+            self.truth = TrainingTruth(ranges_m=d, rssi_dbm=r, pod=pod)
         noise = streams.rf.normal(0.0, sc.rf_noise_db, size=n)
         phi = physics.fading_coefficient(sc)
         self._iso = r + (noise if phi == 0.0 else physics.ar1(noise, phi))
         self._camera = streams.camera
         self._clutter_rng = streams.clutter
+        self._pod = pod  # the camera detects at p_D(d_j)
 
     def __len__(self) -> int:
         return self.scenario.n_train
@@ -432,5 +463,5 @@ class TrainingEpisode:
         sc = self.scenario
         zero = np.zeros(1)
         for j in range(sc.n_train):
-            frames = _frames(sc, self._camera, zero, self.truth.pod[j : j + 1], _clutter(sc, self._clutter_rng))
+            frames = _frames(sc, self._camera, zero, self._pod[j : j + 1], _clutter(sc, self._clutter_rng))
             yield TrainingSample.model_construct(index=j, iso_rssi_dbm=float(self._iso[j]), frames=frames)

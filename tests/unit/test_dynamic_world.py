@@ -21,6 +21,7 @@ from ra2vipas.services.sensors.world import (
     TrainingEpisode,
     episode_streams,
     episode_truth,
+    pod_given_rssi,
     training_streams,
 )
 from tests.conftest import make_platform, polar_positions, small_scenario
@@ -521,17 +522,38 @@ def test_shadowing_follows_a_walking_tx():
 def test_training_rssi_truth_includes_the_shadowing_along_the_path():
     sc = build_scenario("paper", {"n_train": 600, "shadowing_db": 4.0, "rf_noise_db": 0.0})
     ep = TrainingEpisode(sc, 2)
-    d = ep.truth.ranges_m
+    d, path = ep.truth.ranges_m, ep.truth.positions_m
+    np.testing.assert_allclose(np.hypot(path[:, 0], path[:, 1]), d)  # the range moves as Table I says
     s = ep.truth.rssi_dbm - physics.path_loss_dbm(sc, d)
     assert s.std() > 0.5
-    # a function of the position on the path: the same range gives the same shadowing
-    order = np.argsort(d)
-    ds, ss = d[order], s[order]
-    close = np.diff(ds) < 1e-4
-    np.testing.assert_allclose(ss[1:][close], ss[:-1][close], atol=0.01)
+    np.testing.assert_allclose(s, ep.shadowing(path), atol=1e-9)  # the field at where the Tx was
+    # it steps sideways as much as radially: tangential steps ~ N(0, train_step_var_m2)
+    bearing = np.unwrap(np.arctan2(path[:, 1], path[:, 0]))
+    sideways = np.diff(bearing) * d[:-1]
+    assert sideways.std() == pytest.approx(math.sqrt(sc.train_step_var_m2), rel=0.15)
     z = np.array([x.iso_rssi_dbm for x in ep.samples()])
     np.testing.assert_allclose(z, ep.truth.rssi_dbm)  # noiseless receivers: what they read is the truth
-    np.testing.assert_allclose(ep.truth.pod, physics.pod(sc, d))  # the POD stays a function of range
+    np.testing.assert_allclose(ep.truth.pod_at_range, physics.pod(sc, d))  # the camera's POD is a function of range
+
+
+def test_the_true_pod_of_a_shadowed_rssi_is_the_pod_it_predicts():
+    """With shadowing, one RSSI comes from many ranges: the truth R^2 is scored against is
+    p*(r) = E[p_D(d) | g(d) + S = r] over the episode's ranges, which a brute-force Monte Carlo
+    of (range, shadowing) pairs reproduces; without shadowing it is the paper's p_D(d)."""
+    sc = build_scenario("paper", {"n_train": 400, "shadowing_db": 4.0})
+    ep = TrainingEpisode(sc, 5)
+    d = ep.truth.ranges_m
+    rng = np.random.default_rng(0)
+    dd = rng.choice(d, size=1_000_000)
+    rr = physics.path_loss_dbm(sc, dd) + rng.normal(0.0, 4.0, size=dd.size)
+    pp = physics.pod(sc, dd)
+    for r in np.quantile(ep.truth.rssi_dbm, [0.1, 0.5, 0.9]):
+        near = np.abs(rr - r) < 0.25
+        assert float(pod_given_rssi(sc, d, np.array([r]))[0]) == pytest.approx(float(pp[near].mean()), abs=0.01)
+    assert np.all(ep.truth.pod == pod_given_rssi(sc, d, ep.truth.rssi_dbm))
+    plain = TrainingEpisode(build_scenario("paper", {"n_train": 400}), 5)
+    np.testing.assert_array_equal(plain.truth.pod, physics.pod(sc, plain.truth.ranges_m))
+    assert plain.truth.pod_at_range is None
 
 
 # -- fading ----------------------------------------------------------------------------------------------

@@ -214,3 +214,81 @@ def test_false_boxes_are_not_detections_of_the_tx():
     learned = fit_pod(samples)
     r2 = r2_score(episode.truth.pod, predict(learned.model, episode.truth.rssi_dbm))
     assert r2 >= 0.95
+
+
+# -- fading: AR(1) receiver noise in the training stream (issue 9) -------------------------------------------
+
+
+def test_the_fading_walk_likelihood_is_the_gaussian_likelihood():
+    """With constant diffusion the two-state model's likelihood is that of z ~ N(z_0 1, C),
+    C = 10 R 1 1^T + q min(i, j) + R phi^|i - j| (walk from r_0 ~ N(z_0, 10 R), stationary AR(1)
+    noise); with phi = 0 it is the white model's."""
+    from ra2vipas.services.learner.pod import _kalman_ar1_loglik, _kalman_loglik
+
+    rng = np.random.default_rng(5)
+    n, q, R, phi = 10, 0.4, 3.0, 0.7
+    z = rng.normal(-45.0, 2.0, n)
+    i = np.arange(n)
+    C = 10 * R + q * np.minimum.outer(i, i) + R * phi ** np.abs(np.subtract.outer(i, i))
+    expected = multivariate_normal(mean=np.full(n, z[0]), cov=C).logpdf(z)
+    assert _kalman_ar1_loglik(z, math.log(q), 0.0, R, phi, 0.0) == pytest.approx(expected, rel=1e-8)
+    assert _kalman_ar1_loglik(z, math.log(q), 0.0, R, 0.0, 0.0) == pytest.approx(_kalman_loglik(z, math.log(q), 0.0, R, 0.0), rel=1e-9)
+
+
+def test_the_chain_posterior_equals_brute_force():
+    """p(r_j | z) of the chain whose pairwise potential carries the AR(1) noise, by enumerating
+    every path on a 3-cell grid; with phi = 0 it is the white model's forward-backward."""
+    from ra2vipas.services.learner.pod import chain_posterior
+
+    rng = np.random.default_rng(6)
+    n, G, R, phi = 4, 3, 2.0, 0.6
+    grid = np.array([-42.0, -40.0, -38.0])
+    z = rng.normal(-40.0, 1.5, n)
+    T = rng.uniform(0.1, 1.0, (G, G))
+    T /= T.sum(axis=1, keepdims=True)
+    node = rng.uniform(0.2, 1.0, (n, G))
+    post = chain_posterior(z, grid, T, R, phi, node)
+    v = R * (1 - phi * phi)
+    joint = np.zeros((n, G))
+    for path in itertools.product(range(G), repeat=n):
+        w = math.exp(-0.5 * (z[0] - grid[path[0]]) ** 2 / R) * node[0, path[0]]
+        for t in range(1, n):
+            d = (z[t] - grid[path[t]]) - phi * (z[t - 1] - grid[path[t - 1]])
+            w *= T[path[t - 1], path[t]] * math.exp(-0.5 * d * d / v) * node[t, path[t]]
+        for t in range(n):
+            joint[t, path[t]] += w
+    np.testing.assert_allclose(post, joint / joint.sum(axis=1, keepdims=True), rtol=1e-9)
+    white = chain_posterior(z, grid, T, R, 0.0, np.ones((n, G)))
+    emission = np.exp(-0.5 * (z[:, None] - grid[None, :]) ** 2 / R)
+    np.testing.assert_allclose(white, forward_backward(emission, T), rtol=1e-9)
+
+
+def test_fit_fading_walk_recovers_the_noise_and_its_correlation():
+    from ra2vipas.services.learner.pod import fit_fading_walk
+
+    rng = np.random.default_rng(7)
+    n, q, R, phi = 900, 0.2, 9.0, 0.8
+    walk = -40.0 + np.cumsum(rng.normal(0.0, math.sqrt(q), n))
+    z = walk + physics.ar1(rng.normal(0.0, math.sqrt(R), n), phi)
+    a, b, R_hat, phi_hat, _ = fit_fading_walk(z, 0.01)
+    assert phi_hat == pytest.approx(phi, abs=0.08)
+    assert R_hat == pytest.approx(R, rel=0.35)
+    assert 0.4 * q < math.exp(a) < 2.5 * q
+
+
+def test_a_fading_receiver_does_not_blur_the_pod():
+    """fading_corr_s 0.5 s (phi 0.82), nothing else of the dynamic world: the learner that models
+    the correlation recovers p_D (R^2 >= 0.95 on these seeds) where the white-noise smoother it
+    falls back to for phi < min_fading (forced here) does not."""
+    from ra2vipas.services.learner.pod import LearnerSettings
+
+    sc = build_scenario("paper", {"fading_corr_s": 0.5})
+    for seed in (1, 3):
+        episode = TrainingEpisode(sc, seed)
+        samples = list(episode.samples())
+        fading = fit_pod(samples)
+        white = fit_pod(samples, LearnerSettings(min_fading=1.0))
+        assert fading.fading == pytest.approx(physics.fading_coefficient(sc), abs=0.1)
+        r2 = r2_score(episode.truth.pod, predict(fading.model, episode.truth.rssi_dbm))
+        assert r2 >= 0.95, (seed, r2)
+        assert r2 > r2_score(episode.truth.pod, predict(white.model, episode.truth.rssi_dbm)) + 0.05

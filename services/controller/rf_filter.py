@@ -1,0 +1,289 @@
+"""Where the Tx is now, from Rx(dir) and Rx(iso), when the rig says how Rx(dir) responds.
+
+A grid Bayes filter over the Tx bearing gamma (the lobe centre), with two motion models:
+
+* **stands**: gamma is fixed; the posterior is the product of every sample's likelihood;
+* **walks**: gamma_t = gamma_{t-1} + w_t, w_t ~ N(0, sigma_w^2) (a hidden Markov model on the
+  grid; the prediction is a circular convolution);
+
+and their posterior model probabilities from the marginal likelihoods (the two filters'
+one-step predictive normalisers), so P(walk) is a Bayes factor, not a heuristic.
+
+Each sample's likelihood uses the rig's Rx(dir) response (paper eq. 6: z_dir = L rho(s - gamma),
+or the dB-gain model z_dir = L + 10 log10 max(rho, floor)) with the level L read from Rx(iso)
+(the same channel: path loss and shadowing, eq. 5): the mean of every iso sample for a Tx that
+stands, an exponentially weighted mean (``level_memory_s``) for one that walks, its range and
+shadowing changing. The RSSI noise is AR(1) in time (fading, ``noise_correlation``): each
+sample enters quasi-differenced, (z_t - rho z_{t-1}) - (mu_t - rho mu_{t-1}) with variance
+sigma^2 (1 - rho^2), the generalised-least-squares form of correlated noise (Cochrane & Orcutt),
+so correlated samples are not counted as independent ones.
+
+Beside the Tx's bearing on the grid, the filter scores hypotheses "the Tx is camera track i"
+(``follow``): each sample's likelihood at where the track was when the sample was taken (its
+predicted bearing, smeared over the track's uncertainty), accumulated relative to the walking
+filter's predictive normaliser. That is the evidence of the track's whole trajectory, as the
+oracle computes it with the true trajectories, rather than of its bearing now.
+
+Everything is a log-density per grid cell relative to one baseline (the walking filter's
+marginal likelihood), so the standing and walking posteriors, tracks and untracked bearings are
+on one footing: ``log_joint_stand`` + ``log_joint_walk`` normalised over the grid is the
+posterior of the Tx's bearing now.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ra2vipas.services.controller.grid import CircleGrid
+
+
+def antenna_gain(misalignment_rad: np.ndarray, curvature: float) -> np.ndarray:
+    """rho(Delta) = 1 - a wrap(Delta)^2 clipped to [0, 1] (paper eq. 6)."""
+    d = (np.asarray(misalignment_rad, dtype=float) + math.pi) % (2.0 * math.pi) - math.pi
+    return np.clip(1.0 - curvature * d * d, 0.0, 1.0)
+
+
+class RxDirModel:
+    """The mean of Rx(dir) given the level L and the misalignment: the rig's response."""
+
+    def __init__(self, model: str, curvature: float, floor_db: float = -20.0) -> None:
+        if model not in ("paper", "db-gain"):
+            raise ValueError(f"a known Rx(dir) response is paper or db-gain, not {model!r}")
+        self.model = model
+        self.curvature = float(curvature)
+        self.floor = 10.0 ** (float(floor_db) / 10.0)
+
+    def gain(self, misalignment_rad: np.ndarray) -> np.ndarray:
+        return antenna_gain(misalignment_rad, self.curvature)
+
+    def mean(self, level: float, gain: np.ndarray) -> np.ndarray:
+        """E[z_dir] for the level L (dBm) and the antenna gain rho (eq. 6 or its dB form)."""
+        if self.model == "paper":
+            return level * gain
+        return level + 10.0 * np.log10(np.maximum(gain, self.floor))
+
+    def level_slope(self, gain: np.ndarray) -> np.ndarray:
+        """d E[z_dir] / d L: how an error in the level moves the mean."""
+        return gain if self.model == "paper" else np.ones_like(gain)
+
+
+class RFBearingFilter:
+    """The grid filter described in the module docstring.
+
+    Parameters
+    ----------
+    circle : CircleGrid
+        The M candidate bearings.
+    response : RxDirModel
+        Rx(dir)'s response.
+    noise_db : float
+        sigma of the RSSI noise on each receiver [dB].
+    rf_period_s : float
+        T_RF [s].
+    walk_std_rad : float
+        sigma_w, the walking Tx's bearing change per step [rad].
+    level_memory_s : float
+        Memory of the walking Tx's level estimate [s].
+    walk_prior : float
+        Prior probability that the Tx walks.
+    """
+
+    def __init__(self, circle: CircleGrid, response: RxDirModel, noise_db: float, rf_period_s: float,
+                 walk_std_rad: float = math.radians(2.0), level_memory_s: float = 0.5, walk_prior: float = 0.3,
+                 tail_dof: float | None = 4.0) -> None:
+        self.circle = circle
+        self.response = response
+        self.noise_var = max(float(noise_db), 0.1) ** 2
+        self.walk_prior = float(walk_prior)
+        self.tail_dof = tail_dof
+        M = circle.size
+        self._log_m = math.log(M)
+        self._lam = math.exp(-rf_period_s / level_memory_s)
+        # the walking model's transition: a wrapped Gaussian kernel on the grid, applied by FFT
+        steps = np.minimum(np.arange(M), M - np.arange(M)) * circle.step
+        kernel = np.exp(-0.5 * (steps / max(walk_std_rad, 1e-6)) ** 2)
+        self._kernel_fft = np.fft.rfft(kernel / kernel.sum())
+        self.n = 0
+        self.rho = 0.0  # AR(1) correlation of the noise, from Rx(iso)
+        self._iso_sum = self._iso_sq = self._iso_diff_sq = 0.0
+        self._iso_prev: float | None = None
+        self._level_walk = 0.0
+        self._prev: tuple[float, float] | None = None  # (pan, z_dir) of the previous sample
+        self._static = np.zeros(M)  # sum of the static model's sample log-likelihoods minus the baseline
+        self._walk = np.full(M, -self._log_m)  # log posterior of the walking model (normalised)
+        self.ll_stand = np.zeros(M)  # this step's sample log-likelihood (relative), standing level
+        self.ll_walk = np.zeros(M)  # ... walking level
+        self._evidence: dict[int, float] = {}  # track id -> trajectory evidence (relative to the baseline)
+
+    # -- updating -------------------------------------------------------------------------------
+    def add(self, pan_rad: float, iso_dbm: float, dir_dbm: float) -> None:
+        """Take the sample of one step: the pan and the two RSSI values."""
+        self.n += 1
+        n = self.n
+        self._iso_sum += iso_dbm
+        self._iso_sq += iso_dbm * iso_dbm
+        if self._iso_prev is not None:
+            self._iso_diff_sq += (iso_dbm - self._iso_prev) ** 2
+        self._iso_prev = iso_dbm
+        self._level_walk = iso_dbm if n == 1 else self._lam * self._level_walk + (1.0 - self._lam) * iso_dbm
+        level_stand = self._iso_sum / n
+        self.rho = rho = self._noise_correlation()
+        gain = self.response.gain(pan_rad - self.circle.angles)
+        ll_stand = self._sample_loglik(dir_dbm, pan_rad, gain, level_stand, self._level_var(False))
+        ll_walk = self._sample_loglik(dir_dbm, pan_rad, gain, self._level_walk, self._level_var(True))
+        self._prev = (pan_rad, dir_dbm)
+        # the walking filter: predict (diffuse), update; its normaliser is the baseline
+        prior = np.exp(self._walk - self._walk.max())
+        predicted = np.maximum(np.fft.irfft(np.fft.rfft(prior) * self._kernel_fft, n=prior.size), 0.0)
+        predicted /= predicted.sum()
+        top = ll_walk.max()
+        joint = predicted * np.exp(ll_walk - top)
+        c = float(joint.sum())
+        log_c = top + math.log(max(c, 1e-300))
+        self._walk = np.log(np.maximum(joint / c, 1e-300))
+        self.ll_stand = ll_stand - log_c
+        self.ll_walk = ll_walk - log_c
+        self._static += self.ll_stand
+
+    def _noise_correlation(self) -> float:
+        """rho from Rx(iso): for AR(1) noise Var(z_t - z_{t-1}) = 2 sigma^2 (1 - rho) (a walking
+        Tx's drift reads as correlation, which only makes each sample count less)."""
+        n = self.n
+        if n < 10:
+            return 0.0
+        mean = self._iso_sum / n
+        var = max(self._iso_sq / n - mean * mean, 1e-9) * n / (n - 1)
+        rho = 1.0 - (self._iso_diff_sq / (n - 1)) / (2.0 * var)
+        return min(max(rho, 0.0), 0.95)
+
+    def _level_var(self, walking: bool) -> float:
+        """Variance of the level estimate: sigma^2 / n_eff, n_eff shrunk by the correlation."""
+        rho = self.rho
+        inflate = (1.0 + rho) / (1.0 - rho)
+        if walking:
+            lam = self._lam
+            return min(self.noise_var * (1.0 - lam) / (1.0 + lam) * inflate, self.noise_var)
+        return min(self.noise_var * inflate / self.n, self.noise_var)
+
+    def _sample_loglik(self, z: float, pan: float, gain: np.ndarray, level: float, level_var: float) -> np.ndarray:
+        resp = self.response
+        mean = resp.mean(level, gain)
+        slope = resp.level_slope(gain)
+        rho = self.rho
+        if self._prev is not None and rho > 0.0:
+            pan0, z0 = self._prev
+            gain0 = resp.gain(pan0 - self.circle.angles)
+            resid = (z - rho * z0) - (mean - rho * resp.mean(level, gain0))
+            var = self.noise_var * (1.0 - rho * rho) + (slope - rho * resp.level_slope(gain0)) ** 2 * level_var
+        else:
+            resid = z - mean
+            var = self.noise_var + slope * slope * level_var
+        if self.tail_dof is None:
+            return -0.5 * (resid * resid / var + np.log(2.0 * math.pi * var))
+        nu = self.tail_dof  # Student-t: a rare large innovation (fading, a body passing) is not a reason to move gamma
+        return -0.5 * (nu + 1.0) * np.log1p(resid * resid / (nu * var)) - 0.5 * np.log(var) + _t_const(nu)
+
+    def follow(self, ids, means: np.ndarray, sds: np.ndarray, weights: np.ndarray) -> None:
+        """After ``add``: add this sample's evidence to each camera track's trajectory evidence.
+
+        ``means``, ``sds``, ``weights`` (n, 2) are the tracks' IMM components (standing,
+        walking) predicted to this step. The sample is scored where each component puts the
+        track (smeared over its uncertainty, with the standing or walking level); a track met
+        for the first time gets the standing filter's evidence at its bearing for the samples
+        before it (it may have stood there all along) or none (it walked in), by its weights."""
+        evidence: dict[int, float] = {}
+        circle = self.circle
+        for i, tid in enumerate(ids):
+            terms: list[float] = []
+            for a, ll in ((0, self.ll_stand), (1, self.ll_walk)):
+                w = float(weights[i, a])
+                if w <= 1e-6:
+                    continue
+                terms.append(math.log(w) + self._smeared(ll, float(means[i, a]), float(sds[i, a])))
+            if tid in self._evidence:
+                evidence[tid] = self._evidence[tid] + _logsumexp_list(terms)
+            else:  # its past is unknown: it stood where it is (the standing filter), or walked here (the walking filter)
+                stood = float(circle.interp(self._static, np.array([means[i, 0]]))[0])
+                walked = float(circle.interp(self._walk, np.array([means[i, 1]]))[0]) + self._log_m
+                w0 = min(max(float(weights[i, 0]), 1e-6), 1.0 - 1e-6)
+                evidence[tid] = _logsumexp_list([math.log(w0) + stood, math.log(1.0 - w0) + walked])
+        self._evidence = evidence
+
+    def _smeared(self, ll: np.ndarray, mean: float, sd: float) -> float:
+        """log of the sample likelihood averaged over N(mean, sd^2) on the grid (at the nearest
+        cells when sd is below a grid step; the whole circle beyond 1 rad)."""
+        circle = self.circle
+        if sd < circle.step:
+            return float(circle.interp(ll, np.array([mean]))[0])
+        idx = arc_indices(circle, mean, min(4.0 * sd, math.pi))
+        d = (circle.angles[idx] - mean + math.pi) % (2.0 * math.pi) - math.pi
+        logw = -0.5 * (d / sd) ** 2
+        logw -= _logsumexp(logw)
+        return _logsumexp(logw + ll[idx])
+
+    # -- reading --------------------------------------------------------------------------------
+    @property
+    def log_joint_stand(self) -> np.ndarray:
+        """log P(stands, gamma = cell) + const (the standing model's evidence included)."""
+        return self._static - self._log_m + math.log(1.0 - self.walk_prior)
+
+    @property
+    def log_joint_walk(self) -> np.ndarray:
+        """log P(walks, gamma_t = cell) + the same const."""
+        return self._walk + math.log(self.walk_prior)
+
+    def log_posterior(self) -> np.ndarray:
+        """log P(gamma_t = cell | samples), normalised over the grid."""
+        joint = np.logaddexp(self.log_joint_stand, self.log_joint_walk)
+        return joint - _logsumexp(joint)
+
+    @property
+    def p_walk(self) -> float:
+        """P(the Tx walks | samples)."""
+        s = _logsumexp(self.log_joint_stand)
+        w = _logsumexp(self.log_joint_walk)
+        return 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
+
+    def most_informative_pan(self, stride: int = 2, mass: float = 1e-3) -> float:
+        """The pan whose next Rx(dir) sample the current posterior is least sure of: the largest
+        predictive variance Var_gamma[E z_dir(s, gamma)] over the posterior of gamma (for Gaussian
+        noise, the sample with the largest mutual information with gamma; MacKay 1992). Cells of
+        posterior below ``mass`` of the largest are left out; pans every ``stride`` grid cells."""
+        post = np.exp(self.log_posterior())
+        keep = np.flatnonzero(post >= mass * post.max())
+        p = post[keep] / post[keep].sum()
+        pans = self.circle.angles[::stride]
+        level = self._level_walk if self.p_walk > 0.5 else self._iso_sum / max(self.n, 1)
+        mean = self.response.mean(level, self.response.gain(pans[:, None] - self.circle.angles[keep][None, :]))  # (S, K)
+        first = mean @ p
+        var = (mean * mean) @ p - first * first
+        return float(pans[int(np.argmax(var))])
+
+    def track_evidence(self, ids) -> np.ndarray:
+        """log P(the Tx is track id, its trajectory) + the same const as ``log_joint_*``: the
+        track's trajectory evidence per grid cell (less log M, like an untracked bearing)."""
+        return np.fromiter((self._evidence[t] for t in ids), dtype=float, count=len(ids)) - self._log_m
+
+
+def _t_const(nu: float) -> float:
+    return math.lgamma(0.5 * (nu + 1.0)) - math.lgamma(0.5 * nu) - 0.5 * math.log(nu * math.pi)
+
+
+def arc_indices(circle: CircleGrid, centre: float, half_width: float) -> np.ndarray:
+    """Indices of the grid cells within ``half_width`` of ``centre`` (each once)."""
+    h = min(int(half_width / circle.step), circle.size // 2)
+    return (circle.nearest(centre) + np.arange(-h, h + (1 if 2 * h + 1 <= circle.size else 0))) % circle.size
+
+
+def _logsumexp(values: np.ndarray) -> float:
+    top = float(values.max())
+    return top + math.log(float(np.exp(values - top).sum()))
+
+
+def _logsumexp_list(values: list[float]) -> float:
+    if not values:
+        return -1e300
+    top = max(values)
+    return top + math.log(sum(math.exp(v - top) for v in values))
