@@ -368,3 +368,91 @@ def lobe_mean_at(s, x, Li, u, o, H_col, centre, A, c, width, res_len, res_var):
         b = math.sin(0.5 * (x[j] - s))
         total += res_var * math.exp(-2.0 * b * b / (res_len * res_len)) * alpha
     return mean + total
+
+
+@njit(cache=True)
+def _interp_periodic(values, angle, step):
+    M = values.size
+    pos = ((angle + math.pi) / step) % M
+    lo = int(math.floor(pos))
+    frac = pos - lo
+    lo = lo % M
+    return values[lo] * (1.0 - frac) + values[(lo + 1) % M] * frac
+
+
+@njit(cache=True)
+def _smeared_loglik(ll, mean, sd, step):
+    """log of exp(ll) averaged over N(mean, sd^2) on the periodic grid (interpolated at the mean
+    when sd is below a grid step; windows of at most half the circle each side)."""
+    if sd < step:
+        return _interp_periodic(ll, mean, step)
+    M = ll.size
+    h = min(int(4.0 * sd / step), M // 2)
+    centre = int(round((mean + math.pi) / step)) % M
+    top = -1e300
+    n = 2 * h + 1 if 2 * h + 1 <= M else M
+    for j in range(n):
+        k = (centre - h + j) % M
+        if ll[k] > top:
+            top = ll[k]
+    num = 0.0
+    den = 0.0
+    for j in range(n):
+        k = (centre - h + j) % M
+        d = _wrap(-math.pi + k * step - mean)
+        w = math.exp(-0.5 * (d / sd) ** 2)
+        den += w
+        num += w * math.exp(ll[k] - top)
+    return top + math.log(max(num / den, 1e-300))
+
+
+@njit(cache=True)
+def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, out):
+    """Each track's likelihood of this RF sample if it were the Tx (rf_filter.follow): its IMM
+    components (standing with the standing level, walking with the walking one), each smeared
+    over its uncertainty, mixed by their weights."""
+    for i in range(means.shape[0]):
+        top = -1e300
+        comp = np.empty(2)
+        for a in range(2):
+            w = weights[i, a]
+            if w <= 1e-6:
+                comp[a] = -1e300
+                continue
+            ll = ll_stand if a == 0 else ll_walk
+            comp[a] = math.log(w) + _smeared_loglik(ll, means[i, a], sds[i, a], step)
+            top = max(top, comp[a])
+        acc = 0.0
+        for a in range(2):
+            if comp[a] > -1e299:
+                acc += math.exp(comp[a] - top)
+        out[i] = top + math.log(acc) if acc > 0.0 else -1e300
+    return out
+
+
+@njit(cache=True)
+def track_where(l_rf, means, sds, weights, step, sharp, out):
+    """Where the Tx is now if it is track i: its dominant IMM component's mean, or, when that is
+    wider than ``sharp``, the grid bearing maximising l_RF - (d / sd)^2 / 2 within 3 sd of it (its
+    prediction times what Rx(dir) says)."""
+    M = l_rf.size
+    for i in range(means.shape[0]):
+        a = 1 if weights[i, 1] > weights[i, 0] else 0
+        mean = means[i, a]
+        sd = sds[i, a]
+        out[i] = mean
+        if sd <= sharp:
+            continue
+        h = min(int(3.0 * sd / step), M // 2)
+        centre = int(round((mean + math.pi) / step)) % M
+        best = -1e300
+        n = 2 * h + 1 if 2 * h + 1 <= M else M
+        for j in range(n):
+            k = (centre - h + j) % M
+            g = -math.pi + k * step
+            d = _wrap(g - mean)
+            score = l_rf[k] - 0.5 * (d / sd) ** 2
+            if score > best:
+                best = score
+                out[i] = g
+    return out

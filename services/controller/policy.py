@@ -59,7 +59,7 @@ from scipy.special import gammaln
 from ra2vipas.services.controller import _kernels
 from ra2vipas.services.controller.circle_gp import LobeGP, RecentLobe
 from ra2vipas.services.controller.grid import CircleGrid
-from ra2vipas.services.controller.rf_filter import RFBearingFilter, RxDirModel, arc_indices
+from ra2vipas.services.controller.rf_filter import RFBearingFilter, RxDirModel
 from ra2vipas.services.controller.tracks import BearingTracker, wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
 from ra2vipas.services.protocol.pod import PODModel
@@ -73,6 +73,15 @@ class Algorithm(str, Enum):
 
 
 ALGORITHMS: tuple[str, ...] = tuple(a.value for a in Algorithm)
+
+RAW_CONFIDENCE_CLIP = 0.01
+"""The raw posterior enters the confidence map clipped to [0.01, 0.99]: beyond, it says more about
+the model's own assumptions than about the world (a posterior of 1 - 1e-9 is wrong a few percent
+of the time in a crowd), and a map linear in an unbounded logit would have to flatten every
+confidence to tame those few."""
+
+CROWDING_SCALE_RAD = math.radians(1.0)
+"""Scale of the crowding covariate exp(-d / scale) of the confidence map (see Controller._calibrated)."""
 
 
 @dataclass(frozen=True)
@@ -100,7 +109,7 @@ class ControllerSettings:
     occlusion_halfwidth_rad: float = math.radians(5.0)  # an undetected target this close to a track's bearing may stand behind it
     occluded_probability: float = 0.9  # probability that such a target is hidden (its misses say nothing)
     answer_window_rad: float = math.radians(2.0)  # posterior mass within this of the answer is its confidence
-    # (A, B, C, D, E): sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter), see Controller._calibrated
+    # (A, B, C, D, E, F): sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter + F crowding), see Controller._calibrated
     confidence_calibration: tuple[float, ...] | None = None
     # -- a Tx that walks
     rf_memory_s: float = 0.8  # memory of the recent-lobe fit (a walker crosses 10-30 degrees a second)
@@ -113,6 +122,7 @@ class ControllerSettings:
     # -- the Rx(dir) response known from the rig: a grid Bayes filter over the Tx bearing (rf_filter.py)
     rf_filter: bool = True
     informative_probe: bool = True  # probes at the pan of largest predictive variance of Rx(dir) (rf_filter only)
+    walk_prior_from_tracks: bool = True  # P(the Tx walks) a priori = the share of tracks seen walking (rf_filter only)
     walk_std_deg: float = 2.0  # a walking Tx's bearing change per step
     level_memory_s: float = 0.5  # memory of a walking Tx's level (range and shadowing change)
     rf_tail_dof: float = 2.0  # Student-t degrees of freedom of an RF sample's innovation (0: Gaussian)
@@ -160,6 +170,7 @@ class Decision:
     tx_walks: float = 0.0  # how likely the Tx walks, from Rx(dir) (a walking Tx may have left the answer)
     noise_correlation: float = 0.0  # rho of the RSSI noise, from Rx(iso) (fading: fewer independent samples)
     clutter_density: float = 0.0  # false boxes per frame per radian, from the tracker
+    crowding: float = 0.0  # exp(-d / 1 deg), d the bearing gap from the answer to the nearest other track
 
 
 class PODLookup:
@@ -236,7 +247,7 @@ class Controller:
         self._view_recent = np.zeros(self.grid.size)  # the same, discounted over the recent-lobe memory
         self._missed_buffer = np.empty(self.grid.size)
         self._outlier_buffer = np.empty(self.grid.size)
-        self._rho = self._clutter = 0.0  # the confidence map's covariates, as of the last step
+        self._rho = self._clutter = self._crowding = 0.0  # the confidence map's covariates, as of the last step
         self._iso_sum = 0.0
         self._iso_sq = 0.0
         self._n = 0
@@ -263,13 +274,13 @@ class Controller:
             self._iso_diff_sq += (m.rf.iso_rssi_dbm - self._iso_prev) ** 2
         self._iso_prev = m.rf.iso_rssi_dbm
         if self.uses_radio:
-            if self.settings.ar1_lobe:  # in steps of 0.05: each change refits the samples so far
+            if self.settings.ar1_lobe and self.rff is None:  # in steps of 0.05: each change refits the samples so far
                 self.rf.set_noise_correlation(round(self._noise_correlation() * 20.0) / 20.0)
             self.rf.add(s, m.rf.dir_rssi_dbm)
             self.recent.add(s, m.rf.dir_rssi_dbm)
             if self.learn_lobe:
                 self._learn_lobe()
-            if self.uses_camera:
+            if self.uses_camera and self.rff is None:
                 self.recent.follow(self.tracks.ids.tolist(), self.tracks.bearing.tolist())
             l_static, amplitude, offset = self.rf.lobe_fit()
             best = int(np.argmax(l_static))
@@ -277,6 +288,8 @@ class Controller:
             if self.rff is not None:
                 self.rff.add(s, m.rf.iso_rssi_dbm, m.rf.dir_rssi_dbm)
                 if self.uses_camera:
+                    if self.settings.walk_prior_from_tracks:  # the Tx is one of the targets: it walks as often as they do
+                        self.rff.walk_prior = min(max(self.tracks.walking_share(self.settings.tx_walk_prior), 0.01), 0.99)
                     self.rff.follow(self.tracks.ids.tolist(), *self.tracks.components())
                 l_rf = self.rff.log_posterior()
                 self.tx_walks = self.rff.p_walk
@@ -290,8 +303,8 @@ class Controller:
         reward = self._mass_at(s, post) * self._rf_at(s, lobe)
         next_pan, probe = self._next_pan(t, l_rf, lobe, l_tracks, post)
         return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe,
-                        confidence=round(self._calibrated(raw_confidence), 6), raw_confidence=float(raw_confidence), tx_walks=self.tx_walks,
-                        noise_correlation=self._rho, clutter_density=self._clutter)
+                        confidence=round(self._calibrated(raw_confidence, estimate), 6), raw_confidence=float(raw_confidence),
+                        tx_walks=self.tx_walks, noise_correlation=self._rho, clutter_density=self._clutter, crowding=self._crowding)
 
     def lobe_evidence(self) -> float | None:
         """log-likelihood ratio of the lobe orientation in use against the opposite one, over every
@@ -420,14 +433,8 @@ class Controller:
         det, frames = self.tracks.detections, self.tracks.frames_in_view
         for i in range(len(ids)):
             out[i] += _kernels.pod_evidence(det[i], frames[i], alpha, beta, a0, b0, cfg.pod_outlier)
-            a = 1 if weights[i, 1] > weights[i, 0] else 0
-            where, sd = float(means[i, a]), float(sds[i, a])
-            if sd > 3.0 * circle.step:  # the Tx now, if it is this track: the track's prediction times what Rx(dir) says
-                idx = arc_indices(circle, where, 3.0 * sd)
-                d = (circle.angles[idx] - where + math.pi) % (2.0 * math.pi) - math.pi
-                score = l_rf[idx] - 0.5 * (d / sd) ** 2
-                where = float(circle.angles[idx[int(np.argmax(score))]])
-            self._track_where[i] = where
+        _kernels.track_where(l_rf, np.ascontiguousarray(means), np.ascontiguousarray(sds), np.ascontiguousarray(weights), circle.step,
+                             3.0 * circle.step, self._track_where)
 
     def _miss_outlier(self) -> np.ndarray:
         """Per grid bearing, the probability that an undetected Tx there was never visible: the
@@ -478,21 +485,28 @@ class Controller:
             return self.first_pan(), 0.0, post
         return self._refined_argmax(l_missed), missed_mass, post
 
-    def _calibrated(self, raw: float) -> float:
+    def _calibrated(self, raw: float, estimate: float) -> float:
         """The confidence reported: the raw posterior through the algorithm's fitted Platt map
-        sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter), whose covariates, all
-        measured by the controller itself, stand for what its model leaves out: a walking Tx may
-        have moved off the answer by the time it is scored (tx_walks); correlated fading leaves
-        fewer independent RF samples than the AR(1) model credits (rho, from Rx(iso)); false
-        boxes make tracks that are not people (the tracker's clutter density). Identity when no
+        sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter + F crowding) (raw clipped to
+        [0.01, 0.99], ``RAW_CONFIDENCE_CLIP``), whose covariates,
+        all measured by the controller itself, stand for what its model leaves out: a walking Tx
+        may have moved off the answer by the time it is scored (tx_walks); correlated fading
+        leaves fewer independent RF samples than the AR(1) model credits (rho, from Rx(iso));
+        false boxes make tracks that are not people (the tracker's clutter density); another
+        target within a degree or so of the answer may be the one the association rule names
+        (crowding, exp(-d / 1 deg) for the gap d to the nearest other track). Identity when no
         map is set."""
         self._rho = self._noise_correlation() if self._n else 0.0
         self._clutter = self.tracks.clutter_density if self.uses_camera else 0.0
+        self._crowding = 0.0
+        if self.uses_camera and len(self.tracks) >= 2:
+            gaps = np.sort(np.abs(wrap(self.tracks.bearing - estimate)))
+            self._crowding = math.exp(-float(gaps[1]) / CROWDING_SCALE_RAD)  # gaps[0]: the track named
         if self.settings.confidence_calibration is None:
             return float(min(max(raw, 0.0), 1.0))
-        A, B, C, D, E = (tuple(self.settings.confidence_calibration) + (0.0,) * 5)[:5]
-        p = min(max(raw, 1e-9), 1.0 - 1e-9)
-        z = A * math.log(p / (1.0 - p)) + B + C * self.tx_walks + D * self._rho + E * self._clutter
+        A, B, C, D, E, F = (tuple(self.settings.confidence_calibration) + (0.0,) * 6)[:6]
+        p = min(max(raw, RAW_CONFIDENCE_CLIP), 1.0 - RAW_CONFIDENCE_CLIP)
+        z = A * math.log(p / (1.0 - p)) + B + C * self.tx_walks + D * self._rho + E * self._clutter + F * self._crowding
         return float(1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0))))
 
     def _refined_argmax(self, values: np.ndarray) -> float:
@@ -562,16 +576,17 @@ class Controller:
 
 
 TUNING: dict[str, dict] = {
-    # confidence maps (A, B, C, D, E) from `ra2vipas bench calibrate --tests 40 --seed 1001` (10
-    # scenarios, 48 000 steps each; ECE on that data before -> after: ra2vipas 0.234 -> 0.015,
-    # rapas 0.352 -> 0.015, ravipas 0.130 -> 0.038, sweep 0.128 -> 0.026)
-    "ra2vipas": {"confidence_calibration": (1.5195, 1.7835, -0.5763, -0.064, -1.279)},
-    # RaPAS names the peak of l_RF: with a walking Tx the white-noise fit, flattened by
+    # confidence maps (A, B, C, D, E, F) from `ra2vipas bench calibrate --tests 40 --seed 1001` (10
+    # scenarios, 48 000 steps each; ECE on that data before -> after: ra2vipas 0.059 -> 0.015,
+    # rapas 0.361 -> 0.013, ravipas 0.134 -> 0.040, sweep 0.078 -> 0.018)
+    "ra2vipas": {"confidence_calibration": (0.6053, 1.3157, -1.13, 0.257, -0.0831, -0.6978)},
+    # RaPAS hears Rx(dir) only: no level from Rx(iso), so the generic lobe rather than the filter;
+    # it names the peak of l_RF: with a walking Tx the white-noise fit, flattened by
     # (1 - rho) / (1 + rho), lets the recent lobe win more often than the sharper AR(1) fit
-    "rapas": {"rf_weight": 2.0, "ar1_lobe": False, "rf_filter": False, "confidence_calibration": (0.8847, 1.6588, -2.4128, 1.4024, 0.0)},
+    "rapas": {"rf_weight": 2.0, "ar1_lobe": False, "rf_filter": False, "confidence_calibration": (0.9132, 1.6422, -1.7844, 1.2893, 0.0, 0.0)},
     # with the camera as its only cue, RaViPAS does best trusting the POD model fully
-    "ravipas": {"pod_floor_std": 0.0, "pod_outlier": 0.0, "confidence_calibration": (1.9141, 2.3863, 0.0, -0.0921, -3.4754)},
-    "sweep": {"confidence_calibration": (1.3916, 1.169, 0.5574, -0.457, -0.1622)},
+    "ravipas": {"pod_floor_std": 0.0, "pod_outlier": 0.0, "confidence_calibration": (1.9443, 2.446, 0.0, -0.3376, 1.208, -0.2432)},
+    "sweep": {"confidence_calibration": (0.6421, 0.5125, -0.8242, -0.01, 1.3126, 0.748)},
 }
 """Per-algorithm departures from the ``ControllerSettings`` defaults, fitted like them on simulated
 campaigns (each baseline gets its own best settings, so comparisons are fair)."""

@@ -36,6 +36,7 @@ import math
 
 import numpy as np
 
+from ra2vipas.services.controller import _kernels
 from ra2vipas.services.controller.grid import CircleGrid
 
 
@@ -195,33 +196,19 @@ class RFBearingFilter:
         before it (it may have stood there all along) or none (it walked in), by its weights."""
         evidence: dict[int, float] = {}
         circle = self.circle
+        n = len(ids)
+        step = _kernels.track_sample_loglik(self.ll_stand, self.ll_walk, np.ascontiguousarray(means, dtype=float),
+                                            np.ascontiguousarray(sds, dtype=float), np.ascontiguousarray(weights, dtype=float),
+                                            circle.step, np.empty(n))
         for i, tid in enumerate(ids):
-            terms: list[float] = []
-            for a, ll in ((0, self.ll_stand), (1, self.ll_walk)):
-                w = float(weights[i, a])
-                if w <= 1e-6:
-                    continue
-                terms.append(math.log(w) + self._smeared(ll, float(means[i, a]), float(sds[i, a])))
             if tid in self._evidence:
-                evidence[tid] = self._evidence[tid] + _logsumexp_list(terms)
+                evidence[tid] = self._evidence[tid] + float(step[i])
             else:  # its past is unknown: it stood where it is (the standing filter), or walked here (the walking filter)
                 stood = float(circle.interp(self._static, np.array([means[i, 0]]))[0])
                 walked = float(circle.interp(self._walk, np.array([means[i, 1]]))[0]) + self._log_m
                 w0 = min(max(float(weights[i, 0]), 1e-6), 1.0 - 1e-6)
                 evidence[tid] = _logsumexp_list([math.log(w0) + stood, math.log(1.0 - w0) + walked])
         self._evidence = evidence
-
-    def _smeared(self, ll: np.ndarray, mean: float, sd: float) -> float:
-        """log of the sample likelihood averaged over N(mean, sd^2) on the grid (at the nearest
-        cells when sd is below a grid step; the whole circle beyond 1 rad)."""
-        circle = self.circle
-        if sd < circle.step:
-            return float(circle.interp(ll, np.array([mean]))[0])
-        idx = arc_indices(circle, mean, min(4.0 * sd, math.pi))
-        d = (circle.angles[idx] - mean + math.pi) % (2.0 * math.pi) - math.pi
-        logw = -0.5 * (d / sd) ** 2
-        logw -= _logsumexp(logw)
-        return _logsumexp(logw + ll[idx])
 
     # -- reading --------------------------------------------------------------------------------
     @property

@@ -209,6 +209,16 @@ class BearingTracker:
         walkers = int(np.count_nonzero(self._mu[: self._n, 1][settled] > 0.5))
         self._prm[_tracker.F_WALK] = min(max((1.0 + walkers) / (2.0 + int(settled.sum())), 0.02), 0.98)
 
+    def walking_share(self, prior: float = 0.3, strength: float = 2.0) -> float:
+        """The share of targets that walk, as the camera has seen them: tracks detected in at least
+        three steps whose IMM says walking, over all such tracks, shrunk towards ``prior`` by
+        ``strength`` pseudo-tracks (a Beta prior). The prior probability that the Tx, one of
+        them, walks."""
+        n = self._n
+        settled = self._det_steps[:n] >= 3.0
+        walkers = int(np.count_nonzero(self._mu[:n, 1][settled] > 0.5))
+        return (prior * strength + walkers) / (strength + int(settled.sum()))
+
     def detection_rate(self) -> tuple[np.ndarray, np.ndarray]:
         """(p~_i, n_i): each track's empirical POD and the (discounted) frames it rests on."""
         n = self.frames_in_view

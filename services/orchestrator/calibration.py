@@ -5,10 +5,11 @@ under its own model. Models are approximations (tempered likelihoods, a POD mode
 from noisy labels), so the raw number is over- or under-confident by an amount that depends
 on the algorithm. Platt scaling (Platt 1999; Guo et al. 2017 for its use as "temperature
 scaling" of posteriors), with covariates the controller measures itself (how likely the Tx
-walks, the fading correlation rho from Rx(iso), the tracker's clutter density), fits per
-algorithm sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter) to the hit of every step of
+walks, the fading correlation rho from Rx(iso), the tracker's clutter density, how close the
+nearest other track is to the answer), fits per algorithm
+sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter + F crowding) to the hit of every step of
 simulated tests over a mix of scenarios, with seeds that no benchmark uses. The fitted
-(A, B, C, D, E) maps ship in ``services.controller.policy.TUNING``; this module is how they were made
+(A, B, C, D, E, F) maps ship in ``services.controller.policy.TUNING``; this module is how they were made
 and how to remake them.
 """
 
@@ -19,7 +20,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 from scipy.optimize import minimize
 
-from ra2vipas.services.controller.policy import Controller, sensor_config_from_scenario, tuned_settings
+from ra2vipas.services.controller.policy import RAW_CONFIDENCE_CLIP, Controller, sensor_config_from_scenario, tuned_settings
 from ra2vipas.services.orchestrator.metrics import expected_calibration_error, score_test
 from ra2vipas.services.orchestrator.simulate import train_pod
 from ra2vipas.services.protocol.scenario import build_scenario
@@ -42,7 +43,7 @@ SCENARIOS: dict[str, tuple[str, dict[str, Any]]] = {
 
 def collect(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = SCENARIOS,
             progress: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(raw confidence, covariates (steps, 3): tx_walks, rho, clutter density, hit) at every
+    """(raw confidence, covariates (steps, 4): tx_walks, rho, clutter density, crowding, hit) at every
     step of ``tests`` tests of each scenario, with the algorithm's tuning (its confidence map
     does not change the raw value)."""
     settings = tuned_settings(algorithm)
@@ -60,7 +61,7 @@ def collect(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = SC
                 pan = d.next_pan_rad
                 estimates.append(d.estimate_rad)
                 raw.append(d.raw_confidence)
-                walks.append((d.tx_walks, d.noise_correlation, d.clutter_density))
+                walks.append((d.tx_walks, d.noise_correlation, d.clutter_density, d.crowding))
             truth = platform.truth
             hits, _ = score_test(np.asarray(estimates), truth.step_bearings_rad(), truth.tx_index, scenario.fov_half_angle_rad)
             hit += hits.tolist()
@@ -70,7 +71,7 @@ def collect(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = SC
 
 
 def _design(raw: np.ndarray, covariates: np.ndarray) -> np.ndarray:
-    p = np.clip(raw, 1e-9, 1.0 - 1e-9)
+    p = np.clip(raw, RAW_CONFIDENCE_CLIP, 1.0 - RAW_CONFIDENCE_CLIP)
     cov = np.asarray(covariates, dtype=float).reshape(raw.size, -1)
     return np.column_stack([np.log(p / (1.0 - p)), np.ones(raw.size), cov])
 

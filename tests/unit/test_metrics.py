@@ -209,14 +209,16 @@ def test_an_early_decision_keeps_its_target_as_targets_move():
 
 def test_the_confidence_map_fit_recovers_a_known_map_and_the_controller_applies_it():
     """bench calibrate's logistic fit finds the map that generated the hits, and a controller
-    given that map reports sigmoid(A logit(raw) + B + C walks + D rho + E clutter)."""
+    given that map reports sigmoid(A logit(raw) + B + C walks + D rho + E clutter + F crowding),
+    crowding exp(-d / 1 deg) for the gap d from its answer to the nearest other track."""
     from ra2vipas.services.controller.policy import Controller, ControllerSettings
+    from ra2vipas.services.controller.tracks import BearingTracker
     from ra2vipas.services.orchestrator.calibration import fit_platt, platt
 
     rng = np.random.default_rng(5)
     raw = rng.uniform(0.02, 0.98, 40000)
-    cov = rng.uniform(0.0, 1.0, (raw.size, 3))
-    truth = (1.3, -0.4, -2.0, 0.8, -1.5)
+    cov = rng.uniform(0.0, 1.0, (raw.size, 4))
+    truth = (1.3, -0.4, -2.0, 0.8, -1.5, -1.0)
     hit = (rng.uniform(size=raw.size) < platt(raw, cov, *truth)).astype(float)
     fitted = fit_platt(raw, cov, hit)
     np.testing.assert_allclose(fitted, truth, atol=0.12)
@@ -225,6 +227,16 @@ def test_the_confidence_map_fit_recovers_a_known_map_and_the_controller_applies_
     controller.settings = ControllerSettings(confidence_calibration=truth)
     controller.tx_walks, controller._n = 0.5, 0
     controller.uses_camera = False
-    got = controller._calibrated(0.7)
-    want = float(platt(np.array([0.7]), np.array([[0.5, 0.0, 0.0]]), *truth)[0])
+    got = controller._calibrated(0.7, 0.0)
+    want = float(platt(np.array([0.7]), np.array([[0.5, 0.0, 0.0, 0.0]]), *truth)[0])
+    assert got == pytest.approx(want)
+    # with tracks: the answer at 0.0 names the track there; the nearest other is 0.5 deg away
+    controller.uses_camera = True
+    controller.tracks = BearingTracker.__new__(BearingTracker)
+    controller.tracks._bearing = np.array([0.0, math.radians(0.5), math.radians(30.0)])
+    controller.tracks._view = np.arange(3)
+    controller.tracks._clutter = np.array([0.0, 1.0])
+    controller.tracks.count_limit = 0.3
+    got = controller._calibrated(0.7, 0.0)
+    want = float(platt(np.array([0.7]), np.array([[0.5, 0.0, 0.0, math.exp(-0.5)]]), *truth)[0])
     assert got == pytest.approx(want)
