@@ -116,12 +116,14 @@ def bench_mesh(
     memory_tests: Annotated[str, typer.Option(help="Campaign sizes whose orchestrator peak memory to measure, comma-separated, e.g. 1000,10000 (default: none).")] = "",
     memory_steps: Annotated[int, typer.Option(min=1, max=1000, help="n_test of the memory campaigns (short, so 10 000 tests take minutes).")] = 20,
     memory_algorithm: Annotated[str, typer.Option(help="The algorithm of the memory campaigns.")] = "rapas",
+    preset: Annotated[str, typer.Option(help="Scenario preset of the fast and realtime campaigns (paper, dynamic, ...).")] = "paper",
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Start local stacks and measure them through the real processes.
 
-    Fast mode: the paper campaign (TESTS tests x ra2vipas, rapas, ravipas x 120 steps) in
-    lockstep on RIG_COUNT rigs; reports control steps per second (target >= 2 200 on 2 cores).
+    Fast mode: the PRESET campaign (TESTS tests x ra2vipas, rapas, ravipas x 120 steps) in
+    lockstep on RIG_COUNT rigs; reports control steps per second (target >= 2 200 on 2 cores
+    for paper, >= 2 000 for dynamic).
     Realtime mode: REALTIME_TESTS tests paced at T_RF on one rig (one platform in the loop);
     reports the sample-to-command latency p50/p99 measured by the sensors (target p99 <= 5
     ms). Memory (with --memory-tests): one campaign of each size (MEMORY_STEPS steps,
@@ -133,6 +135,8 @@ def bench_mesh(
 
         ra2vipas bench mesh --json
 
+        ra2vipas bench mesh --preset dynamic --realtime-tests 0 --json
+
         ra2vipas bench mesh --tests 0 --realtime-tests 0 --memory-tests 1000,10000 --json
     """
     import os
@@ -141,13 +145,17 @@ def bench_mesh(
     from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
     from ra2vipas.services.protocol.messages import ALGORITHMS
 
+    from ra2vipas.services.protocol.scenario import PRESETS
+
     if memory_algorithm not in ALGORITHMS:
         fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
+    if preset not in PRESETS:
+        fail(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}", EXIT_USAGE)
     sizes = _sizes(memory_tests, "--memory-tests")
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count") or max(1, min(os.cpu_count() or 1, 16))
     algorithms = ["ra2vipas", "rapas", "ravipas"]
-    report: dict = {"benchmark": "mesh", "rigs": rigs, "window": window,
-                    "targets": {"steps_per_second": 2200, "latency_p99_ms": 5.0}, "steps_per_second": None}
+    report: dict = {"benchmark": "mesh", "preset": preset, "rigs": rigs, "window": window,
+                    "targets": {"steps_per_second": 2000 if preset == "dynamic" else 2200, "latency_p99_ms": 5.0}, "steps_per_second": None}
     with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
 
         def stack_of(n: int, name: str) -> Stack:
@@ -158,7 +166,7 @@ def bench_mesh(
             stack = stack_of(rigs, "fast")
             try:
                 stack.start()
-                body = {"preset": "paper", "tests": tests, "seed": 1, "algorithms": algorithms}
+                body = {"preset": preset, "tests": tests, "seed": 1, "algorithms": algorithms}
                 fast, fast_wall = _run_campaign(stack.api_url, body, 1800)
                 report["fast"] = {
                     "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
@@ -175,7 +183,7 @@ def bench_mesh(
             stack = stack_of(1, "realtime")
             try:
                 stack.start()
-                rt, rt_wall = _run_campaign(stack.api_url, {"preset": "paper", "tests": realtime_tests, "seed": 1,
+                rt, rt_wall = _run_campaign(stack.api_url, {"preset": preset, "tests": realtime_tests, "seed": 1,
                                                             "algorithms": ["ra2vipas"], "mode": "realtime"}, 900, poll=1.0)
                 report["latency_ms"] = rt.get("latency_ms")
                 report["realtime"] = {"rigs": 1, "tests": realtime_tests, "samples": realtime_tests * (rt["scenario"]["steps"] - 1),
@@ -709,8 +717,12 @@ def bench_simulate(
     from ra2vipas.services.protocol.messages import ALGORITHMS
     from ra2vipas.services.protocol.scenario import build_scenario
 
+    from ra2vipas.services.protocol.scenario import PRESETS
+
     if memory_algorithm not in ALGORITHMS:
         fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
+    if preset not in PRESETS:
+        fail(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}", EXIT_USAGE)
     sizes = _sizes(memory_tests, "--memory-tests")
     n = workers or default_workers()
     scenario = build_scenario("paper")

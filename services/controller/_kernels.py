@@ -416,7 +416,7 @@ def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, out):
         comp = np.empty(2)
         for a in range(2):
             w = weights[i, a]
-            if w <= 1e-6:
+            if w <= 1e-3:  # a model this unlikely moves nothing (and costs a window of work)
                 comp[a] = -1e300
                 continue
             ll = ll_stand if a == 0 else ll_walk

@@ -238,6 +238,7 @@ class Controller:
                                        noise_db=sigma, rf_period_s=sensors.rf_period_s, walk_std_rad=math.radians(cfg.walk_std_deg),
                                        level_memory_s=cfg.level_memory_s, walk_prior=cfg.tx_walk_prior,
                                        tail_dof=cfg.rf_tail_dof or None)
+        self._dir_samples: list[tuple[float, float]] = []
         self._iso_prev: float | None = None
         self._iso_diff_sq = 0.0
         self.tx_walks = 0.0  # probability that the Tx walks, from Rx(dir)
@@ -273,29 +274,29 @@ class Controller:
         if self._iso_prev is not None:
             self._iso_diff_sq += (m.rf.iso_rssi_dbm - self._iso_prev) ** 2
         self._iso_prev = m.rf.iso_rssi_dbm
-        if self.uses_radio:
-            if self.settings.ar1_lobe and self.rff is None:  # in steps of 0.05: each change refits the samples so far
+        if self.uses_radio and self.rff is not None:
+            self._dir_samples.append((s, m.rf.dir_rssi_dbm))  # for the lobe's model check, fitted once asked (lobe_evidence)
+            self.rff.add(s, m.rf.iso_rssi_dbm, m.rf.dir_rssi_dbm)
+            if self.uses_camera:
+                if self.settings.walk_prior_from_tracks:  # the Tx is one of the targets: it walks as often as they do
+                    self.rff.walk_prior = min(max(self.tracks.walking_share(self.settings.tx_walk_prior), 0.01), 0.99)
+                self.rff.follow(self.tracks.ids.tolist(), *self.tracks.components())
+            l_rf = self.rff.log_posterior()
+            self.tx_walks = self.rff.p_walk
+            lobe = None
+        elif self.uses_radio:
+            if self.settings.ar1_lobe:  # in steps of 0.05: each change refits the samples so far
                 self.rf.set_noise_correlation(round(self._noise_correlation() * 20.0) / 20.0)
             self.rf.add(s, m.rf.dir_rssi_dbm)
             self.recent.add(s, m.rf.dir_rssi_dbm)
             if self.learn_lobe:
                 self._learn_lobe()
-            if self.uses_camera and self.rff is None:
+            if self.uses_camera:
                 self.recent.follow(self.tracks.ids.tolist(), self.tracks.bearing.tolist())
             l_static, amplitude, offset = self.rf.lobe_fit()
             best = int(np.argmax(l_static))
             lobe = (best, float(amplitude[best]), float(offset[best]))
-            if self.rff is not None:
-                self.rff.add(s, m.rf.iso_rssi_dbm, m.rf.dir_rssi_dbm)
-                if self.uses_camera:
-                    if self.settings.walk_prior_from_tracks:  # the Tx is one of the targets: it walks as often as they do
-                        self.rff.walk_prior = min(max(self.tracks.walking_share(self.settings.tx_walk_prior), 0.01), 0.99)
-                    self.rff.follow(self.tracks.ids.tolist(), *self.tracks.components())
-                l_rf = self.rff.log_posterior()
-                self.tx_walks = self.rff.p_walk
-                self.recent.profile()  # the recent lobe's best fit, for the acquisition of a walking Tx
-            else:
-                l_rf = self._rf_loglik(l_static, best)
+            l_rf = self._rf_loglik(l_static, best)
         else:
             l_rf, lobe = self._flat, None
         l_tracks, l_missed = self._beliefs(l_rf)
@@ -312,6 +313,10 @@ class Controller:
         with the amplitude's sign as used, minus the same with the sign flipped. Strongly negative
         when the directional RSSI contradicts the assumed antenna model (e.g. a dB-gain antenna,
         whose reading peaks at the Tx, modelled as the paper's dip). None without Rx(dir) samples."""
+        if self._dir_samples:  # the filter ran the episode: fit the generic lobe to its samples now, once
+            for s, z in self._dir_samples:
+                self.rf.add(s, z)
+            self._dir_samples.clear()
         if not self.uses_radio or self.rf.n_ == 0:
             return None
         used = float(self.rf.lobe_fit()[0].max())
@@ -444,9 +449,11 @@ class Controller:
         cfg = self.settings
         out = self._outlier_buffer
         out.fill(cfg.pod_outlier)
-        if cfg.occluded_probability > cfg.pod_outlier:
-            for b in self.tracks.bearing:
-                out[self.circle.window(float(self.grid[self.circle.nearest(float(b))]), cfg.occlusion_halfwidth_rad)] = cfg.occluded_probability
+        if cfg.occluded_probability > cfg.pod_outlier and len(self.tracks):
+            circle = self.circle
+            h = int(math.floor((cfg.occlusion_halfwidth_rad + 1e-12) / circle.step))
+            centres = np.rint((wrap(self.tracks.bearing) + math.pi) / circle.step).astype(np.int64) % circle.size
+            out[(centres[:, None] + np.arange(-h, h + 1)[None, :]) % circle.size] = cfg.occluded_probability
         return out
 
     def _answer(self, l_rf: np.ndarray, l_tracks: np.ndarray, l_missed: np.ndarray | None) -> tuple[float, float, np.ndarray]:
@@ -519,7 +526,11 @@ class Controller:
         return float(self.grid[j] + np.clip(shift, -0.5, 0.5) * (2 * math.pi / M))
 
     def _rf_at(self, s: float, lobe) -> float:
-        """J_RF at one pan angle: the normalised posterior mean of the best lobe fit."""
+        """J_RF at one pan angle: the normalised posterior mean of the best lobe fit (with the
+        filter: the antenna gain expected under its posterior of gamma)."""
+        if self.rff is not None:
+            post = np.exp(self.rff.log_posterior())
+            return float(self.rff.response.gain(s - self.circle.angles) @ post)
         if lobe is None or lobe[1] == 0.0:
             return 1.0
         j, A, c = lobe
@@ -545,7 +556,10 @@ class Controller:
                 return self.rff.most_informative_pan(), True
             return self._probe(l_rf, l_tracks), True
         # GP-UCB on the fused objective (eq. 25): a(s) = U_D(s) (J_RF(s) + sqrt(beta) sigma(s))
-        if lobe is not None and self._n:
+        if self.rff is not None:  # J_RF: the antenna gain expected under the filter's posterior of gamma
+            mean, sd = self.rff.predicted_gain()
+            A, c = 1.0, 0.0
+        elif lobe is not None and self._n:
             j, A, c = lobe
             mean, sd = self.rf.posterior(j, A, c)
             if self.tx_walks > 0.5:  # a walking Tx is where the recent samples put it

@@ -111,7 +111,7 @@ class RFBearingFilter:
         self._iso_sum = self._iso_sq = self._iso_diff_sq = 0.0
         self._iso_prev: float | None = None
         self._level_walk = 0.0
-        self._prev: tuple[float, float] | None = None  # (pan, z_dir) of the previous sample
+        self._prev: tuple[np.ndarray, float] | None = None  # (antenna gain over the grid, z_dir) of the previous sample
         self._static = np.zeros(M)  # sum of the static model's sample log-likelihoods minus the baseline
         self._walk = np.full(M, -self._log_m)  # log posterior of the walking model (normalised)
         self.ll_stand = np.zeros(M)  # this step's sample log-likelihood (relative), standing level
@@ -132,9 +132,9 @@ class RFBearingFilter:
         level_stand = self._iso_sum / n
         self.rho = rho = self._noise_correlation()
         gain = self.response.gain(pan_rad - self.circle.angles)
-        ll_stand = self._sample_loglik(dir_dbm, pan_rad, gain, level_stand, self._level_var(False))
-        ll_walk = self._sample_loglik(dir_dbm, pan_rad, gain, self._level_walk, self._level_var(True))
-        self._prev = (pan_rad, dir_dbm)
+        ll_stand = self._sample_loglik(dir_dbm, gain, level_stand, self._level_var(False))
+        ll_walk = self._sample_loglik(dir_dbm, gain, self._level_walk, self._level_var(True))
+        self._prev = (gain, dir_dbm)
         # the walking filter: predict (diffuse), update; its normaliser is the baseline
         prior = np.exp(self._walk - self._walk.max())
         predicted = np.maximum(np.fft.irfft(np.fft.rfft(prior) * self._kernel_fft, n=prior.size), 0.0)
@@ -168,14 +168,13 @@ class RFBearingFilter:
             return min(self.noise_var * (1.0 - lam) / (1.0 + lam) * inflate, self.noise_var)
         return min(self.noise_var * inflate / self.n, self.noise_var)
 
-    def _sample_loglik(self, z: float, pan: float, gain: np.ndarray, level: float, level_var: float) -> np.ndarray:
+    def _sample_loglik(self, z: float, gain: np.ndarray, level: float, level_var: float) -> np.ndarray:
         resp = self.response
         mean = resp.mean(level, gain)
         slope = resp.level_slope(gain)
         rho = self.rho
         if self._prev is not None and rho > 0.0:
-            pan0, z0 = self._prev
-            gain0 = resp.gain(pan0 - self.circle.angles)
+            gain0, z0 = self._prev  # the previous sample's antenna gain over the grid, and its reading
             resid = (z - rho * z0) - (mean - rho * resp.mean(level, gain0))
             var = self.noise_var * (1.0 - rho * rho) + (slope - rho * resp.level_slope(gain0)) ** 2 * level_var
         else:
@@ -247,6 +246,17 @@ class RFBearingFilter:
         first = mean @ p
         var = (mean * mean) @ p - first * first
         return float(pans[int(np.argmax(var))])
+
+    def predicted_gain(self, mass: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and standard deviation over the posterior of gamma of the antenna gain
+        rho(s - gamma) at every grid pan s: the normalised lobe J_RF(s) the fused objective's
+        GP-UCB reads (paper eq. 24-25), and how unsure the filter is of it there."""
+        post = np.exp(self.log_posterior())
+        keep = np.flatnonzero(post >= mass * post.max())
+        p = post[keep] / post[keep].sum()
+        gain = self.response.gain(self.circle.angles[:, None] - self.circle.angles[keep][None, :])  # (M, K)
+        first = gain @ p
+        return first, np.sqrt(np.maximum((gain * gain) @ p - first * first, 0.0))
 
     def track_evidence(self, ids) -> np.ndarray:
         """log P(the Tx is track id, its trajectory) + the same const as ``log_joint_*``: the

@@ -56,3 +56,24 @@ def test_openapi_declares_the_bearer_scheme_on_state_changing_operations(guarded
     assert spec["components"]["securitySchemes"]["HTTPBearer"]["scheme"] == "bearer"
     assert spec["paths"]["/campaigns"]["post"]["security"] == [{"HTTPBearer": []}]
     assert "security" not in spec["paths"]["/campaigns"]["get"]
+
+
+def test_health_counts_the_result_and_truth_messages_it_dropped(live, http):
+    """Defence in depth (issue 14): what the orchestrator drops on the result and truth planes is
+    counted by reason and shown by /health: a payload that does not validate (malformed), an
+    episode id that is not in flight (a guess or a replay), none of it recorded."""
+    from ra2vipas.services.protocol import keys
+    from ra2vipas.services.protocol.messages import EpisodeResult, EpisodeTruth, dump
+
+    before = http.get("/health").json()["rejected_messages"]
+    assert set(before) == {"malformed", "not_in_flight", "wrong_rig"}
+    guessed = "0123456789ab.0.ra2vipas.0"  # campaign.test.algorithm.attempt, no nonce
+    live.bus.publish(keys.episode_result("rig-1"), dump(EpisodeResult(episode_id=guessed, rig="rig-1", estimates_rad=(0.0,),
+                                                                       pans_rad=(0.0,), rewards=(0.0,))))
+    live.bus.publish(keys.episode_truth("evil"), dump(EpisodeTruth(episode_id=guessed, bearings_rad=(0.0,), ranges_m=(1.0,), tx_index=0)))
+    live.bus.publish(keys.episode_result("rig-1"), b'{"episode_id": 3}')
+    live.settle()
+    after = http.get("/health").json()["rejected_messages"]
+    assert after["not_in_flight"] == before["not_in_flight"] + 2
+    assert after["malformed"] == before["malformed"] + 1
+    assert after["wrong_rig"] == before["wrong_rig"]
