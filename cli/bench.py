@@ -717,12 +717,8 @@ def bench_simulate(
     from ra2vipas.services.protocol.messages import ALGORITHMS
     from ra2vipas.services.protocol.scenario import build_scenario
 
-    from ra2vipas.services.protocol.scenario import PRESETS
-
     if memory_algorithm not in ALGORITHMS:
         fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
-    if preset not in PRESETS:
-        fail(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}", EXIT_USAGE)
     sizes = _sizes(memory_tests, "--memory-tests")
     n = workers or default_workers()
     scenario = build_scenario("paper")
