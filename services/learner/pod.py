@@ -492,6 +492,7 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
         mean=tuple(float(v) for v in np.clip(f, 0.0, 1.0)),
         std=tuple(float(v) for v in std),
         rf_noise_db=math.sqrt(R),
+        rf_noise_correlation=round(float(phi), 6),
         n_train=int(z.size),
         frames_per_rf=int(nu),
     )
