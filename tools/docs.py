@@ -175,8 +175,9 @@ def _paper_table(data: dict[str, Any]) -> str:
 def _pod_line(data: dict[str, Any]) -> str:
     r2 = ", ".join(f"{_f(data['paper'][s]['pod_r2'])} (seed {s})" for s in map(str, data["seeds"]))
     dyn = ", ".join(f"{_f(data['dynamic'][s]['pod_r2'])} (seed {s})" for s in map(str, data["seeds"]))
-    return (f"POD regression R² (paper eq. 23, against the true p_D(r) at the training samples' true RSSI): "
-            f"{r2}; on `dynamic`: {dyn}.")
+    return (f"POD regression R² (paper eq. 23, against the true POD at the training samples' true RSSI): "
+            f"{r2}; on `dynamic`: {dyn} (there the true POD at an RSSI is E[p_D(d) | r] under 4 dB of shadowing, "
+            f"nearly flat, so R² is ill-conditioned: see above).")
 
 
 def _dynamic_table(data: dict[str, Any]) -> str:
