@@ -103,9 +103,11 @@ def test_a_db_gain_rig_under_the_paper_model_is_not_a_silent_dr_zero(rigs):
     assert done["status"] == "done", done["error"]
     with rigs.client() as http:
         results = http.get(f"/campaigns/{done['id']}/results").json()
-    assert all(results["algorithms"][a]["dr_final"] < 0.1 for a in ("ra2vipas", "rapas", "sweep"))
+    # Rx(dir) alone names the wrong bearing every time; the fused and sweep estimators lean on the
+    # camera and fare better, but far from their ~1.0 on a correctly described rig
+    assert results["algorithms"]["rapas"]["dr_final"] < 0.1
+    assert all(results["algorithms"][a]["dr_final"] < 0.8 for a in ("ra2vipas", "sweep"))
     text = " ".join(results["warnings"])
-    assert "far below chance" in text
     assert "contradicts the assumed Rx(dir) response 'paper'" in text and "db-gain" in text
     assert results["assumptions"]["rigs"] == ["hidden-1"]
     from typer.testing import CliRunner
@@ -113,7 +115,7 @@ def test_a_db_gain_rig_under_the_paper_model_is_not_a_silent_dr_zero(rigs):
     from ra2vipas.cli.main import app
 
     out = CliRunner().invoke(app, ["campaign", "results", done["id"], "--api", rigs.url], env={"COLUMNS": "250"})
-    assert out.exit_code == 0 and "warning:" in out.output and "far below chance" in out.output
+    assert out.exit_code == 0 and "warning:" in out.output and "contradicts the assumed Rx(dir) response" in " ".join(out.output.split())
     assert "undescribed rigs (hidden-1)" in out.output
 
 
