@@ -380,6 +380,14 @@ def _interp_periodic(values, angle, step):
     return values[lo] * (1.0 - frac) + values[(lo + 1) % M] * frac
 
 
+@njit(cache=True, inline="always")
+def _arc(mean, half_width, step, M):
+    """(first cell, cells) of the grid arc within ``half_width`` of ``mean``, at most the circle."""
+    h = min(int(half_width / step), M // 2)
+    centre = int(round((mean + math.pi) / step)) % M
+    return centre - h, (2 * h + 1 if 2 * h + 1 <= M else M)
+
+
 @njit(cache=True)
 def _smeared_loglik(ll, mean, sd, step):
     """log of exp(ll) averaged over N(mean, sd^2) on the periodic grid (interpolated at the mean
@@ -387,18 +395,16 @@ def _smeared_loglik(ll, mean, sd, step):
     if sd < step:
         return _interp_periodic(ll, mean, step)
     M = ll.size
-    h = min(int(4.0 * sd / step), M // 2)
-    centre = int(round((mean + math.pi) / step)) % M
+    first, n = _arc(mean, 4.0 * sd, step, M)
     top = -1e300
-    n = 2 * h + 1 if 2 * h + 1 <= M else M
     for j in range(n):
-        k = (centre - h + j) % M
+        k = (first + j) % M
         if ll[k] > top:
             top = ll[k]
     num = 0.0
     den = 0.0
     for j in range(n):
-        k = (centre - h + j) % M
+        k = (first + j) % M
         d = _wrap(-math.pi + k * step - mean)
         w = math.exp(-0.5 * (d / sd) ** 2)
         den += w
@@ -443,12 +449,10 @@ def track_where(l_rf, means, sds, weights, step, sharp, out):
         out[i] = mean
         if sd <= sharp:
             continue
-        h = min(int(3.0 * sd / step), M // 2)
-        centre = int(round((mean + math.pi) / step)) % M
+        first, n = _arc(mean, 3.0 * sd, step, M)
         best = -1e300
-        n = 2 * h + 1 if 2 * h + 1 <= M else M
         for j in range(n):
-            k = (centre - h + j) % M
+            k = (first + j) % M
             g = -math.pi + k * step
             d = _wrap(g - mean)
             score = l_rf[k] - 0.5 * (d / sd) ** 2
