@@ -109,7 +109,7 @@ class ControllerSettings:
     occlusion_halfwidth_rad: float = math.radians(5.0)  # an undetected target this close to a track's bearing may stand behind it
     occluded_probability: float = 0.9  # probability that such a target is hidden (its misses say nothing)
     answer_window_rad: float = math.radians(2.0)  # posterior mass within this of the answer is its confidence
-    # (A, B, C, D, E, F): sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter + F crowding), see Controller._calibrated
+    # (A, ..., G): sigmoid((A + G tx_walks) logit(raw) + B + C tx_walks + D rho + E clutter + F crowding), see Controller._calibrated
     confidence_calibration: tuple[float, ...] | None = None
     # -- a Tx that walks
     rf_memory_s: float = 0.8  # memory of the recent-lobe fit (a walker crosses 10-30 degrees a second)
@@ -498,8 +498,9 @@ class Controller:
 
     def _calibrated(self, raw: float, estimate: float) -> float:
         """The confidence reported: the raw posterior through the algorithm's fitted Platt map
-        sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter + F crowding) (raw clipped to
-        [0.01, 0.99], ``RAW_CONFIDENCE_CLIP``), whose covariates,
+        sigmoid((A + G tx_walks) logit(raw) + B + C tx_walks + D rho + E clutter + F crowding) (raw
+        clipped to [0.01, 0.99], ``RAW_CONFIDENCE_CLIP``; G: a walking Tx's posterior is worth less
+        per unit of logit), whose covariates,
         all measured by the controller itself, stand for what its model leaves out: a walking Tx
         may have moved off the answer by the time it is scored (tx_walks); correlated fading
         leaves fewer independent RF samples than the AR(1) model credits (rho, from Rx(iso));
@@ -515,9 +516,10 @@ class Controller:
             self._crowding = math.exp(-float(gaps[1]) / CROWDING_SCALE_RAD)  # gaps[0]: the track named
         if self.settings.confidence_calibration is None:
             return float(min(max(raw, 0.0), 1.0))
-        A, B, C, D, E, F = (tuple(self.settings.confidence_calibration) + (0.0,) * 6)[:6]
+        A, B, C, D, E, F, G = (tuple(self.settings.confidence_calibration) + (0.0,) * 7)[:7]
         p = min(max(raw, RAW_CONFIDENCE_CLIP), 1.0 - RAW_CONFIDENCE_CLIP)
-        z = A * math.log(p / (1.0 - p)) + B + C * self.tx_walks + D * self._rho + E * self._clutter + F * self._crowding
+        logit = math.log(p / (1.0 - p))
+        z = (A + G * self.tx_walks) * logit + B + C * self.tx_walks + D * self._rho + E * self._clutter + F * self._crowding
         return float(1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0))))
 
     def _refined_argmax(self, values: np.ndarray) -> float:
@@ -594,17 +596,17 @@ class Controller:
 
 
 TUNING: dict[str, dict] = {
-    # confidence maps (A, B, C, D, E, F) from `ra2vipas bench calibrate --tests 40 --seed 1001` (10
-    # scenarios, 48 000 steps each; ECE on that data before -> after: ra2vipas 0.040 -> 0.008,
-    # rapas 0.363 -> 0.016, ravipas 0.134 -> 0.040, sweep 0.078 -> 0.018)
-    "ra2vipas": {"confidence_calibration": (0.7606, 1.194, -0.7322, -0.4204, 1.2472, -1.0733)},
+    # confidence maps (A, B, C, D, E, F, G) from `ra2vipas bench calibrate --tests 40 --seed 1001` (10
+    # scenarios, 48 000 steps each; ECE on that data before -> after: ra2vipas 0.040 -> 0.010,
+    # rapas 0.363 -> 0.016, ravipas 0.134 -> 0.040, sweep 0.078 -> 0.022)
+    "ra2vipas": {"confidence_calibration": (0.8497, 1.0097, -0.2118, -0.3834, 1.5843, -0.9493, -0.5138)},
     # RaPAS hears Rx(dir) only: no level from Rx(iso), so the generic lobe rather than the filter;
     # it names the peak of l_RF: with a walking Tx the white-noise fit, flattened by
     # (1 - rho) / (1 + rho), lets the recent lobe win more often than the sharper AR(1) fit
-    "rapas": {"rf_weight": 2.0, "ar1_lobe": False, "rf_filter": False, "confidence_calibration": (0.8635, 1.6167, -1.9064, 1.435, 0.0, 0.0)},
+    "rapas": {"rf_weight": 2.0, "ar1_lobe": False, "rf_filter": False, "confidence_calibration": (0.8284, 1.592, -1.585, 1.45, 0.0, 0.0, 0.4619)},
     # with the camera as its only cue, RaViPAS does best trusting the POD model fully
-    "ravipas": {"pod_floor_std": 0.0, "pod_outlier": 0.0, "confidence_calibration": (1.9443, 2.446, 0.0, -0.3376, 1.208, -0.2432)},
-    "sweep": {"confidence_calibration": (0.6422, 0.5133, -0.8249, -0.0109, 1.3137, 0.7464)},
+    "ravipas": {"pod_floor_std": 0.0, "pod_outlier": 0.0, "confidence_calibration": (1.9443, 2.446, 0.0, -0.3376, 1.208, -0.2432, 0.0)},
+    "sweep": {"confidence_calibration": (0.6912, 0.4884, -1.017, -0.0113, 1.4344, 0.7388, -0.3967)},
 }
 """Per-algorithm departures from the ``ControllerSettings`` defaults, fitted like them on simulated
 campaigns (each baseline gets its own best settings, so comparisons are fair)."""

@@ -7,9 +7,9 @@ on the algorithm. Platt scaling (Platt 1999; Guo et al. 2017 for its use as "tem
 scaling" of posteriors), with covariates the controller measures itself (how likely the Tx
 walks, the fading correlation rho from Rx(iso), the tracker's clutter density, how close the
 nearest other track is to the answer), fits per algorithm
-sigmoid(A logit(raw) + B + C tx_walks + D rho + E clutter + F crowding) to the hit of every step of
+sigmoid((A + G tx_walks) logit(raw) + B + C tx_walks + D rho + E clutter + F crowding) to the hit of every step of
 simulated tests over a mix of scenarios, with seeds that no benchmark uses. The fitted
-(A, B, C, D, E, F) maps ship in ``services.controller.policy.TUNING``; this module is how they were made
+(A, ..., G) maps ship in ``services.controller.policy.TUNING``; this module is how they were made
 and how to remake them.
 """
 
@@ -71,15 +71,18 @@ def collect(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = SC
 
 
 def _design(raw: np.ndarray, covariates: np.ndarray) -> np.ndarray:
+    """Columns: logit(raw clipped), 1, the covariates, and logit x the first covariate (tx_walks)."""
     p = np.clip(raw, RAW_CONFIDENCE_CLIP, 1.0 - RAW_CONFIDENCE_CLIP)
     cov = np.asarray(covariates, dtype=float).reshape(raw.size, -1)
-    return np.column_stack([np.log(p / (1.0 - p)), np.ones(raw.size), cov])
+    logit = np.log(p / (1.0 - p))
+    return np.column_stack([logit, np.ones(raw.size), cov, logit * cov[:, 0]])
 
 
 def fit_platt(raw: np.ndarray, covariates: np.ndarray, hit: np.ndarray) -> tuple[float, ...]:
-    """(A, B, C, ...) maximising the Bernoulli likelihood of ``hit`` under
-    sigmoid(A logit(raw) + B + C covariates[:, 0] + ...): a logistic regression (scikit-learn's,
-    unpenalised) of the hit on the raw logit and the covariates."""
+    """(A, B, C, ..., G) maximising the Bernoulli likelihood of ``hit`` under
+    sigmoid((A + G covariates[:, 0]) logit(raw) + B + C covariates[:, 0] + ...): a logistic
+    regression (scikit-learn's, unpenalised) of the hit on the raw logit, the covariates and the
+    logit times the first covariate."""
     from sklearn.linear_model import LogisticRegression
 
     X = _design(raw, covariates)

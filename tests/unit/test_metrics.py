@@ -209,16 +209,16 @@ def test_an_early_decision_keeps_its_target_as_targets_move():
 
 def test_the_confidence_map_fit_recovers_a_known_map_and_the_controller_applies_it():
     """bench calibrate's logistic fit finds the map that generated the hits, and a controller
-    given that map reports sigmoid(A logit(raw) + B + C walks + D rho + E clutter + F crowding),
+    given that map reports sigmoid((A + G walks) logit(raw) + B + C walks + D rho + E clutter + F crowding),
     crowding exp(-d / 1 deg) for the gap d from its answer to the nearest other track."""
     from ra2vipas.services.controller.policy import Controller, ControllerSettings
     from ra2vipas.services.controller.tracks import BearingTracker
     from ra2vipas.services.orchestrator.calibration import fit_platt, platt
 
     rng = np.random.default_rng(5)
-    raw = rng.uniform(0.02, 0.98, 40000)
+    raw = rng.uniform(0.02, 0.98, 100000)
     cov = rng.uniform(0.0, 1.0, (raw.size, 4))
-    truth = (1.3, -0.4, -2.0, 0.8, -1.5, -1.0)
+    truth = (1.3, -0.4, -2.0, 0.8, -1.5, -1.0, -0.6)
     hit = (rng.uniform(size=raw.size) < platt(raw, cov, *truth)).astype(float)
     fitted = fit_platt(raw, cov, hit)
     np.testing.assert_allclose(fitted, truth, atol=0.12)
