@@ -590,16 +590,25 @@ def bench_robustness(
 def bench_calibrate(
     tests: Annotated[int, typer.Option(min=2, max=MAX_TESTS, help="Tests per scenario.")] = 40,
     seed: Annotated[int, typer.Option(min=0, help="Seed (use one no benchmark uses).")] = 1001,
+    algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of: ra2vipas, rapas, ravipas, sweep (default: all); each map is fitted on its own runs, so a subset prints the same maps.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Refit the controllers' confidence maps (Platt scaling with covariates the controller
-    measures: how likely the Tx walks, the fading correlation, the clutter density) on a mix of simulated scenarios, and print them with the expected calibration
-    error before and after. The shipped maps (services/controller/policy.py TUNING) come from
-    `ra2vipas bench calibrate --tests 40 --seed 1001`."""
+    measures: how likely the Tx walks, the fading correlation, the clutter density, the crowding
+    around the answer) on a mix of simulated scenarios, and print them with the expected
+    calibration error before and after. The shipped maps (services/controller/policy.py TUNING)
+    come from `ra2vipas bench calibrate --tests 40 --seed 1001`."""
     from ra2vipas.cli.output import stderr
+    from ra2vipas.cli.simulate import parse_algorithms
     from ra2vipas.services.orchestrator.calibration import calibrate
 
-    report = calibrate(("ra2vipas", "rapas", "ravipas", "sweep"), tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"))
+    from ra2vipas.services.protocol.scenario import ScenarioError
+
+    try:
+        names = parse_algorithms(algorithms)
+    except ScenarioError as err:
+        fail(str(err), EXIT_USAGE)
+    report = calibrate(names, tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"))
     if as_json:
         print_json(report)
     else:

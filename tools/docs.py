@@ -260,6 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         data = collect(lambda what: print(f"docs: {what}", file=sys.stderr))
         RESULTS.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+        data = json.loads(RESULTS.read_text())  # render what is stored (sorted keys), as --check does
     text = README.read_text()
     new = apply(text, render(data))
     if args.check:

@@ -309,7 +309,16 @@ class Controller:
         next_pan, probe = self._next_pan(t, l_rf, lobe, l_tracks, post)
         return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe,
                         confidence=round(self._calibrated(raw_confidence, estimate), 6), raw_confidence=float(raw_confidence),
-                        tx_walks=self.tx_walks, noise_correlation=self._rho, clutter_density=self._clutter, crowding=self._crowding)
+                        tx_walks=self._walks_covariate(), noise_correlation=self._rho, clutter_density=self._clutter, crowding=self._crowding)
+
+    def _walks_covariate(self) -> float:
+        """How likely the Tx walks, as this algorithm can tell: from Rx(dir) when it listens
+        (``tx_walks``); for the camera alone, the share of targets the tracker sees walking (the
+        Tx is one of them; a walking Tx's POD changes with its range, which the camera-only
+        posterior does not model)."""
+        if self.uses_radio or not self.uses_camera:
+            return self.tx_walks
+        return float(self.tracks.walking_share(self.settings.tx_walk_prior))
 
     def lobe_evidence(self) -> float | None:
         """log-likelihood ratio of the lobe orientation in use against the opposite one, over every
@@ -502,7 +511,8 @@ class Controller:
         clipped to [0.01, 0.99], ``RAW_CONFIDENCE_CLIP``; G: a walking Tx's posterior is worth less
         per unit of logit), whose covariates,
         all measured by the controller itself, stand for what its model leaves out: a walking Tx
-        may have moved off the answer by the time it is scored (tx_walks); correlated fading
+        may have moved off the answer by the time it is scored (tx_walks, ``_walks_covariate``:
+        for the camera alone, the share of targets seen walking); correlated fading
         leaves fewer independent RF samples than the AR(1) model credits (rho, from Rx(iso));
         false boxes make tracks that are not people (the tracker's clutter density); another
         target within a degree or so of the answer may be the one the association rule names
@@ -519,7 +529,8 @@ class Controller:
         A, B, C, D, E, F, G = (tuple(self.settings.confidence_calibration) + (0.0,) * 7)[:7]
         p = min(max(raw, RAW_CONFIDENCE_CLIP), 1.0 - RAW_CONFIDENCE_CLIP)
         logit = math.log(p / (1.0 - p))
-        z = (A + G * self.tx_walks) * logit + B + C * self.tx_walks + D * self._rho + E * self._clutter + F * self._crowding
+        walks = self._walks_covariate()
+        z = (A + G * walks) * logit + B + C * walks + D * self._rho + E * self._clutter + F * self._crowding
         return float(1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0))))
 
     def _refined_argmax(self, values: np.ndarray) -> float:
@@ -605,7 +616,7 @@ TUNING: dict[str, dict] = {
     # (1 - rho) / (1 + rho), lets the recent lobe win more often than the sharper AR(1) fit
     "rapas": {"rf_weight": 2.0, "ar1_lobe": False, "rf_filter": False, "confidence_calibration": (0.8284, 1.592, -1.585, 1.45, 0.0, 0.0, 0.4619)},
     # with the camera as its only cue, RaViPAS does best trusting the POD model fully
-    "ravipas": {"pod_floor_std": 0.0, "pod_outlier": 0.0, "confidence_calibration": (1.9443, 2.446, 0.0, -0.3376, 1.208, -0.2432, 0.0)},
+    "ravipas": {"pod_floor_std": 0.0, "pod_outlier": 0.0, "confidence_calibration": (2.1125, 2.7322, -3.3005, -0.4159, 1.0533, -0.2476, -1.7387)},
     "sweep": {"confidence_calibration": (0.6912, 0.4884, -1.017, -0.0113, 1.4344, 0.7388, -0.3967)},
 }
 """Per-algorithm departures from the ``ControllerSettings`` defaults, fitted like them on simulated

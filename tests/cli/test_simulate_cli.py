@@ -99,6 +99,20 @@ def test_bench_step_prints_timings_as_json():
     assert 0 < report["median_ms"] <= report["p99_ms"]
 
 
+def test_bench_calibrate_refits_only_the_maps_asked_for_and_names_a_bad_algorithm():
+    """`bench calibrate -a ravipas` fits RaViPAS's map alone (seven coefficients, its ECE before
+    and after on the fitting runs); an unknown name is one line and exit code 2."""
+    proc = ra2vipas("bench", "calibrate", "-a", "ravipas", "--tests", "2", "--json")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert list(report["algorithms"]) == ["ravipas"] and report["tests_per_scenario"] == 2 and report["seed"] == 1001
+    fit = report["algorithms"]["ravipas"]
+    assert len(fit["map"]) == 7 and fit["samples"] == 2 * len(report["scenarios"]) * 120
+    assert 0.0 <= fit["ece_fitted"] <= fit["ece_raw"]
+    proc = ra2vipas("bench", "calibrate", "-a", "ravipa")
+    assert proc.returncode == 2 and "unknown algorithm 'ravipa'" in one_error_line(proc)
+
+
 def test_bench_simulate_reports_both_speeds_the_speedup_and_peak_memory_as_json():
     """A small `bench simulate` (2 tests, one memory run of 3 short tests; one worker, so it
     stays cheap on a shared machine: `--workers 2 == --workers 1` has its own test): the keys

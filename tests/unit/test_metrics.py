@@ -226,7 +226,7 @@ def test_the_confidence_map_fit_recovers_a_known_map_and_the_controller_applies_
     controller = Controller.__new__(Controller)
     controller.settings = ControllerSettings(confidence_calibration=truth)
     controller.tx_walks, controller._n = 0.5, 0
-    controller.uses_camera = False
+    controller.uses_camera, controller.uses_radio = False, True
     got = controller._calibrated(0.7, 0.0)
     want = float(platt(np.array([0.7]), np.array([[0.5, 0.0, 0.0, 0.0]]), *truth)[0])
     assert got == pytest.approx(want)
@@ -240,3 +240,9 @@ def test_the_confidence_map_fit_recovers_a_known_map_and_the_controller_applies_
     got = controller._calibrated(0.7, 0.0)
     want = float(platt(np.array([0.7]), np.array([[0.5, 0.0, 0.0, math.exp(-0.5)]]), *truth)[0])
     assert got == pytest.approx(want)
+    # the camera alone cannot hear the Tx walk: its covariate is the share of tracks seen walking
+    controller.uses_radio = False
+    controller.tracks.walking_share = lambda prior=0.3, strength=2.0: 0.8
+    got = controller._calibrated(0.7, 0.0)
+    want = float(platt(np.array([0.7]), np.array([[0.8, 0.0, 0.0, math.exp(-0.5)]]), *truth)[0])
+    assert got == pytest.approx(want) and got != pytest.approx(float(platt(np.array([0.7]), np.array([[0.5, 0.0, 0.0, math.exp(-0.5)]]), *truth)[0]))
