@@ -87,7 +87,7 @@ def confidence_table(results: dict[str, Any]) -> Table | None:
     title = "Confidence: calibration" + (f" and decision at {results.get('stop_confidence')}" if decided else "")
     table = Table(title=title)
     table.add_column("algorithm", no_wrap=True)
-    for col in ("mean conf.", "ECE final", "ECE all") + (("accuracy", "95% CI", "median", "p90", "undecided") if decided else ()):
+    for col in ("mean conf.", "ECE final", "ECE floor", "ECE all") + (("accuracy", "95% CI", "median", "p90", "undecided") if decided else ()):
         table.add_column(col, justify="right")
 
     def f(v: Any, fmt: str = "{:.3f}") -> str:
@@ -95,7 +95,7 @@ def confidence_table(results: dict[str, Any]) -> Table | None:
 
     for name, b in blocks.items():
         cal = b.get("calibration") or {}
-        row = [name, f(cal.get("confidence_final")), f(cal.get("ece_final")), f(cal.get("ece_all"))]
+        row = [name, f(cal.get("confidence_final")), f(cal.get("ece_final")), f(cal.get("ece_final_floor")), f(cal.get("ece_all"))]
         if decided:
             d = b.get("decision") or {}
             lo, hi = d.get("accuracy_ci95") or (None, None)

@@ -95,6 +95,42 @@ def expected_calibration_error(confidence, correct, bins: int = 10) -> float | N
     return float(total)
 
 
+def ece_sampling_floor(confidence, bins: int = 10, exact_up_to: int = 2000) -> float | None:
+    """The ECE a perfectly calibrated confidence would show on average with these confidences:
+    each sample's hit drawn as Bernoulli(its confidence), the expectation over the draws of
+    ``expected_calibration_error`` (same bins). With a few hundred tests it is not small (about
+    0.03 for confidences near 0.9, 0.06 near 0.5 at 200 tests), so an ECE near it is sampling
+    noise, not miscalibration. Per bin, E|mean confidence - share of hits| from the exact
+    Poisson-binomial distribution of the hits (confidences sorted, so the value does not depend
+    on their order) up to ``exact_up_to`` samples, from its normal approximation (mean absolute
+    deviation sqrt(2 / pi) x std) above. None without finite samples."""
+    conf = np.asarray(confidence, dtype=float).ravel()
+    conf = np.clip(conf[np.isfinite(conf)], 0.0, 1.0)
+    if conf.size == 0:
+        return None
+    idx = np.minimum((conf * bins).astype(int), bins - 1)
+    total = 0.0
+    for b in range(bins):
+        c = np.sort(conf[idx == b])
+        n = c.size
+        if n == 0:
+            continue
+        mean = _mean(c)
+        if n <= exact_up_to:
+            pmf = np.ones(1)
+            for p in c.tolist():  # the distribution of the number of hits, one sample at a time
+                nxt = np.empty(pmf.size + 1)
+                nxt[0] = pmf[0] * (1.0 - p)
+                nxt[1:-1] = pmf[1:] * (1.0 - p) + pmf[:-1] * p
+                nxt[-1] = pmf[-1] * p
+                pmf = nxt
+            deviation = math.fsum((pmf * np.abs(np.arange(n + 1) / n - mean)).tolist())
+        else:
+            deviation = math.sqrt(2.0 / math.pi) * math.sqrt(math.fsum((c * (1.0 - c)).tolist())) / n
+        total += (n / conf.size) * deviation
+    return float(total)
+
+
 def reliability_bins(confidence, correct, bins: int = 10) -> list[dict[str, Any]]:
     """The reliability diagram's data: per equal-width bin, its range, how many samples fell in
     it, their mean confidence and their accuracy (None for an empty bin)."""
@@ -193,6 +229,7 @@ def summarize_algorithm(hits: np.ndarray, in_fov: np.ndarray, rf_period_s: float
     if confidences is not None and np.size(confidences):
         conf = np.asarray(confidences, dtype=float)
         extra["calibration"] = {"ece_final": _rounded(expected_calibration_error(conf[:, -1], hits[:, -1])),
+                                "ece_final_floor": _rounded(ece_sampling_floor(conf[:, -1])),
                                 "ece_all": _rounded(expected_calibration_error(conf, hits)),
                                 "confidence_final": round(_mean(conf[:, -1]), 6),
                                 "reliability": reliability_bins(conf[:, -1], hits[:, -1])}

@@ -258,7 +258,8 @@ def episode_figure(scenario: Scenario, episode: dict[str, Any]) -> Figure:
 
 METRIC_LABELS = {"dr_final": "final discovery rate DR (association rule)", "time_to_dr90_s": "time to DR ≥ 0.9 [s]",
                  "in_fov_final": "Tx in FoV at the final estimate", "pod_r2": "POD regression R²",
-                 "calibration_ece_final": "ECE of the final confidence", "calibration_ece_all": "ECE over every step",
+                 "calibration_ece_final": "ECE of the final confidence",
+                 "calibration_ece_final_floor": "ECE floor (if calibrated)", "calibration_ece_all": "ECE over every step",
                  "calibration_confidence_final": "mean final confidence", "decision_accuracy": "accuracy of early decisions",
                  "decision_median_s": "median time to decision [s]", "decision_p90_s": "90th percentile time to decision [s]",
                  "decision_undecided": "share undecided at the horizon"}

@@ -37,7 +37,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from ra2vipas.services.orchestrator.metrics import (
-    decision_summary, expected_calibration_error, reliability_bins, time_to_level, wilson_interval,
+    decision_summary, ece_sampling_floor, expected_calibration_error, reliability_bins, time_to_level, wilson_interval,
 )
 
 BINS = 10  # the calibration bins of metrics.expected_calibration_error
@@ -160,6 +160,7 @@ class AlgorithmTally:
             conf = np.frombuffer(self._final_conf, dtype=np.float64)
             ece_all = self.ece_all()
             extra["calibration"] = {"ece_final": _rounded(expected_calibration_error(conf, final_hits)),
+                                    "ece_final_floor": _rounded(ece_sampling_floor(conf)),
                                     "ece_all": _rounded(ece_all),
                                     "confidence_final": round(math.fsum(conf.tolist()) / conf.size, 6),  # metrics._mean
                                     "reliability": reliability_bins(conf, final_hits)}

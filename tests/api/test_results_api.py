@@ -28,7 +28,8 @@ def test_results_carry_dr_curves_with_wilson_bands(http, done_campaign):
         assert all(lo <= dr <= hi for dr, (lo, hi) in zip(block["dr"], block["dr_ci95"]))
         assert block["dr_final"] == block["dr"][-1] and block["ci95"] == block["dr_ci95"][-1]
         assert set(block) == {"dr", "dr_final", "ci95", "dr_ci95", "time_to_dr90_s", "in_fov_final", "calibration"}
-        assert set(block["calibration"]) == {"ece_final", "ece_all", "confidence_final", "reliability"}
+        assert set(block["calibration"]) == {"ece_final", "ece_final_floor", "ece_all", "confidence_final", "reliability"}
+        assert 0.0 <= block["calibration"]["ece_final_floor"] <= 1.0
         assert 0.0 <= block["calibration"]["ece_final"] <= 1.0
 
 

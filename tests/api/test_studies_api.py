@@ -94,6 +94,7 @@ def test_results_one_row_per_point_and_algorithm_equal_to_the_points_campaigns(d
         assert row["dr_final"] == block["dr_final"] and [row["ci95_lo"], row["ci95_hi"]] == block["ci95"]
         assert row["time_to_dr90_s"] == block["time_to_dr90_s"] and row["pod_r2"] == campaign["pod"]["r2"]
         assert row["calibration_ece_final"] == block["calibration"]["ece_final"]
+        assert row["calibration_ece_final_floor"] == block["calibration"]["ece_final_floor"] is not None
         assert row["tests"] == 3
     text = http.get(f"/studies/{done_study['id']}/results", params={"format": "csv"}).text
     lines = [ln for ln in text.splitlines() if not ln.startswith("#")]

@@ -186,7 +186,30 @@ def test_summaries_carry_calibration_when_there_are_confidences():
     block = summarize_algorithm(hits, hits, 0.1, conf)
     assert block["calibration"]["ece_final"] == pytest.approx(expected_calibration_error([0.9, 0.8], [1, 1]), abs=1e-6)
     assert block["calibration"]["ece_all"] == pytest.approx(expected_calibration_error(conf, hits), abs=1e-6)
+    # the final confidences 0.9 and 0.8 fall in bins 9 and 8: half of each bin's 2c(1 - c)
+    floor = 0.5 * (2 * 0.9 * 0.1) + 0.5 * (2 * 0.8 * 0.2)
+    assert block["calibration"]["ece_final_floor"] == pytest.approx(floor, abs=1e-6)
     assert "decision" not in summarize_algorithm(hits, hits, 0.1)
+
+
+def test_the_ece_sampling_floor_is_the_mean_ece_of_a_perfectly_calibrated_confidence():
+    """Hand cases (one sample: E|c - Bernoulli(c)| = 2c(1-c); certain confidences: 0), a Monte
+    Carlo of hits drawn as Bernoulli(confidence) in mixed bins, and the normal approximation used
+    above ``exact_up_to`` samples per bin agreeing with the exact law on a large bin."""
+    from ra2vipas.services.orchestrator.metrics import ece_sampling_floor
+
+    assert ece_sampling_floor([0.9]) == pytest.approx(2 * 0.9 * 0.1)
+    assert ece_sampling_floor([0.0, 1.0, 1.0]) == 0.0
+    # two samples in one bin, mean 0.93: 0, 1 or 2 hits with probability 0.004, 0.132, 0.864
+    assert ece_sampling_floor([0.9, 0.96]) == pytest.approx(0.004 * 0.93 + 0.132 * 0.43 + 0.864 * 0.07, abs=1e-9)
+    assert ece_sampling_floor([]) is None and ece_sampling_floor([float("nan")]) is None
+    rng = np.random.default_rng(11)
+    for conf in (rng.beta(9, 1, 200), rng.uniform(0.0, 1.0, 60)):
+        draws = [expected_calibration_error(conf, rng.random(conf.size) < conf) for _ in range(4000)]
+        assert ece_sampling_floor(conf) == pytest.approx(np.mean(draws), abs=4 * np.std(draws) / math.sqrt(len(draws)))
+        assert ece_sampling_floor(conf[::-1]) == ece_sampling_floor(conf)  # whatever order the tests arrived in
+    big = rng.uniform(0.9, 1.0, 3000)
+    assert ece_sampling_floor(big, exact_up_to=0) == pytest.approx(ece_sampling_floor(big, exact_up_to=5000), rel=0.01)
 
 
 def test_decision_summary():

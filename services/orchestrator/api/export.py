@@ -62,7 +62,7 @@ def summary_rows(results: dict[str, Any], ids: dict[str, Any] | None = None) -> 
         row = {**head, "algorithm": name, "dr_final": block["dr_final"], "ci_lo": block["ci95"][0], "ci_hi": block["ci95"][1],
                "time_to_dr90_s": block["time_to_dr90_s"], "in_fov_final": block["in_fov_final"]}
         cal = block.get("calibration") or {}
-        for key in ("ece_final", "ece_all", "confidence_final"):
+        for key in ("ece_final", "ece_final_floor", "ece_all", "confidence_final"):
             if key in cal:
                 row[key] = cal[key]
         decision = block.get("decision") or {}

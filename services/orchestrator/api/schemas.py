@@ -138,6 +138,9 @@ class ReliabilityBin(BaseModel):
 
 class Calibration(BaseModel):
     ece_final: Optional[float] = Field(description="expected calibration error (10 bins) of the final confidence against the final hit")
+    ece_final_floor: Optional[float] = Field(None, description=(
+        "the ece_final a perfectly calibrated confidence would show on average with these final confidences and this "
+        "many tests (hits drawn as Bernoulli(confidence)): its sampling floor; an ece_final near it is noise"))
     ece_all: Optional[float] = Field(description="the same over every step's confidence and hit")
     confidence_final: Optional[float] = Field(None, description="mean final confidence")
     reliability: list[ReliabilityBin] = Field(default_factory=list, description="the reliability diagram of the final confidences (10 bins)")

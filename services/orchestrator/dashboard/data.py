@@ -84,6 +84,7 @@ SUMMARY_COLUMNS = [
     ("in_fov_final", "Tx in FoV"),
     ("calibration.confidence_final", "mean final confidence"),
     ("calibration.ece_final", "ECE (final)"),
+    ("calibration.ece_final_floor", "ECE if calibrated (sampling floor)"),
     ("calibration.ece_all", "ECE (all steps)"),
     ("decision.accuracy", "decision accuracy"),
     ("decision.accuracy_ci95", "its 95 % CI"),
@@ -299,6 +300,7 @@ def reliability_series(results: dict[str, Any]) -> dict[str, Any] | None:
 
 # metrics offered first (in this order) when a study's rows have them; any other numeric field follows
 STUDY_METRICS = ["dr_final", "time_to_dr90_s", "in_fov_final", "pod_r2", "calibration_confidence_final", "calibration_ece_final",
+                 "calibration_ece_final_floor",
                  "calibration_ece_all", "decision_accuracy", "decision_median_s", "decision_p90_s", "decision_undecided"]
 # the results table's columns after the point's values, algorithm and tests
 STUDY_COLUMNS = [("dr_final", "final DR (95 % CI)"), ("time_to_dr90_s", "t(DR ≥ 0.9) [s]"), ("in_fov_final", "Tx in FoV"),
