@@ -591,13 +591,14 @@ def bench_calibrate(
     tests: Annotated[int, typer.Option(min=2, max=MAX_TESTS, help="Tests per scenario.")] = 40,
     seed: Annotated[int, typer.Option(min=0, help="Seed (use one no benchmark uses).")] = 1001,
     algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of: ra2vipas, rapas, ravipas, sweep (default: all); each map is fitted on its own runs, so a subset prints the same maps.")] = None,
+    from_s: Annotated[float, typer.Option("--from-s", min=0.0, max=60.0, help="Fit on the steps whose sample is taken this many seconds or more after the start (0: every step).")] = 0.0,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Refit the controllers' confidence maps (Platt scaling with covariates the controller
     measures: how likely the Tx walks, the fading correlation, the clutter density, the crowding
     around the answer) on a mix of simulated scenarios, and print them with the expected
     calibration error before and after. The shipped maps (services/controller/policy.py TUNING)
-    come from `ra2vipas bench calibrate --tests 40 --seed 1001`."""
+    come from `ra2vipas bench calibrate --tests 40 --seed 1001` (Ra²ViPAS's with `--from-s 3`)."""
     from ra2vipas.cli.output import stderr
     from ra2vipas.cli.simulate import parse_algorithms
     from ra2vipas.services.orchestrator.calibration import calibrate
@@ -608,7 +609,7 @@ def bench_calibrate(
         names = parse_algorithms(algorithms)
     except ScenarioError as err:
         fail(str(err), EXIT_USAGE)
-    report = calibrate(names, tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"))
+    report = calibrate(names, tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"), from_s=from_s)
     if as_json:
         print_json(report)
     else:

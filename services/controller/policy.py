@@ -608,9 +608,12 @@ class Controller:
 
 TUNING: dict[str, dict] = {
     # confidence maps (A, B, C, D, E, F, G) from `ra2vipas bench calibrate --tests 40 --seed 1001` (10
-    # scenarios, 48 000 steps each; ECE on that data before -> after: ra2vipas 0.040 -> 0.010,
-    # rapas 0.363 -> 0.016, ravipas 0.134 -> 0.040, sweep 0.078 -> 0.022)
-    "ra2vipas": {"confidence_calibration": (0.8497, 1.0097, -0.2118, -0.3834, 1.5843, -0.9493, -0.5138)},
+    # scenarios, 48 000 steps each; ECE on that data before -> after: rapas 0.363 -> 0.016,
+    # ravipas 0.134 -> 0.036, sweep 0.078 -> 0.022). Ra2ViPAS's is fitted from 3 s on
+    # (`-a ra2vipas --from-s 3`, 36 400 steps, 0.022 -> 0.008): its first 3 s (the warm-up sweep
+    # and first looks) are another regime, and fitting them pulled the map off where answers are
+    # read and decisions taken (final ECE on dynamic, seeds 1-9: mean 0.052 -> 0.036; paper unchanged)
+    "ra2vipas": {"confidence_calibration": (0.8252, 0.9813, 0.4, -0.6417, 1.8013, -0.8537, -0.7042)},
     # RaPAS hears Rx(dir) only: no level from Rx(iso), so the generic lobe rather than the filter;
     # it names the peak of l_RF: with a walking Tx the white-noise fit, flattened by
     # (1 - rho) / (1 + rho), lets the recent lobe win more often than the sharper AR(1) fit

@@ -109,6 +109,11 @@ def test_bench_calibrate_refits_only_the_maps_asked_for_and_names_a_bad_algorith
     fit = report["algorithms"]["ravipas"]
     assert len(fit["map"]) == 7 and fit["samples"] == 2 * len(report["scenarios"]) * 120
     assert 0.0 <= fit["ece_fitted"] <= fit["ece_raw"]
+    # --from-s 3: the samples taken 3 s or more after the start (step t's at (t + 1) x 0.1 s), and another map
+    proc = ra2vipas("bench", "calibrate", "-a", "ravipas", "--tests", "2", "--from-s", "3", "--json")
+    later = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert later["from_s"] == 3.0 and later["algorithms"]["ravipas"]["samples"] == 2 * len(report["scenarios"]) * (120 - 29)
+    assert later["algorithms"]["ravipas"]["map"] != fit["map"]
     proc = ra2vipas("bench", "calibrate", "-a", "ravipa")
     assert proc.returncode == 2 and "unknown algorithm 'ravipa'" in one_error_line(proc)
 
