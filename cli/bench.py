@@ -592,6 +592,7 @@ def bench_calibrate(
     seed: Annotated[int, typer.Option(min=0, help="Seed (use one no benchmark uses).")] = 1001,
     algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of: ra2vipas, rapas, ravipas, sweep (default: all); each map is fitted on its own runs, so a subset prints the same maps.")] = None,
     from_s: Annotated[float, typer.Option("--from-s", min=0.0, max=60.0, help="Fit on the steps whose sample is taken this many seconds or more after the start (0: every step).")] = 0.0,
+    workers: Annotated[Optional[int], typer.Option(min=1, max=1024, help="Worker processes running the scenarios (default: the CPU count); the maps do not depend on it.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Refit the controllers' confidence maps (Platt scaling with covariates the controller
@@ -609,7 +610,8 @@ def bench_calibrate(
         names = parse_algorithms(algorithms)
     except ScenarioError as err:
         fail(str(err), EXIT_USAGE)
-    report = calibrate(names, tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"), from_s=from_s)
+    report = calibrate(names, tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"), from_s=from_s,
+                       workers=workers or os.cpu_count() or 1)
     if as_json:
         print_json(report)
     else:

@@ -42,37 +42,53 @@ SCENARIOS: dict[str, tuple[str, dict[str, Any]]] = {
 
 
 def collect(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = SCENARIOS,
-            progress: Callable[[str], None] | None = None, from_s: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            progress: Callable[[str], None] | None = None, from_s: float = 0.0,
+            workers: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(raw confidence, covariates (steps, 4): tx_walks, rho, clutter density, crowding, hit) at every
     step of ``tests`` tests of each scenario from ``from_s`` seconds on (the sample of step t is
     taken (t + 1) T_RF after the start), with the algorithm's tuning (its confidence map does not
-    change the raw value)."""
+    change the raw value); scenarios in order, one per worker process at a time (the same arrays
+    whatever ``workers``)."""
+    from ra2vipas.services.orchestrator.engine import worker_pool
+
+    names = list(scenarios)
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    with worker_pool(max(1, min(workers, len(names)))) as pool:
+        futures = [pool.submit(_collect_scenario, algorithm, name, tests, seed, from_s) for name in names]
+        for name, future in zip(names, futures):
+            parts.append(future.result())
+            if progress:
+                progress(name)
+    if not parts:
+        return np.zeros(0), np.zeros((0, 4)), np.zeros(0)
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))  # type: ignore[return-value]
+
+
+def _collect_scenario(algorithm: str, name: str, tests: int, seed: int, from_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``collect`` for one scenario."""
     settings = tuned_settings(algorithm)
     raw, walks, hit = [], [], []
-    for name in scenarios:
-        preset, overrides = SCENARIOS[name]
-        scenario = build_scenario(preset, overrides)
-        pod = train_pod(scenario, seed)
-        for k in range(tests):
-            platform = SimulatedPlatform(scenario, seed, k)
-            controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod.model, settings)
-            pan, estimates = controller.first_pan(), []
-            first = 0
-            for t in range(scenario.steps):
-                d = controller.step(platform.sense(t, pan))
-                pan = d.next_pan_rad
-                estimates.append(d.estimate_rad)
-                if (t + 1) * scenario.rf_period_s < from_s - 1e-9:
-                    first = t + 1
-                    continue
-                raw.append(d.raw_confidence)
-                walks.append((d.tx_walks, d.noise_correlation, d.clutter_density, d.crowding))
-            truth = platform.truth
-            hits, _ = score_test(np.asarray(estimates), truth.step_bearings_rad(), truth.tx_index, scenario.fov_half_angle_rad)
-            hit += hits[first:].tolist()
-        if progress:
-            progress(name)
-    return np.asarray(raw, dtype=float), np.asarray(walks, dtype=float), np.asarray(hit, dtype=float)
+    preset, overrides = SCENARIOS[name]
+    scenario = build_scenario(preset, overrides)
+    pod = train_pod(scenario, seed)
+    for k in range(tests):
+        platform = SimulatedPlatform(scenario, seed, k)
+        controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod.model, settings)
+        pan, estimates = controller.first_pan(), []
+        first = 0
+        for t in range(scenario.steps):
+            d = controller.step(platform.sense(t, pan))
+            pan = d.next_pan_rad
+            estimates.append(d.estimate_rad)
+            if (t + 1) * scenario.rf_period_s < from_s - 1e-9:
+                first = t + 1
+                continue
+            raw.append(d.raw_confidence)
+            walks.append((d.tx_walks, d.noise_correlation, d.clutter_density, d.crowding))
+        truth = platform.truth
+        hits, _ = score_test(np.asarray(estimates), truth.step_bearings_rad(), truth.tx_index, scenario.fov_half_angle_rad)
+        hit += hits[first:].tolist()
+    return np.asarray(raw, dtype=float), np.asarray(walks, dtype=float).reshape(-1, 4), np.asarray(hit, dtype=float)
 
 
 def _design(raw: np.ndarray, covariates: np.ndarray) -> np.ndarray:
@@ -101,13 +117,14 @@ def platt(raw: np.ndarray, covariates: np.ndarray, *coefficients: float) -> np.n
 
 
 def calibrate(algorithms: Iterable[str], tests: int, seed: int, progress: Callable[[str], None] | None = None,
-              from_s: float = 0.0) -> dict[str, Any]:
-    """Fit every algorithm's map on the steps from ``from_s`` seconds on; report it with the ECE
-    before and after on the fitting data."""
+              from_s: float = 0.0, workers: int = 1) -> dict[str, Any]:
+    """Fit every algorithm's map on the steps from ``from_s`` seconds on (``workers`` processes
+    run the scenarios; the maps do not depend on it); report it with the ECE before and after on
+    the fitting data."""
     out: dict[str, Any] = {"tests_per_scenario": tests, "seed": seed, "from_s": from_s, "scenarios": list(SCENARIOS), "algorithms": {}}
     for algorithm in algorithms:
         raw, walks, hit = collect(algorithm, tests, seed, progress=(lambda name, a=algorithm: progress(f"{a}: {name}")) if progress else None,
-                                  from_s=from_s)
+                                  from_s=from_s, workers=workers)
         coefficients = fit_platt(raw, walks, hit)
         out["algorithms"][algorithm] = {
             "map": [round(v, 4) for v in coefficients], "samples": int(raw.size),

@@ -175,6 +175,14 @@ def _context() -> multiprocessing.context.BaseContext:
 
 # -- the parent ------------------------------------------------------------------------------------
 
+def worker_pool(workers: int) -> Executor:
+    """The engine's executor: ``workers`` processes started warm from the fork server, that
+    leave Ctrl-C to the parent and exit with it; for ``workers=1`` the same calls inline."""
+    if workers == 1:
+        return _Inline()
+    return ProcessPoolExecutor(max_workers=workers, mp_context=_context(), initializer=_init_worker, initargs=(os.getpid(),))
+
+
 class _Inline(Executor):
     """``workers=1``: the same calls, in this process, when they are submitted."""
 
@@ -232,8 +240,7 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
         if progress:
             progress(done, total)
 
-    pool: Executor = _Inline() if workers == 1 else ProcessPoolExecutor(
-        max_workers=workers, mp_context=_context(), initializer=_init_worker, initargs=(os.getpid(),))
+    pool = worker_pool(workers)
     try:
         trained: dict[tuple[str, int], Future] = {}
         models: list[Future] = []

@@ -114,6 +114,9 @@ def test_bench_calibrate_refits_only_the_maps_asked_for_and_names_a_bad_algorith
     later = json.loads(proc.stdout.strip().splitlines()[-1])
     assert later["from_s"] == 3.0 and later["algorithms"]["ravipas"]["samples"] == 2 * len(report["scenarios"]) * (120 - 29)
     assert later["algorithms"]["ravipas"]["map"] != fit["map"]
+    # one worker or one per core: the same steps in the same order, the same map
+    proc = ra2vipas("bench", "calibrate", "-a", "ravipas", "--tests", "2", "--workers", "1", "--json")
+    assert json.loads(proc.stdout.strip().splitlines()[-1])["algorithms"]["ravipas"] == fit
     proc = ra2vipas("bench", "calibrate", "-a", "ravipa")
     assert proc.returncode == 2 and "unknown algorithm 'ravipa'" in one_error_line(proc)
 
