@@ -603,7 +603,6 @@ def bench_calibrate(
     from ra2vipas.cli.output import stderr
     from ra2vipas.cli.simulate import parse_algorithms
     from ra2vipas.services.orchestrator.calibration import calibrate
-
     from ra2vipas.services.protocol.scenario import ScenarioError
 
     try:

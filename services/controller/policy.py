@@ -252,7 +252,7 @@ class Controller:
         self._view_recent = np.zeros(self.grid.size)  # the same, discounted over the recent-lobe memory
         self._missed_buffer = np.empty(self.grid.size)
         self._outlier_buffer = np.empty(self.grid.size)
-        self._rho = self._clutter = self._crowding = 0.0  # the confidence map's covariates, as of the last step
+        self._walks = self._rho = self._clutter = self._crowding = 0.0  # the confidence map's covariates, as of the last step
         self._iso_sum = 0.0
         self._iso_sq = 0.0
         self._n = 0
@@ -309,7 +309,7 @@ class Controller:
         next_pan, probe = self._next_pan(t, l_rf, lobe, l_tracks, post)
         return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe,
                         confidence=round(self._calibrated(raw_confidence, estimate), 6), raw_confidence=float(raw_confidence),
-                        tx_walks=self._walks_covariate(), noise_correlation=self._rho, clutter_density=self._clutter, crowding=self._crowding)
+                        tx_walks=self._walks, noise_correlation=self._rho, clutter_density=self._clutter, crowding=self._crowding)
 
     def _walks_covariate(self) -> float:
         """How likely the Tx walks, as this algorithm can tell: from Rx(dir) when it listens
@@ -518,6 +518,7 @@ class Controller:
         target within a degree or so of the answer may be the one the association rule names
         (crowding, exp(-d / 1 deg) for the gap d to the nearest other track). Identity when no
         map is set."""
+        self._walks = self._walks_covariate()
         self._rho = self._noise_correlation() if self._n else 0.0
         self._clutter = self.tracks.clutter_density if self.uses_camera else 0.0
         self._crowding = 0.0
@@ -529,8 +530,7 @@ class Controller:
         A, B, C, D, E, F, G = (tuple(self.settings.confidence_calibration) + (0.0,) * 7)[:7]
         p = min(max(raw, RAW_CONFIDENCE_CLIP), 1.0 - RAW_CONFIDENCE_CLIP)
         logit = math.log(p / (1.0 - p))
-        walks = self._walks_covariate()
-        z = (A + G * walks) * logit + B + C * walks + D * self._rho + E * self._clutter + F * self._crowding
+        z = (A + G * self._walks) * logit + B + C * self._walks + D * self._rho + E * self._clutter + F * self._crowding
         return float(1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0))))
 
     def _refined_argmax(self, values: np.ndarray) -> float:

@@ -117,6 +117,8 @@ class RFBearingFilter:
         self.ll_stand = np.zeros(M)  # this step's sample log-likelihood (relative), standing level
         self.ll_walk = np.zeros(M)  # ... walking level
         self._evidence: dict[int, float] = {}  # track id -> trajectory evidence (relative to the baseline)
+        self._posterior: np.ndarray | None = None  # log_posterior() as of (samples, walk prior) = _posterior_key
+        self._posterior_key: tuple[int, float] | None = None
 
     # -- updating -------------------------------------------------------------------------------
     def add(self, pan_rad: float, iso_dbm: float, dir_dbm: float) -> None:
@@ -221,9 +223,22 @@ class RFBearingFilter:
         return self._walk + math.log(self.walk_prior)
 
     def log_posterior(self) -> np.ndarray:
-        """log P(gamma_t = cell | samples), normalised over the grid."""
-        joint = np.logaddexp(self.log_joint_stand, self.log_joint_walk)
-        return joint - _logsumexp(joint)
+        """log P(gamma_t = cell | samples), normalised over the grid: read-only, computed once per
+        sample and walk prior however many readers ask in a step (the answer, J_RF, the probe)."""
+        key = (self.n, self.walk_prior)
+        if self._posterior_key != key:
+            joint = np.logaddexp(self.log_joint_stand, self.log_joint_walk)
+            posterior = joint - _logsumexp(joint)
+            posterior.flags.writeable = False
+            self._posterior, self._posterior_key = posterior, key
+        return self._posterior
+
+    def _posterior_support(self, mass: float) -> tuple[np.ndarray, np.ndarray]:
+        """(cells, their probabilities renormalised) of the posterior of gamma where it is at least
+        ``mass`` of its largest: the cells worth a column in a (pans x cells) product."""
+        post = np.exp(self.log_posterior())
+        keep = np.flatnonzero(post >= mass * post.max())
+        return keep, post[keep] / post[keep].sum()
 
     @property
     def p_walk(self) -> float:
@@ -237,9 +252,7 @@ class RFBearingFilter:
         predictive variance Var_gamma[E z_dir(s, gamma)] over the posterior of gamma (for Gaussian
         noise, the sample with the largest mutual information with gamma; MacKay 1992). Cells of
         posterior below ``mass`` of the largest are left out; pans every ``stride`` grid cells."""
-        post = np.exp(self.log_posterior())
-        keep = np.flatnonzero(post >= mass * post.max())
-        p = post[keep] / post[keep].sum()
+        keep, p = self._posterior_support(mass)
         pans = self.circle.angles[::stride]
         level = self._level_walk if self.p_walk > 0.5 else self._iso_sum / max(self.n, 1)
         mean = self.response.mean(level, self.response.gain(pans[:, None] - self.circle.angles[keep][None, :]))  # (S, K)
@@ -251,9 +264,7 @@ class RFBearingFilter:
         """Mean and standard deviation over the posterior of gamma of the antenna gain
         rho(s - gamma) at every grid pan s: the normalised lobe J_RF(s) the fused objective's
         GP-UCB reads (paper eq. 24-25), and how unsure the filter is of it there."""
-        post = np.exp(self.log_posterior())
-        keep = np.flatnonzero(post >= mass * post.max())
-        p = post[keep] / post[keep].sum()
+        keep, p = self._posterior_support(mass)
         gain = self.response.gain(self.circle.angles[:, None] - self.circle.angles[keep][None, :])  # (M, K)
         first = gain @ p
         return first, np.sqrt(np.maximum((gain * gain) @ p - first * first, 0.0))

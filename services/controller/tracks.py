@@ -205,9 +205,7 @@ class BearingTracker:
             self._own_views[cells] += nu
         self._view = np.flatnonzero(self._confirmed[: self._n])
         # the share of walkers among well-observed tracks (Laplace's rule): a new track's prior
-        settled = self._det_steps[: self._n] >= 3.0
-        walkers = int(np.count_nonzero(self._mu[: self._n, 1][settled] > 0.5))
-        self._prm[_tracker.F_WALK] = min(max((1.0 + walkers) / (2.0 + int(settled.sum())), 0.02), 0.98)
+        self._prm[_tracker.F_WALK] = min(max(self.walking_share(prior=0.5, strength=2.0), 0.02), 0.98)
 
     def walking_share(self, prior: float = 0.3, strength: float = 2.0) -> float:
         """The share of targets that walk, as the camera has seen them: tracks detected in at least
