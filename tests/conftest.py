@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from ra2vipas.services.controller.policy import Controller, ControllerSettings, sensor_config_from_scenario
+from ra2vipas.services.orchestrator.reproducibility import differences as _differences
 from ra2vipas.services.orchestrator.simulate import TrainedPOD, train_pod
 from ra2vipas.services.protocol.scenario import Scenario, build_scenario
 from ra2vipas.services.sensors import physics
@@ -33,28 +34,11 @@ def untimed(results: dict) -> dict:
     return out
 
 
-def differences(a, b, path: str = "", limit: int = 20) -> list[str]:
-    """The paths where two JSON-like objects differ (at most ``limit``), for assertion messages
-    that say where two results objects part instead of printing both."""
-    out: list[str] = []
-
-    def walk(x, y, at):
-        if len(out) >= limit:
-            return
-        if isinstance(x, dict) and isinstance(y, dict):
-            for k in sorted(set(x) | set(y), key=str):
-                if k not in x or k not in y:
-                    out.append(f"{at}/{k}: only on the {'right' if k not in x else 'left'}")
-                else:
-                    walk(x[k], y[k], f"{at}/{k}")
-        elif isinstance(x, list) and isinstance(y, list) and len(x) == len(y):
-            for i, (u, v) in enumerate(zip(x, y)):
-                walk(u, v, f"{at}[{i}]")
-        elif x != y:
-            out.append(f"{at}: {x!r} != {y!r}")
-
-    walk(a, b, path)
-    return out
+def differences(a, b, limit: int = 20) -> list[str]:
+    """The paths where two JSON-like objects differ (at most ``limit``), exactly, for assertion
+    messages that say where two results objects part instead of printing both (the comparison
+    with stated tolerances across machines is ``reproducibility.differences``)."""
+    return _differences(a, b, limit=limit)
 
 
 def small_scenario(preset: str = "paper", **overrides) -> Scenario:

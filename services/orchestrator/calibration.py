@@ -116,6 +116,41 @@ def platt(raw: np.ndarray, covariates: np.ndarray, *coefficients: float) -> np.n
     return 1.0 / (1.0 + np.exp(-(X @ np.asarray(coefficients, dtype=float))))
 
 
+# How far a shipped map may be from the map refitted now, by what it does on the fitting data
+# (not by its coefficients' digits: an unpenalised logistic regression's coefficients move in
+# their 2nd-3rd decimal when another CPU moves raw confidences in their last bits, while what
+# the map does barely moves). The test is the likelihood: 2 x the excess negative log-likelihood
+# is the likelihood-ratio statistic of the shipped map against the refit, and <= 4 (2 nats) lies
+# deep inside the refit's own 7-parameter confidence region (chi-squared_7, p = 0.78). Measured
+# on the four maps (~40 000 steps each): rounding the coefficients to 4 decimals costs <= 0.004
+# nats; this machine reduced to its SSE baseline (tests/docs/test_other_cpus.py) 0.0-0.40 nats,
+# confidences moved by <= 0.018, ECE by <= 0.0004; scaling the logit's coefficient by 5 % (a
+# small real change of a controller) costs 6.9-103 nats. Confidences and ECE are bounded too, as
+# sanity limits a few times what another CPU moved.
+MAP_TOLERANCE = {"nll_nats": 2.0, "confidence": 0.05, "ece": 0.002}
+
+
+def map_agreement(raw: np.ndarray, covariates: np.ndarray, hit: np.ndarray, shipped: Iterable[float],
+                  refitted: Iterable[float]) -> dict[str, float]:
+    """What separates two confidence maps on the same steps: the excess negative log-likelihood of
+    ``shipped`` over ``refitted`` (nats; twice it is the likelihood-ratio statistic, so well
+    under 1 nat is far inside the fit's own sampling noise), the largest difference of the
+    confidences they give, and the difference of their ECE."""
+    a, b = platt(raw, covariates, *shipped), platt(raw, covariates, *refitted)
+
+    def nll(p: np.ndarray) -> float:
+        p = np.clip(p, 1e-12, 1.0 - 1e-12)
+        return float(-(hit * np.log(p) + (1.0 - hit) * np.log(1.0 - p)).sum())
+
+    return {"nll_nats": nll(a) - nll(b), "confidence": float(np.max(np.abs(a - b), initial=0.0)),
+            "ece": abs((expected_calibration_error(a, hit) or 0.0) - (expected_calibration_error(b, hit) or 0.0))}
+
+
+def map_drift(agreement: dict[str, float]) -> list[str]:
+    """The measures of ``map_agreement`` beyond ``MAP_TOLERANCE`` (empty: the same map)."""
+    return [f"{k} {agreement[k]:.4g} > {limit:g}" for k, limit in MAP_TOLERANCE.items() if not agreement[k] <= limit]
+
+
 def calibrate(algorithms: Iterable[str], tests: int, seed: int, progress: Callable[[str], None] | None = None,
               from_s: float = 0.0, workers: int = 1) -> dict[str, Any]:
     """Fit every algorithm's map on the steps from ``from_s`` seconds on (``workers`` processes

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import importlib.util
 import json
+from collections import Counter
 from pathlib import Path
 
 import pytest
 
 import ra2vipas
-from tests.conftest import differences, untimed
+from ra2vipas.services.orchestrator import reproducibility
+from tests.conftest import untimed
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -53,26 +55,42 @@ def test_a_hand_edited_number_is_caught(docs, data):
     assert docs.apply(edited, docs.render(data)) != edited
 
 
-def test_the_recorded_check_campaign_is_what_the_code_prints_now(data):
+def test_the_recorded_check_campaign_is_what_the_code_prints_now(docs, data):
+    """The check campaign rerun now: each test's decisions as recorded (but for near-ties another
+    CPU may flip), and its results as recorded, numbers that pass through a fit within the
+    stated tolerances (services/orchestrator/reproducibility.py)."""
     check = data["check"]
+    now_tests = docs.first_tests(check["preset"], check["overrides"], check["seed"], check["tests"])
+    problems, flipped = reproducibility.decision_drift([("check", now_tests, check["first_tests"])])
+    assert not problems, problems
     now = ra2vipas.simulate(preset=check["preset"], overrides=check["overrides"], tests=check["tests"], seed=check["seed"])
-    assert not differences(untimed(now), check["results"]), differences(untimed(now), check["results"])
+    rule = reproducibility.results_tolerance(Counter(name for _, name, _ in flipped), check["tests"])
+    drift = reproducibility.differences(untimed(now), check["results"], rule)
+    assert not drift, drift
 
 
 def test_the_first_tests_of_every_documented_campaign_are_what_the_code_prints_now(docs, data):
     """Every campaign behind a README table reruns its first tests (seconds, not the 20 minutes
-    of `make docs`): their final hits and the digest of every step's choice are the recorded
-    ones, and their POD R² is the whole campaign's (it depends on the scenario and seed only)."""
+    of `make docs`): each test's decisions (the digest of every step's choice) and final hit are
+    the recorded ones but for near-ties another CPU may flip, within the bounds of
+    services/orchestrator/reproducibility.py, and their POD R² is the whole campaign's (it depends
+    on the scenario and seed only) within the tolerance of a fit."""
     assert sorted(data["paper"]) == sorted(data["dynamic"]) == [str(s) for s in data["seeds"]] == ["1", "2", "3"]
     campaigns = docs.documented_campaigns(data)
     assert len(campaigns) == 2 * 3 + 1 + len(data["robustness"]["scenarios"]) and len(data["robustness"]["scenarios"]) >= 12
+    problems: list[str] = []
+    compared = []
     for label, spec, entry in campaigns:
         recorded = entry.get("first_tests")
         assert recorded is not None, f"{label}: no first_tests record: run `python tools/docs.py --first-tests`"
-        assert recorded["pod_r2"] == entry.get("pod_r2", recorded["pod_r2"]), f"{label}: the record is not of this campaign"
+        assert abs(recorded["pod_r2"] - entry.get("pod_r2", recorded["pod_r2"])) <= reproducibility.POD_R2_TOLERANCE, (
+            f"{label}: the record is not of this campaign")
         now = docs.first_tests(**spec)
-        drift = differences(now, recorded)
-        assert not drift, f"{label}: {drift}: the code no longer prints the documented numbers: run `make docs`"
+        if not abs(now["pod_r2"] - recorded["pod_r2"]) <= reproducibility.POD_R2_TOLERANCE:
+            problems.append(f"{label}: POD R² {now['pod_r2']} != {recorded['pod_r2']}")
+        compared.append((label, now, recorded))
+    problems += reproducibility.decision_drift(compared)[0]
+    assert not problems, f"{problems}: the code no longer prints the documented numbers: run `make docs`"
 
 
 def test_first_tests_are_not_added_to_a_campaign_this_code_did_not_print(docs, data):

@@ -3,7 +3,6 @@ that a world with those effects off draws exactly what the paper's world drew be
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 
@@ -12,6 +11,7 @@ import pytest
 from scipy import stats
 
 from ra2vipas.services.orchestrator.metrics import truth_bearings
+from ra2vipas.services.orchestrator.reproducibility import draw_digest
 from ra2vipas.services.protocol.messages import EpisodeTruth, dump
 from ra2vipas.services.protocol.scenario import MAX_TRUTH_WALKER_STEPS, ScenarioError, build_scenario
 from ra2vipas.services.sensors import physics
@@ -40,39 +40,38 @@ def _pans(n: int) -> list[float]:
 def _episode_digest(preset: str, seed: int, k: int, steps: int = 40, **overrides) -> str:
     sc = build_scenario(preset, {"steps": steps, **overrides})
     p = SimulatedPlatform(sc, seed, k)
-    h = hashlib.sha256()
-    h.update(json.dumps({"positions": p.truth.positions_m.tolist(), "tx": p.truth.tx_index}).encode())
-    for t, pan in enumerate(_pans(steps)):
-        h.update(p.sense(t, pan).model_dump_json().encode())
-    return h.hexdigest()
+    parts = [{"positions": p.truth.positions_m.tolist(), "tx": p.truth.tx_index}]
+    parts += [p.sense(t, pan).model_dump(mode="json") for t, pan in enumerate(_pans(steps))]
+    return draw_digest(parts)
 
 
 def _training_digest(preset: str, seed: int, n_train: int = 300, **overrides) -> str:
     sc = build_scenario(preset, {"n_train": n_train, **overrides})
     ep = TrainingEpisode(sc, seed)
-    h = hashlib.sha256()
-    h.update(json.dumps({"d": ep.truth.ranges_m.tolist(), "r": ep.truth.rssi_dbm.tolist(), "p": ep.truth.pod.tolist()}).encode())
-    for s in ep.samples():
-        h.update(s.model_dump_json().encode())
-    return h.hexdigest()
+    parts = [{"d": ep.truth.ranges_m.tolist(), "r": ep.truth.rssi_dbm.tolist(), "p": ep.truth.pod.tolist()}]
+    parts += [s.model_dump(mode="json") for s in ep.samples()]
+    return draw_digest(parts)
 
 
-# Computed from main at f45b9b1, BEFORE the dynamic world existed, with exactly the two functions
-# above, under the pinned libraries of constraints.txt (numpy may change a float's last bit from
-# one release to the next): the digests of every draw (layout, Tx, each step's RSSI and boxes at a
-# fixed sequence of pans, the training episode's truth and samples). This is the one place where frozen numbers
-# belong: they prove that the README's published numbers and every paired comparison still
-# come from the same random draws.
+# The digests of every draw (layout, Tx, each step's RSSI and boxes at a fixed sequence of pans,
+# the training episode's truth and samples), each float rounded to 1e-6 so that another CPU's
+# last bits do not move them (services/orchestrator/reproducibility.py: DRAW_DECIMALS). The
+# draws are those of main at f45b9b1, BEFORE the dynamic world existed: these rounded digests
+# were computed on a machine where the unrounded digests of f45b9b1 (1ea00a6f…, 065553b3…,
+# 38c6090d…, 4db3aef7…, f04b354a…, 5366f2be…, 89516f9e…, 6511a9b6…) still held, under the
+# pinned libraries of constraints.txt. This is the one place where frozen numbers belong: they
+# prove that the README's published numbers and every paired comparison still come from the
+# same random draws.
 FROZEN_ON_MAIN = {
-    ("paper", 1, 0): "1ea00a6fc7c77f5404a417bcfb96a2df43a89d27521af0bac42c0e742cce99be",
-    ("paper", 1, 3): "065553b3415aee57aa60a7369dcec52637922aa54e91c4844d6e41553cdbddc6",
-    ("paper", 7, 12): "38c6090dc9f94f131ae298f04c74a38eb940c76b981f4930853a7801495f7141",
-    ("paper-uniform", 1, 0): "4db3aef7654ce5b7d536ff8347ed6bde601660f4f78ffa24a9725fe2b3124054",
-    ("paper-uniform", 1, 3): "f04b354a510e3c7ec66b4aaba3ceb483fdc40bb6950735208503525f0dd3b65f",
-    ("paper-uniform", 7, 12): "5366f2be1547710e9a4638fe6213ae8ae37e4b06fee630513f4d967eb28f89bd",
+    ("paper", 1, 0): "17c6eb0cbbf943e78e397d5b7a0a7ee7f38d8b3b1631264b3e9b3182df08e608",
+    ("paper", 1, 3): "2f8c906de050d6acf92a7f7e913b0c4036347f3f812304cd33b910785c33772c",
+    ("paper", 7, 12): "e188fb74c48ef3b2bb3a4d427c78a08fa6dc33a6760817732858d0bf7c1e2589",
+    ("paper-uniform", 1, 0): "80c7873de4c73ce253c19ef8154f2b210976fe3e38be5d5c99b9d3111c1bc0f4",
+    ("paper-uniform", 1, 3): "2ef673f75e9e5085caa51f6038915cc464b282936b7efd74bf91275789dfe563",
+    ("paper-uniform", 7, 12): "b3c73c41e1cad07f996a6c9f13ef0125064efb7d1fec7a59bc9a1fa10a737d13",
 }
-FROZEN_DB_GAIN_30 = "89516f9e05ee22752039930b5d63124e042bbf8c1a3ed67c829e8ff41c622437"  # paper, db-gain, N 30, seed 2, test 5
-FROZEN_TRAINING = "6511a9b6025213aac4a207c9ba212188a67efd9453beeb65895f8fd3fd20eaac"  # paper and paper-uniform, seed 1, 300 samples
+FROZEN_DB_GAIN_30 = "dc0ce3c0f052c3cb215c4b9e85837f065a1feb544baf57955e85e2ba903af731"  # paper, db-gain, N 30, seed 2, test 5
+FROZEN_TRAINING = "c77dc3af24b18221bbdba8d304d9ed4eabc1a55c6dc2ad58d538769125bae7b8"  # paper and paper-uniform, seed 1, 300 samples
 
 
 @pytest.mark.parametrize("preset, seed, k", sorted(FROZEN_ON_MAIN))
