@@ -102,7 +102,7 @@ def decode_or_reject(schema, payload: bytes, what: str, logger: logging.Logger, 
         logger.warning("dropping malformed %s (%d bytes): %s", what, len(payload), reason)
         eid = rejected_episode_id(payload)
         if eid is not None:
-            error = f"the {role} of rig {rig} rejected a {what}: {reason}"
+            error = f"the {role} of rig {rig} rejected its {what}: {reason}"
             bus.publish(keys.episode_rejected(rig), dump(ErrorReply(error=error[:2000], episode_id=eid)))
     return message
 

@@ -130,3 +130,24 @@ def test_the_cli_shows_descriptors_and_warnings(rigs, capsys):
     out = CliRunner().invoke(app, ["campaign", "start", "--api", rigs.url, "--rig", "db-1", "--tests", "1", "--set", "steps=20",
                                    "--set", "n_train=200", "-a", "rapas"])
     assert out.exit_code == 2 and "scenario.antenna_model: rig db-1 is 'db-gain'" in out.output
+
+
+def test_a_campaign_that_needs_a_newer_protocol_than_its_rig_speaks_is_refused_naming_rig_feature_and_version(rigs):
+    """stop_confidence (protocol 1.1) on a rig that serves no descriptor (1.0): a node written
+    from the 1.0 page rejects every EpisodeStart that carries it, so the campaign is refused at
+    creation rather than timing out episode after episode (docs/protocol.md, "Compatibility")."""
+    r = _start(rigs, rigs=["old-1"], stop_confidence=0.9)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert detail.startswith("stop_confidence: rig old-1 serves no descriptor: it speaks protocol 1.0; stop_confidence needs "
+                             "protocol 1.1"), detail
+    assert r.json()["errors"][0]["loc"] == ["body", "stop_confidence"]
+    assert _start(rigs, rigs=["sim-1"], stop_confidence=0.9, algorithms=["rapas"], tests=1).status_code == 201
+
+
+def test_an_untargeted_campaign_with_a_newer_feature_skips_the_rigs_that_do_not_speak_it(rigs):
+    r = _start(rigs, algorithms=["rapas"], tests=6, stop_confidence=0.9)
+    assert r.status_code == 201, r.text
+    done = rigs.wait(r.json()["id"])
+    assert done["status"] == "done", done["error"]
+    assert {t["rig"] for t in _tests(rigs, done["id"])} == {"sim-1"}  # not the 1.0 nodes, not db-1 (its antenna)
