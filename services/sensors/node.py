@@ -216,7 +216,7 @@ class SensorsNode:
         """Queryable handler (runs on the bus's worker pool, touches no episode state)."""
         req = _training_request(payload)
         samples = tuple(TrainingEpisode(self.hardware(req.scenario), req.seed).samples())
-        return TrainingStream.model_construct(job_id=req.job_id, samples=samples).model_dump_json().encode()
+        return dump(TrainingStream.model_construct(job_id=req.job_id, samples=samples))
 
     def _on_training_truth(self, _key: str, payload: bytes) -> bytes:
         """Truth-plane queryable: the noiseless RSSI and POD behind the training episode of
