@@ -151,3 +151,22 @@ def test_an_untargeted_campaign_with_a_newer_feature_skips_the_rigs_that_do_not_
     done = rigs.wait(r.json()["id"])
     assert done["status"] == "done", done["error"]
     assert {t["rig"] for t in _tests(rigs, done["id"])} == {"sim-1"}  # not the 1.0 nodes, not db-1 (its antenna)
+
+
+def test_a_study_no_live_rig_can_run_is_refused_naming_the_rigs(tmp_path):
+    """Only 1.0 rigs live, and a study with stop_confidence: a 422 naming each rig, not a study
+    that waits for ever."""
+    server = LiveAPI(tmp_path / "old.db", rigs=("old-2",), window=2, sensors={"old-2": {"describe": False}}).start()
+    try:
+        server.settle()
+        with server.client() as http:
+            body = {"preset": "paper", "overrides": SMALL, "vary": {"rf_noise_db": [2.0, 3.0]}, "tests": 2, "seed": 1,
+                    "algorithms": ["rapas"]}
+            r = http.post("/studies", json={**body, "stop_confidence": 0.9})
+            assert r.status_code == 422, r.text
+            assert "rig old-2 serves no descriptor: it speaks protocol 1.0; stop_confidence needs protocol 1.1" in r.json()["detail"]
+            r = http.post("/campaigns", json={"preset": "paper", "overrides": SMALL, "tests": 2, "seed": 1, "stop_confidence": 0.9})
+            assert r.status_code == 422 and "rig old-2" in r.json()["detail"], r.text
+            assert http.post("/studies", json=body).status_code == 201
+    finally:
+        server.stop()
