@@ -739,7 +739,8 @@ class Scheduler:
         return {
             "rigs": {name: {"sensors": st.sensors, "controller": st.controller, "in_flight": len(st.in_flight),
                             "since": st.since, "described": st.described,
-                            "descriptor": None if st.descriptor is None else st.descriptor.model_dump(mode="json")}
+                            "descriptor": None if st.descriptor is None else st.descriptor.model_dump(mode="json"),
+                            "protocol": speaks(st.descriptor) if st.described in ("described", "undescribed") else None}
                      for name, st in list(self.rigs.items())},
             "learners": sorted(self.learners),
             "rejected": dict(self.rejected),
