@@ -17,6 +17,12 @@ descriptor (``RigDescriptor.protocol``; a node that serves no descriptor speaks 
 of the learner says it in its ``PODRequest.protocol``. The orchestrator refuses a campaign
 whose features a targeted rig does not speak (``missing_features``).
 
+Adding a field to a message a node receives (the next version, say 1.2): give it a default and
+``json_schema_extra={"since": "1.2"}``, add ``"1.2"`` to ``VERSIONS`` and make it
+``PROTOCOL_VERSION``, list it in ``campaign_features`` when a campaign setting turns it on,
+freeze the 1.1 schemas beside ``docs/schemas/v1`` and say what 1.2 adds on the protocol page.
+``tests/protocol/test_compatibility.py`` fails on a field added without its ``since``.
+
 Pure Python and pydantic, like the rest of the protocol package.
 """
 
