@@ -41,10 +41,12 @@ def _pod_model(bus, campaign: dict) -> dict | None:
     from ra2vipas.services.protocol import keys
     from ra2vipas.services.protocol.messages import PODRequest, PODResponse, dump
     from ra2vipas.services.protocol.scenario import Scenario
+    from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
     from ra2vipas.services.transport.runtime import first_valid_reply
 
     got: queue.Queue = queue.Queue()
-    bus.query(keys.pod_model(), dump(PODRequest(scenario=Scenario.model_validate(campaign["scenario"]), seed=campaign["seed"])), 60.0,
+    bus.query(keys.pod_model(), dump(PODRequest(scenario=Scenario.model_validate(campaign["scenario"]), seed=campaign["seed"],
+                                                   protocol=PROTOCOL_VERSION)), 60.0,
               got.put)
     try:
         response, _ = first_valid_reply(got.get(timeout=70.0), PODResponse, "PODResponse")

@@ -55,6 +55,7 @@ DESCRIPTOR = {
     "training": True,
     "episode_truth": False,  # set by --publish-truth
     "training_truth": False,
+    "protocol": "1.1",  # the protocol version this node speaks (docs/protocol.md, "Compatibility")
 }
 
 

@@ -31,7 +31,8 @@ from ra2vipas.services.protocol.messages import (
 from ra2vipas.services.protocol.rig import RigDescriptor
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
-from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
+from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
+from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, decode_or_reject, first_valid_reply
 
 log = logging.getLogger(__name__)
 
@@ -94,7 +95,7 @@ class ControllerNode:
 
     # -- episode lifecycle ------------------------------------------------------------------
     def _on_control(self, payload: bytes) -> None:
-        msg = decode_or_drop(episode_control_adapter, payload, "episode control message", log)
+        msg = decode_or_reject(episode_control_adapter, payload, "episode control message", log, self.bus, self.rig, "controller")
         if msg is None:
             return
         if isinstance(msg, EpisodeStop):
@@ -143,7 +144,7 @@ class ControllerNode:
         waiting = self._waiting.setdefault(job, [])
         waiting.append(msg.episode_id)
         if len(waiting) == 1:
-            self._request_model(job, dump(PODRequest(scenario=msg.scenario, seed=msg.seed)), 1)
+            self._request_model(job, dump(PODRequest(scenario=msg.scenario, seed=msg.seed, protocol=PROTOCOL_VERSION)), 1)
 
     def _request_model(self, job: str, request: bytes, attempt: int) -> None:
         self.bus.query(keys.pod_model(), request, MODEL_TIMEOUT_S,

@@ -50,7 +50,7 @@ class LearnerNode:
         req, reason = decode(PODRequest, payload)
         if req is None:
             raise QueryError(dump(ErrorReply(error=f"malformed PODRequest: {reason}")).decode())
-        return dump(self.model_for(req))
+        return dump(self.model_for(req), version=req.protocol)  # nothing newer than the asker speaks
 
     def model_for(self, req: PODRequest) -> PODResponse:
         """The cached model of (scenario, seed), training it first if needed (blocking)."""

@@ -132,7 +132,8 @@ class TargetingError(ValueError):
 
 
 def resolve_targeting(scenario, mode: str, rigs: list[str] | None, rig_kind: str | None, use_rig_values: bool,
-                      descriptors: dict[str, Any]):
+                      descriptors: dict[str, Any], features: list[tuple[str, str]] | None = None,
+                      protocols: dict[str, str | None] | None = None):
     """Check a new campaign against the rigs it targets; return ``(scenario, targeting)``.
 
     ``descriptors``: every live rig's ``RigDescriptor`` (None: undescribed). The rigs targeted
@@ -143,6 +144,12 @@ def resolve_targeting(scenario, mode: str, rigs: list[str] | None, rig_kind: str
     themselves). A campaign that targets no rig in particular runs on the live rigs it agrees
     with, and is refused only when it agrees with none of them. Rigs not live now are checked
     when they come up (the scheduler skips the ones that contradict the campaign).
+
+    ``features``: the newer-than-1.0 protocol features the campaign uses, ``(feature,
+    version)`` (``versions.campaign_features``); ``protocols``: the version each live rig
+    speaks (None: not known yet, not checked). A targeted rig that does not speak a feature's
+    version contradicts the campaign like a hardware field does (the 422 names the rig, the
+    feature and both versions); ``use_rig_values`` cannot help there.
 
     Raises
     ------
@@ -170,14 +177,23 @@ def resolve_targeting(scenario, mode: str, rigs: list[str] | None, rig_kind: str
             raise TargetingError(errors)
         if values:
             scenario = apply_rig_values_dict(scenario, {k: v for k, (v, _) in values.items()})
-    found = {rig: conflicts(d, scenario, mode) for rig, d in described.items()}
-    bad = {rig: c for rig, c in found.items() if c}
-    if bad and (rigs or rig_kind or len(bad) == len(targeted)):
-        for rig, cs in bad.items():
-            for c in cs:
-                where = "mode" if c.field == "mode" else f"scenario.{c.field}"
-                hint = "" if c.field == "mode" else " (use_rig_values takes the rig's)"
-                errors.append((where, f"rig {rig} is {c.rig!r}, the campaign says {c.campaign!r}{hint}"))
+    from ra2vipas.services.protocol.versions import describe_missing, missing_features
+
+    found: dict[str, list[tuple[str, str]]] = {}
+    for rig, d in described.items():
+        for c in conflicts(d, scenario, mode):
+            where = "mode" if c.field == "mode" else f"scenario.{c.field}"
+            hint = "" if c.field == "mode" else " (use_rig_values takes the rig's)"
+            found.setdefault(rig, []).append((where, f"rig {rig} is {c.rig!r}, the campaign says {c.campaign!r}{hint}"))
+    for rig in sorted(targeted):
+        version = (protocols or {}).get(rig)
+        if version is None or not features:
+            continue
+        for feature, needed in missing_features(version, features):
+            found.setdefault(rig, []).append((feature, describe_missing(rig, version, feature, needed)))
+    if found and (rigs or rig_kind or len(found) == len(targeted)):
+        for rig in sorted(found):
+            errors.extend(found[rig])
         raise TargetingError(errors)
     targeting = None
     if rigs or rig_kind or use_rig_values:

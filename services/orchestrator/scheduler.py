@@ -56,10 +56,11 @@ from ra2vipas.services.orchestrator.study_store import StudyStore
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.orchestrator.rigcheck import RigChecks
 from ra2vipas.services.protocol.messages import (
-    EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Mode, PODRequest, PODResponse,
+    EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, ErrorReply, Mode, PODRequest, PODResponse,
     TrainingRequest, TrainingTruth, dump,
 )
-from ra2vipas.services.protocol.rig import RigDescriptor, conflicts
+from ra2vipas.services.protocol.rig import RigDescriptor, conflicts, speaks
+from ra2vipas.services.protocol.versions import PROTOCOL_VERSION, campaign_features, describe_missing, missing_features
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
@@ -158,6 +159,7 @@ class Scheduler:
             bus.subscribe(keys.episode_result_all(), lambda k, p: self.loop.post(self._on_result, k, p)),
             bus.subscribe(keys.episode_truth_all(), lambda k, p: self.loop.post(self._on_truth, k, p)),
             bus.subscribe(keys.episode_timing_all(), lambda k, p: self.loop.post(self._on_timing, k, p)),
+            bus.subscribe(keys.episode_rejected_all(), lambda k, p: self.loop.post(self._on_rejected, k, p)),
             bus.announce(keys.alive("orchestrator", keys.check_chunk(name, "name"))),
         ]
         self.loop.post(self._resume)
@@ -316,7 +318,7 @@ class Scheduler:
     def _request_model(self, run: _Run) -> None:
         run.model_attempts += 1
         run.model_retry_at = None
-        request = dump(PODRequest(scenario=run.scenario, seed=run.seed))
+        request = dump(PODRequest(scenario=run.scenario, seed=run.seed, protocol=PROTOCOL_VERSION))
         self.bus.query(keys.pod_model(), request, MODEL_TIMEOUT_S, lambda replies: self.loop.post(self._on_model, run.id, replies))
 
     def _on_model(self, cid: str, replies: list[Reply]) -> None:
@@ -442,6 +444,13 @@ class Scheduler:
             if found:
                 log.warning("campaign %s does not run on rig %s: %s", run.id, rig_name, "; ".join(c.describe(rig_name) for c in found))
                 ok = False
+        if ok:
+            version = speaks(rig.descriptor)
+            missing = missing_features(version, campaign_features(run.stop_confidence))
+            if missing:
+                log.warning("campaign %s does not run on rig %s: %s", run.id, rig_name,
+                            "; ".join(describe_missing(rig_name, version, f, v) for f, v in missing))
+                ok = False
         run.eligible[rig_name] = ok
         return ok
 
@@ -498,7 +507,7 @@ class Scheduler:
         """The message and its flight if it validates, its episode is in flight and it came on
         the key of the rig that episode was assigned to; else None after counting why."""
         msg = decode_or_drop(schema, payload, schema.__name__, log)
-        if msg is None:
+        if msg is None or getattr(msg, "episode_id", "") is None:
             self.rejected["malformed"] += 1
             return None
         flight = self.flights.get(msg.episode_id)
@@ -525,6 +534,19 @@ class Scheduler:
         if flight.result is None:
             flight.result = msg
         self._complete(msg.episode_id)
+
+    def _on_rejected(self, key: str, payload: bytes) -> None:
+        """A node of the rig rejected a message of an episode in flight there: that attempt fails
+        at once with the node's reason (rerun like any failed attempt; after ``MAX_ATTEMPTS`` the
+        campaign fails naming it), rather than timing out in silence."""
+        accepted = self._accepted(ErrorReply, key, payload)
+        if accepted is None:
+            return
+        msg, flight = accepted
+        if flight.saving:
+            return  # finished: a late rejection of a repeated message changes nothing
+        log.warning("episode %s rejected on %s: %s", msg.episode_id, flight.rig, msg.error)
+        self._requeue(msg.episode_id, count_attempt=True, reason=f"rejected: {msg.error}")
 
     def _on_truth(self, key: str, payload: bytes) -> None:
         self._attach(EpisodeTruth, key, payload, "truth")
@@ -674,6 +696,12 @@ class Scheduler:
             run.eligible.pop(name, None)
         self._dispatch()
 
+    def protocols(self) -> dict[str, str | None]:
+        """The protocol version each known rig speaks (``rig.speaks``: 1.0 when undescribed; None
+        while its descriptor is not known yet); thread-safe copy."""
+        return {name: (speaks(st.descriptor) if st.described in ("described", "undescribed") else None)
+                for name, st in list(self.rigs.items())}
+
     def descriptors(self) -> dict[str, RigDescriptor | None]:
         """Each known rig's descriptor (None: undescribed or not known yet); thread-safe copy."""
         return {name: st.descriptor for name, st in list(self.rigs.items())}
@@ -711,7 +739,8 @@ class Scheduler:
         return {
             "rigs": {name: {"sensors": st.sensors, "controller": st.controller, "in_flight": len(st.in_flight),
                             "since": st.since, "described": st.described,
-                            "descriptor": None if st.descriptor is None else st.descriptor.model_dump(mode="json")}
+                            "descriptor": None if st.descriptor is None else st.descriptor.model_dump(mode="json"),
+                            "protocol": speaks(st.descriptor) if st.described in ("described", "undescribed") else None}
                      for name, st in list(self.rigs.items())},
             "learners": sorted(self.learners),
             "rejected": dict(self.rejected),

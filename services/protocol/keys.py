@@ -9,7 +9,8 @@ plane     what travels there
 data      what a real platform produces and consumes: pan commands, step measurements,
           the POD training stream
 control   orchestration: episode start/stop sent to a rig
-result    the controller's per-episode trace (estimates, pans), for scoring
+result    the controller's per-episode trace (estimates, pans), for scoring; the sensors'
+          timing; what a node rejected
 truth     the simulator's ground truth, for scoring only; never read by a controller or
           a learner
 model     the learner's queryable serving the POD model
@@ -96,6 +97,18 @@ def episode_timing(rig: str) -> str:
 
 def episode_timing_all() -> str:
     return f"{PREFIX}/result/*/timing"
+
+
+def episode_rejected(rig: str) -> str:
+    """A rig's node rejected a message of an episode (protocol 1.1): payload ``ErrorReply`` with
+    the ``episode_id`` and the node's reason (e.g. a field it does not know). The rig's sensors
+    and controller publish; the orchestrator subscribes (``episode_rejected_all``) and fails
+    that attempt at once, naming the reason."""
+    return f"{PREFIX}/result/{check_chunk(rig)}/rejected"
+
+
+def episode_rejected_all() -> str:
+    return f"{PREFIX}/result/*/rejected"
 
 
 # -- truth plane -------------------------------------------------------------------------------

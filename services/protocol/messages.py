@@ -19,6 +19,7 @@ from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepM
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.protocol.rig import RigDescriptor, RxDirResponse
 from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.protocol.versions import V1_0, VERSION_PATTERN, wire_exclude
 
 MAX_STEPS = 10000
 
@@ -26,6 +27,8 @@ AlgorithmName = Literal["ra2vipas", "rapas", "ravipas", "sweep"]
 ALGORITHMS: tuple[str, ...] = AlgorithmName.__args__
 """The controller algorithms an episode can run (paper Sec. IV-B plus the non-active sweep)."""
 _ID = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:-]+$")
+SINCE_1_1 = {"since": "1.1"}
+"""Schema mark of a field added in protocol 1.1 (``versions.since``): senders omit it at its default."""
 
 
 class _Message(BaseModel):
@@ -54,7 +57,8 @@ class EpisodeStart(_Message):
     scenario: Scenario
     mode: Mode = Mode.fast
     stop_confidence: float = Field(0.0, ge=0.0, lt=1.0, description="end the episode at the first step whose confidence "
-                                   "reaches this, its answer final (0: run every step); a v1 controller may ignore it")
+                                   "reaches this, its answer final (0: run every step; omitted); a 1.0 node does not know it",
+                                   json_schema_extra=SINCE_1_1)
 
 
 class EpisodeStop(_Message):
@@ -113,6 +117,8 @@ class PODRequest(_Message):
 
     scenario: Scenario
     seed: int = Field(ge=0, le=2**63 - 1)
+    protocol: str = Field(V1_0, pattern=VERSION_PATTERN, json_schema_extra=SINCE_1_1, description=(
+        "the protocol version the asker speaks (absent: 1.0); the reply carries no field newer than that"))
 
 
 class PODResponse(_Message):
@@ -127,6 +133,8 @@ class ErrorReply(_Message):
     """Payload of an error reply to any query."""
 
     error: str = Field(max_length=2000)
+    episode_id: str | None = Field(None, min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:-]+$", json_schema_extra=SINCE_1_1,
+                                   description="on result/{rig}/rejected: the episode whose message the node rejected")
 
 
 # -- result plane ------------------------------------------------------------------------------
@@ -166,9 +174,11 @@ class EpisodeResult(_Message):
     estimates_rad: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
     pans_rad: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
     rewards: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
-    confidences: tuple[Annotated[float, Field(ge=0.0, le=1.0)], ...] = Field(default=(), max_length=MAX_STEPS)
-    decided_step: int | None = Field(default=None, ge=0, le=MAX_STEPS)
-    model_check: ModelCheck | None = Field(default=None, description="how the rig was modelled (optional; v1 controllers send none)")
+    confidences: tuple[Annotated[float, Field(ge=0.0, le=1.0)], ...] = Field(default=(), max_length=MAX_STEPS,
+                                                                            json_schema_extra=SINCE_1_1)
+    decided_step: int | None = Field(default=None, ge=0, le=MAX_STEPS, json_schema_extra=SINCE_1_1)
+    model_check: ModelCheck | None = Field(default=None, description="how the rig was modelled (optional; v1 controllers send none)",
+                                           json_schema_extra=SINCE_1_1)
 
 
 class EpisodeTiming(_Message):
@@ -250,6 +260,10 @@ def error_text(payload: bytes) -> str:
     return message.error if message is not None else payload.decode(errors="replace")[:500]
 
 
-def dump(message: BaseModel) -> bytes:
-    """The message as compact JSON bytes."""
-    return message.model_dump_json().encode()
+def dump(message: BaseModel, version: str | None = None) -> bytes:
+    """The message as compact JSON bytes, as it goes on the wire: without the fields added after
+    protocol 1.0 that hold their defaults (so a message that uses no newer feature is byte for
+    byte what a 1.0 sender sent), and, for a receiver that speaks ``version``, without any field
+    newer than that (``versions.wire_exclude``). Every sender encodes with this function."""
+    exclude = wire_exclude(message, version)
+    return message.model_dump_json(exclude=exclude or None).encode()

@@ -19,7 +19,8 @@ class PODModel(BaseModel):
     std: tuple[float, ...] = Field(min_length=2, max_length=4096, description="posterior standard deviation of p_D(r)")
     rf_noise_db: float = Field(ge=0.0, description="RSSI noise the learner estimated from the training stream [dB]")
     rf_noise_correlation: float = Field(0.0, ge=0.0, lt=1.0, description=(
-        "lag-1 correlation of that noise from one RF sample to the next (AR(1) fading; 0: white, and what a v1 learner means)"))
+        "lag-1 correlation of that noise from one RF sample to the next (AR(1) fading; 0: white, and what a v1 learner means)"),
+        json_schema_extra={"since": "1.1"})
     n_train: int = Field(ge=1, description="training samples the model was fitted on")
     frames_per_rf: int = Field(ge=1, description="nu the labels were computed with")
 

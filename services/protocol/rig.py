@@ -26,6 +26,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from ra2vipas.services.protocol.scenario import AntennaModel, Scenario
+from ra2vipas.services.protocol.versions import V1_0, VERSION_PATTERN
 
 RigKind = Literal["simulated", "hardware", "survey"]
 RIG_KINDS: tuple[str, ...] = RigKind.__args__
@@ -75,6 +76,9 @@ class RigDescriptor(_Message):
     training: bool = Field(True, description="serves data/{rig}/training (a POD training episode on request)")
     episode_truth: bool = Field(False, description="publishes EpisodeTruth itself (a simulator or a survey knows the layout)")
     training_truth: bool = Field(False, description="serves truth/{rig}/training (the true POD of its training episodes, for R^2)")
+    protocol: str = Field("1.1", pattern=VERSION_PATTERN, description=(
+        "the protocol version the node speaks: the newest whose fields it accepts in what it receives (absent: 1.1, "
+        "the version that introduced the descriptor; a node that serves no descriptor speaks 1.0)"))
 
     @model_validator(mode="after")
     def _fixed_hardware(self) -> "RigDescriptor":
@@ -88,6 +92,11 @@ class RigDescriptor(_Message):
     def configurable(self) -> list[str]:
         """The hardware fields the rig takes from the campaign."""
         return [name for name in HARDWARE_FIELDS if getattr(self, name) is None]
+
+
+def speaks(descriptor: "RigDescriptor | None") -> str:
+    """The protocol version a rig's nodes speak: its descriptor's, 1.0 when it serves none."""
+    return V1_0 if descriptor is None else descriptor.protocol
 
 
 HARDWARE_FIELDS = ("frames_per_rf", "rf_period_s", "fov_half_angle_deg", "box_bearing_noise_deg", "rx_dir")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import logging
 import queue
 import threading
 import time
@@ -35,6 +36,7 @@ from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.transport.bus import Bus, QueryError, undeclare_all
 
 FORMAT = "ra2vipas survey v1"
+log = logging.getLogger(__name__)
 
 
 class _Model(BaseModel):
@@ -238,7 +240,9 @@ class SurveyNode:
         return int(np.argmin(d))
 
     def _on_control(self, payload: bytes) -> None:
-        msg, _ = decode(episode_control_adapter, payload)
+        from ra2vipas.services.transport.runtime import decode_or_reject
+
+        msg = decode_or_reject(episode_control_adapter, payload, "episode control message", log, self.bus, self.rig, "sensors")
         if msg is None:
             return
         if isinstance(msg, EpisodeStop):
@@ -265,7 +269,9 @@ class SurveyNode:
         return self.survey.passes[order.pop()][j]
 
     def _on_command(self, payload: bytes) -> None:
-        cmd, _ = decode(Command, payload)
+        from ra2vipas.services.transport.runtime import decode_or_reject
+
+        cmd = decode_or_reject(Command, payload, "command", log, self.bus, self.rig, "sensors")
         if cmd is None:
             return
         ep = self.episodes.get(cmd.episode_id)
@@ -304,7 +310,7 @@ class SurveyNode:
         n, held = req.scenario.n_train, len(self.survey.training)
         if n > held:
             raise QueryError(f"this survey holds {held} training samples, the campaign asks for n_train = {n}")
-        return TrainingStream(job_id=req.job_id, samples=self.survey.training[:n]).model_dump_json().encode()
+        return dump(TrainingStream(job_id=req.job_id, samples=self.survey.training[:n]))
 
     def close(self) -> None:
         undeclare_all(self._handles)

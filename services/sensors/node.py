@@ -38,7 +38,8 @@ from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors.physics import wrap
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode, episode_truth
 from ra2vipas.services.transport.bus import Bus, QueryError, undeclare_all
-from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop
+from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
+from ra2vipas.services.transport.runtime import EventLoop, decode_or_reject
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +94,7 @@ class SensorsNode:
 
     # -- episodes ---------------------------------------------------------------------------
     def _on_control(self, payload: bytes) -> None:
-        msg = decode_or_drop(episode_control_adapter, payload, "episode control message", log)
+        msg = decode_or_reject(episode_control_adapter, payload, "episode control message", log, self.bus, self.rig, "sensors")
         if msg is None:
             return
         if isinstance(msg, EpisodeStop):
@@ -109,7 +110,7 @@ class SensorsNode:
             self._on_command(early)
 
     def _on_command(self, payload: bytes) -> None:
-        cmd = decode_or_drop(Command, payload, "command", log)
+        cmd = decode_or_reject(Command, payload, "command", log, self.bus, self.rig, "sensors")
         if cmd is None:
             return
         ep = self.episodes.get(cmd.episode_id)
@@ -215,7 +216,7 @@ class SensorsNode:
         """Queryable handler (runs on the bus's worker pool, touches no episode state)."""
         req = _training_request(payload)
         samples = tuple(TrainingEpisode(self.hardware(req.scenario), req.seed).samples())
-        return TrainingStream.model_construct(job_id=req.job_id, samples=samples).model_dump_json().encode()
+        return dump(TrainingStream.model_construct(job_id=req.job_id, samples=samples))
 
     def _on_training_truth(self, _key: str, payload: bytes) -> bytes:
         """Truth-plane queryable: the noiseless RSSI and POD behind the training episode of
@@ -241,7 +242,8 @@ def simulated_descriptor(rig: str, **fixed) -> RigDescriptor:
     """The descriptor of a simulated rig: every hardware field configurable unless ``fixed``
     (descriptor fields, e.g. ``rx_dir={"model": "db-gain"}``); it knows the truth."""
     return RigDescriptor.model_validate({"rig": rig, "kind": "simulated", "vendor": "ra2vipas", "model": "simulator",
-                                         "episode_truth": True, "training_truth": True, **fixed})
+                                         "episode_truth": True, "training_truth": True,
+                                         "protocol": PROTOCOL_VERSION, **fixed})
 
 
 HARDWARE_PARAMETERS = ("frames_per_rf", "rf_period_s", "fov_half_angle_deg", "box_bearing_noise_deg", "antenna_model",

@@ -26,11 +26,13 @@ Per role (``{rig}`` the identity's rig, ``{name}`` its instance name; keys from
 role           may
 =============  ===============================================================================
 sensors        put ``data/{rig}/measurement``, ``truth/{rig}/episode`` (a *simulated* sensor
-               knows the truth), ``result/{rig}/timing``; subscribe to its rig's
+               knows the truth), ``result/{rig}/timing`` and ``result/{rig}/rejected``;
+               subscribe to its rig's
                ``control`` and ``data/{rig}/command``; serve ``data/{rig}/training``,
                ``truth/{rig}/training`` and ``rig/{rig}/info`` (its descriptor); hold the
                token ``alive/sensors/{rig}``
-controller     put ``data/{rig}/command`` and ``result/{rig}/episode``; subscribe to its
+controller     put ``data/{rig}/command``, ``result/{rig}/episode`` and ``result/{rig}/rejected``;
+               subscribe to its
                rig's ``control`` and ``data/{rig}/measurement``; query ``model/pod`` and
                ``rig/{rig}/info``; hold ``alive/controller/{rig}``
 rig            both of the above for one rig (``ra2vipas rig``: one process, two sessions)
@@ -125,7 +127,7 @@ def standard_identities(rigs: list[str], split_rigs: list[str] = (), operators: 
 
 def _sensors(rig: str) -> list[Grant]:
     return [
-        Grant(INGRESS, (PUT,), (keys.measurement(rig), keys.episode_truth(rig), keys.episode_timing(rig))),
+        Grant(INGRESS, (PUT,), (keys.measurement(rig), keys.episode_truth(rig), keys.episode_timing(rig), keys.episode_rejected(rig))),
         Grant(INGRESS, (SUBSCRIBE,), (keys.episode_control(rig), keys.command(rig))),
         Grant(EGRESS, (PUT,), (keys.episode_control(rig), keys.command(rig))),
         Grant(INGRESS, (QUERYABLE, REPLY), (keys.training(rig), keys.training_truth(rig), keys.rig_info(rig))),
@@ -138,7 +140,7 @@ def _sensors(rig: str) -> list[Grant]:
 
 def _controller(rig: str) -> list[Grant]:
     return [
-        Grant(INGRESS, (PUT,), (keys.command(rig), keys.episode_result(rig))),
+        Grant(INGRESS, (PUT,), (keys.command(rig), keys.episode_result(rig), keys.episode_rejected(rig))),
         Grant(INGRESS, (SUBSCRIBE,), (keys.episode_control(rig), keys.measurement(rig))),
         Grant(EGRESS, (PUT,), (keys.episode_control(rig), keys.measurement(rig))),
         Grant(INGRESS, (QUERY,), (keys.pod_model(), keys.rig_info(rig))),
@@ -158,7 +160,7 @@ def _learner(name: str) -> list[Grant]:
 
 
 def _orchestrator(name: str) -> list[Grant]:
-    observed = (keys.episode_result_all(), keys.episode_timing_all(), keys.episode_truth_all())
+    observed = (keys.episode_result_all(), keys.episode_timing_all(), keys.episode_rejected_all(), keys.episode_truth_all())
     return [
         Grant(INGRESS, (PUT,), (keys.episode_control_all(),)),
         Grant(INGRESS, (SUBSCRIBE,), observed),

@@ -3,14 +3,17 @@ SIGINT/SIGTERM that closes the Zenoh session before the process exits."""
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
+import re
 import signal
 import sys
 import threading
 from typing import Any, Callable, Iterable
 
-from ra2vipas.services.protocol.messages import decode, error_text
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import ErrorReply, decode, dump, error_text
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +73,37 @@ def decode_or_drop(schema, payload: bytes, what: str, logger: logging.Logger):
     message, reason = decode(schema, payload)
     if message is None:
         logger.warning("dropping malformed %s (%d bytes): %s", what, len(payload), reason)
+    return message
+
+
+_EPISODE_ID = re.compile(r"^[A-Za-z0-9_.:-]{1,128}$")
+
+
+def rejected_episode_id(payload: bytes) -> str | None:
+    """The ``episode_id`` a message that did not validate names, if it is a JSON object with a
+    well-formed one (what a rejection report can name); else None."""
+    if len(payload) > 1 << 20:
+        return None
+    try:
+        obj = json.loads(payload)
+    except (ValueError, RecursionError):
+        return None
+    eid = obj.get("episode_id") if isinstance(obj, dict) else None
+    return eid if isinstance(eid, str) and _EPISODE_ID.match(eid) else None
+
+
+def decode_or_reject(schema, payload: bytes, what: str, logger: logging.Logger, bus, rig: str, role: str):
+    """The validated message, or None after logging why it was dropped and, when the message
+    names an episode, reporting the rejection on ``result/{rig}/rejected`` (an ``ErrorReply``
+    with the episode id and the reason): the orchestrator then fails that attempt at once,
+    saying why, instead of waiting for it to time out (docs/protocol.md, "Compatibility")."""
+    message, reason = decode(schema, payload)
+    if message is None:
+        logger.warning("dropping malformed %s (%d bytes): %s", what, len(payload), reason)
+        eid = rejected_episode_id(payload)
+        if eid is not None:
+            error = f"the {role} of rig {rig} rejected its {what}: {reason}"
+            bus.publish(keys.episode_rejected(rig), dump(ErrorReply(error=error[:2000], episode_id=eid)))
     return message
 
 

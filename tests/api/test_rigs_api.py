@@ -44,8 +44,10 @@ def test_rigs_show_their_descriptors_and_v1_nodes_are_undescribed(rigs):
     assert by_name["sim-1"]["described"] == "described" and by_name["sim-1"]["descriptor"]["kind"] == "simulated"
     assert by_name["sim-1"]["descriptor"]["rx_dir"] is None  # configurable: simulates the campaign's antenna
     assert by_name["db-1"]["descriptor"]["rx_dir"]["model"] == "db-gain"
+    assert by_name["sim-1"]["protocol"] == "1.1"
     for v1 in ("old-1", "hidden-1"):
         assert by_name[v1]["described"] == "undescribed" and by_name[v1]["descriptor"] is None and by_name[v1]["live"]
+        assert by_name[v1]["protocol"] == "1.0"
 
 
 def test_a_campaign_that_contradicts_its_rig_is_refused_naming_the_field(rigs):
@@ -130,3 +132,43 @@ def test_the_cli_shows_descriptors_and_warnings(rigs, capsys):
     out = CliRunner().invoke(app, ["campaign", "start", "--api", rigs.url, "--rig", "db-1", "--tests", "1", "--set", "steps=20",
                                    "--set", "n_train=200", "-a", "rapas"])
     assert out.exit_code == 2 and "scenario.antenna_model: rig db-1 is 'db-gain'" in out.output
+
+
+def test_a_campaign_that_needs_a_newer_protocol_than_its_rig_speaks_is_refused_naming_rig_feature_and_version(rigs):
+    """stop_confidence (protocol 1.1) on a rig that serves no descriptor (1.0): a node written
+    from the 1.0 page rejects every EpisodeStart that carries it, so the campaign is refused at
+    creation rather than timing out episode after episode (docs/protocol.md, "Compatibility")."""
+    r = _start(rigs, rigs=["old-1"], stop_confidence=0.9)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert detail.startswith("stop_confidence: rig old-1 serves no descriptor: it speaks protocol 1.0; stop_confidence needs "
+                             "protocol 1.1"), detail
+    assert r.json()["errors"][0]["loc"] == ["body", "stop_confidence"]
+    assert _start(rigs, rigs=["sim-1"], stop_confidence=0.9, algorithms=["rapas"], tests=1).status_code == 201
+
+
+def test_an_untargeted_campaign_with_a_newer_feature_skips_the_rigs_that_do_not_speak_it(rigs):
+    r = _start(rigs, algorithms=["rapas"], tests=6, stop_confidence=0.9)
+    assert r.status_code == 201, r.text
+    done = rigs.wait(r.json()["id"])
+    assert done["status"] == "done", done["error"]
+    assert {t["rig"] for t in _tests(rigs, done["id"])} == {"sim-1"}  # not the 1.0 nodes, not db-1 (its antenna)
+
+
+def test_a_study_no_live_rig_can_run_is_refused_naming_the_rigs(tmp_path):
+    """Only 1.0 rigs live, and a study with stop_confidence: a 422 naming each rig, not a study
+    that waits for ever."""
+    server = LiveAPI(tmp_path / "old.db", rigs=("old-2",), window=2, sensors={"old-2": {"describe": False}}).start()
+    try:
+        server.settle()
+        with server.client() as http:
+            body = {"preset": "paper", "overrides": SMALL, "vary": {"rf_noise_db": [2.0, 3.0]}, "tests": 2, "seed": 1,
+                    "algorithms": ["rapas"]}
+            r = http.post("/studies", json={**body, "stop_confidence": 0.9})
+            assert r.status_code == 422, r.text
+            assert "rig old-2 serves no descriptor: it speaks protocol 1.0; stop_confidence needs protocol 1.1" in r.json()["detail"]
+            r = http.post("/campaigns", json={"preset": "paper", "overrides": SMALL, "tests": 2, "seed": 1, "stop_confidence": 0.9})
+            assert r.status_code == 422 and "rig old-2" in r.json()["detail"], r.text
+            assert http.post("/studies", json=body).status_code == 201
+    finally:
+        server.stop()

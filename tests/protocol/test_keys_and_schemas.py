@@ -24,7 +24,7 @@ RIG = "rig-7"
 CONCRETE = {
     "data": [keys.command(RIG), keys.measurement(RIG), keys.training(RIG)],
     "control": [keys.episode_control(RIG)],
-    "result": [keys.episode_result(RIG), keys.episode_timing(RIG)],
+    "result": [keys.episode_result(RIG), keys.episode_timing(RIG), keys.episode_rejected(RIG)],
     "truth": [keys.episode_truth(RIG), keys.training_truth(RIG)],
     "model": [keys.pod_model()],
     "rig": [keys.rig_info(RIG)],
@@ -33,7 +33,7 @@ CONCRETE = {
 WILDCARDS = {
     "data": [keys.training_any()],
     "control": [keys.episode_control_all()],
-    "result": [keys.episode_result_all(), keys.episode_timing_all()],
+    "result": [keys.episode_result_all(), keys.episode_timing_all(), keys.episode_rejected_all()],
     "truth": [keys.episode_truth_all(), keys.training_truth_any()],
     "rig": [keys.rig_info_any()],
     "alive": [keys.alive_all()],

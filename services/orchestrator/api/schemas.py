@@ -282,6 +282,8 @@ class RigPublic(BaseModel):
     described: str = Field("unknown", description="described (it serves its descriptor) | undescribed (a v1 node: modelled from "
                                                   "each campaign's scenario) | asking | unknown (its sensors are down)")
     descriptor: Optional[dict[str, Any]] = Field(None, description="its RigDescriptor (docs/protocol.md), when described")
+    protocol: Optional[str] = Field(None, description="the protocol version its nodes speak: its descriptor's, 1.0 when undescribed, "
+                                                      "null while not known (docs/protocol.md, \"Compatibility\")")
 
 
 class RigsPublic(BaseModel):

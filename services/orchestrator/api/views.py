@@ -91,7 +91,8 @@ def trace_public(row: dict[str, Any], rf_period_s: float) -> TracePublic:
 def rigs_public(status: dict[str, Any]) -> RigsPublic:
     """The scheduler's view of the mesh (from Zenoh liveliness) as the API shows it."""
     rigs = [RigPublic(name=name, live=st["sensors"] and st["controller"], sensors=st["sensors"], controller=st["controller"],
-                      in_flight=st["in_flight"], described=st.get("described", "unknown"), descriptor=st.get("descriptor"))
+                      in_flight=st["in_flight"], described=st.get("described", "unknown"), descriptor=st.get("descriptor"),
+                      protocol=st.get("protocol"))
             for name, st in sorted(status["rigs"].items())]
     return RigsPublic(rigs=rigs, learners=list(status["learners"]))
 

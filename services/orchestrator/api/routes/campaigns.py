@@ -14,6 +14,7 @@ from ra2vipas.services.orchestrator.api.views import campaign_public
 from ra2vipas.services.orchestrator.rigcheck import TargetingError, resolve_targeting
 from ra2vipas.services.orchestrator.storage import CampaignActiveError, CampaignInStudyError
 from ra2vipas.services.protocol.scenario import ScenarioError, build_scenario
+from ra2vipas.services.protocol.versions import campaign_features
 
 router = APIRouter(prefix="/campaigns", tags=["campaigns"])
 
@@ -31,7 +32,10 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
     Then it is checked against the rigs it targets (``rigs``, ``rig_kind``, or every live rig):
     a scenario parameter (or the mode) that contradicts a targeted rig's descriptor is a 422
     naming the field, the rig and both values, unless ``use_rig_values`` takes the rig's values
-    into the scenario (docs/protocol.md, "Rig descriptor").
+    into the scenario (docs/protocol.md, "Rig descriptor"). A campaign that uses a protocol
+    feature newer than a targeted rig speaks (``stop_confidence`` on a rig that serves no
+    descriptor: protocol 1.0) is a 422 naming the rig, the feature and both versions
+    (docs/protocol.md, "Compatibility").
     """
     try:
         scenario = build_scenario(body.preset, body.overrides)
@@ -41,7 +45,9 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
     live = set(scheduler.live_rigs())
     descriptors = {name: d for name, d in scheduler.descriptors().items() if name in live}
     try:
-        scenario, targeting = resolve_targeting(scenario, body.mode, body.rigs, body.rig_kind, body.use_rig_values, descriptors)
+        scenario, targeting = resolve_targeting(scenario, body.mode, body.rigs, body.rig_kind, body.use_rig_values, descriptors,
+                                                features=campaign_features(body.stop_confidence),
+                                                protocols={name: v for name, v in scheduler.protocols().items() if name in live})
     except TargetingError as err:
         raise RequestValidationError([{"loc": ("body", *where.split(".")), "msg": msg, "type": "value_error"}
                                       for where, msg in err.errors]) from None

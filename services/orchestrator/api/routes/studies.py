@@ -17,9 +17,11 @@ from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, plo
 from ra2vipas.services.orchestrator.api.schemas import MAX_OFFSET, MAX_PAGE, CampaignStatus
 from ra2vipas.services.orchestrator.api.study_schemas import StudyCreate, StudyPage, StudyPublic, StudyResults
 from ra2vipas.services.orchestrator.api.views import study_public
+from ra2vipas.services.orchestrator.rigcheck import TargetingError, resolve_targeting
 from ra2vipas.services.orchestrator.storage import ACTIVE, CampaignActiveError, Store
 from ra2vipas.services.orchestrator.study import StudyError, check_size, expand, metrics_of, study_results, write_study_csv
 from ra2vipas.services.orchestrator.study_store import StudyStore, point_results
+from ra2vipas.services.protocol.versions import campaign_features
 
 router = APIRouter(prefix="/studies", tags=["studies"])
 
@@ -53,7 +55,8 @@ def create_study(body: StudyCreate, response: Response, store: StoreDep, schedul
 
     Every point's scenario is resolved first: an unknown preset or parameter, a value out of its
     range, a parameter both overridden and varied, or a grid too large is a 422 naming the
-    parameter, the value and what it accepts, and nothing is stored.
+    parameter, the value and what it accepts, and nothing is stored. A study that uses a
+    protocol feature (``stop_confidence``) no live rig speaks is a 422 naming the rigs.
     """
     algorithms = list(dict.fromkeys(body.algorithms))
     try:
@@ -61,6 +64,13 @@ def create_study(body: StudyCreate, response: Response, store: StoreDep, schedul
         check_size(len(grid), body.tests, len(algorithms))
     except StudyError as err:
         raise _invalid(err) from None
+    live = set(scheduler.live_rigs())
+    try:  # a study runs on the live rigs that speak what it needs (docs/protocol.md, "Compatibility")
+        resolve_targeting(grid[0][1], body.mode, None, None, False, dict.fromkeys(live), features=campaign_features(body.stop_confidence),
+                          protocols={name: v for name, v in scheduler.protocols().items() if name in live})
+    except TargetingError as err:
+        raise RequestValidationError([{"loc": ("body", *where.split(".")), "msg": msg, "type": "value_error"}
+                                      for where, msg in err.errors]) from None
     base = grid[0][1].model_dump(mode="json")
     overrides = {name: base[name] for name in body.overrides}  # stored with the scenario's types (3 -> 3.0)
     points = [({**overrides, **values}, scenario.model_dump(mode="json")) for values, scenario in grid]

@@ -1,0 +1,119 @@
+"""Protocol versions, and what a sender may put on the wire for a receiver of a given version.
+
+The keys stay ``ra2vipas/v1/...``; within v1 the messages grow by *minor* versions, each
+adding only optional fields (docs/protocol.md, "Compatibility"):
+
+* ``1.0``: the messages as first published, frozen in ``docs/schemas/v1/``.
+* ``1.1``: ``EpisodeStart.stop_confidence``; ``EpisodeResult.confidences``, ``decided_step``
+  and ``model_check``; ``PODModel.rf_noise_correlation``; the ``RigDescriptor`` (queryable
+  ``rig/{rig}/info``) and its ``protocol``; ``PODRequest.protocol``; ``ErrorReply.episode_id``
+  and the key ``result/{rig}/rejected``.
+
+Every field added after 1.0 carries the version that added it in its schema (``"since"``).
+A sender omits such a field while it holds its default (``messages.dump``), so a message that
+uses no newer feature is byte for byte what a 1.0 sender sent; and it sends a newer feature
+only to a receiver that speaks its version. A sensors node says which version it speaks in its
+descriptor (``RigDescriptor.protocol``; a node that serves no descriptor speaks 1.0); a client
+of the learner says it in its ``PODRequest.protocol``. The orchestrator refuses a campaign
+whose features a targeted rig does not speak (``missing_features``).
+
+Adding a field to a message a node receives (the next version, say 1.2): give it a default and
+``json_schema_extra={"since": "1.2"}``, add ``"1.2"`` to ``VERSIONS`` and make it
+``PROTOCOL_VERSION``, list it in ``campaign_features`` when a campaign setting turns it on,
+freeze the 1.1 schemas beside ``docs/schemas/v1`` and say what 1.2 adds on the protocol page.
+``tests/protocol/test_compatibility.py`` fails on a field added without its ``since``.
+
+Pure Python and pydantic, like the rest of the protocol package.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+from typing import Any, get_args
+
+from pydantic import BaseModel
+
+V1_0 = "1.0"
+PROTOCOL_VERSION = "1.1"
+"""The newest version: what this code speaks."""
+VERSIONS: tuple[str, ...] = (V1_0, PROTOCOL_VERSION)
+VERSION_PATTERN = r"^1\.[0-9]{1,3}$"
+
+
+def version_key(version: str) -> tuple[int, int]:
+    """``"1.10"`` -> ``(1, 10)``: versions compare as numbers, not as text."""
+    major, minor = version.split(".")
+    return int(major), int(minor)
+
+
+def newer(version: str, than: str) -> bool:
+    return version_key(version) > version_key(than)
+
+
+def since(model: type[BaseModel], name: str) -> str:
+    """The version that added field ``name`` of ``model`` (``1.0`` for the original fields)."""
+    extra = model.model_fields[name].json_schema_extra
+    return extra.get("since", V1_0) if isinstance(extra, dict) else V1_0
+
+
+def _models_in(annotation: Any) -> list[type[BaseModel]]:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [m for arg in get_args(annotation) for m in _models_in(arg)]
+
+
+@cache
+def has_newer_fields(model: type[BaseModel]) -> bool:
+    """Whether ``model`` or a message nested in it has a field added after 1.0."""
+    return any(since(model, name) != V1_0 or any(has_newer_fields(m) for m in _models_in(info.annotation))
+               for name, info in model.model_fields.items())
+
+
+def wire_exclude(message: BaseModel, version: str | None = None) -> dict[str, Any]:
+    """What ``dump`` leaves out of ``message`` (pydantic's ``exclude`` form, nested): every field
+    newer than 1.0 that holds its default, and, for a receiver that speaks ``version``, every
+    field newer than that whatever it holds (the receiver reads the field's default: the caller
+    accepts that loss, e.g. an AR(1) fading model read as white noise by a 1.0 controller)."""
+    out: dict[str, Any] = {}
+    cls = type(message)
+    if not has_newer_fields(cls):
+        return out
+    for name, info in cls.model_fields.items():
+        value = getattr(message, name)
+        added = since(cls, name)
+        if added != V1_0:
+            default = info.get_default(call_default_factory=True)
+            if (version is not None and newer(added, version)) or value == default:
+                out[name] = True
+                continue
+        if isinstance(value, BaseModel):
+            inner = wire_exclude(value, version)
+            if inner:
+                out[name] = inner
+        elif isinstance(value, (tuple, list)) and value and isinstance(value[0], BaseModel):
+            inner_items = {i: e for i, item in enumerate(value) if (e := wire_exclude(item, version))}
+            if inner_items:
+                out[name] = inner_items
+    return out
+
+
+# -- what a campaign needs ------------------------------------------------------------------
+
+def campaign_features(stop_confidence: float = 0.0) -> list[tuple[str, str]]:
+    """The newer-than-1.0 features a campaign uses, as ``(feature, version)``: what a rig must
+    speak to run it (its sensors and controller both receive its ``EpisodeStart``)."""
+    out = []
+    if stop_confidence:
+        out.append(("stop_confidence", "1.1"))
+    return out
+
+
+def missing_features(speaks: str, features: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """The features of ``features`` that a node speaking ``speaks`` does not know."""
+    return [(feature, version) for feature, version in features if newer(version, speaks)]
+
+
+def describe_missing(rig: str, speaks: str, feature: str, version: str) -> str:
+    how = "serves no descriptor: it speaks protocol 1.0" if speaks == V1_0 else f"speaks protocol {speaks}"
+    return (f"rig {rig} {how}; {feature} needs protocol {version} (a node that does not know the field rejects every "
+            f"EpisodeStart that carries it)")
