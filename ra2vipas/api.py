@@ -11,12 +11,11 @@ import httpx
 
 
 def _check_run(algorithms: Iterable[str] | None, tests: int, seed: int, stop_confidence: float, workers: int | None) -> list[str]:
-    from ra2vipas.services.protocol.messages import ALGORITHMS
+    from ra2vipas.services.controller import registry
 
-    names = list(dict.fromkeys(algorithms)) if algorithms is not None else list(ALGORITHMS)
-    unknown = [a for a in names if a not in ALGORITHMS]
-    if unknown or not names:
-        raise ValueError(f"unknown algorithm {unknown[0]!r}; choose from {', '.join(ALGORITHMS)}" if unknown else "no algorithm given")
+    if isinstance(algorithms, str):
+        algorithms = [algorithms]
+    names = registry.check(list(algorithms)) if algorithms is not None else list(registry.BUILTINS)  # UnknownPolicy is a ValueError
     from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 
     if isinstance(tests, bool) or not isinstance(tests, int) or not 1 <= tests <= MAX_TESTS:

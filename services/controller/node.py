@@ -20,6 +20,9 @@ import logging
 import threading
 from dataclasses import dataclass, field
 
+from ra2vipas.services.controller import registry
+from ra2vipas.services.controller.builtins import BuiltinPolicy
+from ra2vipas.services.controller.contract import Policy, episode_context
 from ra2vipas.services.controller.policy import (
     Controller, ControllerSettings, SensorConfig, sensor_config_from_descriptor, sensor_config_from_scenario,
 )
@@ -46,12 +49,14 @@ _ASKING = object()
 @dataclass
 class _Episode:
     start: EpisodeStart
-    controller: Controller | None = None
+    policy: Policy | None = None
+    sensors: SensorConfig | None = None
     next_step: int = 0
     estimates: list[float] = field(default_factory=list)
     pans: list[float] = field(default_factory=list)
     rewards: list[float] = field(default_factory=list)
     confidences: list[float] = field(default_factory=list)
+    says_confidence: bool = True  # False once the policy gave a step no confidence
 
 
 def warm_up() -> None:
@@ -172,8 +177,14 @@ class ControllerNode:
         ep = self.episodes.get(episode_id)
         if ep is None:
             return
-        ep.controller = Controller(ep.start.algorithm, self._sensor_config(ep.start), model, self.settings)
-        self.bus.publish(self._command_key, dump(Command(episode_id=episode_id, step=0, pan_rad=ep.controller.first_pan())))
+        ep.sensors = self._sensor_config(ep.start)
+        context = episode_context(ep.sensors, model, ep.start.scenario, ep.start.seed, ep.start.test_index)
+        try:
+            ep.policy = registry.create(ep.start.algorithm, context, self.settings)
+        except registry.UnknownPolicy as err:
+            self._fail(episode_id, f"controller of rig {self.rig}: {err}")
+            return
+        self.bus.publish(self._command_key, dump(Command(episode_id=episode_id, step=0, pan_rad=float(ep.policy.first_pan()))))
 
     def _fail(self, episode_id: str, error: str) -> None:
         if self.episodes.pop(episode_id, None) is None:
@@ -187,29 +198,34 @@ class ControllerNode:
         if m is None:
             return
         ep = self.episodes.get(m.episode_id)
-        if ep is None or ep.controller is None or m.step != ep.next_step:
+        if ep is None or ep.policy is None or m.step != ep.next_step:
             return  # not ours, not started, or a duplicate
         sc = ep.start.scenario
-        if len(m.frames) != ep.controller.sensors.frames_per_rf:
+        if len(m.frames) != ep.sensors.frames_per_rf:
             log.warning("episode %s step %d: %d frames, expected %d; dropped", m.episode_id, m.step, len(m.frames),
-                        ep.controller.sensors.frames_per_rf)
+                        ep.sensors.frames_per_rf)
             return
-        decision = ep.controller.step(m)
-        ep.estimates.append(decision.estimate_rad)
+        decision = ep.policy.step(m)
+        confidence = getattr(decision, "confidence", None)
+        reward = getattr(decision, "reward", None)
+        ep.estimates.append(float(decision.estimate_rad))
         ep.pans.append(m.pan_rad)
-        ep.rewards.append(decision.reward)
-        ep.confidences.append(decision.confidence)
+        ep.rewards.append(0.0 if reward is None else float(reward))
+        if confidence is None:
+            ep.says_confidence = False
+        ep.confidences.append(0.0 if confidence is None else float(confidence))
         ep.next_step = m.step + 1
         stop = ep.start.stop_confidence
-        decided = stop > 0.0 and decision.confidence >= stop
+        decided = stop > 0.0 and confidence is not None and confidence >= stop
         if ep.next_step < sc.steps and not decided:
-            command = dump(Command(episode_id=m.episode_id, step=ep.next_step, pan_rad=decision.next_pan_rad))
+            command = dump(Command(episode_id=m.episode_id, step=ep.next_step, pan_rad=float(decision.next_pan_rad)))
             self.bus.publish(self._command_key, command, express=ep.start.mode is Mode.realtime)
             return
         self.episodes.pop(m.episode_id, None)
         self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(
             episode_id=m.episode_id, rig=self.rig, estimates_rad=tuple(ep.estimates), pans_rad=tuple(ep.pans), rewards=tuple(ep.rewards),
-            confidences=tuple(ep.confidences), decided_step=m.step if decided else None, model_check=model_check(ep.controller))))
+            confidences=tuple(ep.confidences) if ep.says_confidence else (), decided_step=m.step if decided else None,
+            model_check=model_check(ep.policy.controller) if isinstance(ep.policy, BuiltinPolicy) else None)))
 
     def close(self) -> None:
         undeclare_all(self._handles)

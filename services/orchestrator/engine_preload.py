@@ -16,7 +16,7 @@ from ra2vipas.services.orchestrator import engine  # noqa: F401  (what the worke
 
 
 def warm_up() -> None:
-    from ra2vipas.services.controller.policy import ALGORITHMS
+    from ra2vipas.services.controller.registry import BUILTINS as ALGORITHMS
     from ra2vipas.services.orchestrator.simulate import run_test, train_pod
     from ra2vipas.services.protocol.scenario import build_scenario
 

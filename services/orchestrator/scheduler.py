@@ -107,6 +107,7 @@ class _Run:
     model_attempts: int = 0
     model_retry_at: float | None = None
     stop_confidence: float = 0.0
+    algorithms: tuple = ()  # the policies it runs (a policy outside the built-ins needs protocol 1.2)
     study: str | None = None  # the study this campaign is a point of, if any
     point: int = 0  # its index in the study's grid
     tests: int = 0
@@ -299,7 +300,7 @@ class Scheduler:
             return
         scenario = Scenario.model_validate(c["scenario"])
         run = _Run(id=cid, scenario=scenario, seed=c["seed"], mode=Mode(c["mode"]), stop_confidence=c.get("stop_confidence") or 0.0,
-                   tests=c["tests"], targeting=c.get("targeting"))
+                   tests=c["tests"], targeting=c.get("targeting"), algorithms=tuple(c["algorithms"]))
         membership = self._studies.membership(cid)
         if membership is not None:
             run.study, run.point = membership
@@ -446,7 +447,7 @@ class Scheduler:
                 ok = False
         if ok:
             version = speaks(rig.descriptor)
-            missing = missing_features(version, campaign_features(run.stop_confidence))
+            missing = missing_features(version, campaign_features(run.stop_confidence, run.algorithms))
             if missing:
                 log.warning("campaign %s does not run on rig %s: %s", run.id, rig_name,
                             "; ".join(describe_missing(rig_name, version, f, v) for f, v in missing))

@@ -13,7 +13,9 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from ra2vipas.services.controller.policy import ALGORITHMS, Controller, ControllerSettings, sensor_config_from_scenario
+from ra2vipas.services.controller import registry
+from ra2vipas.services.controller.contract import episode_context
+from ra2vipas.services.controller.policy import ControllerSettings, sensor_config_from_scenario
 from ra2vipas.services.learner.pod import LearnedPOD, LearnerSettings, fit_pod, predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, summarize_algorithm
 from ra2vipas.services.protocol.pod import PODModel
@@ -56,21 +58,27 @@ def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = 
 
 def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod_model: PODModel,
              settings: ControllerSettings | None = None, stop_confidence: float = 0.0) -> TestOutcome:
-    """One episode: the platform senses, the controller decides, n_test times, or until the
-    first step whose confidence reaches ``stop_confidence`` (> 0): that answer is final."""
+    """One episode: the platform senses, the policy ``algorithm`` (a registered name or
+    ``module:Class``, ``services/controller/registry.py``) decides, n_test times, or until the
+    first step whose confidence reaches ``stop_confidence`` (> 0): that answer is final. The
+    policy sees the measurements only (``StepMeasurement``); truth scores it afterwards."""
     platform = SimulatedPlatform(scenario, seed, test_index)
-    controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod_model, settings)
+    policy = new_policy(algorithm, scenario, seed, test_index, pod_model, settings)
     outcome = TestOutcome(algorithm=algorithm, test_index=test_index)
-    pan = controller.first_pan()
+    pan = policy.first_pan()
+    says_confidence = True
     for t in range(scenario.steps):
         measurement = platform.sense(t, pan)
-        decision = controller.step(measurement)
+        decision = policy.step(measurement)
         outcome.pans.append(pan)
-        outcome.estimates.append(decision.estimate_rad)
-        outcome.rewards.append(decision.reward)
-        outcome.confidences.append(decision.confidence)
-        pan = decision.next_pan_rad
-        if stop_confidence > 0.0 and decision.confidence >= stop_confidence:
+        outcome.estimates.append(float(decision.estimate_rad))
+        reward = getattr(decision, "reward", None)
+        outcome.rewards.append(0.0 if reward is None else float(reward))
+        confidence = getattr(decision, "confidence", None)
+        says_confidence = says_confidence and confidence is not None
+        outcome.confidences.append(0.0 if confidence is None else float(confidence))
+        pan = float(decision.next_pan_rad)
+        if stop_confidence > 0.0 and confidence is not None and confidence >= stop_confidence:
             outcome.decided_step = t
             break
     truth = platform.truth
@@ -80,8 +88,16 @@ def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod
     outcome.hits = [bool(h) for h in hits]
     outcome.in_fov = [bool(f) for f in in_fov]
     outcome.chosen = [int(i) for i in chosen]
-    outcome.confidences = held(outcome.confidences, scenario.steps)
+    outcome.confidences = held(outcome.confidences, scenario.steps) if says_confidence else []
     return outcome
+
+
+def new_policy(algorithm: str, scenario: Scenario, seed: int, test_index: int, pod_model: PODModel,
+               settings: ControllerSettings | None = None):
+    """The policy object of one simulated episode, given what the contract allows: the rig as
+    the scenario describes it, the POD model, the public scenario, the seed and test index."""
+    context = episode_context(sensor_config_from_scenario(scenario), pod_model, scenario, seed, test_index)
+    return registry.create(algorithm, context, settings)
 
 
 def held(values: list[float], steps: int) -> list[float]:
@@ -114,7 +130,18 @@ def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: Train
     }
     if stop_confidence > 0.0:
         out["stop_confidence"] = stop_confidence
+    add_provenance(out)
     return out
+
+
+def add_provenance(results: dict[str, Any]) -> None:
+    """Say in ``results["policies"]`` which package and version each policy outside the built-ins
+    came from (absent when every policy is a built-in, so their results are unchanged)."""
+    found = registry.provenance(results["algorithms"])
+    if found:
+        results["policies"] = found
+    else:
+        results.pop("policies", None)
 
 
 def overrides_of(preset: str, scenario: dict[str, Any]) -> dict[str, Any]:
@@ -128,7 +155,7 @@ def overrides_of(preset: str, scenario: dict[str, Any]) -> dict[str, Any]:
     return {name: value for name, value in scenario.items() if base.get(name) != value}
 
 
-def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = ALGORITHMS,
+def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = registry.BUILTINS,
                  settings: ControllerSettings | None = None,
                  progress: Callable[[int, int], None] | None = None, stop_confidence: float = 0.0,
                  workers: int = 1) -> dict[str, Any]:

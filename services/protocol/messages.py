@@ -23,9 +23,14 @@ from ra2vipas.services.protocol.versions import V1_0, VERSION_PATTERN, wire_excl
 
 MAX_STEPS = 10000
 
-AlgorithmName = Literal["ra2vipas", "rapas", "ravipas", "sweep"]
-ALGORITHMS: tuple[str, ...] = AlgorithmName.__args__
-"""The controller algorithms an episode can run (paper Sec. IV-B plus the non-active sweep)."""
+ALGORITHMS: tuple[str, ...] = ("ra2vipas", "rapas", "ravipas", "sweep")
+"""The built-in policies (paper Sec. IV-B plus the non-active sweep): every name a node of
+protocol 1.0 or 1.1 knows (there ``algorithm`` was this closed list)."""
+POLICY_NAME_PATTERN = r"^[a-z][a-z0-9_.-]{0,63}$"
+"""A pointing policy's name (protocol 1.2: any registered policy, ``ra2vipas.policies``)."""
+AlgorithmName = Annotated[str, Field(pattern=POLICY_NAME_PATTERN, min_length=1, max_length=64,
+                                     description="the pointing policy: one of the built-ins ra2vipas, rapas, ravipas, sweep, "
+                                                 "or (protocol 1.2) any policy name a controller serves")]
 _ID = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:-]+$")
 SINCE_1_1 = {"since": "1.1"}
 """Schema mark of a field added in protocol 1.1 (``versions.since``): senders omit it at its default."""

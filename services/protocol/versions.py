@@ -8,6 +8,9 @@ adding only optional fields (docs/protocol.md, "Compatibility"):
   and ``model_check``; ``PODModel.rf_noise_correlation``; the ``RigDescriptor`` (queryable
   ``rig/{rig}/info``) and its ``protocol``; ``PODRequest.protocol``; ``ErrorReply.episode_id``
   and the key ``result/{rig}/rejected``.
+* ``1.2``: ``EpisodeStart.algorithm`` (and every ``algorithm`` field) may name any pointing
+  policy (``messages.POLICY_NAME_PATTERN``), not only the four built-ins: a node of 1.0 or 1.1
+  validates it against the closed list and rejects another name.
 
 Every field added after 1.0 carries the version that added it in its schema (``"since"``).
 A sender omits such a field while it holds its default (``messages.dump``), so a message that
@@ -34,9 +37,12 @@ from typing import Any, get_args
 from pydantic import BaseModel
 
 V1_0 = "1.0"
-PROTOCOL_VERSION = "1.1"
+V1_1 = "1.1"
+PROTOCOL_VERSION = "1.2"
 """The newest version: what this code speaks."""
-VERSIONS: tuple[str, ...] = (V1_0, PROTOCOL_VERSION)
+VERSIONS: tuple[str, ...] = (V1_0, V1_1, PROTOCOL_VERSION)
+BUILTIN_POLICIES: tuple[str, ...] = ("ra2vipas", "rapas", "ravipas", "sweep")
+"""The policy names every version knows (1.0 and 1.1: the only ones)."""
 VERSION_PATTERN = r"^1\.[0-9]{1,3}$"
 
 
@@ -99,12 +105,13 @@ def wire_exclude(message: BaseModel, version: str | None = None) -> dict[str, An
 
 # -- what a campaign needs ------------------------------------------------------------------
 
-def campaign_features(stop_confidence: float = 0.0) -> list[tuple[str, str]]:
+def campaign_features(stop_confidence: float = 0.0, algorithms: tuple[str, ...] | list[str] = ()) -> list[tuple[str, str]]:
     """The newer-than-1.0 features a campaign uses, as ``(feature, version)``: what a rig must
     speak to run it (its sensors and controller both receive its ``EpisodeStart``)."""
     out = []
     if stop_confidence:
-        out.append(("stop_confidence", "1.1"))
+        out.append(("stop_confidence", V1_1))
+    out += [(f"policy {name!r}", "1.2") for name in algorithms if name not in BUILTIN_POLICIES]
     return out
 
 

@@ -93,7 +93,8 @@ def test_list_rejects_bad_query_parameters(http, params, field):
 BAD_BODIES = [
     ({"tests": 0}, "tests: Input should be greater than or equal to 1"),
     ({"tests": 10001}, "tests: Input should be less than or equal to 10000"),
-    ({"algorithms": ["ra2vipas", "magic"]}, "algorithms.1: Input should be 'ra2vipas', 'rapas', 'ravipas' or 'sweep'"),
+    ({"algorithms": ["ra2vipas", "magic"]}, "algorithms: unknown policy 'magic'; available: ra2vipas, rapas, ravipas, sweep"),
+    ({"algorithms": ["Magic!"]}, "algorithms.0: String should match pattern"),
     ({"algorithms": []}, "algorithms: List should have at least 1 item"),
     ({"mode": "slow"}, "mode: Input should be 'fast' or 'realtime'"),
     ({"seed": -1}, "seed: Input should be greater than or equal to 0"),

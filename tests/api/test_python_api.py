@@ -37,7 +37,7 @@ def test_simulate_with_two_workers_and_early_decisions():
     ({"preset": "papr"}, "unknown preset 'papr'"),
     ({"overrides": {"n_target": 30}}, "n_target"),
     ({"overrides": {"n_targets": 0}}, "n_targets"),
-    ({"algorithms": ["ra2vipas", "nope"]}, "unknown algorithm 'nope'"),
+    ({"algorithms": ["ra2vipas", "nope"]}, "unknown policy 'nope'"),
     ({"tests": 0}, "tests: expected an integer from 1 to 10000"),
     ({"tests": "10"}, "tests: expected an integer from 1 to 10000"),
     ({"tests": 10001}, "tests: expected an integer from 1 to 10000"),  # the CLI's cap

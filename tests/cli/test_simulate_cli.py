@@ -67,7 +67,7 @@ def test_simulate_writes_the_dr_plot(tmp_path):
         (["--set", "nope=1"], "unknown scenario parameter 'nope'"),
         (["--set", "steps"], "--set expects NAME=VALUE"),
         (["--preset", "moon"], "unknown preset 'moon'"),
-        (["--algorithms", "ra2vipas,magic"], "unknown algorithm 'magic'"),
+        (["--algorithms", "ra2vipas,magic"], "unknown policy 'magic'; installed: ra2vipas, rapas, ravipas, sweep"),
         (["--plot", "dr.jpg"], "--plot expects a .png or .svg"),
     ],
 )
@@ -118,7 +118,7 @@ def test_bench_calibrate_refits_only_the_maps_asked_for_and_names_a_bad_algorith
     proc = ra2vipas("bench", "calibrate", "-a", "ravipas", "--tests", "2", "--workers", "1", "--json")
     assert json.loads(proc.stdout.strip().splitlines()[-1])["algorithms"]["ravipas"] == fit
     proc = ra2vipas("bench", "calibrate", "-a", "ravipa")
-    assert proc.returncode == 2 and "unknown algorithm 'ravipa'" in one_error_line(proc)
+    assert proc.returncode == 2 and "unknown policy 'ravipa'" in one_error_line(proc)
 
 
 def test_bench_simulate_reports_both_speeds_the_speedup_and_peak_memory_as_json():

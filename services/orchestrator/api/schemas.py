@@ -17,9 +17,20 @@ MAX_OVERRIDES = 64
 MAX_PAGE = 200
 MAX_OFFSET = 1_000_000_000
 
-ALGORITHM_NAMES = ALGORITHMS
+ALGORITHM_NAMES = ALGORITHMS  # the built-in policies, a campaign's default
+MAX_POLICIES = 16
 CampaignStatus = Literal["queued", "training", "running", "done", "failed", "cancelled"]
 EpisodeStatus = Literal["pending", "running", "done", "cancelled"]
+
+class PolicyPublic(BaseModel):
+    """A pointing policy a campaign can name (GET /policies)."""
+
+    name: str
+    package: str = Field(description="the distribution that registered it")
+    version: str
+    builtin: bool
+    summary: str = ""
+
 
 ParameterName = Annotated[str, StringConstraints(min_length=1, max_length=64)]
 OverrideValue = Union[StrictBool, StrictInt, StrictFloat, Annotated[str, StringConstraints(max_length=64)]]
@@ -51,7 +62,9 @@ class CampaignCreate(BaseModel):
     overrides: dict[ParameterName, OverrideValue] = Field(
         default_factory=dict, max_length=MAX_OVERRIDES,
         description="scenario parameters to override, NAME: value (GET /presets/{name} lists them with their ranges)")
-    algorithms: list[AlgorithmName] = Field(default_factory=lambda: list(ALGORITHM_NAMES), min_length=1, max_length=4)
+    algorithms: list[AlgorithmName] = Field(default_factory=lambda: list(ALGORITHM_NAMES), min_length=1, max_length=MAX_POLICIES,
+                                            description="pointing policies (GET /policies): the built-ins ra2vipas, rapas, ravipas, "
+                                                        "sweep, or any installed policy")
     tests: int = Field(50, ge=1, le=MAX_TESTS, strict=True, description="Monte Carlo tests per algorithm")
     seed: int = Field(1, ge=0, le=2**63 - 1, strict=True, description="campaign seed; fixes every random draw")
     mode: Literal["fast", "realtime"] = Field("fast", description="fast: lockstep as fast as possible; realtime: one sample every T_RF")
@@ -191,6 +204,8 @@ class ResultsPublic(BaseModel):
                                                             "chance, or Rx(dir)'s samples contradicting the assumed antenna model")
     assumptions: Optional[dict[str, Any]] = Field(None, description="present when some episodes ran on undescribed rigs: they were "
                                                                     "modelled and scored under the scenario's assumptions")
+    policies: Optional[dict[str, dict[str, str]]] = Field(None, description="policies outside the built-ins: the package and version "
+                                                                            "each came from ({name: {package, version}})")
 
 
 class OutcomePublic(BaseModel):

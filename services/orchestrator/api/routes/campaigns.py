@@ -9,6 +9,7 @@ from fastapi.exceptions import RequestValidationError
 
 from ra2vipas.services.orchestrator.api.deps import Authorized, CampaignDep, SchedulerDep, StoreDep
 from ra2vipas.services.orchestrator.api.errors import responses
+from ra2vipas.services.orchestrator.api.routes.catalog import check_policies
 from ra2vipas.services.orchestrator.api.schemas import MAX_OFFSET, MAX_PAGE, CampaignCreate, CampaignPage, CampaignPublic, CampaignStatus
 from ra2vipas.services.orchestrator.api.views import campaign_public
 from ra2vipas.services.orchestrator.rigcheck import TargetingError, resolve_targeting
@@ -46,12 +47,13 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
     descriptors = {name: d for name, d in scheduler.descriptors().items() if name in live}
     try:
         scenario, targeting = resolve_targeting(scenario, body.mode, body.rigs, body.rig_kind, body.use_rig_values, descriptors,
-                                                features=campaign_features(body.stop_confidence),
+                                                features=campaign_features(body.stop_confidence, body.algorithms),
                                                 protocols={name: v for name, v in scheduler.protocols().items() if name in live})
     except TargetingError as err:
         raise RequestValidationError([{"loc": ("body", *where.split(".")), "msg": msg, "type": "value_error"}
                                       for where, msg in err.errors]) from None
     algorithms = list(dict.fromkeys(body.algorithms))
+    check_policies(algorithms)
     resolved = scenario.model_dump(mode="json")
     taken = list((targeting or {}).get("rig_values", {}))  # the rigs' values count as overrides of the preset
     overrides = {name: resolved[name] for name in [*body.overrides, *taken]}  # stored with the scenario's types (3 -> 3.0)

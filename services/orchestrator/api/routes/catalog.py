@@ -1,12 +1,14 @@
-"""/presets and /rigs: what a campaign can be made of."""
+"""/presets, /policies and /rigs: what a campaign can be made of."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, status
+from fastapi.exceptions import RequestValidationError
 
 from ra2vipas.services.orchestrator.api.deps import SchedulerDep
 from ra2vipas.services.orchestrator.api.errors import responses
-from ra2vipas.services.orchestrator.api.schemas import PresetPublic, PresetSummary, RigsPublic
+from ra2vipas.services.controller import registry
+from ra2vipas.services.orchestrator.api.schemas import PolicyPublic, PresetPublic, PresetSummary, RigsPublic
 from ra2vipas.services.orchestrator.api.views import rigs_public
 from ra2vipas.services.orchestrator.presets import preset_object, preset_summaries
 from ra2vipas.services.protocol.scenario import PRESETS
@@ -27,6 +29,30 @@ def show_preset(name: str) -> PresetPublic:
     if name not in PRESETS:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"no preset {name!r}; presets: {', '.join(PRESETS)}")
     return PresetPublic.model_validate(preset_object(name))
+
+
+@router.get("/policies", response_model=list[PolicyPublic])
+def list_policies() -> list[PolicyPublic]:
+    """The pointing policies a campaign can name: the built-ins and every installed policy
+    (entry points ``ra2vipas.policies``), with the package and version each comes from."""
+    out = []
+    for name in registry.names():
+        found = registry.info(name)
+        try:
+            summary = registry.load(name).summary
+        except registry.UnknownPolicy as err:
+            summary = f"does not load: {err}"
+        out.append(PolicyPublic(name=name, package=found.package, version=found.version, builtin=found.builtin, summary=summary))
+    return out
+
+
+def check_policies(names: list[str]) -> None:
+    """422 naming a policy that is not installed, with the ones that are."""
+    known = registry.names()
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise RequestValidationError([{"loc": ("body", "algorithms"), "type": "value_error",
+                                       "msg": f"unknown policy {unknown[0]!r}; available: {', '.join(known)}"}])
 
 
 @router.get("/rigs", response_model=RigsPublic)

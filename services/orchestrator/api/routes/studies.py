@@ -12,6 +12,7 @@ from fastapi.exceptions import RequestValidationError
 from ra2vipas.services.orchestrator import plots
 from ra2vipas.services.orchestrator.api.deps import Authorized, SchedulerDep, StoreDep
 from ra2vipas.services.orchestrator.api.errors import responses
+from ra2vipas.services.orchestrator.api.routes.catalog import check_policies
 from ra2vipas.services.orchestrator.api.negotiate import ImageFormat, ResultsFormat, image_format, results_format
 from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, plot_responses, serve_figure
 from ra2vipas.services.orchestrator.api.schemas import MAX_OFFSET, MAX_PAGE, CampaignStatus
@@ -59,6 +60,7 @@ def create_study(body: StudyCreate, response: Response, store: StoreDep, schedul
     protocol feature (``stop_confidence``) no live rig speaks is a 422 naming the rigs.
     """
     algorithms = list(dict.fromkeys(body.algorithms))
+    check_policies(algorithms)
     try:
         grid = expand(body.preset, body.overrides, body.vary)
         check_size(len(grid), body.tests, len(algorithms))
@@ -66,7 +68,7 @@ def create_study(body: StudyCreate, response: Response, store: StoreDep, schedul
         raise _invalid(err) from None
     live = set(scheduler.live_rigs())
     try:  # a study runs on the live rigs that speak what it needs (docs/protocol.md, "Compatibility")
-        resolve_targeting(grid[0][1], body.mode, None, None, False, dict.fromkeys(live), features=campaign_features(body.stop_confidence),
+        resolve_targeting(grid[0][1], body.mode, None, None, False, dict.fromkeys(live), features=campaign_features(body.stop_confidence, body.algorithms),
                           protocols={name: v for name, v in scheduler.protocols().items() if name in live})
     except TargetingError as err:
         raise RequestValidationError([{"loc": ("body", *where.split(".")), "msg": msg, "type": "value_error"}
