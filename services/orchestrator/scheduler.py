@@ -374,7 +374,8 @@ class Scheduler:
         run.model_failures += 1
         elapsed = now - run.model_failing_since
         if elapsed < self._model_patience:
-            wait = min(self._model_retry[0] * 2.0 ** (run.model_failures - 1), self._model_retry[1])
+            wait = min(self._model_retry[0] * 2.0 ** (run.model_failures - 1), self._model_retry[1],
+                       self._model_patience - elapsed)  # the last request when the patience runs out
             run.model_retry_at = now + wait
             seen = f" although the sensors of {', '.join(live)} are live" if error == NO_SENSORS else ""
             log.warning("campaign %s: the learner could not give the POD model (%s)%s; asking again in %.1f s",

@@ -175,6 +175,7 @@ def test_peers_that_cannot_reach_each_other_say_so_and_the_campaign_names_the_ri
     took = time.monotonic() - started
     assert c["status"] == "failed", c
     error = c["error"]
+    print(f"failed after {took:.1f} s: {error}")
     assert error != "POD model unavailable: no training stream: no sensors answered"
     assert error.startswith("POD model unavailable: the learner's training query reached no sensors"), error
     assert f"sees the sensors of rig {RIG} live" in error and "peer mode" in error, error
