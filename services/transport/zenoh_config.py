@@ -4,10 +4,11 @@
 Precedence: CLI flag > environment variable > default. Environment variables:
 
 ``RA2VIPAS_ZENOH_MODE``
-    peer|client|router. Default: ``client`` when ``connect`` endpoints are given and no
-    ``listen`` endpoints (``--connect tcp/ROUTER:7447`` alone means "join that router"),
-    else ``peer``. A router does not relay between peers, so peers on different hosts talk
-    only if each reaches the others' ``listen`` endpoints directly (``peer_reach_warning``).
+    peer|client|router. Default: the config file's mode if it sets one, else ``client`` when
+    ``connect`` endpoints are given (here or in the config file) and no ``listen`` endpoints
+    (``--connect tcp/ROUTER:7447`` alone means "join that router"), else ``peer``. A router
+    relays nothing between peers, so peers on different hosts talk only if each reaches the
+    others' ``listen`` endpoints directly (``peer_reach_warning``).
 ``RA2VIPAS_ZENOH_CONNECT``, ``RA2VIPAS_ZENOH_LISTEN``
     comma-separated endpoints such as ``tcp/10.0.0.1:7447`` or ``tls/router:7447``.
     Without listen endpoints (here or in the config file) a peer listens on
@@ -88,6 +89,25 @@ def default_mode(connect: tuple[str, ...] | list[str], listen: tuple[str, ...] |
     not where to listen (it joins that router: a router relays between clients, never between
     peers), else ``peer`` (alone, or accepting connections itself)."""
     return "client" if connect and not listen else "peer"
+
+
+def _file_choices(path: str | None) -> tuple[str | None, tuple[str, ...], tuple[str, ...]]:
+    """The mode, connect and listen endpoints a Zenoh configuration file sets (None and empty
+    where it sets none, or cannot be read: the settings' own check reports that)."""
+    if not path or not os.path.isfile(path):
+        return None, (), ()
+    try:
+        import zenoh
+
+        conf = zenoh.Config.from_file(path)
+        mode = json.loads(conf.get_json("mode"))
+        connect, listen = (json.loads(conf.get_json(f"{key}/endpoints")) for key in ("connect", "listen"))
+    except Exception:
+        return None, (), ()
+    if listen == ZENOH_DEFAULT_LISTEN:  # Zenoh's default, not the file's choice
+        listen = []
+    flat = lambda v: tuple(ep for eps in v.values() for ep in eps) if isinstance(v, dict) else tuple(v or ())  # noqa: E731
+    return (mode if mode in MODES else None), flat(connect), flat(listen)
 
 
 def endpoint_host(endpoint: str) -> str:
@@ -220,11 +240,16 @@ class ZenohSettings:
                 password = _read_secret(secret, "RA2VIPAS_ZENOH_PASSWORD_FILE")
         connect = tuple(connect) if connect else tuple(_split(env.get("RA2VIPAS_ZENOH_CONNECT")))
         listen = tuple(listen) if listen else tuple(_split(env.get("RA2VIPAS_ZENOH_LISTEN")))
+        config_file = config_file or env.get("RA2VIPAS_ZENOH_CONFIG") or None
+        mode = mode or env.get("RA2VIPAS_ZENOH_MODE") or None
+        if mode is None:
+            file_mode, file_connect, file_listen = _file_choices(config_file)
+            mode = file_mode or default_mode(connect or file_connect, listen or file_listen)
         return cls(
-            mode=mode or env.get("RA2VIPAS_ZENOH_MODE") or default_mode(connect, listen),
+            mode=mode,
             connect=connect,
             listen=listen,
-            config_file=config_file or env.get("RA2VIPAS_ZENOH_CONFIG") or None,
+            config_file=config_file,
             connect_timeout_s=timeout,
             tls_ca=pick(tls_ca, "RA2VIPAS_ZENOH_TLS_CA"),
             tls_cert=pick(tls_cert, "RA2VIPAS_ZENOH_TLS_CERT"),

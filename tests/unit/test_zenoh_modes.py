@@ -66,3 +66,18 @@ def test_the_warning_reads_the_endpoints_in_effect():
     assert peer_reach_warning("peer", [ROUTER], ["tcp/127.0.0.1:7448", "tcp/[::1]:7448"]) is not None
     assert peer_reach_warning("peer", [ROUTER], ["tcp/127.0.0.1:7448", "tcp/10.0.0.5:7448"]) is None
     assert peer_reach_warning("client", [ROUTER], []) is None
+
+
+@pytest.mark.parametrize(("text", "mode"), [
+    ('{mode: "client", connect: {endpoints: ["tcp/10.0.0.1:7447"]}}', "client"),
+    ('{mode: "peer", connect: {endpoints: ["tcp/10.0.0.1:7447"]}}', "peer"),  # the file chose
+    ('{connect: {endpoints: ["tcp/10.0.0.1:7447"]}}', "client"),  # the file's endpoints, nobody's mode
+    ('{connect: {endpoints: ["tcp/10.0.0.1:7447"]}, listen: {endpoints: ["tcp/0.0.0.0:7448"]}}', "peer"),
+    ("{}", "peer"),
+])
+def test_a_config_files_mode_and_endpoints_count_when_no_flag_or_variable_chooses(tmp_path, text, mode):
+    path = tmp_path / "zenoh.json5"
+    path.write_text(text)
+    assert ZenohSettings.from_sources(config_file=str(path), env={}).mode == mode
+    assert ZenohSettings.from_sources(mode="router", config_file=str(path), env={}).mode == "router"
+    assert ZenohSettings.from_sources(config_file=str(path), env={"RA2VIPAS_ZENOH_MODE": "peer"}).mode == "peer"
