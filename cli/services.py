@@ -3,7 +3,9 @@
 Every service takes the same Zenoh options (flag > environment > default):
 ``--zenoh-mode`` (RA2VIPAS_ZENOH_MODE; ``--mode`` is its deprecated spelling), ``--connect`` (repeatable; RA2VIPAS_ZENOH_CONNECT,
 comma-separated), ``--listen`` (repeatable; RA2VIPAS_ZENOH_LISTEN), ``--zenoh-config``
-(RA2VIPAS_ZENOH_CONFIG, a Zenoh JSON5 file). SIGINT/SIGTERM close the session and exit 0.
+(RA2VIPAS_ZENOH_CONFIG, a Zenoh JSON5 file). ``--connect`` without a mode joins that router as a
+client; a peer that no other host can reach says so at start-up. SIGINT/SIGTERM close the
+session and exit 0.
 """
 
 from __future__ import annotations

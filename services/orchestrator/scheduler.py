@@ -389,7 +389,8 @@ class Scheduler:
                 f"sensors of {rigs} live: the learner cannot reach them. Likely cause: Zenoh peer mode on the learner's "
                 "or the sensors' host (a router relays nothing between peers, and a peer listens on loopback only unless "
                 "given --listen). Start them with --zenoh-mode client --connect tcp/ROUTER:7447 (RA2VIPAS_ZENOH_MODE="
-                "client), or give every peer a --listen endpoint the others can reach")
+                "client), or give every peer a --listen endpoint the others can reach (behind a router with access "
+                "control, also check that the learner may query data/*/training)")
 
     def _on_training_truth(self, cid: str, response: PODResponse, replies: list[Reply]) -> None:
         run = self.runs.get(cid)
