@@ -61,7 +61,8 @@ class Layout:
         self.net, self.tmp = net, tmp
         self.procs = Services(tmp)
         self.api = f"http://{net.api_host}:{PORT}"
-        self.procs.start_cli("router", "router", "--listen", "tcp/0.0.0.0:7447", env=clean_env(), prefix=net.exec_prefix("router"))
+        self.procs.start_cli("router", "router", "--listen", "tcp/0.0.0.0:7447", env=clean_env(),
+                             prefix=net.exec_prefix("router"))
 
     def start(self, service: str, host: str, *args: str) -> Service:
         """``ra2vipas SERVICE --connect tcp/router:7447 ARGS`` on ``host``, no Zenoh mode unless ``args`` has one."""

@@ -39,8 +39,8 @@ def parts(tmp_path):
 
 def create(store: Store, tests: int = 3, seed: int = 5) -> str:
     scenario = build_scenario("paper", SMALL)
-    return store.create_campaign(preset="paper", overrides=SMALL, scenario=scenario.model_dump(mode="json"), algorithms=["ra2vipas"],
-                                 tests=tests, seed=seed, mode="fast", stop_confidence=0.0)
+    return store.create_campaign(preset="paper", overrides=SMALL, scenario=scenario.model_dump(mode="json"),
+                                 algorithms=["ra2vipas"], tests=tests, seed=seed, mode="fast", stop_confidence=0.0)
 
 
 def wait_finished(store: Store, cid: str, timeout: float = 60.0) -> dict:

@@ -59,7 +59,8 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
         app.state.scheduler = scheduler
         if bus_factory is None:
             z = settings.zenoh
-            log.info("orchestrator[%s] up (zenoh %s, connect %s, listen %s)", settings.name, z.mode, list(z.connect), list(z.listen))
+            log.info("orchestrator[%s] up (zenoh %s, connect %s, listen %s)", settings.name, z.mode, list(z.connect),
+                     list(z.listen))
         try:
             yield
         finally:
