@@ -359,10 +359,10 @@ class Scheduler:
         now = time.time()
         live = sorted(name for name, st in self.rigs.items() if st.sensors)
         if error == NO_SENSORS and not live:
+            if not run.awaiting_sensors:
+                log.warning("campaign %s: waiting for a rig's sensors to train the POD model on (none is live)", run.id)
             run.model_failing_since, run.model_failures, run.awaiting_sensors = None, 0, True
             if run.model_attempts < MODEL_ATTEMPTS:
-                if run.model_attempts == 1:
-                    log.warning("campaign %s: waiting for a rig's sensors to train the POD model on (none is live)", run.id)
                 run.model_retry_at = now + 10.0
                 return None
             return (f"{error}: no rig's sensors came up while this campaign waited ({run.model_attempts} requests). Start a rig "
