@@ -28,7 +28,8 @@ import typer
 
 from ra2vipas.cli.output import EXIT_USAGE, fail
 from ra2vipas.cli.services import (
-    ConfigOpt, ConnectOpt, ListenOpt, LogOpt, ModeOpt, OldModeOpt, open_error, warn_while_alone, zenoh_settings,
+    ConfigOpt, ConnectOpt, ListenOpt, LogOpt, ModeOpt, OldModeOpt, open_error, warn_if_unreachable, warn_while_alone,
+    zenoh_settings,
 )
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
@@ -89,6 +90,7 @@ def rig(
         except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, unreachable routers, ...
             fail(open_error(err, settings))
         warn_while_alone(buses[0].session, settings)
+        warn_if_unreachable(settings)
         nodes.append(ControllerNode(buses[1], name, ControllerSettings(beta=beta)))
         nodes.append(SensorsNode(buses[0], name))
         gc.collect()

@@ -3,7 +3,9 @@
 Every service takes the same Zenoh options (flag > environment > default):
 ``--zenoh-mode`` (RA2VIPAS_ZENOH_MODE; ``--mode`` is its deprecated spelling), ``--connect`` (repeatable; RA2VIPAS_ZENOH_CONNECT,
 comma-separated), ``--listen`` (repeatable; RA2VIPAS_ZENOH_LISTEN), ``--zenoh-config``
-(RA2VIPAS_ZENOH_CONFIG, a Zenoh JSON5 file). SIGINT/SIGTERM close the session and exit 0.
+(RA2VIPAS_ZENOH_CONFIG, a Zenoh JSON5 file). ``--connect`` without a mode joins that router as a
+client; a peer that no other host can reach says so at start-up. SIGINT/SIGTERM close the
+session and exit 0.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from ra2vipas.services.transport.zenoh_config import ZenohSettings, ZenohSetting
 
 log = logging.getLogger("ra2vipas")
 
-ModeOpt = Annotated[Optional[str], typer.Option("--zenoh-mode", help="Zenoh mode: peer|client|router [env RA2VIPAS_ZENOH_MODE; default peer].")]
+ModeOpt = Annotated[Optional[str], typer.Option("--zenoh-mode", help="Zenoh mode: peer|client|router [env RA2VIPAS_ZENOH_MODE; default client with --connect and no --listen (join that router), else peer].")]
 OldModeOpt = Annotated[Optional[str], deprecated("--mode", "--zenoh-mode")]  # renamed: campaign start --mode is fast|realtime
 ConnectOpt = Annotated[Optional[list[str]], typer.Option("--connect", "-e", metavar="ENDPOINT", help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.1:7447 (repeatable) [env RA2VIPAS_ZENOH_CONNECT].")]
 ListenOpt = Annotated[Optional[list[str]], typer.Option("--listen", "-l", metavar="ENDPOINT", help="Zenoh endpoint to listen on (repeatable) [env RA2VIPAS_ZENOH_LISTEN].")]
@@ -105,6 +107,16 @@ def warn_while_alone(session, zenoh: ZenohSettings, after_s: float = 10.0) -> No
     threading.Thread(target=check, name="zenoh-join-check", daemon=True).start()
 
 
+def warn_if_unreachable(zenoh: ZenohSettings) -> None:
+    """Log at start-up why a peer will hear nobody on other hosts (``ZenohSettings.reach_warning``)."""
+    try:
+        warning = zenoh.reach_warning()
+    except Exception:  # the session opened with this configuration: nothing to add if it cannot be rebuilt
+        return
+    if warning:
+        log.warning("%s", warning)
+
+
 def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
     """Open the Zenoh session, build the node on it, serve until SIGINT/SIGTERM, close both."""
     from ra2vipas.services.transport.runtime import wait_for_shutdown_signal
@@ -115,6 +127,7 @@ def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
     except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, unreachable routers, ...
         fail(open_error(err, zenoh))
     warn_while_alone(bus.session, zenoh)
+    warn_if_unreachable(zenoh)
     node = None
     try:
         node = build(bus)
@@ -232,6 +245,7 @@ def orchestrator(
         fail(str(err))
     except OSError as err:
         fail(f"cannot lock the database {settings.db_path}: {err.strerror or err}")
+    warn_if_unreachable(settings.zenoh)
     server = uvicorn.Server(uvicorn.Config(create_app(settings), host=settings.host, port=settings.port, log_level=log_level.lower(),
                                            access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5))
     import signal

@@ -26,6 +26,9 @@ from ra2vipas.services.transport.runtime import first_valid_reply
 log = logging.getLogger(__name__)
 
 TRAINING_TIMEOUT_S = 600.0
+NO_SENSORS = "no training stream: no sensors answered"
+"""The error reply when the training query reached no sensors (none live, or none reachable from
+this learner): the orchestrator asks again, with backoff, rather than failing the campaign."""
 
 
 class LearnerNode:
@@ -83,7 +86,8 @@ class LearnerNode:
         stream, passed_over = first_valid_reply(box.get("replies", []), TrainingStream, "TrainingStream",
                                                 accept=lambda s: s.job_id == request.job_id)
         if stream is None:
-            raise QueryError(dump(ErrorReply(error="no training stream: " + ("; ".join(passed_over) or "no sensors answered"))).decode())
+            error = ("no training stream: " + "; ".join(passed_over)) if passed_over else NO_SENSORS
+            raise QueryError(dump(ErrorReply(error=error)).decode())
         return stream
 
     # -- optional disk cache ----------------------------------------------------------------

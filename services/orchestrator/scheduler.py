@@ -47,6 +47,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
+from ra2vipas.services.learner.node import NO_SENSORS
 from ra2vipas.services.learner.pod import predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
 from ra2vipas.services.orchestrator.reduce import AlgorithmTally, LatencyTally, results_object
@@ -69,7 +70,9 @@ log = logging.getLogger(__name__)
 
 MAX_ATTEMPTS = 5
 MODEL_TIMEOUT_S = 600.0
-MODEL_ATTEMPTS = 60  # retries (every 2-10 s) while no learner answers
+MODEL_ATTEMPTS = 60  # retries (every 2-10 s) while no learner answers, or no rig's sensors are live to train on
+MODEL_RETRY_S = (1.0, 8.0)  # first and longest wait before asking again after the learner failed (doubling)
+MODEL_PATIENCE_S = 30.0  # how long the learner may keep failing (e.g. missing live sensors) before the campaign fails
 EPISODE_TIMEOUT_S = 60.0  # plus twice the test's duration in realtime mode
 TIMEOUT_CHECK_S = 2.0
 HEAL_BACKOFF_S = (1.0, 30.0)  # first and longest wait between retries of a failed database write
@@ -106,6 +109,9 @@ class _Run:
     running_since: float | None = None
     model_attempts: int = 0
     model_retry_at: float | None = None
+    model_failing_since: float | None = None  # the learner answered with errors since then (None: it has not)
+    model_failures: int = 0  # error answers since model_failing_since (the backoff's exponent)
+    awaiting_sensors: bool = False  # the learner found no sensors and none is live: asked again when one comes up
     stop_confidence: float = 0.0
     algorithms: tuple = ()  # the policies it runs (a policy outside the built-ins needs protocol 1.2)
     study: str | None = None  # the study this campaign is a point of, if any
@@ -138,8 +144,11 @@ class Scheduler:
     """Campaign execution over the bus; every method runs on ``self.loop``'s thread."""
 
     def __init__(self, bus: Bus, store: Store, window: int = 8, name: str = "orchestrator",
-                 heal_backoff_s: tuple[float, float] = HEAL_BACKOFF_S, tick_s: float = TIMEOUT_CHECK_S) -> None:
+                 heal_backoff_s: tuple[float, float] = HEAL_BACKOFF_S, tick_s: float = TIMEOUT_CHECK_S,
+                 model_retry_s: tuple[float, float] = MODEL_RETRY_S, model_patience_s: float = MODEL_PATIENCE_S) -> None:
         self.bus = bus
+        self._model_retry = model_retry_s
+        self._model_patience = model_patience_s
         self.store = store
         self._studies = StudyStore(store)
         self.window = max(1, int(window))
@@ -332,11 +341,59 @@ class Scheduler:
             return
         response, passed_over = first_valid_reply(replies, PODResponse, "PODResponse")
         if response is None:
-            self._fail(run, f"POD model unavailable: {passed_over[-1] if passed_over else 'no learner answered'}")
+            error = passed_over[-1] if passed_over else "no learner answered"
+            verdict = self._model_failed(run, error) if replies else error
+            if verdict is not None:
+                self._fail(run, f"POD model unavailable: {verdict}")
             return
         request = dump(TrainingRequest(job_id=response.job_id, scenario=run.scenario, seed=run.seed))
         self.bus.query(keys.training_truth_any(), request, 120.0,
                        lambda replies: self.loop.post(self._on_training_truth, cid, response, replies))
+
+    def _model_failed(self, run: _Run, error: str) -> str | None:
+        """The learner answered ``error`` instead of a model: schedule another request and return
+        None, or return why the campaign fails.
+
+        One failed request does not fail a campaign. If the learner found no sensors and none is
+        live, the campaign waits for a rig, as for a learner (``_on_alive`` asks again the moment
+        a rig's sensors come up). Any other failure, including sensors this orchestrator sees live
+        but the learner's training query does not reach, is retried with doubling waits
+        (``model_retry_s``) for ``model_patience_s``; then the campaign fails saying what was seen."""
+        now = time.time()
+        live = sorted(name for name, st in self.rigs.items() if st.sensors)
+        if error == NO_SENSORS and not live:
+            if not run.awaiting_sensors:
+                log.warning("campaign %s: waiting for a rig's sensors to train the POD model on (none is live)", run.id)
+            run.model_failing_since, run.model_failures, run.awaiting_sensors = None, 0, True
+            if run.model_attempts < MODEL_ATTEMPTS:
+                run.model_retry_at = now + 10.0
+                return None
+            return (f"{error}: no rig's sensors came up while this campaign waited ({run.model_attempts} requests). Start a rig "
+                    "(ra2vipas sensors, or ra2vipas rig), and check that every service joins the same Zenoh router "
+                    "(--connect tcp/ROUTER:7447, client mode)")
+        run.awaiting_sensors = False
+        if run.model_failing_since is None:
+            run.model_failing_since, run.model_failures = now, 0
+        run.model_failures += 1
+        elapsed = now - run.model_failing_since
+        if elapsed < self._model_patience:
+            wait = min(self._model_retry[0] * 2.0 ** (run.model_failures - 1), self._model_retry[1],
+                       self._model_patience - elapsed)  # the last request when the patience runs out
+            run.model_retry_at = now + wait
+            seen = f" although the sensors of {', '.join(live)} are live" if error == NO_SENSORS else ""
+            log.warning("campaign %s: the learner could not give the POD model (%s)%s; asking again in %.1f s",
+                        run.id, error, seen, wait)
+            return None
+        attempts = f"{run.model_failures} requests over {elapsed:.0f} s"
+        if error != NO_SENSORS:
+            return f"{error} ({attempts})"
+        rigs = "rig" + ("s " if len(live) > 1 else " ") + ", ".join(live)
+        return (f"the learner's training query reached no sensors ({attempts}), although this orchestrator sees the "
+                f"sensors of {rigs} live: the learner cannot reach them. Likely cause: Zenoh peer mode on the learner's "
+                "or the sensors' host (a router relays nothing between peers, and a peer listens on loopback only unless "
+                "given --listen). Start them with --zenoh-mode client --connect tcp/ROUTER:7447 (RA2VIPAS_ZENOH_MODE="
+                "client), or give every peer a --listen endpoint the others can reach (behind a router with access "
+                "control, also check that the learner may query data/*/training)")
 
     def _on_training_truth(self, cid: str, response: PODResponse, replies: list[Reply]) -> None:
         run = self.runs.get(cid)
@@ -661,6 +718,9 @@ class Scheduler:
                 rig.described = "asking"
                 self.bus.query(keys.rig_info(name), b"", DESCRIPTOR_TIMEOUT_S,
                                lambda replies: self.loop.post(self._on_descriptor, name, replies))
+                for run in list(self.runs.values()):  # campaigns waiting for sensors to train on: ask again now
+                    if run.awaiting_sensors and run.pod is None and run.model_retry_at is not None:
+                        self._request_model(run)
         if rig.live != was_live or not rig.since:
             rig.since = time.time()
         if was_live and not rig.live:

@@ -4,7 +4,11 @@
 Precedence: CLI flag > environment variable > default. Environment variables:
 
 ``RA2VIPAS_ZENOH_MODE``
-    peer|client|router.
+    peer|client|router. Default: the config file's mode if it sets one, else ``client`` when
+    ``connect`` endpoints are given (here or in the config file) and no ``listen`` endpoints
+    (``--connect tcp/ROUTER:7447`` alone means "join that router"), else ``peer``. A router
+    relays nothing between peers, so peers on different hosts talk only if each reaches the
+    others' ``listen`` endpoints directly (``peer_reach_warning``).
 ``RA2VIPAS_ZENOH_CONNECT``, ``RA2VIPAS_ZENOH_LISTEN``
     comma-separated endpoints such as ``tcp/10.0.0.1:7447`` or ``tls/router:7447``.
     Without listen endpoints (here or in the config file) a peer listens on
@@ -78,6 +82,65 @@ LOOPBACK_LISTEN = {"router": ["tcp/127.0.0.1:7447"], "peer": ["tcp/127.0.0.1:0"]
 
 class ZenohSettingsError(ValueError):
     """A Zenoh setting is invalid; the message names it."""
+
+
+def default_mode(connect: tuple[str, ...] | list[str], listen: tuple[str, ...] | list[str]) -> str:
+    """The mode of a node whose mode nobody chose: ``client`` if it is told where to connect and
+    not where to listen (it joins that router: a router relays between clients, never between
+    peers), else ``peer`` (alone, or accepting connections itself)."""
+    return "client" if connect and not listen else "peer"
+
+
+def _file_choices(path: str | None) -> tuple[str | None, tuple[str, ...], tuple[str, ...]]:
+    """The mode, connect and listen endpoints a Zenoh configuration file sets (None and empty
+    where it sets none, or cannot be read: the settings' own check reports that)."""
+    if not path or not os.path.isfile(path):
+        return None, (), ()
+    try:
+        import zenoh
+
+        conf = zenoh.Config.from_file(path)
+        mode = json.loads(conf.get_json("mode"))
+        connect, listen = (json.loads(conf.get_json(f"{key}/endpoints")) for key in ("connect", "listen"))
+    except Exception:
+        return None, (), ()
+    if listen == ZENOH_DEFAULT_LISTEN:  # Zenoh's default, not the file's choice
+        listen = []
+    flat = lambda v: tuple(ep for eps in v.values() for ep in eps) if isinstance(v, dict) else tuple(v or ())  # noqa: E731
+    return (mode if mode in MODES else None), flat(connect), flat(listen)
+
+
+def endpoint_host(endpoint: str) -> str:
+    """The host of a ``proto/host:port`` endpoint (brackets of an IPv6 address removed)."""
+    address = endpoint.partition("/")[2].split("#", 1)[0].split("?", 1)[0]
+    return address.rpartition(":")[0].strip("[]") if ":" in address else address
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether an endpoint names this machine only (127.0.0.0/8, ::1, localhost, a unix socket)."""
+    if endpoint.startswith("unixsock-stream/"):
+        return True
+    host = endpoint_host(endpoint).lower()
+    return host == "localhost" or host == "::1" or host.startswith("127.")
+
+
+def peer_reach_warning(mode: str, connect: list[str], listen: list[str]) -> str | None:
+    """Why a peer will exchange nothing with the nodes on other hosts, or None.
+
+    A peer that connects to a router on another host learns from it where the other peers
+    listen and connects to them directly; the router relays nothing between peers (Zenoh 1.x).
+    So a peer whose ``listen`` endpoints are all loopback (our default) cannot be reached from
+    another host, and it cannot reach the loopback endpoints of the peers there: it says "up" and
+    then hears nothing. ``connect`` and ``listen`` are the endpoints in effect (defaults and a
+    config file's included)."""
+    if mode != "peer" or not connect or all(is_loopback(ep) for ep in connect):
+        return None
+    if listen and not all(is_loopback(ep) for ep in listen):
+        return None
+    return (f"Zenoh peer mode: this node listens on {', '.join(listen) or 'nothing'} only, so no node on another host can "
+            f"reach it, and a Zenoh router (at {', '.join(connect)}) relays nothing between peers: it will exchange "
+            "messages with no peer on another host. To join that router use --zenoh-mode client (RA2VIPAS_ZENOH_MODE=client, the default "
+            "with --connect and no --listen); to stay a peer, --listen on an address the other hosts can reach")
 
 
 def _split(value: str | None) -> list[str]:
@@ -175,11 +238,18 @@ class ZenohSettings:
             secret = pick(password_file, "RA2VIPAS_ZENOH_PASSWORD_FILE")
             if secret is not None:
                 password = _read_secret(secret, "RA2VIPAS_ZENOH_PASSWORD_FILE")
+        connect = tuple(connect) if connect else tuple(_split(env.get("RA2VIPAS_ZENOH_CONNECT")))
+        listen = tuple(listen) if listen else tuple(_split(env.get("RA2VIPAS_ZENOH_LISTEN")))
+        config_file = config_file or env.get("RA2VIPAS_ZENOH_CONFIG") or None
+        mode = mode or env.get("RA2VIPAS_ZENOH_MODE") or None
+        if mode is None:
+            file_mode, file_connect, file_listen = _file_choices(config_file)
+            mode = file_mode or default_mode(connect or file_connect, listen or file_listen)
         return cls(
-            mode=mode or env.get("RA2VIPAS_ZENOH_MODE") or "peer",
-            connect=tuple(connect) if connect else tuple(_split(env.get("RA2VIPAS_ZENOH_CONNECT"))),
-            listen=tuple(listen) if listen else tuple(_split(env.get("RA2VIPAS_ZENOH_LISTEN"))),
-            config_file=config_file or env.get("RA2VIPAS_ZENOH_CONFIG") or None,
+            mode=mode,
+            connect=connect,
+            listen=listen,
+            config_file=config_file,
             connect_timeout_s=timeout,
             tls_ca=pick(tls_ca, "RA2VIPAS_ZENOH_TLS_CA"),
             tls_cert=pick(tls_cert, "RA2VIPAS_ZENOH_TLS_CERT"),
@@ -210,6 +280,16 @@ class ZenohSettings:
         if self.credentials_file:
             out[AUTH_DICTIONARY] = self.credentials_file
         return out
+
+    def reach_warning(self) -> str | None:
+        """``peer_reach_warning`` for the configuration this node opens with."""
+        conf = self.to_zenoh()
+
+        def endpoints(key: str) -> list[str]:  # a list, or one list per mode
+            value = json.loads(conf.get_json(key))
+            return list((value.get(self.mode) if isinstance(value, dict) else value) or [])
+
+        return peer_reach_warning(self.mode, endpoints("connect/endpoints"), endpoints("listen/endpoints"))
 
     def to_zenoh(self):
         """The ``zenoh.Config``."""

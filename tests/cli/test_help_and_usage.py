@@ -87,7 +87,8 @@ def test_usage_names_the_argument_in_capitals(capsys, monkeypatch):
 def test_the_orchestrator_help_shows_defaults_and_environment_variables(capsys, monkeypatch):
     text = " ".join(_help(("orchestrator",), capsys, monkeypatch).replace("│", " ").split())
     for needle in ("RA2VIPAS_HOST; default 127.0.0.1", "RA2VIPAS_PORT; default 8080", "RA2VIPAS_DB; default ra2vipas.db",
-                   "RA2VIPAS_WINDOW; default 8", "RA2VIPAS_EXPECT_RIGS; default 1", "RA2VIPAS_ZENOH_MODE; default peer"):
+                   "RA2VIPAS_WINDOW; default 8", "RA2VIPAS_EXPECT_RIGS; default 1",
+                   "RA2VIPAS_ZENOH_MODE; default client with --connect and no --listen"):
         assert needle in text, needle
 
 

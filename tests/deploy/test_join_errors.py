@@ -1,6 +1,7 @@
 """A node that cannot join the Zenoh network says why in one line, in bounded time (issue 13):
 a client whose --connect reaches nothing, a client with the wrong password for a router that
-requires one, and a peer whose --connect reaches nothing (it keeps trying, but says so)."""
+requires one, and a peer whose --connect reaches nothing (it keeps trying, but says so). A node
+given --connect and no mode is a client (issue 18)."""
 
 from __future__ import annotations
 
@@ -47,9 +48,17 @@ def test_a_wrong_password_is_named_as_the_likely_cause(procs, tmp_path):
     assert ".rs:" not in node.output()
 
 
+def test_connect_without_a_mode_is_a_client_and_says_when_nothing_answers(procs):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    node = procs.start_cli("learner", "learner", "--connect", endpoint, env=clean_env({"RA2VIPAS_ZENOH_CONNECT_TIMEOUT": "0.5"}))
+    assert node.proc.wait(60) == 1
+    (line,) = _error_lines(node.output())
+    assert line.startswith(f"error: cannot join the Zenoh network: nothing answers at {endpoint}")
+
+
 def test_a_peer_whose_connect_reaches_nothing_logs_it(procs):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    node = procs.start_cli("learner", "learner", "--connect", endpoint, env=clean_env())  # peer: it opens anyway
+    node = procs.start_cli("learner", "learner", "--zenoh-mode", "peer", "--connect", endpoint, env=clean_env())  # opens anyway
     node.wait_for_output("not connected to any Zenoh node after 10 s (still trying): nothing answers at", timeout=40)
     assert node.proc.poll() is None  # still up, still trying
 

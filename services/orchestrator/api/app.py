@@ -8,6 +8,7 @@ four on shutdown. OpenAPI at ``/docs`` and ``/openapi.json``; the web dashboard 
 
 from __future__ import annotations
 
+import logging
 from contextlib import asynccontextmanager
 from typing import Callable
 
@@ -23,6 +24,8 @@ from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.settings import OrchestratorSettings
 from ra2vipas.services.orchestrator.storage import StorageFault, Store
 from ra2vipas.services.transport.bus import Bus
+
+log = logging.getLogger("ra2vipas")
 
 DESCRIPTION = """
 Run Monte Carlo campaigns of transmitter discovery (Ra²ViPAS and its baselines) on the rigs of
@@ -54,6 +57,10 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
         app.state.bus = bus
         app.state.bus_open = True
         app.state.scheduler = scheduler
+        if bus_factory is None:
+            z = settings.zenoh
+            log.info("orchestrator[%s] up (zenoh %s, connect %s, listen %s)", settings.name, z.mode, list(z.connect),
+                     list(z.listen))
         try:
             yield
         finally:
