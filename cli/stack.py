@@ -173,8 +173,13 @@ def port_holder(port: int) -> str | None:
 
 
 def check_port_free(host: str, port: int, what: str) -> None:
-    """Raise ``StackError`` (one line naming the port and who holds it) if ``port`` is taken."""
+    """Raise ``StackError`` (one line naming the port and who holds it) if ``port`` is taken.
+
+    The check binds as the services will (``SO_REUSEADDR``, as uvicorn and Zenoh's listeners
+    do), so the TIME-WAIT connections a stack that just stopped leaves behind do not count as
+    taken: only a socket that listens there does (issue 18)."""
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind((host, port))
         except OSError as err:

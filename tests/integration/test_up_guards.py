@@ -132,3 +132,51 @@ def test_a_service_that_keeps_crashing_stops_up_with_its_last_words(tmp_path):
         assert not children_of(up.pid)
     finally:
         registry.cleanup()
+
+
+def _time_wait_on(port: int) -> bool:
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            parts = line.split()
+            if parts[3] == "06" and int(parts[1].rsplit(":", 1)[1], 16) == port:  # 06: TIME_WAIT
+                return True
+    return False
+
+
+def test_the_port_check_ignores_time_wait_sockets():
+    """Issue 18: `up` right after a stop refused its own router port for ~80 s while only
+    TIME-WAIT sockets remained (the check bound without SO_REUSEADDR, unlike the services)."""
+    import socket
+
+    from ra2vipas.cli.stack import check_port_free
+
+    listener = socket.socket()
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    port = listener.getsockname()[1]
+    client = socket.create_connection(("127.0.0.1", port))
+    accepted, _ = listener.accept()
+    accepted.close()  # the server side closes first: its end of the connection waits in TIME-WAIT
+    client.recv(1)
+    client.close()
+    with pytest.raises(StackError, match=f"port {port} on 127.0.0.1 is taken by pid"):
+        check_port_free("127.0.0.1", port, "the test's")  # still listening: taken
+    listener.close()
+    assert _time_wait_on(port)
+    check_port_free("127.0.0.1", port, "the test's")  # only TIME-WAIT left: free
+
+
+def test_up_restarts_at_once_on_its_own_ports(tmp_path):
+    """Stop a stack and start it again at once on the same API and router ports."""
+    registry = Procs()
+    try:
+        port, router = free_port(), free_port()
+        for run in range(2):
+            state = start_stack(registry, tmp_path / f"run{run}", "--port", str(port), "--router-port", str(router), rigs=1)
+            assert state["api"].endswith(f":{port}")
+            stop_stack(registry, state["up"])
+            assert state["up"].returncode == 0
+            registry = Procs()
+    finally:
+        registry.cleanup()
