@@ -63,8 +63,13 @@ class Child:
     proc: subprocess.Popen | None = None
     restarts: int = 0
     crashes: list[float] = field(default_factory=list)  # monotonic times it was found dead
+    started_at: float = 0.0  # monotonic time of the last start
+    restart_at: float | None = None  # monotonic time of the restart due (None: running, or not seen dead yet)
+    backing_off: bool = False  # crashed CRASH_LIMIT times within CRASH_WINDOW_S: restarted at the capped delay only
+    exit_code: int | None = None  # its last exit code
 
     def start(self) -> None:
+        self.started_at = time.monotonic()
         log = open(self.log_path, "ab", buffering=0)
         self.proc = subprocess.Popen(self.argv, env=self.env, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                      preexec_fn=_die_with_parent, close_fds=True)
@@ -92,6 +97,7 @@ class StackConfig:
     log_level: str = "INFO"
     zenoh_mode: str = "client"  # the services' mode: clients of the router, or peers (direct links, listening on loopback)
     insecure: bool = False  # True: no Zenoh credentials (any local process may join the stack)
+    max_restart_delay: float = 30.0  # a crashed service's restart delay doubles from 0.5 s up to this
 
 
 def _write_private(path: Path, text: str) -> None:
@@ -207,9 +213,12 @@ def prepare_database(db_path: str) -> None:
                          "stop that stack, or give this one another --db")
 
 
-# a service that crashes this many times within CRASH_WINDOW_S makes `up` give up
+# a service that crashes this many times within CRASH_WINDOW_S is in a crash loop: `up` says so and
+# restarts it at the capped delay only (never stopping the others), until it stays up for
+# CRASH_WINDOW_S or the user stops the stack
 CRASH_LIMIT = 5
 CRASH_WINDOW_S = 60.0
+FIRST_RESTART_DELAY_S = 0.5
 
 
 @dataclass
@@ -263,6 +272,7 @@ class Stack:
         specs.append(("orchestrator", [*py, "orchestrator"], {
             "RA2VIPAS_HOST": cfg.host, "RA2VIPAS_PORT": str(cfg.port), "RA2VIPAS_DB": cfg.db_path,
             "RA2VIPAS_WINDOW": str(cfg.window), "RA2VIPAS_EXPECT_RIGS": str(cfg.rigs), "RA2VIPAS_INSTANCE_ID": self.instance_id,
+            "RA2VIPAS_SUPERVISOR_STATUS": str(self.status_file),
         }))
         for name, argv, extra in specs:
             env = {**base_env, **extra}
@@ -317,15 +327,91 @@ class Stack:
                 return c
         return None
 
-    def crashed(self, child: Child, now: float | None = None) -> float | None:
-        """Record that ``child`` died: the delay before restarting it (0.5 s doubling with each
-        crash in the window, at most 30 s), or None when it crashed ``CRASH_LIMIT`` times within
-        ``CRASH_WINDOW_S`` (then give up and show its last words)."""
+    def crashed(self, child: Child, now: float | None = None) -> float:
+        """Record that ``child`` died and return the delay before restarting it: 0.5 s doubling
+        with each crash within ``CRASH_WINDOW_S``, at most ``config.max_restart_delay``; once it
+        crashed ``CRASH_LIMIT`` times within the window it is in a crash loop (``backing_off``)
+        and waits the capped delay each time, until it stays up for ``CRASH_WINDOW_S``. Never
+        gives up: a crash loop costs its own service only."""
         now = time.monotonic() if now is None else now
         child.crashes = [t for t in child.crashes if now - t < CRASH_WINDOW_S] + [now]
+        cap = self.config.max_restart_delay
         if len(child.crashes) >= CRASH_LIMIT:
-            return None
-        return min(30.0, 0.5 * 2 ** (len(child.crashes) - 1))
+            child.backing_off = True
+        if child.backing_off:
+            return cap
+        return min(cap, FIRST_RESTART_DELAY_S * 2 ** (len(child.crashes) - 1))
+
+    def supervise(self, now: float | None = None) -> list[tuple[str, bool]]:
+        """One pass of ``up``'s supervisor: notice dead services (each gets its restart time),
+        restart those whose time has come, and end a back-off once a service has stayed up for
+        ``CRASH_WINDOW_S``. Returns the lines to print, each with whether it goes to stderr;
+        rewrites ``status_file`` when something changed. Services are handled independently: a
+        service waiting out its back-off delays no other."""
+        now = time.monotonic() if now is None else now
+        lines: list[tuple[str, bool]] = []
+        changed = False
+        for child in self.children:
+            if child.restart_at is None and not child.alive():
+                child.exit_code = child.proc.returncode if child.proc is not None else None
+                was_backing_off = child.backing_off
+                delay = self.crashed(child, now)
+                child.restart_at = now + delay
+                changed = True
+                if child.backing_off and not was_backing_off:
+                    lines.append((f"ra2vipas up: {child.name} crashed {len(child.crashes)} times within {CRASH_WINDOW_S:.0f} s; "
+                                  f"backing off: restarting it every {delay:g} s until it stays up (the other services keep "
+                                  f"running; Ctrl-C stops the stack). Its last log lines ({child.log_path}):\n{child.tail()}", True))
+                elif child.backing_off:
+                    lines.append((f"ra2vipas up: {child.name} exited again (code {child.exit_code}); still backing off: "
+                                  f"restarting it in {delay:g} s", True))
+                else:
+                    lines.append((f"ra2vipas up: {child.name} exited (code {child.exit_code}); restarting it in {delay:g} s", False))
+            elif child.restart_at is not None and now >= child.restart_at:
+                child.restart_at = None
+                self.restart(child)
+                changed = True
+            elif child.backing_off and child.restart_at is None and now - child.started_at >= CRASH_WINDOW_S:
+                child.backing_off = False
+                changed = True
+                lines.append((f"ra2vipas up: {child.name} has stayed up for {CRASH_WINDOW_S:.0f} s: back-off over", True))
+        if changed:
+            self.write_status()
+        return lines
+
+    @property
+    def status_file(self) -> Path | None:
+        """Where the supervisor writes which services it is restarting (``RA2VIPAS_SUPERVISOR_STATUS``
+        of the orchestrator, shown in ``GET /rigs`` and the dashboard's rigs page)."""
+        return None if self.log_dir is None else self.log_dir / "supervisor.json"
+
+    def status(self) -> list[dict]:
+        """The services that are down or backing off: name, state (``restarting`` or
+        ``backing off``), crashes within ``CRASH_WINDOW_S``, last exit code and when the next
+        restart is due (epoch seconds, None if it runs)."""
+        mono, wall = time.monotonic(), time.time()
+        out = []
+        for c in self.children:
+            if c.restart_at is None and not c.backing_off:
+                continue
+            recent = [t for t in c.crashes if mono - t < CRASH_WINDOW_S]
+            out.append({"name": c.name, "state": "backing off" if c.backing_off else "restarting", "crashes": len(recent),
+                        "window_s": CRASH_WINDOW_S, "exit_code": c.exit_code,
+                        "next_restart_at": None if c.restart_at is None else wall + (c.restart_at - mono)})
+        return out
+
+    def write_status(self) -> None:
+        path = self.status_file
+        if path is None:
+            return
+        import json
+
+        tmp = path.with_suffix(".tmp")
+        try:
+            tmp.write_text(json.dumps({"services": self.status(), "written_at": time.time()}))
+            os.replace(tmp, path)
+        except OSError:
+            pass
 
     def restart(self, child: Child) -> None:
         child.restarts += 1

@@ -11,7 +11,7 @@ import typer
 
 from ra2vipas.cli.output import fail
 from ra2vipas.cli.polish import deprecated, prefer
-from ra2vipas.cli.stack import CRASH_LIMIT, CRASH_WINDOW_S, Stack, StackConfig, StackError
+from ra2vipas.cli.stack import Stack, StackConfig, StackError
 
 
 def up(
@@ -23,6 +23,7 @@ def up(
     router_port: Annotated[int, typer.Option(min=0, max=65535, help="Port of the loopback Zenoh router (0: any free port).")] = 0,
     window: Annotated[int, typer.Option(min=1, max=1024, help="Episodes in flight per rig.")] = 8,
     log_dir: Annotated[Optional[str], typer.Option(help="Directory for the services' logs (default: a new temporary directory).")] = None,
+    max_restart_delay: Annotated[float, typer.Option(min=0.5, max=3600, help="A crashed service is restarted after 0.5 s, doubling up to this many seconds; one in a crash loop (5 crashes within a minute) waits this long each time.")] = 30.0,
     insecure: Annotated[bool, typer.Option("--insecure", help="No Zenoh credentials: any local process may join the stack's Zenoh network (by default the stack makes up its own, readable by you only).")] = False,
 ) -> None:
     """Run a local stack in the foreground: Zenoh router, orchestrator (REST API), learner and rigs.
@@ -30,8 +31,10 @@ def up(
     Starts a Zenoh router on loopback, the orchestrator, the learner and RIG_COUNT
     sensor+controller pairs, and prints the API address once GET /health answers 200; Ctrl-C
     or SIGTERM stops every process it started. A service that crashes is restarted after a
-    delay that doubles with each crash (0.5 s to 30 s); one that crashes 5 times within a
-    minute stops the stack, with its last log lines. Before starting anything it checks that
+    delay that doubles with each crash (0.5 s to --max-restart-delay, 30 s); one that crashes
+    5 times within a minute is in a crash loop: up says so on stderr with its last log lines
+    (and GET /rigs shows it) and restarts it every --max-restart-delay seconds until it stays
+    up, never stopping the other services. Before starting anything it checks that
     the API port is free (else one line naming who holds it), creates the database's folder,
     and refuses a database another orchestrator holds.
 
@@ -47,7 +50,6 @@ def up(
     """
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count")
     stop = threading.Event()
-    gave_up = False
 
     def on_signal(_signum, _frame) -> None:
         stop.set()
@@ -55,7 +57,7 @@ def up(
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     stack = Stack(StackConfig(rigs=rigs, host=host, port=port, db_path=db, router_port=router_port, window=window, log_dir=log_dir,
-                              insecure=insecure))
+                              insecure=insecure, max_restart_delay=max_restart_delay))
     try:
         try:
             stack.start()
@@ -70,20 +72,8 @@ def up(
               "Ctrl-C to stop", flush=True)  # one line: scripts wait for it
         print(f"ra2vipas up: dashboard on {stack.api_url}/", flush=True)
         while not stop.wait(0.5):
-            dead = stack.watch()
-            if dead is not None and not stop.is_set():
-                delay = stack.crashed(dead)
-                if delay is None:
-                    print(f"ra2vipas up: {dead.name} crashed {CRASH_LIMIT} times within {CRASH_WINDOW_S:.0f} s; stopping. "
-                          f"Its last log lines ({dead.log_path}):\n{dead.tail()}", file=sys.stderr, flush=True)
-                    gave_up = True
-                    break
-                print(f"ra2vipas up: {dead.name} exited (code {dead.proc.returncode}); restarting it in {delay:g} s", flush=True)
-                if stop.wait(delay):
-                    break
-                stack.restart(dead)
+            for line, to_stderr in stack.supervise():
+                print(line, file=sys.stderr if to_stderr else sys.stdout, flush=True)
     finally:
         stack.stop()
     print("ra2vipas up: stopped", flush=True)
-    if gave_up:
-        raise typer.Exit(1)

@@ -25,6 +25,9 @@ class OrchestratorSettings:
     # RA2VIPAS_INSTANCE_ID: shown by /health, so `ra2vipas up` knows it reached its own orchestrator
     instance_id: str = field(default_factory=lambda: secrets.token_hex(8))
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+    # RA2VIPAS_SUPERVISOR_STATUS: the JSON file where `ra2vipas up` says which of its services it is
+    # restarting or backing off (shown by GET /rigs and the rigs page); None outside `up`
+    supervisor_status: str | None = None
 
     @classmethod
     def from_sources(cls, *, host: str | None = None, port: int | None = None, db_path: str | None = None,
@@ -60,6 +63,7 @@ class OrchestratorSettings:
             plot_workers=checked.plot_workers or default_plot_workers(), plot_rate=checked.plot_rate,
             instance_id=env.get("RA2VIPAS_INSTANCE_ID") or secrets.token_hex(8),
             zenoh=zenoh or ZenohSettings.from_sources(env=env),
+            supervisor_status=env.get("RA2VIPAS_SUPERVISOR_STATUS") or None,
         )
 
 
