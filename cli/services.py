@@ -224,15 +224,18 @@ def orchestrator(
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        fail(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
-             "create it, or give --db a path you can write")
+        if not folder.is_dir():
+            fail(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
+                 "create it, or give --db a path you can write")
+    db_lock = DatabaseLock(settings.db_path)
     try:
-        db_lock = DatabaseLock(settings.db_path).acquire()  # held until this process exits
+        db_lock.acquire()  # held until this process exits
     except DatabaseInUse as err:
         fail(str(err))
-    except OSError as err:
-        fail(f"cannot lock the database {settings.db_path}: {err.strerror or err}")
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host=settings.host, port=settings.port, log_level=log_level.lower(),
+    except OSError as err:  # e.g. a read-only folder: start degraded (503 naming the cause) and take it when it can be
+        log.error("cannot lock the database %s: %s; the API answers 503 until it can (retrying)", settings.db_path,
+                  (err.strerror or str(err)).lower())
+    server = uvicorn.Server(uvicorn.Config(create_app(settings, db_lock=db_lock), host=settings.host, port=settings.port, log_level=log_level.lower(),
                                            access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5))
     import signal
 

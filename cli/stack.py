@@ -194,23 +194,33 @@ def check_port_free(host: str, port: int, what: str) -> None:
             raise StackError(f"{what} port {port} on {host} is {why}: stop it or choose another port") from None
 
 
-def prepare_database(db_path: str) -> None:
+def prepare_database(db_path: str) -> str | None:
     """Create the database's folder (one-line ``StackError`` if it cannot be) and refuse a
-    database another orchestrator holds."""
+    database another orchestrator holds. A folder that exists but cannot be written now (a
+    read-only file system, no permission) is no reason to refuse: the stack starts degraded
+    (the API answers 503 naming the cause, and heals when the folder becomes writable); the
+    returned line says so (None when the folder is writable)."""
     from ra2vipas.services.orchestrator.dblock import holder
 
     folder = Path(db_path).expanduser().resolve().parent
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise StackError(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
-                         "create it, or give --db a path you can write") from None
-    if not os.access(folder, os.W_OK):
-        raise StackError(f"cannot write in the database folder {folder}: give --db a path you can write")
+        if not folder.is_dir():
+            raise StackError(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
+                             "create it, or give --db a path you can write") from None
     pid = holder(db_path)
     if pid is not None:
         raise StackError(f"the database {db_path} is in use by another orchestrator{f' (pid {pid})' if pid else ''}: "
                          "stop that stack, or give this one another --db")
+    if not os.access(folder, os.W_OK):
+        try:
+            why = "a read-only file system" if os.statvfs(folder).f_flag & os.ST_RDONLY else "no write permission"
+        except OSError:
+            why = "not writable"
+        return (f"the database folder {folder} cannot be written now ({why}): the API answers 503 naming the cause "
+                "until it can, then resumes by itself")
+    return None
 
 
 # a service that crashes this many times within CRASH_WINDOW_S is in a crash loop: `up` says so and
@@ -221,6 +231,12 @@ CRASH_WINDOW_S = 60.0
 FIRST_RESTART_DELAY_S = 0.5
 
 
+def _ready_but_the_database(health: dict) -> bool:
+    """Whether a 503 /health body says everything is up but the database (a degraded start)."""
+    return (health.get("database") is False and bool(health.get("zenoh")) and bool(health.get("learners"))
+            and len(health.get("rigs") or []) >= int(health.get("expected_rigs") or 0))
+
+
 @dataclass
 class Stack:
     config: StackConfig
@@ -229,6 +245,8 @@ class Stack:
     credentials: StackCredentials | None = None
     router_endpoint: str | None = None
     instance_id: str = field(default_factory=lambda: secrets.token_hex(8))
+    database_warning: str | None = None  # why the database cannot be written at start (the stack starts degraded)
+    database_error: str | None = None  # /health's database_error when the stack became ready without its database
 
     @property
     def api_url(self) -> str:
@@ -241,7 +259,7 @@ class Stack:
         check_port_free(cfg.host, cfg.port, "the API")
         if cfg.router_port:
             check_port_free("127.0.0.1", cfg.router_port, "the Zenoh router's")
-        prepare_database(cfg.db_path)
+        self.database_warning = prepare_database(cfg.db_path)
         self.log_dir = Path(cfg.log_dir or tempfile.mkdtemp(prefix="ra2vipas-logs-"))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         router_port = cfg.router_port or free_port()
@@ -312,6 +330,9 @@ class Stack:
                 if instance != self.instance_id:  # someone else answers on our address: never adopt it
                     last = f"HTTP {r.status_code} from another server (instance {instance!r})"
                 elif r.status_code == 200:
+                    return
+                elif self.database_warning and _ready_but_the_database(r.json()):
+                    self.database_error = r.json().get("database_error") or "unavailable"
                     return
                 else:
                     last = r.text

@@ -71,6 +71,9 @@ def up(
         print(f"ra2vipas up: API on {stack.api_url} (rigs: {rigs}, database: {db}, logs: {stack.log_dir}); {zenoh_info}; "
               "Ctrl-C to stop", flush=True)  # one line: scripts wait for it
         print(f"ra2vipas up: dashboard on {stack.api_url}/", flush=True)
+        if stack.database_error:
+            print(f"ra2vipas up: degraded: {stack.database_warning} (database_error: {stack.database_error})", file=sys.stderr,
+                  flush=True)
         while not stop.wait(0.5):
             for line, to_stderr in stack.supervise():
                 print(line, file=sys.stderr if to_stderr else sys.stdout, flush=True)
