@@ -235,8 +235,17 @@ def orchestrator(
     except OSError as err:  # e.g. a read-only folder: start degraded (503 naming the cause) and take it when it can be
         log.error("cannot lock the database %s: %s; the API answers 503 until it can (retrying)", settings.db_path,
                   (err.strerror or str(err)).lower())
+    from ra2vipas.services.orchestrator.api.guard import ConnectionGuard, GuardLimits, raise_fd_limit, rate_limit_logs
+
+    # what one client can hold (issue 18: slow clients once exhausted the descriptors): a deadline
+    # for each request's head, a cap on connections overall and per client, under the fd limit
+    limits = GuardLimits(settings.max_connections, settings.max_connections_per_client, settings.header_timeout_s)
+    limits = limits.within_fd_limit(raise_fd_limit())
+    guard = ConnectionGuard(limits)
     server = uvicorn.Server(uvicorn.Config(create_app(settings, db_lock=db_lock), host=settings.host, port=settings.port, log_level=log_level.lower(),
-                                           access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5))
+                                           access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5,
+                                           http=guard.protocol_class(), backlog=limits.backlog))
+    rate_limit_logs()  # after uvicorn set up its loggers: a flood of one line is logged once per 10 s
     import signal
 
     # uvicorn shuts down gracefully on SIGINT/SIGTERM, then re-raises the signal to the handler

@@ -147,6 +147,11 @@ class StackCredentials:
         shutil.rmtree(self.directory, ignore_errors=True)
 
 
+# the RA2VIPAS_* variables of the user's environment that reach the stack's services (the stack sets the others)
+USER_SETTINGS = ("RA2VIPAS_TOKEN", "RA2VIPAS_PLOT_WORKERS", "RA2VIPAS_MAX_CONNECTIONS", "RA2VIPAS_MAX_CONNECTIONS_PER_CLIENT",
+                 "RA2VIPAS_HEADER_TIMEOUT")
+
+
 class StackError(RuntimeError):
     pass
 
@@ -264,10 +269,9 @@ class Stack:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         router_port = cfg.router_port or free_port()
         endpoint = self.router_endpoint = f"tcp/127.0.0.1:{router_port}"
-        # the stack sets its own RA2VIPAS_* variables; the API token and the orchestrator's figure
-        # renderer count are the user's
-        base_env = {k: v for k, v in os.environ.items()
-                    if not k.startswith("RA2VIPAS_") or k in ("RA2VIPAS_TOKEN", "RA2VIPAS_PLOT_WORKERS")}
+        # the stack sets its own RA2VIPAS_* variables; the API token, the orchestrator's figure
+        # renderer count and its connection limits are the user's
+        base_env = {k: v for k, v in os.environ.items() if not k.startswith("RA2VIPAS_") or k in USER_SETTINGS}
         base_env.update({
             "RA2VIPAS_ZENOH_MODE": cfg.zenoh_mode,
             "RA2VIPAS_ZENOH_CONNECT": endpoint,
