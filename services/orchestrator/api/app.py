@@ -15,6 +15,7 @@ from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
 
 from ra2vipas.services.orchestrator.api.errors import responses, storage_fault, validation_error
+from ra2vipas.services.orchestrator.api.headers import SecurityHeaders
 from ra2vipas.services.orchestrator.api.limits import MAX_BODY_BYTES, BodySizeLimit
 from ra2vipas.services.orchestrator.api.render import PlotRenderer
 from ra2vipas.services.orchestrator.api.routes import campaigns, catalog, events, health, results, studies, tests
@@ -79,6 +80,7 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
         responses=responses(400, 413, 422, 503),  # every route: our error body, not FastAPI's default 422 schema
     )
     app.add_middleware(BodySizeLimit, max_bytes=MAX_BODY_BYTES)
+    app.add_middleware(SecurityHeaders)  # outermost: on every response, errors included
     app.add_exception_handler(RequestValidationError, validation_error)
     app.add_exception_handler(StorageFault, storage_fault)
     for module in (health, campaigns, events, results, tests, studies, catalog):
