@@ -41,6 +41,13 @@ def up(
     Everything listens on 127.0.0.1 only, and the stack's Zenoh network is closed to any
     process without its credentials (made up at start, in a file only you can read, deleted
     at stop); another process joins it with the environment in the printed zenoh.env file.
+    The boundary is your user: any process running as you can read those files and join
+    with the stack's full rights (announce a rig, send its results). Run code you do not
+    trust as another user, or use the secured deployment (ra2vipas security init), whose
+    router confines each rig's identity to its own keys.
+
+    A database folder that cannot be written at start (a read-only file system) starts the
+    stack degraded: the API answers 503 naming the cause until the folder is writable.
 
     Examples:
 
