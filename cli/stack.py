@@ -97,6 +97,11 @@ class StackConfig:
     log_level: str = "INFO"
     zenoh_mode: str = "client"  # the services' mode: clients of the router, or peers (direct links, listening on loopback)
     insecure: bool = False  # True: no Zenoh credentials (any local process may join the stack)
+    # True: each service its own Zenoh identity, and the router's access control confines each to its
+    # own keys (services/transport/acl.py), as in the secured deployment; extra_rigs: identities
+    # made for rigs run outside the stack (their env files in the credentials directory)
+    rig_acl: bool = False
+    extra_rigs: tuple[str, ...] = ()
     max_restart_delay: float = 30.0  # a crashed service's restart delay doubles from 0.5 s up to this
 
 
@@ -142,6 +147,56 @@ class StackCredentials:
         _write_private(creds.password_file, password + "\n")
         _write_private(creds.dictionary_file, f"{creds.user}:{password}\n")
         return creds
+
+    def remove(self) -> None:
+        shutil.rmtree(self.directory, ignore_errors=True)
+
+
+@dataclass(frozen=True)
+class StackIdentities:
+    """``up --rig-acl``: one Zenoh identity per service of the stack (and per extra rig), each
+    with its own password (``directory/USER.password``, 0600), the router's dictionary of them
+    all (``credentials``), its configuration with the access control (``router.json``) and one
+    environment file per identity (``USER.env``: how a process joins as that identity)."""
+
+    directory: Path
+    identities: tuple
+
+    @property
+    def dictionary_file(self) -> Path:
+        return self.directory / "credentials"
+
+    @property
+    def router_config(self) -> Path:
+        return self.directory / "router.json"
+
+    def env_file(self, user: str) -> Path:
+        return self.directory / f"{user}.env"
+
+    def env(self, user: str) -> dict[str, str]:
+        return {"RA2VIPAS_ZENOH_USER": user, "RA2VIPAS_ZENOH_PASSWORD_FILE": str(self.directory / f"{user}.password")}
+
+    @classmethod
+    def create(cls, rigs: list[str], extra_rigs: list[str], endpoint: str) -> "StackIdentities":
+        import json
+
+        from ra2vipas.services.transport.acl import access_control, standard_identities
+
+        identities = standard_identities(rigs=list(extra_rigs), split_rigs=rigs)
+        directory = Path(tempfile.mkdtemp(prefix="ra2vipas-stack-"))
+        os.chmod(directory, 0o700)
+        made = cls(directory, tuple(identities))
+        lines = []
+        for identity in identities:
+            password = secrets.token_urlsafe(32)
+            _write_private(directory / f"{identity.user}.password", password + "\n")
+            lines.append(f"{identity.user}:{password}\n")
+            _write_private(made.env_file(identity.user), "".join(f"{k}={v}\n" for k, v in {
+                "RA2VIPAS_ZENOH_MODE": "client", "RA2VIPAS_ZENOH_CONNECT": endpoint, **made.env(identity.user)}.items()))
+        _write_private(made.dictionary_file, "".join(lines))
+        _write_private(made.router_config, json.dumps({"mode": "router", "scouting": {"multicast": {"enabled": False}},
+                                                       "access_control": access_control(identities)}, indent=2))
+        return made
 
     def remove(self) -> None:
         shutil.rmtree(self.directory, ignore_errors=True)
@@ -248,6 +303,7 @@ class Stack:
     children: list[Child] = field(default_factory=list)
     log_dir: Path | None = None
     credentials: StackCredentials | None = None
+    identities: StackIdentities | None = None
     router_endpoint: str | None = None
     instance_id: str = field(default_factory=lambda: secrets.token_hex(8))
     database_warning: str | None = None  # why the database cannot be written at start (the stack starts degraded)
@@ -279,7 +335,15 @@ class Stack:
             "RA2VIPAS_LOG_LEVEL": cfg.log_level,
             "PYTHONUNBUFFERED": "1",
         })
-        if not cfg.insecure:
+        rig_names = [f"rig-{i}" for i in range(1, cfg.rigs + 1)]
+        if cfg.rig_acl and not cfg.insecure:
+            from ra2vipas.services.transport.acl import AclError
+
+            try:
+                self.identities = StackIdentities.create(rig_names, list(cfg.extra_rigs), endpoint)
+            except AclError as err:
+                raise StackError(f"--extra-rig: {err}") from None
+        elif not cfg.insecure:
             self.credentials = StackCredentials.create()
             base_env.update(self.credentials.env())
             _write_private(self.credentials.env_file, "".join(f"{k}={v}\n" for k, v in {
@@ -296,6 +360,9 @@ class Stack:
             "RA2VIPAS_WINDOW": str(cfg.window), "RA2VIPAS_EXPECT_RIGS": str(cfg.rigs), "RA2VIPAS_INSTANCE_ID": self.instance_id,
             "RA2VIPAS_SUPERVISOR_STATUS": str(self.status_file),
         }))
+        if self.identities is not None:  # each service its own identity; the router checks them and enforces the ACL
+            ids = self.identities
+            specs = [(name, argv, {**extra, **self._identity_env(name, ids)}) for name, argv, extra in specs]
         for name, argv, extra in specs:
             env = {**base_env, **extra}
             env = {k: v for k, v in env.items() if v != ""}
@@ -305,6 +372,16 @@ class Stack:
             if name == "router":
                 self._wait_port(router_port, child, 15.0)
         self._wait_ready(ready_timeout)
+
+    @staticmethod
+    def _identity_env(service: str, ids: StackIdentities) -> dict[str, str]:
+        """The Zenoh identity of one of the stack's services (``--rig-acl``)."""
+        if service == "router":
+            return {"RA2VIPAS_ZENOH_CREDENTIALS": str(ids.dictionary_file), "RA2VIPAS_ZENOH_CONFIG": str(ids.router_config),
+                    "RA2VIPAS_ZENOH_USER": "", "RA2VIPAS_ZENOH_PASSWORD_FILE": ""}
+        role, _, rig = service.partition("-")  # sensors-rig-1, controller-rig-1, learner, orchestrator
+        user = f"{rig}.{role}" if rig else service
+        return ids.env(user)
 
     def _wait_port(self, port: int, child: Child, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -463,6 +540,8 @@ class Stack:
                 c.proc.wait(5.0)
         if self.credentials is not None:
             self.credentials.remove()
+        if self.identities is not None:
+            self.identities.remove()
 
     def pids(self) -> list[int]:
         return [c.proc.pid for c in self.children if c.proc is not None]

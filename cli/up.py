@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from ra2vipas.cli.output import fail
+from ra2vipas.cli.output import EXIT_USAGE, fail
 from ra2vipas.cli.polish import deprecated, prefer
 from ra2vipas.cli.stack import Stack, StackConfig, StackError
 
@@ -24,6 +24,8 @@ def up(
     window: Annotated[int, typer.Option(min=1, max=1024, help="Episodes in flight per rig.")] = 8,
     log_dir: Annotated[Optional[str], typer.Option(help="Directory for the services' logs (default: a new temporary directory).")] = None,
     max_restart_delay: Annotated[float, typer.Option(min=0.5, max=3600, help="A crashed service is restarted after 0.5 s, doubling up to this many seconds; one in a crash loop (5 crashes within a minute) waits this long each time.")] = 30.0,
+    rig_acl: Annotated[bool, typer.Option("--rig-acl", help="Give every service its own Zenoh identity and let the router's access control confine each to its own keys (as the secured deployment does): a process holding one rig's credentials cannot pass for another rig, forge its results, or act as the orchestrator or the learner.")] = False,
+    extra_rigs: Annotated[Optional[list[str]], typer.Option("--extra-rig", metavar="NAME", help="With --rig-acl: make an identity for a rig run outside the stack (repeatable); its environment file is printed, and it may act as that rig only.")] = None,
     insecure: Annotated[bool, typer.Option("--insecure", help="No Zenoh credentials: any local process may join the stack's Zenoh network (by default the stack makes up its own, readable by you only).")] = False,
 ) -> None:
     """Run a local stack in the foreground: Zenoh router, orchestrator (REST API), learner and rigs.
@@ -42,9 +44,11 @@ def up(
     process without its credentials (made up at start, in a file only you can read, deleted
     at stop); another process joins it with the environment in the printed zenoh.env file.
     The boundary is your user: any process running as you can read those files and join
-    with the stack's full rights (announce a rig, send its results). Run code you do not
-    trust as another user, or use the secured deployment (ra2vipas security init), whose
-    router confines each rig's identity to its own keys.
+    with the stack's full rights (announce a rig, send its results). With --rig-acl every
+    service has its own identity and the router confines each to its own keys (a process
+    with one rig's credentials cannot pass for another rig or forge its results);
+    --extra-rig NAME makes an identity for a rig run outside the stack. Run code you do not
+    trust at all as another user, or use the secured deployment (ra2vipas security init).
 
     A database folder that cannot be written at start (a read-only file system) starts the
     stack degraded: the API answers 503 naming the cause until the folder is writable.
@@ -56,6 +60,10 @@ def up(
         ra2vipas up --db /var/lib/ra2vipas/ra2vipas.db --log-dir logs
     """
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count")
+    if extra_rigs and not rig_acl:
+        fail("--extra-rig needs --rig-acl", EXIT_USAGE)
+    if rig_acl and insecure:
+        fail("--rig-acl and --insecure contradict each other: choose one", EXIT_USAGE)
     stop = threading.Event()
 
     def on_signal(_signum, _frame) -> None:
@@ -64,13 +72,18 @@ def up(
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     stack = Stack(StackConfig(rigs=rigs, host=host, port=port, db_path=db, router_port=router_port, window=window, log_dir=log_dir,
-                              insecure=insecure, max_restart_delay=max_restart_delay))
+                              insecure=insecure, max_restart_delay=max_restart_delay, rig_acl=rig_acl,
+                              extra_rigs=tuple(extra_rigs or ())))
     try:
         try:
             stack.start()
         except StackError as err:
             fail(str(err))
-        if stack.credentials is not None:
+        if stack.identities is not None:
+            extra = "".join(f"; {rig} joins with the environment in {stack.identities.env_file(rig)}" for rig in extra_rigs or ())
+            zenoh_info = (f"Zenoh router {stack.router_endpoint}, one identity per service, each confined to its own keys "
+                          f"(--rig-acl; files in {stack.identities.directory}){extra}")
+        elif stack.credentials is not None:
             zenoh_info = (f"Zenoh router {stack.router_endpoint}, closed to processes without its credentials "
                           f"(join with the environment in {stack.credentials.env_file})")
         else:
