@@ -124,10 +124,11 @@ def test_repeated_log_lines_are_rate_limited():
     handler.addFilter(RepeatFilter(interval_s=0.2, burst=3))
     logger.addHandler(handler)
     try:
-        for _ in range(10_000):
-            logger.error("socket.accept() out of system resource\nsocket: <fd=%d>", 7)
-        logger.error("another line")
-        assert len(records) == 4
+        for fd in range(10_000):
+            logger.error("socket.accept() out of system resource\nsocket: <fd=%d>", fd)
+        logger.error("rig %s lost", "rig-1")
+        logger.error("rig %s lost", "rig-2")  # another line: not suppressed
+        assert len(records) == 5
         time.sleep(0.25)
         logger.error("socket.accept() out of system resource\nsocket: <fd=%d>", 8)
         assert "(9997 similar lines suppressed in the last 0.2 s)" in records[-1]

@@ -208,17 +208,18 @@ class GuardedH11Protocol(H11Protocol):
 
 class RepeatFilter(logging.Filter):
     """Let a log line through at most ``burst`` times per ``interval_s`` (per logger, level and
-    first line of the message); the next one that passes says how many were suppressed."""
+    first line of the message as formatted: lines that differ there, e.g. naming another rig,
+    are not the same line); the next one that passes says how many were suppressed."""
 
-    def __init__(self, interval_s: float = 10.0, burst: int = 3, max_keys: int = 1024) -> None:
+    def __init__(self, interval_s: float = 10.0, burst: int = 5, max_keys: int = 1024) -> None:
         super().__init__()
         self.interval_s, self.burst, self.max_keys = interval_s, burst, max_keys
         self._seen: dict[tuple, list] = {}  # key -> [window start, passed in window, suppressed]
 
     def filter(self, record: logging.LogRecord) -> bool:
         try:
-            first = str(record.msg).split("\n", 1)[0][:200]
-        except Exception:  # noqa: BLE001 - a filter must never raise
+            first = record.getMessage().split("\n", 1)[0][:200]
+        except Exception:  # noqa: BLE001 - a filter must never raise (a bad format is the handler's to report)
             return True
         key = (record.name, record.levelno, first)
         now = time.monotonic()
