@@ -17,6 +17,17 @@ another network namespace) cannot open a session with the stack. The credentials
 children as file paths in their environment, never on a command line or in a log; the
 directory is removed by ``stop()``.
 
+With ``rig_acl`` (``up --rig-acl``) every service has its own identity instead, and the
+router's access control (``services/transport/acl.py``) confines each to its own keys, so a
+process holding one rig's credentials can neither pass for another rig nor forge its results.
+Either way the files are their owner's: any process running as that user can read them.
+
+``supervise()`` (``up``'s loop) restarts a service that died after a delay doubling from 0.5 s;
+one in a crash loop (``CRASH_LIMIT`` crashes within ``CRASH_WINDOW_S``) is restarted at the
+capped delay until it stays up, and the others are never touched: the stack is stopped by its
+user only. What it is restarting is written to ``status_file``, which the orchestrator shows
+in ``GET /rigs``.
+
 Children get ``PR_SET_PDEATHSIG`` so they die with their parent even if it is killed with
 SIGKILL; ``stop()`` sends SIGTERM, waits, then SIGKILLs stragglers, and reaps every pid it
 started.
@@ -25,6 +36,7 @@ started.
 from __future__ import annotations
 
 import ctypes
+import json
 import os
 import secrets
 import shutil
@@ -178,8 +190,6 @@ class StackIdentities:
 
     @classmethod
     def create(cls, rigs: list[str], extra_rigs: list[str], endpoint: str) -> "StackIdentities":
-        import json
-
         from ra2vipas.services.transport.acl import access_control, standard_identities
 
         identities = standard_identities(rigs=list(extra_rigs), split_rigs=rigs)
@@ -422,13 +432,6 @@ class Stack:
             time.sleep(0.1)
         raise StackError(f"the stack was not ready within {timeout:.0f} s (last /health: {last[:300]})")
 
-    def watch(self) -> Child | None:
-        """The first child that died, or None."""
-        for c in self.children:
-            if not c.alive():
-                return c
-        return None
-
     def crashed(self, child: Child, now: float | None = None) -> float:
         """Record that ``child`` died and return the delay before restarting it: 0.5 s doubling
         with each crash within ``CRASH_WINDOW_S``, at most ``config.max_restart_delay``; once it
@@ -506,8 +509,6 @@ class Stack:
         path = self.status_file
         if path is None:
             return
-        import json
-
         tmp = path.with_suffix(".tmp")
         try:
             tmp.write_text(json.dumps({"services": self.status(), "written_at": time.time()}))

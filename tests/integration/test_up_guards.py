@@ -153,7 +153,9 @@ def test_a_crash_loop_backs_off_and_never_stops_the_stack(tmp_path):
         assert {"router", "learner", "orchestrator", "sensors --rig rig-1", "controller --rig rig-1"} <= set(before), before
 
         _kill_each_restart(up, "learner", CRASH_LIMIT)
-        rigs = httpx.get(f"{api}/rigs", timeout=5).json()
+        deadline = time.monotonic() + 5  # `up` notices a death within half a second
+        while not (rigs := httpx.get(f"{api}/rigs", timeout=5).json())["services"] and time.monotonic() < deadline:
+            time.sleep(0.1)
         assert [(s["name"], s["state"], s["crashes"]) for s in rigs["services"]] == [("learner", "backing off", CRASH_LIMIT)], rigs
         page = httpx.get(f"{api}/ui/rigs", timeout=5).text
         assert 'data-service="learner" data-state="backing off"' in page
