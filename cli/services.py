@@ -245,7 +245,7 @@ def orchestrator(
     server = uvicorn.Server(uvicorn.Config(create_app(settings, db_lock=db_lock), host=settings.host, port=settings.port, log_level=log_level.lower(),
                                            access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5,
                                            http=guard.protocol_class(), backlog=limits.backlog))
-    rate_limit_logs()  # after uvicorn set up its loggers: a flood of one line is logged once per 10 s
+    rate_limit_logs()  # after uvicorn set up its loggers: a flood of one line is logged 5 times per 10 s, then counted
     import signal
 
     # uvicorn shuts down gracefully on SIGINT/SIGTERM, then re-raises the signal to the handler
