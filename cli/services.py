@@ -237,17 +237,29 @@ def orchestrator(
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        fail(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
-             "create it, or give --db a path you can write")
+        if not folder.is_dir():
+            fail(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
+                 "create it, or give --db a path you can write")
+    db_lock = DatabaseLock(settings.db_path)
     try:
-        db_lock = DatabaseLock(settings.db_path).acquire()  # held until this process exits
+        db_lock.acquire()  # held until this process exits
     except DatabaseInUse as err:
         fail(str(err))
-    except OSError as err:
-        fail(f"cannot lock the database {settings.db_path}: {err.strerror or err}")
+    except OSError as err:  # e.g. a read-only folder: start degraded (503 naming the cause) and take it when it can be
+        log.error("cannot lock the database %s: %s; the API answers 503 until it can (retrying)", settings.db_path,
+                  (err.strerror or str(err)).lower())
     warn_if_unreachable(settings.zenoh)
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host=settings.host, port=settings.port, log_level=log_level.lower(),
-                                           access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5))
+    from ra2vipas.services.orchestrator.api.guard import ConnectionGuard, GuardLimits, raise_fd_limit, rate_limit_logs
+
+    # what one client can hold (issue 18: slow clients once exhausted the descriptors): a deadline
+    # for each request's head, a cap on connections overall and per client, under the fd limit
+    limits = GuardLimits(settings.max_connections, settings.max_connections_per_client, settings.header_timeout_s)
+    limits = limits.within_fd_limit(raise_fd_limit())
+    guard = ConnectionGuard(limits)
+    server = uvicorn.Server(uvicorn.Config(create_app(settings, db_lock=db_lock), host=settings.host, port=settings.port, log_level=log_level.lower(),
+                                           access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5,
+                                           http=guard.protocol_class(), backlog=limits.backlog))
+    rate_limit_logs()  # after uvicorn set up its loggers: a flood of one line is logged 5 times per 10 s, then counted
     import signal
 
     # uvicorn shuts down gracefully on SIGINT/SIGTERM, then re-raises the signal to the handler

@@ -28,7 +28,22 @@ class DatabaseLock:
         self.path = lock_path(db_path)
         self._fd: int | None = None
 
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
     def acquire(self) -> "DatabaseLock":
+        """Take the lock (nothing to do if this object holds it already).
+
+        Raises
+        ------
+        DatabaseInUse
+            Another process holds it.
+        OSError
+            The lock file cannot be created or opened (e.g. a read-only file system).
+        """
+        if self._fd is not None:
+            return self
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -59,17 +74,18 @@ def holder(db_path: str | os.PathLike) -> int | None:
     """The pid holding ``db_path``'s lock (0 if unknown), or None when it is free (or there is
     no lock file)."""
     path = lock_path(db_path)
-    if not path.exists():
+    try:
+        fd = os.open(path, os.O_RDONLY)  # read-only: works on a read-only file system too (flock needs no write access)
+    except OSError:
         return None
     try:
-        with DatabaseLock(db_path):
-            return None
-    except DatabaseInUse:
-        fd = os.open(path, os.O_RDONLY)
         try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
             return _read_pid(fd) or 0
-        finally:
-            os.close(fd)
+        return None  # closing the descriptor releases the lock we just took
+    finally:
+        os.close(fd)
 
 
 def _read_pid(fd: int) -> int | None:

@@ -12,7 +12,8 @@ For each campaign it
 4. when every episode is recorded, reduces them to the same results object as
    ``ra2vipas simulate --json``.
 
-A rig is live while both its sensors and its controller hold their liveliness tokens; when
+A rig is live while both its sensors and its controller hold their liveliness tokens (once both
+have left it is forgotten: no longer listed in ``/rigs``); when
 its sensors come up the scheduler asks the rig what it is (``rig/<rig>/info``, a
 ``RigDescriptor``; a v1 node answers nothing and the rig is *undescribed*). A campaign's
 episodes go only to the rigs it targets (``targeting``: named rigs or a rig kind) whose
@@ -730,6 +731,12 @@ class Scheduler:
                 if flight is not None and flight.saving:
                     continue  # finished: only waiting for the database
                 self._requeue(eid, count_attempt=False, reason=f"rig {name} lost")
+        if not rig.sensors and not rig.controller:  # both its nodes left: it is no longer a rig of the mesh
+            self.rigs.pop(name, None)
+            for run in self.runs.values():
+                run.eligible.pop(name, None)
+            log.info("rig %s left (no sensors, no controller)", name)
+            return
         if rig.live:
             self._dispatch()
 

@@ -25,6 +25,15 @@ class OrchestratorSettings:
     # RA2VIPAS_INSTANCE_ID: shown by /health, so `ra2vipas up` knows it reached its own orchestrator
     instance_id: str = field(default_factory=lambda: secrets.token_hex(8))
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+    # RA2VIPAS_SUPERVISOR_STATUS: the JSON file where `ra2vipas up` says which of its services it is
+    # restarting or backing off (shown by GET /rigs and the rigs page); None outside `up`
+    supervisor_status: str | None = None
+    # what one HTTP client can hold (api/guard.py): RA2VIPAS_MAX_CONNECTIONS (all clients; never more
+    # than the file descriptor limit allows), RA2VIPAS_MAX_CONNECTIONS_PER_CLIENT (per address) and
+    # RA2VIPAS_HEADER_TIMEOUT (seconds for a request's line and headers to arrive)
+    max_connections: int = 1000
+    max_connections_per_client: int = 256
+    header_timeout_s: float = 10.0
 
     @classmethod
     def from_sources(cls, *, host: str | None = None, port: int | None = None, db_path: str | None = None,
@@ -40,7 +49,8 @@ class OrchestratorSettings:
         """
         env = os.environ if env is None else env
         given = {"host": host, "port": port, "db_path": db_path, "window": window, "expect_rigs": expect_rigs,
-                 "plot_workers": plot_workers, "plot_rate": None}
+                 "plot_workers": plot_workers, "plot_rate": None, "max_connections": None, "max_connections_per_client": None,
+                 "header_timeout_s": None}
         raw: dict[str, object] = {}
         where: dict[str, str] = {}
         for name, value in given.items():
@@ -60,6 +70,9 @@ class OrchestratorSettings:
             plot_workers=checked.plot_workers or default_plot_workers(), plot_rate=checked.plot_rate,
             instance_id=env.get("RA2VIPAS_INSTANCE_ID") or secrets.token_hex(8),
             zenoh=zenoh or ZenohSettings.from_sources(env=env),
+            supervisor_status=env.get("RA2VIPAS_SUPERVISOR_STATUS") or None,
+            max_connections=checked.max_connections, max_connections_per_client=checked.max_connections_per_client,
+            header_timeout_s=checked.header_timeout_s,
         )
 
 
@@ -68,7 +81,9 @@ class SettingsError(ValueError):
 
 
 ENV = {"host": "RA2VIPAS_HOST", "port": "RA2VIPAS_PORT", "db_path": "RA2VIPAS_DB", "window": "RA2VIPAS_WINDOW",
-       "expect_rigs": "RA2VIPAS_EXPECT_RIGS", "plot_workers": "RA2VIPAS_PLOT_WORKERS", "plot_rate": "RA2VIPAS_PLOT_RATE"}
+       "expect_rigs": "RA2VIPAS_EXPECT_RIGS", "plot_workers": "RA2VIPAS_PLOT_WORKERS", "plot_rate": "RA2VIPAS_PLOT_RATE",
+       "max_connections": "RA2VIPAS_MAX_CONNECTIONS", "max_connections_per_client": "RA2VIPAS_MAX_CONNECTIONS_PER_CLIENT",
+       "header_timeout_s": "RA2VIPAS_HEADER_TIMEOUT"}
 
 
 class _Checked(BaseModel):
@@ -82,6 +97,9 @@ class _Checked(BaseModel):
     expect_rigs: int = Field(1, ge=0, le=1000)
     plot_workers: int | None = Field(None, ge=1, le=64)
     plot_rate: float = Field(40.0, gt=0, le=100000)
+    max_connections: int = Field(1000, ge=16, le=100000)
+    max_connections_per_client: int = Field(256, ge=1, le=100000)
+    header_timeout_s: float = Field(10.0, gt=0, le=3600)
 
 
 def default_plot_workers() -> int:

@@ -18,14 +18,16 @@ failed transaction is rolled back whole.
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import sqlite3
 import threading
 import time
 import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 SCHEMA_VERSION = 6
 
@@ -159,6 +161,28 @@ class Fault:
         return f"{what}: {self.cause} (since {time.strftime('%H:%M:%S', time.localtime(self.since))})"
 
 
+def _explain(err: BaseException, path: str) -> str:
+    """The cause of a storage fault in one line. SQLite says "disk I/O error", "unable to open
+    database file" or "attempt to write a readonly database" for a read-only file system or
+    folder; the folder is checked so the cause names what it is ("read-only file system: disk
+    I/O error", "permission denied: ...")."""
+    text = str(err) or type(err).__name__
+    if isinstance(err, OSError) and err.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return (err.strerror or text).lower()
+    if isinstance(err, OSError) and err.strerror:
+        text = err.strerror.lower()
+    if isinstance(err, sqlite3.Error) or isinstance(err, OSError):
+        folder = os.path.dirname(os.path.abspath(path)) or "."
+        try:
+            if os.statvfs(folder).f_flag & os.ST_RDONLY:
+                return text if "read-only file system" in text else f"read-only file system: {text}"
+            if not os.access(folder, os.W_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+                return text if "permission denied" in text else f"permission denied: {text}"
+        except OSError:
+            pass
+    return text
+
+
 class CampaignActiveError(StoreError):
     """The operation needs a finished campaign and this one is still queued, training or running."""
 
@@ -177,12 +201,15 @@ class EpisodeKey:
 class Store:
     """Thread-safe access to the campaign database (one connection, one lock)."""
 
-    def __init__(self, path: str, *, lazy: bool = False) -> None:
+    def __init__(self, path: str, *, lazy: bool = False, guard: Callable[[], object] | None = None) -> None:
         """Open (and migrate) the database at ``path``.
 
         With ``lazy``, a database that cannot be opened now (read-only file system, I/O error)
         leaves the store unavailable, with the reason in ``fault``, instead of raising; call
-        ``reopen()`` later. A file from a newer program version always raises.
+        ``reopen()`` later. A file from a newer program version always raises. ``guard`` is
+        called before each attempt to open (the orchestrator's ``DatabaseLock.acquire``, when
+        it could not take the lock at start: the database is opened only once it holds it); an
+        ``OSError`` or ``RuntimeError`` from it is a fault like the database's own.
 
         Raises
         ------
@@ -190,6 +217,7 @@ class Store:
             The file cannot be opened (without ``lazy``), or its schema is newer than this program's.
         """
         self.path = path
+        self._guard = guard
         self._lock = threading.RLock()
         self._db: sqlite3.Connection | None = None
         self.fault: Fault | None = None
@@ -216,6 +244,13 @@ class Store:
             if self._db is not None:
                 return
             db = None
+            if self._guard is not None:
+                try:
+                    self._guard()
+                except (OSError, RuntimeError) as err:
+                    cause = (f"cannot lock the database: {_explain(err, self.path)}" if isinstance(err, OSError) else str(err))
+                    self._record("open", RuntimeError(cause))
+                    raise StorageFault(f"cannot open database {self.path!r}: {cause}") from None
             try:
                 db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=30.0)
                 db.row_factory = sqlite3.Row
@@ -238,7 +273,7 @@ class Store:
 
     # -- plumbing ---------------------------------------------------------------------------
     def _record(self, operation: str, err: BaseException) -> None:
-        cause = str(err) or type(err).__name__
+        cause = _explain(err, self.path)
         if self.fault is None or (self.fault.operation, self.fault.cause) != (operation, cause):
             self.fault = Fault(operation=operation, cause=cause, since=time.time())
 

@@ -172,3 +172,27 @@ def test_a_study_no_live_rig_can_run_is_refused_naming_the_rigs(tmp_path):
             assert http.post("/studies", json=body).status_code == 201
     finally:
         server.stop()
+
+
+def test_a_rig_that_left_is_no_longer_listed(tmp_path):
+    """Issue 18: a rig whose sensors and controller have both left stayed in /rigs (and on the
+    rigs page) for ever. One node gone: still listed, lost; both gone: not listed any more."""
+    server = LiveAPI(tmp_path / "left.db", rigs=("stay-1", "gone-1")).start()
+    try:
+        server.settle()
+        with server.client() as http:
+            assert {r["name"] for r in http.get("/rigs").json()["rigs"]} == {"stay-1", "gone-1"}
+            sensors, controller = [n for n in server.nodes if getattr(n, "rig", None) == "gone-1"]
+            sensors.close()
+            server.nodes.remove(sensors)
+            server.settle()
+            lost = {r["name"]: r for r in http.get("/rigs").json()["rigs"]}["gone-1"]
+            assert not lost["live"] and not lost["sensors"] and lost["controller"]
+            controller.close()
+            server.nodes.remove(controller)
+            server.settle()
+            assert [r["name"] for r in http.get("/rigs").json()["rigs"]] == ["stay-1"]
+            page = http.get("/ui/rigs").text
+            assert 'data-rig="stay-1"' in page and 'data-rig="gone-1"' not in page
+    finally:
+        server.stop()

@@ -156,3 +156,47 @@ def test_a_read_only_database_at_start_up_surfaces_and_heals(tmp_path, mounts):
     finally:
         live.stop()
     assert_recorded_once(view / "ro.db", cid)
+
+
+def test_up_on_a_read_only_folder_starts_degraded_and_heals(tmp_path, mounts):
+    """Issue 18: `ra2vipas up` with its database in a read-only folder gave no API at all (the
+    orchestrator could not create its lock file, exited, and `up` gave up). Now the stack
+    starts degraded: /health and the API answer 503 naming the cause ("read-only", not "disk
+    I/O error"), and everything works once the folder is writable again, without a restart."""
+    import httpx
+
+    from tests.integration.conftest import Procs, start_stack, stop_stack
+
+    source = tmp_path / "source"
+    source.mkdir()
+    view = mounts("--bind", str(source), at=tmp_path / "view")
+    _mount("-o", "remount,ro,bind", str(view))
+    registry = Procs()
+    try:
+        state = start_stack(registry, tmp_path, "--db", str(view / "ro.db"), rigs=1)
+        api, up = state["api"], state["up"]
+        health = httpx.get(f"{api}/health", timeout=5)
+        assert health.status_code == 503 and health.json()["database"] is False, health.text
+        assert "read-only" in health.json()["database_error"] and "disk I/O" not in health.json()["database_error"], health.json()
+        assert health.json()["zenoh"] and health.json()["rigs"] == ["rig-1"]
+        r = httpx.get(f"{api}/campaigns", timeout=5)
+        assert r.status_code == 503 and r.headers["content-type"].startswith("application/json") and "read-only" in r.json()["detail"]
+        r = httpx.post(f"{api}/campaigns", json={"overrides": OVERRIDES, "tests": 1}, timeout=5)
+        assert r.status_code == 503 and "read-only" in r.json()["detail"]
+
+        _mount("-o", "remount,rw,bind", str(view))
+        wait_for(lambda: httpx.get(f"{api}/health", timeout=5).status_code == 200, "/health did not recover", timeout=90)
+        r = httpx.post(f"{api}/campaigns", json={"overrides": OVERRIDES, "algorithms": ALGORITHMS, "tests": TESTS, "seed": SEED},
+                       timeout=10)
+        assert r.status_code == 201, r.text
+        cid = r.json()["id"]
+        c = wait_for(lambda: (lambda c: c if c["status"] in ("done", "failed") else None)(httpx.get(f"{api}/campaigns/{cid}", timeout=5).json()),
+                     "the campaign did not finish", timeout=120)
+        assert c["status"] == "done", c
+        stop_stack(registry, up)
+        out = up.stdout.read()
+        assert "degraded: the database folder" in out and "read-only file system" in out, out
+        assert "crashed" not in out and "exited (code" not in out, out  # the orchestrator never died
+    finally:
+        registry.cleanup()
+    assert (view / "ro.db.lock").exists()

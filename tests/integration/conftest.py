@@ -91,15 +91,16 @@ def wait_for_line(proc: subprocess.Popen, needle: str, timeout: float) -> str:
     raise AssertionError(f"{needle!r} not seen within {timeout} s; output:\n{''.join(seen)}")
 
 
-def start_stack(registry: Procs, tmp: Path, *extra: str, rigs: int = 2) -> dict:
+def start_stack(registry: Procs, tmp: Path, *extra: str, rigs: int = 2, **popen) -> dict:
     """``ra2vipas up`` with its database and logs under ``tmp``; returns api, the up process,
-    the database path, the log directory and the line ``up`` printed once the API is ready."""
+    the database path, the log directory and the line ``up`` printed once the API is ready.
+    ``popen``: more keyword arguments of ``subprocess.Popen`` (e.g. ``preexec_fn``)."""
     import re
 
     from ra2vipas.cli.stack import free_port
 
     up = registry.start("up", "--rigs", str(rigs), "--port", str(free_port()), "--db", str(tmp / "stack.db"),
-                        "--log-dir", str(tmp / "logs"), *extra)
+                        "--log-dir", str(tmp / "logs"), *extra, **popen)
     line = wait_for_line(up, "API on http://", 120)
     return {"api": re.search(r"(http://[0-9.:]+)", line).group(1), "up": up, "db": tmp / "stack.db", "logs": tmp / "logs", "line": line}
 

@@ -1,7 +1,8 @@
 """``ra2vipas up`` never lies about itself (issue 13): a second stack on a busy port or on a
 database another orchestrator holds fails fast with one line and exit 1, before starting
 anything; the database's folder is created or refused in one line; a crashing service is
-restarted with backoff and, after 5 crashes in a minute, stops the stack with its last words;
+restarted with backoff and, after 5 crashes in a minute, backs off at a capped interval
+(never stopping the stack: issue 18), and its port check ignores TIME-WAIT sockets;
 and ``up`` only accepts its own orchestrator's /health."""
 
 from __future__ import annotations
@@ -95,40 +96,137 @@ def test_the_database_lock_is_exclusive_and_released(tmp_path):
         pass
 
 
-def test_crash_backoff_doubles_and_gives_up_after_the_limit():
-    stack = Stack(StackConfig())
+def test_crash_backoff_doubles_then_backs_off_at_the_cap_and_never_gives_up():
+    stack = Stack(StackConfig(max_restart_delay=30.0))
     child = Child("learner", ["true"], {}, Path("/dev/null"))
-    delays = [stack.crashed(child, now=float(t)) for t in range(CRASH_LIMIT)]
-    assert delays[:-1] == [0.5, 1.0, 2.0, 4.0] and delays[-1] is None
+    delays = [stack.crashed(child, now=float(t)) for t in range(CRASH_LIMIT + 3)]
+    assert delays == [0.5, 1.0, 2.0, 4.0] + [30.0] * 4 and child.backing_off  # a crash loop: the cap, for ever
     child.crashes.clear()
-    assert [stack.crashed(child, now=t * 100.0) for t in range(CRASH_LIMIT + 2)] == [0.5] * (CRASH_LIMIT + 2)  # far apart: no limit
+    child.backing_off = False
+    assert [stack.crashed(child, now=t * 100.0) for t in range(CRASH_LIMIT + 2)] == [0.5] * (CRASH_LIMIT + 2)  # far apart: no loop
 
 
-def test_a_service_that_keeps_crashing_stops_up_with_its_last_words(tmp_path):
-    """The learner is killed again each time `up` restarts it: restarts come after growing
-    delays, and the fifth crash within a minute stops the whole stack with exit 1 and the
-    learner's last log lines."""
+def _pids_by_service(up_pid: int) -> dict[str, int]:
+    out = {}
+    for pid in children_of(up_pid):
+        argv = _cmdline(pid).split("\0")
+        if "ra2vipas.cli.main" in argv:
+            words = argv[argv.index("ra2vipas.cli.main") + 1:]
+            out[" ".join(w for w in words[:3] if w and not w.startswith("tcp/") and w != "--listen")] = pid
+    return out
+
+
+def _kill_each_restart(up, service: str, times: int, timeout: float = 120) -> None:
+    """SIGKILL ``service`` ``times`` times, each time as soon as `up` has restarted it."""
     import os
     import signal
     import time
 
+    kills, last_pid, deadline = 0, None, time.monotonic() + timeout
+    while kills < times and time.monotonic() < deadline:
+        assert up.poll() is None, up.stdout.read()
+        pid = _pids_by_service(up.pid).get(service)
+        if pid is not None and pid != last_pid:
+            last_pid = pid
+            time.sleep(0.3)
+            os.kill(pid, signal.SIGKILL)
+            kills += 1
+        time.sleep(0.05)
+    assert kills == times
+
+
+def test_a_crash_loop_backs_off_and_never_stops_the_stack(tmp_path):
+    """Issue 18: five orchestrator kills within ~40 s stopped the whole stack (rigs, router, API)
+    and stalled the campaign. Now a service in a crash loop is restarted at the capped delay
+    (said on stderr, and shown in GET /rigs while the API is up), the other services keep
+    running untouched, and the stack serves again once the orchestrator is back; a learner in a
+    crash loop shows in /rigs while the API answers."""
+    import time
+
+    import httpx
+
     registry = Procs()
     try:
-        state = start_stack(registry, tmp_path, rigs=1)
-        up = state["up"]
-        kills, last_pid, deadline = 0, None, time.monotonic() + 120
-        while up.poll() is None and time.monotonic() < deadline:
-            pids = [p for p in children_of(up.pid) if "learner" in _cmdline(p)]
-            if pids and pids[0] != last_pid:
-                last_pid = pids[0]
-                os.kill(last_pid, signal.SIGKILL)
-                kills += 1
-            time.sleep(0.05)
-        assert up.wait(30) == 1
+        state = start_stack(registry, tmp_path, "--max-restart-delay", "4", rigs=1)
+        up, api = state["up"], state["api"]
+        before = _pids_by_service(up.pid)
+        assert {"router", "learner", "orchestrator", "sensors --rig rig-1", "controller --rig rig-1"} <= set(before), before
+
+        _kill_each_restart(up, "learner", CRASH_LIMIT)
+        deadline = time.monotonic() + 5  # `up` notices a death within half a second
+        while not (rigs := httpx.get(f"{api}/rigs", timeout=5).json())["services"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert [(s["name"], s["state"], s["crashes"]) for s in rigs["services"]] == [("learner", "backing off", CRASH_LIMIT)], rigs
+        page = httpx.get(f"{api}/ui/rigs", timeout=5).text
+        assert 'data-service="learner" data-state="backing off"' in page
+
+        _kill_each_restart(up, "orchestrator", CRASH_LIMIT)
+        deadline, health = time.monotonic() + 60, None
+        while time.monotonic() < deadline:
+            try:
+                health = httpx.get(f"{api}/health", timeout=2)
+                if health.status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        assert health is not None and health.status_code == 200, health and health.text
+        assert up.poll() is None, "up is still running"
+        after = _pids_by_service(up.pid)
+        for service in ("router", "sensors --rig rig-1", "controller --rig rig-1"):
+            assert after[service] == before[service], f"{service} was not touched"
+        stop_stack(registry, up)
         out = up.stdout.read()
-        assert kills == CRASH_LIMIT
-        assert "restarting it in 0.5 s" in out and "restarting it in 4 s" in out
-        assert f"learner crashed {CRASH_LIMIT} times within 60 s; stopping" in out and "learner.log" in out
-        assert not children_of(up.pid)
+        assert up.returncode == 0, out
+        assert f"learner crashed {CRASH_LIMIT} times within 60 s; backing off: restarting it every 4 s" in out, out
+        assert f"orchestrator crashed {CRASH_LIMIT} times within 60 s; backing off" in out and "orchestrator.log" in out
+        assert "stopping" not in out.replace("ra2vipas up: stopped", "")
+    finally:
+        registry.cleanup()
+
+def _time_wait_on(port: int) -> bool:
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            parts = line.split()
+            if parts[3] == "06" and int(parts[1].rsplit(":", 1)[1], 16) == port:  # 06: TIME_WAIT
+                return True
+    return False
+
+
+def test_the_port_check_ignores_time_wait_sockets():
+    """Issue 18: `up` right after a stop refused its own router port for ~80 s while only
+    TIME-WAIT sockets remained (the check bound without SO_REUSEADDR, unlike the services)."""
+    import socket
+
+    from ra2vipas.cli.stack import check_port_free
+
+    listener = socket.socket()
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    port = listener.getsockname()[1]
+    client = socket.create_connection(("127.0.0.1", port))
+    accepted, _ = listener.accept()
+    accepted.close()  # the server side closes first: its end of the connection waits in TIME-WAIT
+    client.recv(1)
+    client.close()
+    with pytest.raises(StackError, match=f"port {port} on 127.0.0.1 is taken by pid"):
+        check_port_free("127.0.0.1", port, "the test's")  # still listening: taken
+    listener.close()
+    assert _time_wait_on(port)
+    check_port_free("127.0.0.1", port, "the test's")  # only TIME-WAIT left: free
+
+
+def test_up_restarts_at_once_on_its_own_ports(tmp_path):
+    """Stop a stack and start it again at once on the same API and router ports."""
+    registry = Procs()
+    try:
+        port, router = free_port(), free_port()
+        for run in range(2):
+            state = start_stack(registry, tmp_path / f"run{run}", "--port", str(port), "--router-port", str(router), rigs=1)
+            assert state["api"].endswith(f":{port}")
+            stop_stack(registry, state["up"])
+            assert state["up"].returncode == 0
+            registry = Procs()
     finally:
         registry.cleanup()

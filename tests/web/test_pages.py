@@ -61,6 +61,26 @@ def test_every_page_answers_and_unknown_campaigns_are_404(http, campaign):
     assert http.get("/?status=bogus").status_code == 422
 
 
+def test_pages_forbid_framing_inline_scripts_and_other_origins(http, campaign):
+    """Issue 18: the pages sent no Content-Security-Policy or X-Frame-Options. Every page, its
+    fragments, errors and the API's JSON carry both; the pages themselves have no inline script
+    or style attribute for the policy to block (the browser tests fail on any CSP report)."""
+    import re
+
+    cid = campaign["id"]
+    for path in ("/", f"/ui/campaigns/{cid}", f"/ui/campaigns/{cid}/tests/3/rapas", "/ui/rigs", "/ui/new", "/ui/studies",
+                 "/ui/campaigns/nope", "/campaigns", "/health", "/static/app.js"):
+        r = http.get(path)
+        csp = r.headers.get("content-security-policy", "")
+        assert "frame-ancestors 'none'" in csp and "script-src 'self';" in csp and "style-src 'self';" in csp, (path, csp)
+        assert "unsafe-inline" not in csp and "unsafe-eval" not in csp, path
+        assert r.headers.get("x-frame-options") == "DENY" and r.headers.get("x-content-type-options") == "nosniff", path
+        if r.headers["content-type"].startswith("text/html"):
+            assert not re.search(r"<script(?![^>]*\bsrc=)(?![^>]*application/json)[^>]*>", r.text), path  # inline code
+            assert not re.search(r"\son[a-z]+=|\sstyle=", r.text), path  # inline handlers and style attributes
+    assert "frame-ancestors 'none'" in http.get("/docs").headers["content-security-policy"]  # its own, looser policy
+
+
 def test_the_test_table_pages_filters_and_sorts_like_the_api(live, campaign):
     cid = campaign["id"]
     store = live.app.state.store

@@ -16,10 +16,12 @@ from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
 
 from ra2vipas.services.orchestrator.api.errors import responses, storage_fault, validation_error
+from ra2vipas.services.orchestrator.api.headers import SecurityHeaders
 from ra2vipas.services.orchestrator.api.limits import MAX_BODY_BYTES, BodySizeLimit
 from ra2vipas.services.orchestrator.api.render import PlotRenderer
 from ra2vipas.services.orchestrator.api.routes import campaigns, catalog, events, health, results, studies, tests
 from ra2vipas.services.orchestrator.dashboard import routes as dashboard
+from ra2vipas.services.orchestrator.dblock import DatabaseLock
 from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.settings import OrchestratorSettings
 from ra2vipas.services.orchestrator.storage import StorageFault, Store
@@ -39,10 +41,16 @@ and what it accepts.
 """
 
 
-def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | None = None) -> FastAPI:
+def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | None = None,
+               db_lock: DatabaseLock | None = None) -> FastAPI:
+    """``db_lock``: the database's lock when the process could not take it at start (a
+    read-only folder): the store takes it before it opens the database, and answers 503 with
+    the cause until then."""
+
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        store = Store(settings.db_path, lazy=True)  # a database that cannot be opened yet: 503 until it can
+        guard = db_lock.acquire if db_lock is not None and not db_lock.held else None
+        store = Store(settings.db_path, lazy=True, guard=guard)  # a database that cannot be opened yet: 503 until it can
         if bus_factory is None:
             from ra2vipas.services.transport.zenoh_bus import ZenohBus
 
@@ -79,6 +87,7 @@ def create_app(settings: OrchestratorSettings, bus_factory: Callable[[], Bus] | 
         responses=responses(400, 413, 422, 503),  # every route: our error body, not FastAPI's default 422 schema
     )
     app.add_middleware(BodySizeLimit, max_bytes=MAX_BODY_BYTES)
+    app.add_middleware(SecurityHeaders)  # outermost: on every response, errors included
     app.add_exception_handler(RequestValidationError, validation_error)
     app.add_exception_handler(StorageFault, storage_fault)
     for module in (health, campaigns, events, results, tests, studies, catalog):

@@ -301,9 +301,23 @@ class RigPublic(BaseModel):
                                                       "null while not known (docs/protocol.md, \"Compatibility\")")
 
 
+class SupervisedService(BaseModel):
+    """A service of the local stack (``ra2vipas up``) that is down and waiting to be restarted."""
+
+    name: str = Field(description="e.g. controller-rig-1, learner, orchestrator")
+    state: str = Field(description="restarting (crashed; restarted after a delay doubling from 0.5 s) | backing off (a crash "
+                                   "loop: crashed 5 times within a minute, restarted at the capped delay until it stays up)")
+    crashes: int = Field(description="crashes within the last window_s seconds")
+    window_s: float
+    exit_code: Optional[int] = None
+    next_restart_at: Optional[float] = Field(None, description="epoch seconds of the next restart (None: it is running)")
+
+
 class RigsPublic(BaseModel):
     rigs: list[RigPublic]
     learners: list[str]
+    services: list[SupervisedService] = Field(default_factory=list, description="under `ra2vipas up`: its services that crashed "
+                                                                                "and are waiting to be restarted")
 
 
 class Health(BaseModel):

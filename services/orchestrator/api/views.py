@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import time
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from ra2vipas.services.orchestrator.api.schemas import (
-    CampaignProgress, CampaignPublic, OutcomePublic, PODSummary, Progress, RigPublic, RigsPublic, TargetPublic, TracePublic,
-    TraceStep,
+    CampaignProgress, CampaignPublic, OutcomePublic, PODSummary, Progress, RigPublic, RigsPublic, SupervisedService, TargetPublic,
+    TracePublic, TraceStep,
 )
 from ra2vipas.services.orchestrator.metrics import time_to_level
 from ra2vipas.services.orchestrator.storage import ACTIVE, Fault
@@ -88,13 +90,26 @@ def trace_public(row: dict[str, Any], rf_period_s: float) -> TracePublic:
                        decided_step=row.get("decided_step"), model_check=row.get("model_check"))
 
 
-def rigs_public(status: dict[str, Any]) -> RigsPublic:
+def supervised_services(path: str | None) -> list[SupervisedService]:
+    """What ``ra2vipas up``'s supervisor says it is restarting (its status file; [] outside
+    ``up`` or when the file cannot be read)."""
+    if not path:
+        return []
+    try:
+        with open(path, encoding="utf-8") as f:
+            items = json.load(f).get("services", [])
+        return [SupervisedService.model_validate(item) for item in items]
+    except (OSError, ValueError, AttributeError, ValidationError):
+        return []
+
+
+def rigs_public(status: dict[str, Any], services: list[SupervisedService] | None = None) -> RigsPublic:
     """The scheduler's view of the mesh (from Zenoh liveliness) as the API shows it."""
     rigs = [RigPublic(name=name, live=st["sensors"] and st["controller"], sensors=st["sensors"], controller=st["controller"],
                       in_flight=st["in_flight"], described=st.get("described", "unknown"), descriptor=st.get("descriptor"),
                       protocol=st.get("protocol"))
             for name, st in sorted(status["rigs"].items())]
-    return RigsPublic(rigs=rigs, learners=list(status["learners"]))
+    return RigsPublic(rigs=rigs, learners=list(status["learners"]), services=services or [])
 
 
 def study_public(d: dict[str, Any], now: float | None = None) -> "StudyPublic":

@@ -34,7 +34,7 @@ from starlette.staticfiles import StaticFiles
 from ra2vipas.services.orchestrator.api.deps import get_campaign
 from ra2vipas.services.orchestrator.api.routes.events import MAX_STREAMS, _streams
 from ra2vipas.services.orchestrator.api.schemas import ALGORITHM_NAMES, MAX_TESTS
-from ra2vipas.services.orchestrator.api.views import campaign_progress, campaign_public, rigs_public
+from ra2vipas.services.orchestrator.api.views import campaign_progress, campaign_public, rigs_public, supervised_services
 from ra2vipas.services.orchestrator.dashboard import data
 from ra2vipas.services.orchestrator.storage import ACTIVE, FINISHED, Store
 from ra2vipas.services.protocol.scenario import PRESET_DESCRIPTIONS, PRESETS
@@ -379,9 +379,10 @@ def episode_page(request: Request, campaign_id: CampaignId, test_index: Annotate
 
 def _rigs_context(request: Request) -> dict[str, Any]:
     snapshot = request.app.state.scheduler.status()
-    public = rigs_public(snapshot)
+    public = rigs_public(snapshot, supervised_services(request.app.state.settings.supervisor_status))
     since = {name: st.get("since") for name, st in snapshot["rigs"].items()}
-    return {"rigs": [{"r": r, "since": since.get(r.name)} for r in public.rigs], "learners": public.learners}
+    return {"rigs": [{"r": r, "since": since.get(r.name)} for r in public.rigs], "learners": public.learners,
+            "services": public.services}
 
 
 @router.get("/ui/rigs", response_class=HTMLResponse)

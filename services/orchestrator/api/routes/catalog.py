@@ -5,11 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter, HTTPException, status
 from fastapi.exceptions import RequestValidationError
 
-from ra2vipas.services.orchestrator.api.deps import SchedulerDep
+from ra2vipas.services.orchestrator.api.deps import SchedulerDep, SettingsDep
 from ra2vipas.services.orchestrator.api.errors import responses
 from ra2vipas.services.controller import registry
 from ra2vipas.services.orchestrator.api.schemas import PolicyPublic, PresetPublic, PresetSummary, RigsPublic
-from ra2vipas.services.orchestrator.api.views import rigs_public
+from ra2vipas.services.orchestrator.api.views import rigs_public, supervised_services
 from ra2vipas.services.orchestrator.presets import preset_object, preset_summaries
 from ra2vipas.services.protocol.scenario import PRESETS
 
@@ -56,7 +56,9 @@ def check_policies(names: list[str]) -> None:
 
 
 @router.get("/rigs", response_model=RigsPublic)
-def list_rigs(scheduler: SchedulerDep) -> RigsPublic:
+def list_rigs(scheduler: SchedulerDep, settings: SettingsDep) -> RigsPublic:
     """Rigs (sensors + controller) and learners seen through Zenoh liveliness; a rig is live
-    while both its nodes hold their tokens."""
-    return rigs_public(scheduler.status())
+    while both its nodes hold their tokens, and one whose nodes have both left is no longer
+    listed. Under ``ra2vipas up``, ``services`` lists the stack's services that crashed and
+    wait to be restarted (backing off when in a crash loop)."""
+    return rigs_public(scheduler.status(), supervised_services(settings.supervisor_status))

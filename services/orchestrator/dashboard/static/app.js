@@ -120,8 +120,9 @@
       const id = "show-" + el.id + "-" + name;
       const item = document.createElement("label");
       item.className = "legend-item";
-      item.innerHTML = '<input type="checkbox" checked id="' + id + '"> <span class="sw" style="background:' + color(name, i) + '"></span> ' +
+      item.innerHTML = '<input type="checkbox" checked id="' + id + '"> <span class="sw"></span> ' +
         a.label + ' <span class="num value" data-alg="' + name + '"></span>';
+      item.querySelector(".sw").style.background = color(name, i);  // CSSOM: the page's CSP allows no style attributes
       item.querySelector("input").addEventListener("change", (e) => {
         const base = 1 + 3 * i;
         [base, base + 1, base + 2].forEach((s) => plot.setSeries(s, { show: e.target.checked }));
@@ -204,8 +205,9 @@
     names.forEach((name, i) => {
       const a = d.algorithms[name], item = document.createElement("span");
       item.className = "legend-item";
-      item.innerHTML = '<span class="sw" style="background:' + color(name, i) + '"></span> ' + a.label +
+      item.innerHTML = '<span class="sw"></span> ' + a.label +
         (a.ece === null || a.ece === undefined ? "" : ' <span class="num">ECE ' + fixed(a.ece, 3) + "</span>");
+      item.querySelector(".sw").style.background = color(name, i);
       legend.appendChild(item);
     });
     resizeWith(el, plot, height);
@@ -357,8 +359,9 @@
     names.forEach((a, i) => {
       const item = document.createElement("label");
       item.className = "legend-item";
-      item.innerHTML = '<input type="checkbox"' + (hidden.has(a) ? "" : " checked") + '> <span class="sw" style="background:' + color(a, i) +
-        '"></span> ' + chart.algorithms[a] + ' <span class="num value" data-alg="' + a + '"></span>';
+      item.innerHTML = '<input type="checkbox"' + (hidden.has(a) ? "" : " checked") + '> <span class="sw"></span> ' +
+        chart.algorithms[a] + ' <span class="num value" data-alg="' + a + '"></span>';
+      item.querySelector(".sw").style.background = color(a, i);
       item.querySelector("input").addEventListener("change", (e) => {
         if (e.target.checked) hidden.delete(a); else hidden.add(a);
         [1, 2, 3].forEach((k) => plot.setSeries(3 * i + k, { show: e.target.checked }));
@@ -411,6 +414,7 @@
                                  hidden: (studyState && studyState.id === id && studyState.hidden) || new Set(),
                                  metric: studyState && studyState.id === id ? studyState.metric : null };
     const select = $("#metric", page);
+    $("#metric-form", page).addEventListener("submit", (e) => e.preventDefault());  // no inline handler: the CSP allows none
     if (state.metric && Array.from(select.options).some((o) => o.value === state.metric)) select.value = state.metric;
     state.metric = select.value || "dr_final";
     select.addEventListener("change", () => { state.metric = select.value; drawStudy(state, page); });
