@@ -25,7 +25,9 @@ One episode is one test of a campaign, the world ``simulate`` runs:
   on with the campaign already chosen, at the next test (k + 1), so ``reset(seed=s)``
   followed by ``reset()`` calls walks tests 0, 1, 2, ... of campaign s in order. Before any
   seeded reset the campaign is the constructor's ``seed`` or, when that is None, one drawn
-  from ``np_random`` (fresh entropy, as Gymnasium does for an unseeded reset).
+  from ``np_random`` (fresh entropy, as Gymnasium does for an unseeded reset). A vector env
+  (``gymnasium.make_vec``) reset with seed s seeds its sub-env i with s + i, so sub-env i runs
+  campaign s + i (with that campaign's POD model), and each autoreset is its next test.
 * **Steps.** ``reset`` senses step 0 at s_0, the scenario's initial pan (wrapped; the
   controller's ``first_pan``). Each ``step(action)`` then answers the measurement of step t:
   its named bearing gamma_hat_t is scored, and the platform senses step t + 1 at the pan
