@@ -32,7 +32,8 @@ One episode is one test of a campaign, the world ``simulate`` runs:
   controller's ``first_pan``). Each ``step(action)`` then answers the measurement of step t:
   its named bearing gamma_hat_t is scored, and the platform senses step t + 1 at the pan
   angle s_{t+1} it names. After ``scenario.steps`` steps the episode terminates (the pan of
-  the last action is not used); it is never truncated.
+  the last action is not used, and the terminal observation repeats the last step's); it is
+  never truncated.
 
 Spaces
 ------
@@ -88,7 +89,7 @@ from __future__ import annotations
 import functools
 import math
 import numbers
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -109,11 +110,11 @@ from ra2vipas.services.protocol.scenario import Scenario, build_scenario
 from ra2vipas.services.sensors.world import SimulatedPlatform
 
 __all__ = [
+    "BOX_BOUND_RAD",
+    "DEFAULT_MAX_BOXES",
     "ENV_ID",
     "REWARDS",
-    "DEFAULT_MAX_BOXES",
     "RSSI_BOUND_DBM",
-    "BOX_BOUND_RAD",
     "PanSearchEnv",
     "encode_measurement",
     "measurement_from_observation",
@@ -203,7 +204,7 @@ def measurement_from_observation(obs: dict[str, np.ndarray]) -> StepMeasurement:
 def _index(value: Any, what: str) -> int:
     """A campaign seed or test index: an integer in [0, MAX_SEED]."""
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{what} must be an integer in [0, {MAX_SEED}], got {value!r}")
+        raise TypeError(f"{what} must be an integer in [0, {MAX_SEED}], got {value!r}")
     if not 0 <= int(value) <= MAX_SEED:
         raise ValueError(f"{what} must be in [0, {MAX_SEED}], got {int(value)}")
     return int(value)
@@ -242,20 +243,24 @@ class PanSearchEnv(gymnasium.Env):
     ------
     ScenarioError
         An unknown preset or an invalid override (a ``ValueError`` naming the parameter).
+    TypeError
+        An argument of the wrong type (overrides not a dict, a seed or max_boxes not an integer).
     ValueError
-        Any other bad argument, with what was expected.
+        Any other bad value, with what was expected.
     """
 
-    metadata = {"render_modes": []}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
     def __init__(self, preset: str = "paper", overrides: dict[str, Any] | None = None, seed: int | None = None,
                  max_boxes: int = DEFAULT_MAX_BOXES, reward: str = "hit", render_mode: str | None = None) -> None:
         if overrides is not None and not isinstance(overrides, dict):
-            raise ValueError(f"overrides must be a dict of scenario parameters, got {type(overrides).__name__}")
+            raise TypeError(f"overrides must be a dict of scenario parameters, got {type(overrides).__name__}")
         self.scenario: Scenario = build_scenario(preset, overrides)
         if reward not in REWARDS:
             raise ValueError(f"unknown reward {reward!r}; choose one of {', '.join(REWARDS)}")
-        if isinstance(max_boxes, bool) or not isinstance(max_boxes, numbers.Integral) or max_boxes < 1:
+        if isinstance(max_boxes, bool) or not isinstance(max_boxes, numbers.Integral):
+            raise TypeError(f"max_boxes must be a positive integer, got {max_boxes!r}")
+        if max_boxes < 1:
             raise ValueError(f"max_boxes must be a positive integer, got {max_boxes!r}")
         if render_mode is not None:
             raise ValueError(f"PanSearch-v0 does not render; render_mode must be None, got {render_mode!r}")
@@ -294,13 +299,15 @@ class PanSearchEnv(gymnasium.Env):
 
         Raises
         ------
+        TypeError
+            A seed or test that is not an integer, options that are not a dict.
         ValueError
-            A seed or test that is not an integer in [0, 2**63 - 1], or an unknown option.
+            A seed or test outside [0, 2**63 - 1], an unknown option.
         """
         campaign = None if seed is None else _index(seed, "seed")
         options = {} if options is None else options
         if not isinstance(options, dict):
-            raise ValueError(f"options must be a dict, got {type(options).__name__}")
+            raise TypeError(f"options must be a dict, got {type(options).__name__}")
         unknown = sorted(set(options) - set(_OPTIONS))
         if unknown:
             raise ValueError(f"unknown reset option(s) {', '.join(map(repr, unknown))}; PanSearch-v0 takes {', '.join(_OPTIONS)}")
@@ -348,7 +355,7 @@ class PanSearchEnv(gymnasium.Env):
         if self._done:
             raise gymnasium.error.ResetNeeded("PanSearch-v0: call reset() before step() (and after an episode terminates)")
         a = np.asarray(action, dtype=np.float64)
-        if a.shape != (2,) or not np.all(np.isfinite(a)):
+        if a.shape != (2,) or not np.all(np.isfinite(a)):  # a wrong shape too is a bad value of this Box
             raise ValueError(f"the action is [next pan angle, named bearing] in radians: 2 finite numbers, got {action!r}")
         pan, named = float(a[0]), float(a[1])
         if not -math.pi <= pan <= math.pi:
