@@ -41,6 +41,16 @@ def test_a_wheel_installs_one_top_level_package(wheel):
     assert "ra2vipas = ra2vipas.cli.main:main" in entry
 
 
+def test_the_wheel_ships_the_gymnasium_env_and_its_extra(wheel):
+    """``ra2vipas.envs`` is in the wheel; Gymnasium comes with the ``gym`` extra, not by default."""
+    z = zipfile.ZipFile(wheel)
+    assert "ra2vipas/envs.py" in z.namelist()
+    metadata = z.read(next(n for n in z.namelist() if n.endswith(".dist-info/METADATA"))).decode()
+    assert "Provides-Extra: gym" in metadata
+    assert any(line.startswith("Requires-Dist: gymnasium") and "extra == \"gym\"" in line for line in metadata.splitlines())
+    assert not any(line.startswith("Requires-Dist: gymnasium") and "extra" not in line for line in metadata.splitlines())
+
+
 def test_the_wheel_ships_the_dashboards_templates_and_static_files(wheel):
     """The orchestrator serves its dashboard from the installed package (offline, no CDN)."""
     names = set(zipfile.ZipFile(wheel).namelist())
