@@ -71,7 +71,7 @@ def start(
     preset: Annotated[str, typer.Option(help=f"Scenario preset: {', '.join(PRESETS)}.", autocompletion=_complete(PRESETS))] = "paper",
     tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Monte Carlo tests per algorithm.")] = 50,
     seed: Annotated[int, typer.Option(min=0, help="Campaign seed.")] = 1,
-    algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of ra2vipas, rapas, ravipas, sweep (default: all).")] = None,
+    algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated pointing policies: ra2vipas, rapas, ravipas, sweep (default: all four) or any installed policy (`ra2vipas policies`).")] = None,
     overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help="Override a scenario parameter (repeatable).")] = None,
     mode: Annotated[str, typer.Option(help="fast (lockstep, as fast as possible) or realtime (one sample every T_RF).", autocompletion=_complete(("fast", "realtime")))] = "fast",
     name: Annotated[Optional[str], typer.Option(help="A label for the campaign.")] = None,

@@ -6,6 +6,7 @@ import typer  # noqa: E402  (ra2vipas/__init__ pins BLAS to one thread before nu
 
 from ra2vipas.cli import bench, campaign, presets, protocol, rigs, security, services, study, survey  # noqa: E402
 from ra2vipas.cli.record import record, replay  # noqa: E402
+from ra2vipas.cli.policies import policies  # noqa: E402
 from ra2vipas.cli.rig import rig  # noqa: E402
 from ra2vipas.cli.simulate import simulate  # noqa: E402
 from ra2vipas.cli.up import up  # noqa: E402
@@ -33,6 +34,7 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version, is
 
 
 app.command("simulate")(simulate)
+app.command("policies")(policies)
 app.command("up")(up)
 app.add_typer(campaign.app, name="campaign")
 app.add_typer(study.app, name="study")

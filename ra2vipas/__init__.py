@@ -42,8 +42,10 @@ if not (_here / "services").is_dir() and (_here.parent / "services" / "__init__.
     __path__.append(_os.fspath(_here.parent))  # type: ignore[name-defined]  # noqa: F821
 
 from ra2vipas.api import Client, ClientError, simulate, study, to_dataframe  # noqa: E402
+from ra2vipas.services.controller.contract import EpisodeContext, Policy, PolicyDecision, RigDescription  # noqa: E402
 
-__all__ = ["Client", "ClientError", "simulate", "study", "to_dataframe", "__version__"]
+__all__ = ["Client", "ClientError", "EpisodeContext", "Policy", "PolicyDecision", "RigDescription", "simulate", "study",
+           "to_dataframe", "__version__"]
 
 try:
     from importlib.metadata import version as _version

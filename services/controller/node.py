@@ -225,17 +225,17 @@ class ControllerNode:
         self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(
             episode_id=m.episode_id, rig=self.rig, estimates_rad=tuple(ep.estimates), pans_rad=tuple(ep.pans), rewards=tuple(ep.rewards),
             confidences=tuple(ep.confidences) if ep.says_confidence else (), decided_step=m.step if decided else None,
-            model_check=model_check(ep.policy.controller) if isinstance(ep.policy, BuiltinPolicy) else None)))
+            model_check=model_check(ep.sensors, ep.policy.controller if isinstance(ep.policy, BuiltinPolicy) else None))))
 
     def close(self) -> None:
         undeclare_all(self._handles)
         self.loop.stop()
 
 
-def model_check(controller: Controller) -> ModelCheck:
-    """What the controller assumed about its rig in this episode and whether Rx(dir) agreed."""
-    evidence = controller.lobe_evidence()
-    return ModelCheck(sensor_model="descriptor" if controller.sensors.source == "descriptor" else "scenario",
-                      rx_dir=controller.sensors.rx_dir, lobe=controller.lobe,
+def model_check(sensors: SensorConfig, controller: Controller | None = None) -> ModelCheck:
+    """What the controller assumed about its rig in this episode (its sensor model: the rig's
+    descriptor or the scenario) and, for a built-in with the generic lobe, whether Rx(dir) agreed."""
+    evidence = controller.lobe_evidence() if controller is not None else None
+    return ModelCheck(sensor_model="descriptor" if sensors.source == "descriptor" else "scenario",
+                      rx_dir=sensors.rx_dir, lobe=controller.lobe if controller is not None else None,
                       lobe_evidence=None if evidence is None else round(evidence, 4))
-

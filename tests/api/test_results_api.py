@@ -119,7 +119,7 @@ def test_trace_gives_pan_reward_estimate_and_association_per_step(http, done_cam
     assert outcome["final_hit"] == steps[-1]["hit"] and outcome["final_estimate_rad"] == steps[-1]["gamma_hat_rad"]
 
 
-@pytest.mark.parametrize("path, code", [("/tests/3/ra2vipas", 404), ("/tests/0/sweep", 404), ("/tests/0/magic", 422),
+@pytest.mark.parametrize("path, code", [("/tests/3/ra2vipas", 404), ("/tests/0/sweep", 404), ("/tests/0/magic", 404), ("/tests/0/Not%20a%20name", 422),
                                         ("/tests/-1/rapas", 422), ("/tests/0/rapas/plot?format=gif", 422)])
 def test_trace_of_a_test_the_campaign_does_not_have(http, done_campaign, path, code):
     r = http.get(f"/campaigns/{done_campaign['id']}{path}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Optional
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
+from fastapi.exceptions import RequestValidationError
 
 from ra2vipas.services.orchestrator import plots
 from ra2vipas.services.orchestrator.api.deps import CampaignDep, StoreDep, get_campaign
@@ -35,6 +36,9 @@ def list_outcomes(
     """One row per (test, algorithm), ordered by test index: the Tx's index, the final choice
     î, whether it hit, the hit rate over the test, the first hit and the time after which it
     stays on the Tx."""
+    if algorithm is not None and algorithm not in campaign["algorithms"]:
+        raise RequestValidationError([{"loc": ("query", "algorithm"), "type": "value_error",
+                                       "msg": f"campaign {campaign['id']} ran {', '.join(campaign['algorithms'])}, not {algorithm!r}"}])
     rows, total = store.episode_page(campaign["id"], algorithm=algorithm, status=status_, hit=hit, limit=limit, offset=offset)
     period = campaign["scenario"]["rf_period_s"]
     return OutcomePage(items=[outcome_public(r, period) for r in rows], total=total, limit=limit, offset=offset)
