@@ -243,13 +243,16 @@ def to_dataframe(results: Mapping[str, Any]):
     """A results object as a tidy pandas DataFrame (needs pandas: ``pip install
     'ra2vipas[pandas]'``): a campaign's, one row per (algorithm, step) with time, DR and its
     Wilson band, led by what was run (preset, seed, tests, one column per override: the CSV
-    ``dr`` table); a study's, its ``rows`` (one per point x algorithm)."""
+    ``dr`` table); a study's, its ``rows`` (one per point x algorithm) with the columns of
+    ``ra2vipas study results ID --csv`` in the same order, in this process or through ``Client``."""
     try:
         import pandas as pd
     except ImportError:
         raise ImportError("to_dataframe needs pandas: pip install 'ra2vipas[pandas]'") from None
-    if "rows" in results and "points" in results:  # a study
-        return pd.DataFrame(list(results["rows"]))
+    if "rows" in results and "points" in results:  # a study: the CSV's columns, in the CSV's order
+        from ra2vipas.services.orchestrator.study import study_columns, table_rows
+
+        return pd.DataFrame(table_rows(results), columns=study_columns(results))
     from ra2vipas.services.orchestrator.api.export import curve_rows
 
     return pd.DataFrame(curve_rows(dict(results)))
