@@ -226,15 +226,24 @@ def outcomes_table(page: dict[str, Any]) -> Table:
 
 
 def trace_table(trace: dict[str, Any]) -> Table:
-    """``GET /campaigns/{id}/tests/{k}/{algorithm}``: one row per step, angles in degrees."""
+    """``GET /campaigns/{id}/tests/{k}/{algorithm}``: one row per step, angles in degrees. When
+    the Tx walks, its bearing at each step is a column and the title gives its start and end."""
     tx = trace["tx_index"]
-    table = Table(title=f"Test {trace['test_index']} ({trace['algorithm']}): the Tx is target {tx} at "
-                        f"{math.degrees(trace['targets'][tx]['bearing_rad']):.1f}°, {trace['targets'][tx]['range_m']:.2f} m")
-    for col in ("step", "time", "pan s_t", "reward", "estimate γ̂_t", "î_t", "hit"):
+    target = trace["targets"][tx]
+    walk = target.get("bearings_rad")
+    if walk:
+        n = max(1, len(trace["steps"]))
+        where = (f"walking from {math.degrees(walk[0]):.1f}° ({target['ranges_m'][0]:.2f} m) to "
+                 f"{math.degrees(walk[min(n, len(walk)) - 1]):.1f}° ({target['ranges_m'][min(n, len(walk)) - 1]:.2f} m)")
+    else:
+        where = f"at {math.degrees(target['bearing_rad']):.1f}°, {target['range_m']:.2f} m"
+    table = Table(title=f"Test {trace['test_index']} ({trace['algorithm']}): the Tx is target {tx} {where}")
+    for col in ("step", "time", "pan s_t", "reward", "estimate γ̂_t", *(("Tx bearing",) if walk else ()), "î_t", "hit"):
         table.add_column(col, justify="right")
     for s in trace["steps"]:
+        bearing = (f"{math.degrees(walk[min(s['step'], len(walk) - 1)]):.1f}°",) if walk else ()
         table.add_row(str(s["step"]), f"{s['time_s']:g} s", f"{math.degrees(s['pan_rad']):.1f}°", f"{s['reward']:.3g}",
-                      f"{math.degrees(s['gamma_hat_rad']):.1f}°", str(s["i_hat"]), "yes" if s["hit"] else "no")
+                      f"{math.degrees(s['gamma_hat_rad']):.1f}°", *bearing, str(s["i_hat"]), "yes" if s["hit"] else "no")
     return table
 
 

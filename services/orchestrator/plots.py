@@ -204,10 +204,27 @@ def _times_for_plot(t: np.ndarray, deg: np.ndarray) -> np.ndarray:
     return np.insert(np.asarray(t, dtype=float), jumps + 1, np.nan)
 
 
+def episode_bearings(episode: dict[str, Any], steps: int) -> np.ndarray:
+    """(steps, N) bearings [rad] of every target at each step of a recorded episode: the walkers'
+    recorded trajectories (``trajectories``, as the episode page animates them), the others
+    held at their step-0 bearing."""
+    bearings = np.asarray(episode["bearings"], dtype=float)
+    out = np.tile(bearings, (max(steps, 1), 1))
+    for walk in episode.get("trajectories") or []:
+        path = np.asarray(walk["bearings_rad"], dtype=float)
+        if path.size:
+            n = min(len(out), path.size)
+            out[:n, walk["index"]] = path[:n]
+            out[n:, walk["index"]] = path[n - 1]
+    return out
+
+
 def episode_figure(scenario: Scenario, episode: dict[str, Any]) -> Figure:
     """One test: the targets seen from above with the FoV at the final estimate (left), and the
-    pan angle s_t, the FoV around it and the estimate gamma_hat_t against time (right)."""
-    bearings = np.asarray(episode["bearings"], dtype=float)
+    pan angle s_t, the FoV around it and the estimate gamma_hat_t against time (right), with
+    every target's bearing, the Tx's in red: a line over time for targets that walk (their
+    recorded trajectory, as on the episode page), so the estimate is read against where the Tx
+    was at each step; walkers are drawn where they ended, their path behind them."""
     ranges = np.asarray(episode["ranges"], dtype=float)
     tx = int(episode["tx_index"])
     pans = np.degrees(np.asarray(episode["pans"], dtype=float))
@@ -216,27 +233,48 @@ def episode_figure(scenario: Scenario, episode: dict[str, Any]) -> Figure:
     period = scenario.rf_period_s
     t = (np.arange(len(est)) + 1) * period
     fov = scenario.fov_half_angle_deg
+    track = episode_bearings(episode, len(est))  # (T, N) rad
+    walks = {w["index"]: w for w in episode.get("trajectories") or []}
+    ranges_now = ranges.copy()
+    for i, w in walks.items():
+        if w.get("ranges_m"):
+            ranges_now[i] = w["ranges_m"][min(len(est), len(w["ranges_m"])) - 1]
+    bearings = track[-1]
 
     fig = Figure(figsize=(11.0, 4.6), dpi=110)
     grid = fig.add_gridspec(1, 2, width_ratios=(1.0, 1.7))
     top = fig.add_subplot(grid[0, 0], projection="polar")
+    for i, w in walks.items():
+        n = min(len(est), len(w["bearings_rad"]), len(w.get("ranges_m") or []))
+        if n:
+            top.plot(w["bearings_rad"][:n], w["ranges_m"][:n], color="tab:red" if i == tx else "0.7", linewidth=0.9,
+                     alpha=0.8 if i == tx else 0.6, label="Tx path" if i == tx else None)
     others = np.arange(len(bearings)) != tx
-    top.scatter(bearings[others], ranges[others], s=22, color="0.45", label="targets")
-    top.scatter([bearings[tx]], [ranges[tx]], s=110, marker="*", color="tab:red", label="Tx", zorder=3)
-    rmax = float(max(ranges.max(), 1.0)) * 1.1
+    top.scatter(bearings[others], ranges_now[others], s=22, color="0.45", label="targets")
+    top.scatter([bearings[tx]], [ranges_now[tx]], s=110, marker="*", color="tab:red", label="Tx", zorder=3)
+    rmax = float(max(ranges_now.max(), ranges.max(), 1.0)) * 1.1
     final = math.radians(float(est[-1]))
     wedge = np.linspace(final - math.radians(fov), final + math.radians(fov), 30)
     top.fill_between(wedge, 0, rmax, color="tab:blue", alpha=0.15, label="FoV at final $\\hat\\gamma$")
     top.plot([final, final], [0, rmax], color="tab:blue", linewidth=1.4)
     top.set_rmax(rmax)
-    top.set_title("targets (range m, bearing)", fontsize=9)
+    top.set_title("targets at the last step (range m, bearing)" if walks else "targets (range m, bearing)", fontsize=9)
     top.legend(loc="lower left", bbox_to_anchor=(-0.15, -0.18), fontsize=7, ncol=3, frameon=False)
 
     ax = fig.add_subplot(grid[0, 1])
-    for i, b in enumerate(np.degrees(bearings)):
-        if i != tx:
-            ax.axhline(b, color="0.8", linewidth=0.7)
-    ax.axhline(float(np.degrees(bearings[tx])), color="tab:red", linewidth=1.4, label="Tx bearing")
+    deg = np.degrees(track)
+    for i in range(track.shape[1]):
+        if i == tx:
+            continue
+        if i in walks:
+            ax.plot(_times_for_plot(t, deg[:, i]), _unwrapped_for_plot(deg[:, i]), color="0.8", linewidth=0.7)
+        else:
+            ax.axhline(deg[0, i], color="0.8", linewidth=0.7)
+    if tx in walks:
+        ax.plot(_times_for_plot(t, deg[:, tx]), _unwrapped_for_plot(deg[:, tx]), color="tab:red", linewidth=1.4,
+                label="Tx bearing (walking)")
+    else:
+        ax.axhline(float(deg[0, tx]), color="tab:red", linewidth=1.4, label="Tx bearing")
     ax.fill_between(t, pans - fov, pans + fov, step="mid", color="tab:green", alpha=0.12, linewidth=0, label="FoV at s$_t$")
     ax.plot(t, pans, ".", color="tab:green", markersize=3.5, label="pan angle s$_t$")
     ax.plot(_times_for_plot(t, est), _unwrapped_for_plot(est), color="tab:blue", linewidth=1.5, label="estimate $\\hat\\gamma_t$")
