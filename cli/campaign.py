@@ -16,7 +16,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from ra2vipas.cli.client import DEFAULT_API, ApiOpt, Client, JsonOpt, TokenOpt
 from ra2vipas.cli.output import (
     EXIT_FAILED, EXIT_USAGE, campaign_tables, campaigns_table, emit_results, fail, outcomes_table, print_json, print_results, stderr, stdout,
-    trace_table, write_file,
+    check_output, trace_table, write_file,
 )
 from ra2vipas.cli.polish import deprecated, prefer
 from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
@@ -111,6 +111,8 @@ def start(
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count")
     if plot is not None and not plot.lower().endswith((".png", ".svg")):
         fail(f"--plot expects a .png or .svg file name, got {plot!r}", EXIT_USAGE)
+    check_output(plot, "--plot")  # before the campaign runs: a bad path must not throw its results away
+    check_output(record_to, "--record")
     try:
         body = {"preset": preset, "overrides": parse_overrides(overrides or []), "algorithms": parse_algorithms(algorithms),
                 "tests": tests, "seed": seed, "mode": mode}
@@ -382,6 +384,7 @@ def export(
         fail(f"--table must be dr or summary, got {table!r}", EXIT_USAGE)
     if table != "dr" and fmt != "csv":
         fail("--table selects a CSV table; the JSON has both (add --format csv)", EXIT_USAGE)
+    check_output(output, "--output")
     params = {"format": fmt, **({"table": table} if fmt == "csv" else {})}
     r = Client(api, token).response("GET", f"/campaigns/{campaign_id}/results", params=params)
     data = r.content if fmt == "csv" else (r.text.strip() + "\n").encode()
@@ -441,6 +444,7 @@ def plot(
     output = output or (f"campaign-{first}-{kind}.png" if not overlay else f"campaigns-{'-'.join(campaign_ids[:3])}-dr.png")
     if not output.lower().endswith((".png", ".svg")):
         fail(f"--output expects a .png or .svg file name, got {output!r}", EXIT_USAGE)
+    check_output(output, "--output")
     if overlay:
         if kind != "dr":
             fail(f"several campaigns (or --label) overlay DR curves: --kind {kind} draws one campaign", EXIT_USAGE)

@@ -48,10 +48,33 @@ def write_file(data: bytes, path: str) -> None:
         fail(f"cannot write {path}: {err.strerror or err}")
 
 
+def check_output(path: str | None, option: str) -> None:
+    """Refuse, before any work, an output file that cannot be written: its folder is missing
+    or not writable, or the path is a folder (one stderr line, exit 1). Nothing is created."""
+    if path is None or path == "-":
+        return
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(path):
+        fail(f"{option}: cannot write {path}: it is a directory")
+    if not os.path.isdir(folder):
+        fail(f"{option}: cannot write {path}: no such directory {folder}")
+    if not os.access(folder, os.W_OK | os.X_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+        fail(f"{option}: cannot write {path}: permission denied")
+
+
 def print_json(obj: Any) -> None:
     """The object as one compact JSON line on stdout (the last line scripts parse)."""
     sys.stdout.write(json.dumps(obj, separators=(",", ":")) + "\n")
     sys.stdout.flush()
+
+
+def tests_text(results: dict[str, Any]) -> str:
+    """``50 tests``; for partial results the tests recorded, e.g. ``PARTIAL: 16-17 of 60 tests``."""
+    if not results.get("partial"):
+        return f"{results['tests']} tests"
+    counts = sorted(set((results.get("tests_recorded") or {}).values())) or [0]
+    span = str(counts[0]) if len(counts) == 1 else f"{counts[0]}–{counts[-1]}"
+    return f"PARTIAL: {span} of {results['tests']} tests"
 
 
 def dr_table(results: dict[str, Any]) -> Table:
@@ -62,7 +85,8 @@ def dr_table(results: dict[str, Any]) -> Table:
     if not times or abs(times[-1] - steps * period) > 1e-9:
         times.append(round(steps * period, 6))
     over = "".join(f", {k}={v}" for k, v in (results.get("overrides") or {}).items())
-    table = Table(title=f"Discovery rate DR_t, {results['preset']}{over} ({results['tests']} tests, seed {results['seed']})")
+    table = Table(title=f"Discovery rate DR_t, {results['preset']}{over} ({tests_text(results)}, seed {results['seed']})"
+                        + (f", stop at confidence {results['stop_confidence']}" if results.get("stop_confidence") else ""))
     table.add_column("algorithm", no_wrap=True)
     for t in times:
         table.add_column(f"{t:g} s", justify="right")
@@ -126,6 +150,9 @@ def print_results(results: dict[str, Any]) -> None:
     if results.get("partial"):
         recorded = ", ".join(f"{a} {n}" for a, n in (results.get("tests_recorded") or {}).items())
         stdout.print(f"partial results: the campaign stopped before its end; tests recorded: {recorded} (of {results['tests']})")
+        if len(set((results.get("tests_recorded") or {}).values())) > 1:
+            stdout.print("the algorithms are unpaired: they rest on different numbers of tests (different worlds), so compare "
+                         "them with care")
     stdout.print(dr_table(results))
     for warning in results.get("warnings") or []:
         stdout.print(f"[bold red]warning:[/] {escape(warning)}")

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import sys
 from typing import Annotated, Optional
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from ra2vipas.cli.output import EXIT_USAGE, emit_results, fail, stderr
+from ra2vipas.cli.output import EXIT_USAGE, check_output, emit_results, fail, print_json, print_results, stderr
 from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.protocol.messages import ALGORITHMS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, build_scenario, parse_overrides
@@ -64,10 +65,14 @@ def simulate(
         if value is not None and not value.lower().endswith((".png", ".svg")):
             fail(f"{option} expects a .png or .svg file name, got {value!r}", EXIT_USAGE)
 
+    for option, value in (("--plot", plot), ("--reliability-plot", reliability_plot)):
+        check_output(value, option)  # before any test runs: a bad path must not throw finished work away
+
     if vary:
         _study(preset, tests, seed, names, overrides, stop_confidence, as_json, plot, reliability_plot, vary, workers)
         return
 
+    from ra2vipas.services.orchestrator.engine import Interrupted
     from ra2vipas.services.orchestrator.simulate import run_campaign
 
     total = tests * len(names)
@@ -81,6 +86,9 @@ def simulate(
                                    stop_confidence=stop_confidence, workers=workers or None)
         except ScenarioError as err:
             fail(str(err))
+        except Interrupted as stop:
+            bar.stop()
+            _interrupted(stop, as_json)
     if reliability_plot:
         from ra2vipas.services.orchestrator.plots import write_reliability_plot
 
@@ -89,6 +97,21 @@ def simulate(
         except OSError as err:
             fail(f"cannot write {reliability_plot}: {err.strerror or err}")
     emit_results(results, plot, as_json)
+
+
+def _interrupted(stop, as_json: bool) -> None:
+    """Ctrl-C: print the results of the tests finished so far, marked partial (no figure), and
+    exit 130."""
+    partial = stop.report.results[0] if stop.report is not None else None
+    if partial is not None:
+        if as_json:
+            print_json(partial)
+        else:
+            print_results(partial)
+    recorded = sum((partial or {}).get("tests_recorded", {}).values())
+    shown = f"the results above are partial ({recorded} of {stop.total} episodes)" if partial else "no test had finished"
+    print(f"interrupted after {stop.done} of {stop.total} episodes: {shown}", file=sys.stderr)
+    raise typer.Exit(130)
 
 
 def _study(preset: str, tests: int, seed: int, names: list[str], overrides: list[str] | None, stop_confidence: float,

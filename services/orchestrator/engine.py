@@ -104,6 +104,19 @@ class RunReport:
         return self.steps / self.seconds if self.seconds > 0 else None
 
 
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during ``run_points``: ``report`` holds the results of the tests finished before
+    it (each point's first tests, in test order, the same for any worker count), marked
+    ``partial`` with ``tests_recorded`` per algorithm; a point with none is None (and ``report``
+    is None if no test finished at all)."""
+
+    def __init__(self, report: "RunReport | None", done: int, total: int) -> None:
+        super().__init__()
+        self.report = report
+        self.done = done
+        self.total = total
+
+
 def default_workers() -> int:
     """The cores this process may run on."""
     try:
@@ -240,10 +253,10 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
         if progress:
             progress(done, total)
 
+    models: list[Future] = []
     pool = worker_pool(workers)
     try:
         trained: dict[tuple[str, int], Future] = {}
-        models: list[Future] = []
         for p in points:  # every point's model first: a study's points train in parallel
             key = (p.scenario.model_dump_json(), p.seed)
             if key not in trained:
@@ -285,6 +298,10 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
             submit_next()
         seconds = time.perf_counter() - (started or time.perf_counter())
         pods = [m.result() for m in models]
+    except KeyboardInterrupt:
+        if isinstance(pool, ProcessPoolExecutor):
+            _stop_pool(pool)
+        raise Interrupted(_partial_report(points, tallies, models, workers, worker_rss), done, total) from None
     except BaseException:
         if isinstance(pool, ProcessPoolExecutor):
             _stop_pool(pool)
@@ -296,6 +313,25 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
     results = [results_object(p.preset, p.scenario, p.tests, p.seed, pod, tallies[i], sps, p.stop_confidence)
                for i, (p, pod) in enumerate(zip(points, pods))]
     return RunReport(results=results, steps=steps, seconds=seconds, workers=workers, worker_peak_rss_kb=worker_rss)
+
+
+def _partial_report(points: Sequence[Point], tallies: list[dict[str, AlgorithmTally]], models: list[Future], workers: int,
+                    worker_rss: int) -> RunReport | None:
+    """The results of the tests reduced before an interruption (``Interrupted``)."""
+    results: list[dict[str, Any] | None] = []
+    for p, per, model in zip(points, tallies, models):
+        shown = {a: t for a, t in per.items() if t.tests}
+        if not shown or not model.done() or model.cancelled() or model.exception() is not None:
+            results.append(None)
+            continue
+        res = results_object(p.preset, p.scenario, p.tests, p.seed, model.result(), shown, None, p.stop_confidence)
+        res["partial"] = True
+        res["tests_recorded"] = {a: t.tests for a, t in shown.items()}
+        results.append(res)
+    if all(r is None for r in results):
+        return None
+    steps = sum(t.steps_run for per in tallies for t in per.values())
+    return RunReport(results=results, steps=steps, seconds=0.0, workers=workers, worker_peak_rss_kb=worker_rss)  # type: ignore[arg-type]
 
 
 def _stop_pool(pool: ProcessPoolExecutor) -> None:
