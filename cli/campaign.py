@@ -148,7 +148,19 @@ def start(
         else:
             print(c["id"])
         return
+    _announce(c["id"], as_json)
     _finish(client, c["id"], plot, as_json)
+
+
+def _announce(cid: str, as_json: bool) -> None:
+    """The id of a campaign being followed, on its own line before anything else (the progress
+    bar that also shows it vanishes, and is absent when the output is piped): on stdout, or
+    with --json on stderr, so stdout stays one JSON line."""
+    line = f"campaign {cid}"
+    if as_json:
+        print(line, file=sys.stderr, flush=True)
+    else:
+        print(line, flush=True)
 
 
 def _finish(client: Client, cid: str, plot: str | None, as_json: bool) -> None:
@@ -168,6 +180,7 @@ def _start_recorded(client: Client, body: dict, output: str, plot: str | None, a
     try:
         recorder = Recorder(bus)
         c = client.request("POST", "/campaigns", json=body)
+        _announce(c["id"], as_json)
         try:
             _check_finished(_follow(client, c["id"]))
         finally:

@@ -103,6 +103,7 @@ def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: Train
         )
     resolved = scenario.model_dump(mode="json")
     out = {
+        "id": None,  # the campaign's id where one names it (the API's results); None in this process
         "preset": preset,
         "overrides": overrides_of(preset, resolved),
         "scenario": resolved,

@@ -173,6 +173,7 @@ class LatencySummary(BaseModel):
 class ResultsPublic(BaseModel):
     """The results object, the same as ``ra2vipas simulate --json`` prints."""
 
+    id: Optional[str] = Field(None, description="the campaign's id (null for a campaign run in-process: `simulate`)")
     preset: str
     overrides: dict[str, Any] = Field(default_factory=dict, description="the scenario's parameters that differ from the preset's "
                                                                           "(what --set would say to rebuild it), typed")
