@@ -87,6 +87,7 @@ def start(
     rigs: Annotated[int, typer.Option("--rig-count", min=0, max=64, help="With --embedded: sensor+controller pairs (0: one per CPU core).")] = 0,
     old_rigs: Annotated[Optional[int], deprecated("--rigs", "--rig-count", min=0, max=64)] = None,
     insecure: Annotated[bool, typer.Option("--insecure", help="With --embedded: no Zenoh credentials for the local stack (any local process may join it).")] = False,
+    port: Annotated[int, typer.Option("--port", min=0, max=65535, help="With --embedded: the local stack's API port, so its dashboard link is known in advance (0: any free port).")] = 0,
     as_json: JsonOpt = False,
     api: ApiOpt = DEFAULT_API,
     token: TokenOpt = None,
@@ -132,10 +133,12 @@ def start(
         body["rig_kind"] = rig_kind
     if use_rig_values:
         body["use_rig_values"] = True
+    if port and not embedded:
+        fail("--port sets the API port of the --embedded stack; a running stack's address is --api", EXIT_USAGE)
     if embedded:
         if record_to:
             fail("--record needs a running stack (ra2vipas up), not --embedded", EXIT_USAGE)
-        _run_embedded(body, db, rigs, plot, as_json, insecure)
+        _run_embedded(body, db, rigs, plot, as_json, insecure, port)
         return
     client = Client(api, token)
     if record_to:
@@ -192,14 +195,17 @@ def _start_recorded(client: Client, body: dict, output: str, plot: str | None, a
     emit_results(client.request("GET", f"/campaigns/{c['id']}/results"), plot, as_json)
 
 
-def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: bool, insecure: bool = False) -> None:
+def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: bool, insecure: bool = False, port: int = 0) -> None:
+    """Start a local stack on ``db`` (API on ``port``, 0: a free one), run the campaign on it,
+    print its results, stop the stack. Its dashboard lives only as long as this command: the
+    link printed at start says so, and the end says how to open the results afterwards."""
     import os
     import signal
 
     from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
 
     rigs = rigs or max(1, min(os.cpu_count() or 1, 16))
-    stack = Stack(StackConfig(rigs=rigs, port=free_port(), db_path=db, log_level="WARNING", insecure=insecure))
+    stack = Stack(StackConfig(rigs=rigs, port=port or free_port(), db_path=db, log_level="WARNING", insecure=insecure))
     previous = signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     try:
         stderr.print(f"starting a local stack ({rigs} rigs, database {db}) ...")
@@ -209,14 +215,26 @@ def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: boo
             fail(f"cannot start the local stack: {err}")
         client = Client(stack.api_url, None)
         c = client.request("POST", "/campaigns", json=body)
-        stderr.print(f"campaign {c['id']} on {stack.api_url} (logs in {stack.log_dir})")
-        stderr.print(f"dashboard: {stack.api_url}/ui/campaigns/{c['id']}", soft_wrap=True, markup=False)
-        _finish(client, c["id"], plot, as_json)
+        _announce(c["id"], as_json)
+        stderr.print(f"campaign {c['id']} on {stack.api_url} (logs in {stack.log_dir})", soft_wrap=True, markup=False)
+        stderr.print(f"dashboard (while this command runs): {stack.api_url}/ui/campaigns/{c['id']}", soft_wrap=True, markup=False)
+        try:
+            _finish(client, c["id"], plot, as_json)
+        finally:
+            stderr.print(afterwards(c["id"], db), soft_wrap=True, markup=False)
     except KeyboardInterrupt:
         fail("interrupted; the campaign stays in the database and resumes when a stack is started on it", EXIT_FAILED)
     finally:
         stack.stop()
         signal.signal(signal.SIGTERM, previous)
+
+
+def afterwards(cid: str, db: str) -> str:
+    """How to see an --embedded campaign once its stack has stopped."""
+    from shlex import quote
+
+    return (f"the local stack stops with this command; to open campaign {cid} in the dashboard afterwards, run "
+            f"`ra2vipas up --db {quote(db)}` and browse http://127.0.0.1:8080/ui/campaigns/{cid}")
 
 
 @app.command("list")
