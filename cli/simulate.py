@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import time
 from typing import Annotated, Optional
 
 import typer
@@ -72,18 +73,27 @@ def simulate(
         _study(preset, tests, seed, names, overrides, stop_confidence, as_json, plot, reliability_plot, vary, workers)
         return
 
+    total = tests * len(names)
+    say_training(f"the POD model on {scenario.n_train} self-supervised samples ({preset}, seed {seed}), then {total} episodes")
+    started = time.monotonic()
+
     from ra2vipas.services.orchestrator.engine import Interrupted
     from ra2vipas.services.orchestrator.simulate import run_campaign
 
-    total = tests * len(names)
     with Progress(
-        TextColumn("[bold]simulate[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
-        TimeElapsedColumn(), TimeRemainingColumn(), console=stderr, transient=True,
+        TextColumn("[bold]simulate[/] {task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        TimeRemainingColumn(), console=stderr, transient=True,
     ) as bar:
-        task = bar.add_task("episodes", total=total)
+        task = bar.add_task("training the POD model", total=None)
+
+        def trained(pod) -> None:
+            bar.console.print(f"POD model trained (R² {pod.r2:.4f}) after {time.monotonic() - started:.1f} s; running {total} episodes",
+                              markup=False, highlight=False)
+            bar.update(task, description="episodes", total=total, completed=0)
+
         try:
             results = run_campaign(preset, scenario, tests, seed, names, progress=lambda done, _: bar.update(task, completed=done),
-                                   stop_confidence=stop_confidence, workers=workers or None)
+                                   stop_confidence=stop_confidence, workers=workers or None, on_trained=trained)
         except ScenarioError as err:
             fail(str(err))
         except Interrupted as stop:
@@ -97,6 +107,12 @@ def simulate(
         except OSError as err:
             fail(f"cannot write {reliability_plot}: {err.strerror or err}")
     emit_results(results, plot, as_json)
+
+
+def say_training(what: str) -> None:
+    """Say at once (also when stderr is not a terminal) what the first seconds are spent on."""
+    print(f"training {what}; a first run on this machine also compiles the numerical kernels "
+          "(up to a minute; cached afterwards)", file=sys.stderr, flush=True)
 
 
 def _interrupted(stop, as_json: bool) -> None:
@@ -129,6 +145,7 @@ def _study(preset: str, tests: int, seed: int, names: list[str], overrides: list
         base = parse_overrides(overrides or [])
         if len(grid) > 2 and plot:
             raise StudyError(f"--plot shows one or two varied parameters; {len(grid)} are varied")
+        say_training(f"the POD model of each point on {build_scenario(preset, base).n_train} self-supervised samples, then its episodes")
         with Progress(
             TextColumn("[bold]study[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
             TimeElapsedColumn(), TimeRemainingColumn(), console=stderr, transient=True,

@@ -228,12 +228,14 @@ def plan(points: Sequence[Point], chunk: int) -> Iterator[tuple[int, int, int]]:
 
 
 def run_points(points: Sequence[Point], workers: int | None = None, progress: Callable[[int, int], None] | None = None,
-               settings: ControllerSettings | None = None) -> RunReport:
+               settings: ControllerSettings | None = None,
+               on_trained: Callable[[int, TrainedPOD], None] | None = None) -> RunReport:
     """Run every point's tests x algorithms episodes on ``workers`` processes (default: every
     core; 1: in this process) and return each point's results object.
 
     ``progress(done, total)`` is called in this process as episodes finish (after each episode
-    with one worker, after each chunk with more).
+    with one worker, after each chunk with more); ``on_trained(point, pod)`` once per point when
+    its POD model is ready, before its first episode is handed out.
     """
     if not points:
         raise ValueError("no point to run")
@@ -265,6 +267,7 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
         for _ in range(workers - len(trained)):  # start every worker now, while the models train, not in the timed part
             pool.submit(os.getpid)
         started: float | None = None
+        announced: set[int] = set()
         in_flight: deque[tuple[int, int, int, Future]] = deque()
         jobs = plan(points, chunk)
 
@@ -275,7 +278,11 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
                 return False
             i, first, stop = job
             p = points[i]
-            model = models[i].result().model
+            trained_pod = models[i].result()
+            if on_trained is not None and i not in announced:
+                announced.add(i)
+                on_trained(i, trained_pod)
+            model = trained_pod.model
             if started is None:
                 started = time.perf_counter()
             on_episode = tick if workers == 1 else None

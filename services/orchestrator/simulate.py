@@ -132,10 +132,11 @@ def overrides_of(preset: str, scenario: dict[str, Any]) -> dict[str, Any]:
 def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = ALGORITHMS,
                  settings: ControllerSettings | None = None,
                  progress: Callable[[int, int], None] | None = None, stop_confidence: float = 0.0,
-                 workers: int = 1) -> dict[str, Any]:
+                 workers: int = 1, on_trained: Callable[[TrainedPOD], None] | None = None) -> dict[str, Any]:
     """Train once, run tests x algorithms episodes, return the results object.
 
-    ``progress(done, total)`` is called as episodes finish; ``stop_confidence`` > 0 ends each
+    ``progress(done, total)`` is called as episodes finish, ``on_trained(pod)`` once the POD
+    model is trained (before the first episode); ``stop_confidence`` > 0 ends each
     episode at its first step that confident (its answer final) and adds ``decision`` blocks.
     ``workers`` > 1 runs the tests on that many processes (``engine.run_points``), with results
     identical value for value to ``workers=1``; outcomes are reduced as they arrive, never
@@ -145,4 +146,5 @@ def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorit
 
     point = Point(preset=preset, scenario=scenario, tests=tests, seed=seed, algorithms=tuple(algorithms),
                   stop_confidence=stop_confidence)
-    return run_points([point], workers=workers, progress=progress, settings=settings).results[0]
+    announce = None if on_trained is None else (lambda _i, pod: on_trained(pod))
+    return run_points([point], workers=workers, progress=progress, settings=settings, on_trained=announce).results[0]

@@ -60,3 +60,25 @@ def test_ctrl_c_on_simulate_json_prints_partial_results():
     assert code == 130, err
     results = json.loads(out.strip().splitlines()[-1])
     assert results["partial"] is True and 0 < results["tests_recorded"]["rapas"] < 3000
+
+
+def test_simulate_dynamic_says_within_a_second_that_it_trains_the_pod_model():
+    """The first seconds (a minute on a first run: the numerical kernels compile) are not a blank
+    terminal (issue 23, point 6): one line at once, another when the model is trained."""
+    env = {k: v for k, v in os.environ.items() if k not in ("RA2VIPAS_API", "RA2VIPAS_TOKEN")}
+    started = time.monotonic()
+    proc = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", "simulate", "--preset", "dynamic", "--tests", "1", "-a", "rapas",
+                             "--set", "steps=20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
+                            start_new_session=True)
+    try:
+        first = proc.stderr.readline()
+        said_after = time.monotonic() - started
+        rest = proc.communicate(timeout=300)[1]
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert first.startswith("training the POD model on 900 self-supervised samples (dynamic, seed 1), then 1 episodes"), first
+    assert said_after < 1.0, f"the first line came after {said_after:.2f} s"
+    assert proc.returncode == 0, rest
+    assert "POD model trained (R² " in rest and "running 1 episodes" in rest
