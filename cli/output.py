@@ -129,6 +129,23 @@ def confidence_table(results: dict[str, Any]) -> Table | None:
     return table
 
 
+def paired_table(results: dict[str, Any]) -> Table | None:
+    """Every pair of algorithms compared test by test (the same world in test k for each):
+    the discordant tests and McNemar's exact p-value; None with fewer than two algorithms."""
+    pairs = results.get("paired") or []
+    if not pairs:
+        return None
+    table = Table(title="Paired comparison of the final answers (same worlds test by test; exact McNemar test)")
+    for col in ("a vs b", "tests", "only a", "only b", "DR a − b", "p-value"):
+        table.add_column(col, justify="left" if col == "a vs b" else "right", no_wrap=True)
+    for p in pairs:
+        diff = p.get("dr_difference")
+        pv = p.get("p_value")
+        table.add_row(f"{p['a']} vs {p['b']}", str(p["tests"]), str(p["only_a"]), str(p["only_b"]),
+                      "—" if diff is None else f"{diff:+.3f}", "—" if pv is None else (f"{pv:.3g}" if pv >= 1e-4 else f"{pv:.1e}"))
+    return table
+
+
 def emit_results(results: dict[str, Any], plot: str | None, as_json: bool) -> None:
     """Write the DR plot if asked, then print the results: one JSON line, or the table."""
     if plot:
@@ -151,8 +168,8 @@ def print_results(results: dict[str, Any]) -> None:
         recorded = ", ".join(f"{a} {n}" for a, n in (results.get("tests_recorded") or {}).items())
         stdout.print(f"partial results: the campaign stopped before its end; tests recorded: {recorded} (of {results['tests']})")
         if len(set((results.get("tests_recorded") or {}).values())) > 1:
-            stdout.print("the algorithms are unpaired: they rest on different numbers of tests (different worlds), so compare "
-                         "them with care")
+            stdout.print("the algorithms are unpaired: they rest on different numbers of tests (different worlds); the DR "
+                         "table compares unequal sets, the paired comparison only the tests both ran")
     stdout.print(dr_table(results))
     for warning in results.get("warnings") or []:
         stdout.print(f"[bold red]warning:[/] {escape(warning)}")
@@ -163,6 +180,9 @@ def print_results(results: dict[str, Any]) -> None:
     confidence = confidence_table(results)
     if confidence is not None:
         stdout.print(confidence)
+    paired = paired_table(results)
+    if paired is not None:
+        stdout.print(paired)
     pod = results["pod"]
     line = f"POD regression R² {pod['r2']:.4f} (trained in {pod['train_seconds']:.2f} s)"
     if results.get("steps_per_second"):

@@ -297,9 +297,9 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
             i, first, stop, future = in_flight.popleft()
             rows, rss = future.result()
             worker_rss = max(worker_rss, rss)
-            for test_row in rows:
+            for k, test_row in enumerate(rows, start=first):
                 for a, ep in zip(points[i].algorithms, test_row):
-                    tallies[i][a].add(ep.hits, ep.in_fov, ep.confidences, ep.decided_step, ep.steps_run)
+                    tallies[i][a].add(ep.hits, ep.in_fov, ep.confidences, ep.decided_step, ep.steps_run, test_index=k)
                     if workers > 1:
                         tick()
             submit_next()

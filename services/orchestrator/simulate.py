@@ -115,6 +115,17 @@ def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: Train
     }
     if stop_confidence > 0.0:
         out["stop_confidence"] = stop_confidence
+    if outcomes:
+        from ra2vipas.services.orchestrator.metrics import paired_comparisons
+
+        finals: dict[str, list[int | None]] = {}
+        for name, runs in outcomes.items():
+            finals[name] = [None] * tests
+            for o in runs:
+                if 0 <= o.test_index < tests and o.hits:
+                    finals[name][o.test_index] = int(o.hits[-1])
+        out["outcomes"] = finals
+        out["paired"] = paired_comparisons(finals)
     return out
 
 
