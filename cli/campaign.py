@@ -346,6 +346,9 @@ def results(
         if algorithm not in body["algorithms"]:
             fail(f"campaign {campaign_id} has no results for {algorithm!r}; it ran {', '.join(body['algorithms'])}", EXIT_USAGE)
         body = {**body, "algorithms": {algorithm: body["algorithms"][algorithm]}}
+        if "outcomes" in body:  # one algorithm: nothing to pair it with
+            body["outcomes"] = {algorithm: body["outcomes"].get(algorithm)}
+            body["paired"] = []
     if as_json:
         print_json(body)
     else:
@@ -498,7 +501,7 @@ def plot(
 
 
 def _overlay(client: Client, campaign_ids: list[str], label: str | None, algorithm: str | None, output: str) -> None:
-    from ra2vipas.services.orchestrator.plots import write_overlay_plot
+    from ra2vipas.services.orchestrator.plots import overlay_title, write_overlay_plot
 
     from ra2vipas.cli.output import overrides_text
 
@@ -518,8 +521,7 @@ def _overlay(client: Client, campaign_ids: list[str], label: str | None, algorit
         if results.get("partial"):
             text += " [partial]"
         runs.append((text, results))
-    shared = [f"{k} {runs[0][1][k]}" for k in ("preset", "tests", "seed") if len({str(r[k]) for _, r in runs}) == 1]
-    title = "DR_t" + (f" by {label}" if label else "") + (f": {', '.join(shared)}" if shared else "")
+    title = overlay_title(runs, label)
     try:
         write_overlay_plot(runs, title, output)
     except OSError as err:

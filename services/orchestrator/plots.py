@@ -24,6 +24,7 @@ from typing import Any, Callable, Literal
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors import physics
@@ -48,6 +49,28 @@ def run_title(results: dict[str, Any], name: str | None = None, width: int = 90)
         recorded = sorted(set((results.get("tests_recorded") or {}).values()))
         tests = f"partial: {'/'.join(map(str, recorded)) or 0} of {results['tests']} tests"
     line = f"{name + ' — ' if name else ''}{what}: {tests}, seed {results['seed']}"
+    if results.get("stop_confidence"):
+        line += f", each test stopped at confidence {results['stop_confidence']:g}"
+    return "\n".join(textwrap.wrap(line, width)) or line
+
+
+def overlay_title(runs: list[tuple[str, dict[str, Any]]], label: str | None = None, width: int = 90) -> str:
+    """An overlay's title: what every campaign shares, so the legend need only say what differs:
+    the preset, tests and seed, every scenario parameter overridden alike in all of them (the
+    resolved value is the same everywhere and differs from the first one's preset), and the
+    stop confidence."""
+    import textwrap
+
+    results = [r for _, r in runs]
+    first = results[0]
+    shared = [f"{k} {first[k]}" for k in ("preset", "tests", "seed") if len({str(r[k]) for r in results}) == 1]
+    for name, value in (first.get("overrides") or {}).items():
+        if name != label and all((r.get("scenario") or {}).get(name) == first["scenario"].get(name) for r in results):
+            shared.append(f"{name}={value}")
+    stops = {r.get("stop_confidence") or 0.0 for r in results}
+    if len(stops) == 1 and stops != {0.0}:
+        shared.append(f"stopped at confidence {stops.pop():g}")
+    line = "DR_t" + (f" by {label}" if label else "") + (f": {', '.join(shared)}" if shared else "")
     return "\n".join(textwrap.wrap(line, width)) or line
 
 
@@ -303,6 +326,9 @@ METRIC_LABELS = {"dr_final": "final discovery rate DR (association rule)", "time
                  "decision_undecided": "share undecided at the horizon"}
 
 
+NEVER_REACHED = {"time_to_dr90_s": "never"}  # metrics whose null means the level was never reached, and the cell's label
+
+
 def band_fields(metric: str) -> tuple[str, str] | None:
     """The row fields of a metric's 95 % interval: ``ci95_lo``/``ci95_hi`` for the final DR,
     ``<metric>_ci95_lo``/``_hi`` for a metric that reports one (e.g. ``decision_accuracy``)."""
@@ -331,9 +357,12 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
     """
     params = results["parameters"]
     rows = [r for r in results["rows"] if r.get(metric) is not None]
+    # a row whose metric is null because the level was never reached (t90 of a DR that ends
+    # below 0.9) is a result, not a hole: its heat-map cell says "never"
+    never = [r for r in results["rows"] if metric in NEVER_REACHED and metric in r and r[metric] is None]
     if len(params) > 2:
         raise ValueError(f"a study figure shows one or two varied parameters; this study varies {len(params)}")
-    if not rows:
+    if not rows and not (never and len(params) == 2):
         raise ValueError(f"no point reports {metric} yet")
     algorithms = [a for a in results["algorithms"] if any(r["algorithm"] == a for r in rows)]
     label = METRIC_LABELS.get(metric, metric)
@@ -366,8 +395,9 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
         fig.tight_layout()
         return fig
     ny, nx = params
-    ys, xs = _ordered([r[ny] for r in rows]), _ordered([r[nx] for r in rows])
-    values = [r[metric] for r in rows]
+    algorithms = [a for a in results["algorithms"] if any(r["algorithm"] == a for r in rows + never)]
+    ys, xs = _ordered([r[ny] for r in rows + never]), _ordered([r[nx] for r in rows + never])
+    values = [r[metric] for r in rows] or [0.0, 1.0]
     vmin, vmax = (0.0, 1.0) if metric in ("dr_final", "in_fov_final") else (min(values), max(values))
     fig = Figure(figsize=(3.2 * len(algorithms) + 1.4, max(3.6, 0.35 * len(ys) + 2.6)), dpi=120, layout="constrained")
     axes = fig.subplots(1, len(algorithms), squeeze=False)[0]
@@ -378,6 +408,11 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
             if r["algorithm"] == a:
                 grid[ys.index(r[ny]), xs.index(r[nx])] = r[metric]
         image = ax.imshow(grid, origin="lower", aspect="auto", vmin=vmin, vmax=vmax, cmap="viridis")
+        for r in never:
+            if r["algorithm"] == a:
+                i, j = ys.index(r[ny]), xs.index(r[nx])
+                ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, facecolor="0.88", edgecolor="0.6", hatch="//", linewidth=0.5))
+                ax.text(j, i, NEVER_REACHED[metric], ha="center", va="center", fontsize=7, color="black")
         ax.set_xticks(range(len(xs)), [f"{v:g}" if isinstance(v, float) else str(v) for v in xs], fontsize=8)
         ax.set_yticks(range(len(ys)), [f"{v:g}" if isinstance(v, float) else str(v) for v in ys], fontsize=8)
         if len(xs) * len(ys) <= 64:
@@ -390,6 +425,8 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
     axes[0].set_ylabel(ny)
     if image is not None:
         fig.colorbar(image, ax=list(axes), label=label, shrink=0.9)
+    if any(r["algorithm"] in algorithms for r in never):
+        title += "\nnever: DR does not stay at 0.9 or more by the end of the test"
     fig.suptitle(title, fontsize=10)
     return fig
 
