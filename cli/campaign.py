@@ -527,3 +527,29 @@ def _overlay(client: Client, campaign_ids: list[str], label: str | None, algorit
     except OSError as err:
         fail(f"cannot write {output}: {err.strerror or err}")
     print(f"dr plot of {len(runs)} campaigns written to {output}")
+    for line in overlay_pairs(runs):
+        print(line)
+
+
+def overlay_pairs(runs: list[tuple[str, dict]]) -> list[str]:
+    """For campaigns with the same seed (test k meets the world drawn from (seed, k) in each,
+    changed only by what differs), each algorithm compared across them test by test: one line
+    per pair of campaigns and algorithm with the discordant tests and McNemar's exact p-value."""
+    from ra2vipas.api import paired_test
+
+    lines = []
+    for i, (label_a, a) in enumerate(runs):
+        for label_b, b in runs[i + 1:]:
+            if a["seed"] != b["seed"]:
+                continue
+            for algorithm in a["algorithms"]:
+                hits_a = (a.get("outcomes") or {}).get(algorithm)
+                hits_b = (b.get("outcomes") or {}).get(algorithm)
+                if not hits_a or not hits_b:
+                    continue
+                p = paired_test(hits_a, hits_b)
+                if p["tests"]:
+                    lines.append(f"paired, {algorithm}: {label_a} vs {label_b}: {p['tests']} tests, found only by the first "
+                                 f"{p['only_a']}, only by the second {p['only_b']}, DR difference {p['dr_difference']:+.3f}, "
+                                 f"McNemar p = {p['p_value']:.3g}")
+    return lines

@@ -256,7 +256,8 @@ def study_results(meta: Mapping[str, Any], points: Sequence[Mapping[str, Any]], 
             rows += point_rows(p["point"], p["values"], res, p.get("campaign_id"), p.get("tests"))
         shown.append({"point": p["point"], "values": dict(p["values"]), "campaign_id": p.get("campaign_id"), "status": p["status"],
                       "pod": dict(res["pod"]) if res else None,
-                      "steps_per_second": res.get("steps_per_second") if res else None})
+                      "steps_per_second": res.get("steps_per_second") if res else None,
+                      "paired": list(res.get("paired") or []) if res else None})
     return {
         "id": meta.get("id"), "name": meta.get("name"), "status": meta["status"], "partial": partial,
         "preset": meta["preset"], "overrides": dict(meta["overrides"]), "vary": {k: list(v) for k, v in meta["vary"].items()},

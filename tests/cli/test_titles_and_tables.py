@@ -60,3 +60,25 @@ def test_a_cancelled_campaigns_table_says_what_was_recorded_and_that_it_is_unpai
     assert "PARTIAL: 16–17 of 60 tests" in out and "(60 tests" not in out
     assert "tests recorded: ra2vipas 17, rapas 16 (of 60)" in out
     assert re.search(r"the algorithms are unpaired: they rest on different numbers of tests", out)
+
+
+def test_an_overlay_of_campaigns_with_one_seed_pairs_them_test_by_test():
+    from ra2vipas.cli.campaign import overlay_pairs
+
+    a = results_of(30, outcomes={"ra2vipas": [1] * 8 + [0, 0], "rapas": [1] * 10})
+    b = results_of(10, outcomes={"ra2vipas": [0] * 8 + [1, 1], "rapas": [1] * 10})
+    lines = overlay_pairs([("n_targets=30", a), ("n_targets=10", b), ("seed 2", {**b, "seed": 2})])
+    assert lines == [
+        "paired, ra2vipas: n_targets=30 vs n_targets=10: 10 tests, found only by the first 8, only by the second 2, "
+        "DR difference +0.600, McNemar p = 0.109",
+        "paired, rapas: n_targets=30 vs n_targets=10: 10 tests, found only by the first 0, only by the second 0, "
+        "DR difference +0.000, McNemar p = 1"]
+
+
+def test_a_study_results_points_carry_their_paired_tests():
+    import ra2vipas
+    from tests.api.live import SMALL
+
+    study = ra2vipas.study({"rf_noise_db": [2.0, 6.0]}, overrides=SMALL, tests=3, seed=2, algorithms=["ra2vipas", "rapas"])
+    for point in study["points"]:
+        assert [(p["a"], p["b"], p["tests"]) for p in point["paired"]] == [("ra2vipas", "rapas", 3)]
