@@ -134,7 +134,7 @@ def _study(preset: str, tests: int, seed: int, names: list[str], overrides: list
            as_json: bool, plot: str | None, reliability_plot: str | None, vary: list[str], workers: int) -> None:
     """``simulate --vary``: the study in this process, printed like ``ra2vipas study results``."""
     from ra2vipas.cli.study import emit_study, parse_vary_options
-    from ra2vipas.services.orchestrator.engine import run_study
+    from ra2vipas.services.orchestrator.engine import Interrupted, run_study
     from ra2vipas.services.orchestrator.study import StudyError
 
     if reliability_plot:
@@ -151,8 +151,17 @@ def _study(preset: str, tests: int, seed: int, names: list[str], overrides: list
             TimeElapsedColumn(), TimeRemainingColumn(), console=stderr, transient=True,
         ) as bar:
             task = bar.add_task("episodes", total=None)
-            results = run_study(preset, base, grid, tests, seed, names, stop_confidence, workers=workers or None,
-                                progress=lambda done, total: bar.update(task, completed=done, total=total))
+            try:
+                results = run_study(preset, base, grid, tests, seed, names, stop_confidence, workers=workers or None,
+                                    progress=lambda done, total: bar.update(task, completed=done, total=total))
+            except Interrupted as stop:
+                bar.stop()
+                if stop.study is not None and stop.study["rows"]:
+                    emit_study(stop.study, None, as_json)
+                shown = "the rows above are partial (the tests finished so far)" if stop.study and stop.study["rows"] else \
+                    "no test had finished"
+                print(f"interrupted after {stop.done} of {stop.total} episodes: {shown}", file=sys.stderr)
+                raise typer.Exit(130) from None
     except (ScenarioError, StudyError) as err:
         fail(str(err), EXIT_USAGE)
     emit_study(results, plot, as_json)

@@ -113,6 +113,7 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, report: "RunReport | None", done: int, total: int) -> None:
         super().__init__()
         self.report = report
+        self.study: dict[str, Any] | None = None  # run_study: the partial study results
         self.done = done
         self.total = total
 
@@ -375,10 +376,18 @@ def run_study(preset: str, overrides: dict[str, Any], vary: dict[str, Sequence[A
     check_size(len(grid), tests, len(algorithms))
     points = [Point(preset=preset, scenario=scenario, tests=tests, seed=seed, algorithms=tuple(algorithms),
                     stop_confidence=stop_confidence) for _, scenario in grid]
-    report = run_points(points, workers=workers, progress=progress, settings=settings)
     resolved = {n: list(dict.fromkeys(values[n] for values, _ in grid)) for n in vary}
     meta = {"id": None, "name": name, "status": "done", "preset": preset, "overrides": dict(overrides), "vary": resolved,
             "algorithms": list(algorithms), "tests": tests, "seed": seed, "mode": "fast", "stop_confidence": stop_confidence}
+    try:
+        report = run_points(points, workers=workers, progress=progress, settings=settings)
+    except Interrupted as stop:  # Ctrl-C: the study of the tests finished so far, marked partial, travels with it
+        results = stop.report.results if stop.report is not None else [None] * len(grid)
+        shown = [{"point": i, "values": values, "campaign_id": None, "status": "cancelled", "results": res,
+                  "tests": (res or {}).get("tests_recorded")}
+                 for i, ((values, _), res) in enumerate(zip(grid, results))]
+        stop.study = study_results({**meta, "status": "cancelled"}, shown, None, partial=True)
+        raise
     shown = [{"point": i, "values": values, "campaign_id": None, "status": "done", "results": res}
              for i, ((values, _), res) in enumerate(zip(grid, report.results))]
     out = study_results(meta, shown, report.steps_per_second)

@@ -82,3 +82,12 @@ def test_simulate_dynamic_says_within_a_second_that_it_trains_the_pod_model():
     assert said_after < 1.0, f"the first line came after {said_after:.2f} s"
     assert proc.returncode == 0, rest
     assert "POD model trained (R² " in rest and "running 1 episodes" in rest
+
+
+def test_ctrl_c_on_a_study_prints_its_partial_rows_and_exits_130():
+    code, out, err = _interrupted("--vary", "n_targets=6,8", "--tests", "3000", "-a", "rapas", "--workers", "1", *SETS[:2],
+                                  after_s=10.0)
+    assert code == 130, err
+    said = " ".join(out.split())
+    assert "— partial" in said and "rapas" in said
+    assert "Traceback" not in err and "the rows above are partial" in err
