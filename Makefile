@@ -11,10 +11,15 @@ STAMP  := $(VENV)/.installed
 
 setup: $(STAMP)
 
+# An editable install of a package whose subpackages live in other folders (services/, cli/) goes
+# through setuptools' import finder, which says so in an 8-line "Editable installation." notice:
+# information only, silenced here (tests/packaging checks the install prints no warning).
+EDITABLE_QUIET := PYTHONWARNINGS="ignore:Editable installation"
+
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -c constraints.txt -e '.[test]'
+	$(EDITABLE_QUIET) $(BIN)/pip install --quiet -c constraints.txt -e '.[test]'
 	touch $(STAMP)
 
 campaign: setup

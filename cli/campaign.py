@@ -16,7 +16,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from ra2vipas.cli.client import DEFAULT_API, ApiOpt, Client, JsonOpt, TokenOpt
 from ra2vipas.cli.output import (
     EXIT_FAILED, EXIT_USAGE, campaign_tables, campaigns_table, emit_results, fail, outcomes_table, print_json, print_results, stderr, stdout,
-    trace_table, write_file,
+    check_output, trace_table, write_file,
 )
 from ra2vipas.cli.polish import deprecated, prefer
 from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
@@ -87,6 +87,7 @@ def start(
     rigs: Annotated[int, typer.Option("--rig-count", min=0, max=64, help="With --embedded: sensor+controller pairs (0: one per CPU core).")] = 0,
     old_rigs: Annotated[Optional[int], deprecated("--rigs", "--rig-count", min=0, max=64)] = None,
     insecure: Annotated[bool, typer.Option("--insecure", help="With --embedded: no Zenoh credentials for the local stack (any local process may join it).")] = False,
+    port: Annotated[int, typer.Option("--port", min=0, max=65535, help="With --embedded: the local stack's API port, so its dashboard link is known in advance (0: any free port).")] = 0,
     as_json: JsonOpt = False,
     api: ApiOpt = DEFAULT_API,
     token: TokenOpt = None,
@@ -111,6 +112,8 @@ def start(
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count")
     if plot is not None and not plot.lower().endswith((".png", ".svg")):
         fail(f"--plot expects a .png or .svg file name, got {plot!r}", EXIT_USAGE)
+    check_output(plot, "--plot")  # before the campaign runs: a bad path must not throw its results away
+    check_output(record_to, "--record")
     try:
         body = {"preset": preset, "overrides": parse_overrides(overrides or []), "algorithms": parse_algorithms(algorithms),
                 "tests": tests, "seed": seed, "mode": mode}
@@ -130,10 +133,12 @@ def start(
         body["rig_kind"] = rig_kind
     if use_rig_values:
         body["use_rig_values"] = True
+    if port and not embedded:
+        fail("--port sets the API port of the --embedded stack; a running stack's address is --api", EXIT_USAGE)
     if embedded:
         if record_to:
             fail("--record needs a running stack (ra2vipas up), not --embedded", EXIT_USAGE)
-        _run_embedded(body, db, rigs, plot, as_json, insecure)
+        _run_embedded(body, db, rigs, plot, as_json, insecure, port)
         return
     client = Client(api, token)
     if record_to:
@@ -146,7 +151,19 @@ def start(
         else:
             print(c["id"])
         return
+    _announce(c["id"], as_json)
     _finish(client, c["id"], plot, as_json)
+
+
+def _announce(cid: str, as_json: bool) -> None:
+    """The id of a campaign being followed, on its own line before anything else (the progress
+    bar that also shows it vanishes, and is absent when the output is piped): on stdout, or
+    with --json on stderr, so stdout stays one JSON line."""
+    line = f"campaign {cid}"
+    if as_json:
+        print(line, file=sys.stderr, flush=True)
+    else:
+        print(line, flush=True)
 
 
 def _finish(client: Client, cid: str, plot: str | None, as_json: bool) -> None:
@@ -166,6 +183,7 @@ def _start_recorded(client: Client, body: dict, output: str, plot: str | None, a
     try:
         recorder = Recorder(bus)
         c = client.request("POST", "/campaigns", json=body)
+        _announce(c["id"], as_json)
         try:
             _check_finished(_follow(client, c["id"]))
         finally:
@@ -177,14 +195,17 @@ def _start_recorded(client: Client, body: dict, output: str, plot: str | None, a
     emit_results(client.request("GET", f"/campaigns/{c['id']}/results"), plot, as_json)
 
 
-def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: bool, insecure: bool = False) -> None:
+def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: bool, insecure: bool = False, port: int = 0) -> None:
+    """Start a local stack on ``db`` (API on ``port``, 0: a free one), run the campaign on it,
+    print its results, stop the stack. Its dashboard lives only as long as this command: the
+    link printed at start says so, and the end says how to open the results afterwards."""
     import os
     import signal
 
     from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
 
     rigs = rigs or max(1, min(os.cpu_count() or 1, 16))
-    stack = Stack(StackConfig(rigs=rigs, port=free_port(), db_path=db, log_level="WARNING", insecure=insecure))
+    stack = Stack(StackConfig(rigs=rigs, port=port or free_port(), db_path=db, log_level="WARNING", insecure=insecure))
     previous = signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     try:
         stderr.print(f"starting a local stack ({rigs} rigs, database {db}) ...")
@@ -194,14 +215,26 @@ def _run_embedded(body: dict, db: str, rigs: int, plot: str | None, as_json: boo
             fail(f"cannot start the local stack: {err}")
         client = Client(stack.api_url, None)
         c = client.request("POST", "/campaigns", json=body)
-        stderr.print(f"campaign {c['id']} on {stack.api_url} (logs in {stack.log_dir})")
-        stderr.print(f"dashboard: {stack.api_url}/ui/campaigns/{c['id']}", soft_wrap=True, markup=False)
-        _finish(client, c["id"], plot, as_json)
+        _announce(c["id"], as_json)
+        stderr.print(f"campaign {c['id']} on {stack.api_url} (logs in {stack.log_dir})", soft_wrap=True, markup=False)
+        stderr.print(f"dashboard (while this command runs): {stack.api_url}/ui/campaigns/{c['id']}", soft_wrap=True, markup=False)
+        try:
+            _finish(client, c["id"], plot, as_json)
+        finally:
+            stderr.print(afterwards(c["id"], db), soft_wrap=True, markup=False)
     except KeyboardInterrupt:
         fail("interrupted; the campaign stays in the database and resumes when a stack is started on it", EXIT_FAILED)
     finally:
         stack.stop()
         signal.signal(signal.SIGTERM, previous)
+
+
+def afterwards(cid: str, db: str) -> str:
+    """How to see an --embedded campaign once its stack has stopped."""
+    from shlex import quote
+
+    return (f"the local stack stops with this command; to open campaign {cid} in the dashboard afterwards, run "
+            f"`ra2vipas up --db {quote(db)}` and browse http://127.0.0.1:8080/ui/campaigns/{cid}")
 
 
 @app.command("list")
@@ -313,6 +346,9 @@ def results(
         if algorithm not in body["algorithms"]:
             fail(f"campaign {campaign_id} has no results for {algorithm!r}; it ran {', '.join(body['algorithms'])}", EXIT_USAGE)
         body = {**body, "algorithms": {algorithm: body["algorithms"][algorithm]}}
+        if "outcomes" in body:  # one algorithm: nothing to pair it with
+            body["outcomes"] = {algorithm: body["outcomes"].get(algorithm)}
+            body["paired"] = []
     if as_json:
         print_json(body)
     else:
@@ -382,6 +418,7 @@ def export(
         fail(f"--table must be dr or summary, got {table!r}", EXIT_USAGE)
     if table != "dr" and fmt != "csv":
         fail("--table selects a CSV table; the JSON has both (add --format csv)", EXIT_USAGE)
+    check_output(output, "--output")
     params = {"format": fmt, **({"table": table} if fmt == "csv" else {})}
     r = Client(api, token).response("GET", f"/campaigns/{campaign_id}/results", params=params)
     data = r.content if fmt == "csv" else (r.text.strip() + "\n").encode()
@@ -441,6 +478,7 @@ def plot(
     output = output or (f"campaign-{first}-{kind}.png" if not overlay else f"campaigns-{'-'.join(campaign_ids[:3])}-dr.png")
     if not output.lower().endswith((".png", ".svg")):
         fail(f"--output expects a .png or .svg file name, got {output!r}", EXIT_USAGE)
+    check_output(output, "--output")
     if overlay:
         if kind != "dr":
             fail(f"several campaigns (or --label) overlay DR curves: --kind {kind} draws one campaign", EXIT_USAGE)
@@ -463,7 +501,7 @@ def plot(
 
 
 def _overlay(client: Client, campaign_ids: list[str], label: str | None, algorithm: str | None, output: str) -> None:
-    from ra2vipas.services.orchestrator.plots import write_overlay_plot
+    from ra2vipas.services.orchestrator.plots import overlay_title, write_overlay_plot
 
     from ra2vipas.cli.output import overrides_text
 
@@ -483,10 +521,35 @@ def _overlay(client: Client, campaign_ids: list[str], label: str | None, algorit
         if results.get("partial"):
             text += " [partial]"
         runs.append((text, results))
-    shared = [f"{k} {runs[0][1][k]}" for k in ("preset", "tests", "seed") if len({str(r[k]) for _, r in runs}) == 1]
-    title = "DR_t" + (f" by {label}" if label else "") + (f": {', '.join(shared)}" if shared else "")
+    title = overlay_title(runs, label)
     try:
         write_overlay_plot(runs, title, output)
     except OSError as err:
         fail(f"cannot write {output}: {err.strerror or err}")
     print(f"dr plot of {len(runs)} campaigns written to {output}")
+    for line in overlay_pairs(runs):
+        print(line)
+
+
+def overlay_pairs(runs: list[tuple[str, dict]]) -> list[str]:
+    """For campaigns with the same seed (test k meets the world drawn from (seed, k) in each,
+    changed only by what differs), each algorithm compared across them test by test: one line
+    per pair of campaigns and algorithm with the discordant tests and McNemar's exact p-value."""
+    from ra2vipas.api import paired_test
+
+    lines = []
+    for i, (label_a, a) in enumerate(runs):
+        for label_b, b in runs[i + 1:]:
+            if a["seed"] != b["seed"]:
+                continue
+            for algorithm in a["algorithms"]:
+                hits_a = (a.get("outcomes") or {}).get(algorithm)
+                hits_b = (b.get("outcomes") or {}).get(algorithm)
+                if not hits_a or not hits_b:
+                    continue
+                p = paired_test(hits_a, hits_b)
+                if p["tests"]:
+                    lines.append(f"paired, {algorithm}: {label_a} vs {label_b}: {p['tests']} tests, found only by the first "
+                                 f"{p['only_a']}, only by the second {p['only_b']}, DR difference {p['dr_difference']:+.3f}, "
+                                 f"McNemar p = {p['p_value']:.3g}")
+    return lines

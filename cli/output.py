@@ -48,10 +48,33 @@ def write_file(data: bytes, path: str) -> None:
         fail(f"cannot write {path}: {err.strerror or err}")
 
 
+def check_output(path: str | None, option: str) -> None:
+    """Refuse, before any work, an output file that cannot be written: its folder is missing
+    or not writable, or the path is a folder (one stderr line, exit 1). Nothing is created."""
+    if path is None or path == "-":
+        return
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(path):
+        fail(f"{option}: cannot write {path}: it is a directory")
+    if not os.path.isdir(folder):
+        fail(f"{option}: cannot write {path}: no such directory {folder}")
+    if not os.access(folder, os.W_OK | os.X_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+        fail(f"{option}: cannot write {path}: permission denied")
+
+
 def print_json(obj: Any) -> None:
     """The object as one compact JSON line on stdout (the last line scripts parse)."""
     sys.stdout.write(json.dumps(obj, separators=(",", ":")) + "\n")
     sys.stdout.flush()
+
+
+def tests_text(results: dict[str, Any]) -> str:
+    """``50 tests``; for partial results the tests recorded, e.g. ``PARTIAL: 16-17 of 60 tests``."""
+    if not results.get("partial"):
+        return f"{results['tests']} tests"
+    counts = sorted(set((results.get("tests_recorded") or {}).values())) or [0]
+    span = str(counts[0]) if len(counts) == 1 else f"{counts[0]}–{counts[-1]}"
+    return f"PARTIAL: {span} of {results['tests']} tests"
 
 
 def dr_table(results: dict[str, Any]) -> Table:
@@ -62,7 +85,8 @@ def dr_table(results: dict[str, Any]) -> Table:
     if not times or abs(times[-1] - steps * period) > 1e-9:
         times.append(round(steps * period, 6))
     over = "".join(f", {k}={v}" for k, v in (results.get("overrides") or {}).items())
-    table = Table(title=f"Discovery rate DR_t, {results['preset']}{over} ({results['tests']} tests, seed {results['seed']})")
+    table = Table(title=f"Discovery rate DR_t, {results['preset']}{over} ({tests_text(results)}, seed {results['seed']})"
+                        + (f", stop at confidence {results['stop_confidence']}" if results.get("stop_confidence") else ""))
     table.add_column("algorithm", no_wrap=True)
     for t in times:
         table.add_column(f"{t:g} s", justify="right")
@@ -105,6 +129,23 @@ def confidence_table(results: dict[str, Any]) -> Table | None:
     return table
 
 
+def paired_table(results: dict[str, Any]) -> Table | None:
+    """Every pair of algorithms compared test by test (the same world in test k for each):
+    the discordant tests and McNemar's exact p-value; None with fewer than two algorithms."""
+    pairs = results.get("paired") or []
+    if not pairs:
+        return None
+    table = Table(title="Paired comparison of the final answers (same worlds test by test; exact McNemar test)")
+    for col in ("a vs b", "tests", "only a", "only b", "DR a − b", "p-value"):
+        table.add_column(col, justify="left" if col == "a vs b" else "right", no_wrap=True)
+    for p in pairs:
+        diff = p.get("dr_difference")
+        pv = p.get("p_value")
+        table.add_row(f"{p['a']} vs {p['b']}", str(p["tests"]), str(p["only_a"]), str(p["only_b"]),
+                      "—" if diff is None else f"{diff:+.3f}", "—" if pv is None else (f"{pv:.3g}" if pv >= 1e-4 else f"{pv:.1e}"))
+    return table
+
+
 def emit_results(results: dict[str, Any], plot: str | None, as_json: bool) -> None:
     """Write the DR plot if asked, then print the results: one JSON line, or the table."""
     if plot:
@@ -126,6 +167,9 @@ def print_results(results: dict[str, Any]) -> None:
     if results.get("partial"):
         recorded = ", ".join(f"{a} {n}" for a, n in (results.get("tests_recorded") or {}).items())
         stdout.print(f"partial results: the campaign stopped before its end; tests recorded: {recorded} (of {results['tests']})")
+        if len(set((results.get("tests_recorded") or {}).values())) > 1:
+            stdout.print("the algorithms are unpaired: they rest on different numbers of tests (different worlds); the DR "
+                         "table compares unequal sets, the paired comparison only the tests both ran")
     stdout.print(dr_table(results))
     for warning in results.get("warnings") or []:
         stdout.print(f"[bold red]warning:[/] {escape(warning)}")
@@ -136,6 +180,9 @@ def print_results(results: dict[str, Any]) -> None:
     confidence = confidence_table(results)
     if confidence is not None:
         stdout.print(confidence)
+    paired = paired_table(results)
+    if paired is not None:
+        stdout.print(paired)
     pod = results["pod"]
     line = f"POD regression R² {pod['r2']:.4f} (trained in {pod['train_seconds']:.2f} s)"
     if results.get("steps_per_second"):
@@ -226,15 +273,24 @@ def outcomes_table(page: dict[str, Any]) -> Table:
 
 
 def trace_table(trace: dict[str, Any]) -> Table:
-    """``GET /campaigns/{id}/tests/{k}/{algorithm}``: one row per step, angles in degrees."""
+    """``GET /campaigns/{id}/tests/{k}/{algorithm}``: one row per step, angles in degrees. When
+    the Tx walks, its bearing at each step is a column and the title gives its start and end."""
     tx = trace["tx_index"]
-    table = Table(title=f"Test {trace['test_index']} ({trace['algorithm']}): the Tx is target {tx} at "
-                        f"{math.degrees(trace['targets'][tx]['bearing_rad']):.1f}°, {trace['targets'][tx]['range_m']:.2f} m")
-    for col in ("step", "time", "pan s_t", "reward", "estimate γ̂_t", "î_t", "hit"):
+    target = trace["targets"][tx]
+    walk = target.get("bearings_rad")
+    if walk:
+        n = max(1, len(trace["steps"]))
+        where = (f"walking from {math.degrees(walk[0]):.1f}° ({target['ranges_m'][0]:.2f} m) to "
+                 f"{math.degrees(walk[min(n, len(walk)) - 1]):.1f}° ({target['ranges_m'][min(n, len(walk)) - 1]:.2f} m)")
+    else:
+        where = f"at {math.degrees(target['bearing_rad']):.1f}°, {target['range_m']:.2f} m"
+    table = Table(title=f"Test {trace['test_index']} ({trace['algorithm']}): the Tx is target {tx} {where}")
+    for col in ("step", "time", "pan s_t", "reward", "estimate γ̂_t", *(("Tx bearing",) if walk else ()), "î_t", "hit"):
         table.add_column(col, justify="right")
     for s in trace["steps"]:
+        bearing = (f"{math.degrees(walk[min(s['step'], len(walk) - 1)]):.1f}°",) if walk else ()
         table.add_row(str(s["step"]), f"{s['time_s']:g} s", f"{math.degrees(s['pan_rad']):.1f}°", f"{s['reward']:.3g}",
-                      f"{math.degrees(s['gamma_hat_rad']):.1f}°", str(s["i_hat"]), "yes" if s["hit"] else "no")
+                      f"{math.degrees(s['gamma_hat_rad']):.1f}°", *bearing, str(s["i_hat"]), "yes" if s["hit"] else "no")
     return table
 
 

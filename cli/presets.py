@@ -47,3 +47,7 @@ def show_preset(
     for field, p in obj["parameters"].items():
         table.add_row(field, str(p["value"]), p["allowed"], p["description"] or "")
     stdout.print(table)
+    if obj["parameters"].get("antenna_model", {}).get("value") == "paper":
+        stdout.print("note: Rx(dir) dips where it is aligned under antenna_model=paper (eq. 6 scales the dBm path loss by ϱ): "
+                     "point where Rx(dir) is weakest, or --set antenna_model=db-gain for a reading that peaks when aligned",
+                     markup=False, highlight=False)

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import sys
+import time
 from typing import Annotated, Optional
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from ra2vipas.cli.output import EXIT_USAGE, emit_results, fail, stderr
+from ra2vipas.cli.output import EXIT_USAGE, check_output, emit_results, fail, print_json, print_results, stderr
 from ra2vipas.services.controller import registry
 from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.protocol.messages import ALGORITHMS
@@ -62,23 +64,39 @@ def simulate(
         if value is not None and not value.lower().endswith((".png", ".svg")):
             fail(f"{option} expects a .png or .svg file name, got {value!r}", EXIT_USAGE)
 
+    for option, value in (("--plot", plot), ("--reliability-plot", reliability_plot)):
+        check_output(value, option)  # before any test runs: a bad path must not throw finished work away
+
     if vary:
         _study(preset, tests, seed, names, overrides, stop_confidence, as_json, plot, reliability_plot, vary, workers)
         return
 
+    total = tests * len(names)
+    say_training(f"the POD model on {scenario.n_train} self-supervised samples ({preset}, seed {seed}), then {total} episodes")
+    started = time.monotonic()
+
+    from ra2vipas.services.orchestrator.engine import Interrupted
     from ra2vipas.services.orchestrator.simulate import run_campaign
 
-    total = tests * len(names)
     with Progress(
-        TextColumn("[bold]simulate[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
-        TimeElapsedColumn(), TimeRemainingColumn(), console=stderr, transient=True,
+        TextColumn("[bold]simulate[/] {task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        TimeRemainingColumn(), console=stderr, transient=True,
     ) as bar:
-        task = bar.add_task("episodes", total=total)
+        task = bar.add_task("training the POD model", total=None)
+
+        def trained(pod) -> None:
+            bar.console.print(f"POD model trained (R² {pod.r2:.4f}) after {time.monotonic() - started:.1f} s; running {total} episodes",
+                              markup=False, highlight=False)
+            bar.update(task, description="episodes", total=total, completed=0)
+
         try:
             results = run_campaign(preset, scenario, tests, seed, names, progress=lambda done, _: bar.update(task, completed=done),
-                                   stop_confidence=stop_confidence, workers=workers or None)
+                                   stop_confidence=stop_confidence, workers=workers or None, on_trained=trained)
         except ScenarioError as err:
             fail(str(err))
+        except Interrupted as stop:
+            bar.stop()
+            _interrupted(stop, as_json)
     if reliability_plot:
         from ra2vipas.services.orchestrator.plots import write_reliability_plot
 
@@ -89,11 +107,32 @@ def simulate(
     emit_results(results, plot, as_json)
 
 
+def say_training(what: str) -> None:
+    """Say at once (also when stderr is not a terminal) what the first seconds are spent on."""
+    print(f"training {what}; a first run on this machine also compiles the numerical kernels "
+          "(up to a minute; cached afterwards)", file=sys.stderr, flush=True)
+
+
+def _interrupted(stop, as_json: bool) -> None:
+    """Ctrl-C: print the results of the tests finished so far, marked partial (no figure), and
+    exit 130."""
+    partial = stop.report.results[0] if stop.report is not None else None
+    if partial is not None:
+        if as_json:
+            print_json(partial)
+        else:
+            print_results(partial)
+    recorded = sum((partial or {}).get("tests_recorded", {}).values())
+    shown = f"the results above are partial ({recorded} of {stop.total} episodes)" if partial else "no test had finished"
+    print(f"interrupted after {stop.done} of {stop.total} episodes: {shown}", file=sys.stderr)
+    raise typer.Exit(130)
+
+
 def _study(preset: str, tests: int, seed: int, names: list[str], overrides: list[str] | None, stop_confidence: float,
            as_json: bool, plot: str | None, reliability_plot: str | None, vary: list[str], workers: int) -> None:
     """``simulate --vary``: the study in this process, printed like ``ra2vipas study results``."""
     from ra2vipas.cli.study import emit_study, parse_vary_options
-    from ra2vipas.services.orchestrator.engine import run_study
+    from ra2vipas.services.orchestrator.engine import Interrupted, run_study
     from ra2vipas.services.orchestrator.study import StudyError
 
     if reliability_plot:
@@ -104,13 +143,23 @@ def _study(preset: str, tests: int, seed: int, names: list[str], overrides: list
         base = parse_overrides(overrides or [])
         if len(grid) > 2 and plot:
             raise StudyError(f"--plot shows one or two varied parameters; {len(grid)} are varied")
+        say_training(f"the POD model of each point on {build_scenario(preset, base).n_train} self-supervised samples, then its episodes")
         with Progress(
             TextColumn("[bold]study[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
             TimeElapsedColumn(), TimeRemainingColumn(), console=stderr, transient=True,
         ) as bar:
             task = bar.add_task("episodes", total=None)
-            results = run_study(preset, base, grid, tests, seed, names, stop_confidence, workers=workers or None,
-                                progress=lambda done, total: bar.update(task, completed=done, total=total))
+            try:
+                results = run_study(preset, base, grid, tests, seed, names, stop_confidence, workers=workers or None,
+                                    progress=lambda done, total: bar.update(task, completed=done, total=total))
+            except Interrupted as stop:
+                bar.stop()
+                if stop.study is not None and stop.study["rows"]:
+                    emit_study(stop.study, None, as_json)
+                shown = "the rows above are partial (the tests finished so far)" if stop.study and stop.study["rows"] else \
+                    "no test had finished"
+                print(f"interrupted after {stop.done} of {stop.total} episodes: {shown}", file=sys.stderr)
+                raise typer.Exit(130) from None
     except (ScenarioError, StudyError) as err:
         fail(str(err), EXIT_USAGE)
     emit_study(results, plot, as_json)

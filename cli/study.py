@@ -16,7 +16,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from ra2vipas.cli.client import DEFAULT_API, FINISHED, ApiOpt, Client, JsonOpt, TokenOpt
-from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stderr, stdout, write_file
+from ra2vipas.cli.output import EXIT_USAGE, check_output, fail, print_json, stderr, stdout, write_file
 from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
@@ -190,9 +190,11 @@ def _follow(client: Client, sid: str) -> dict:
             time.sleep(POLL_S)
 
 
-def _check_plot(plot: str | None) -> None:
+def _check_plot(plot: str | None, option: str = "--plot") -> None:
+    """A figure's file name: .png or .svg (usage error), in a folder that can be written."""
     if plot is not None and not plot.lower().endswith((".png", ".svg")):
-        fail(f"--plot expects a .png or .svg file name, got {plot!r}", EXIT_USAGE)
+        fail(f"{option} expects a .png or .svg file name, got {plot!r}", EXIT_USAGE)
+    check_output(plot, option)
 
 
 @app.command("start")
@@ -304,6 +306,7 @@ def results(
 ) -> None:
     """The study's table: one row per point x algorithm (partial while it runs)."""
     client = Client(api, None)
+    check_output(csv, "--csv")
     if csv is not None:
         text = client.response("GET", f"/studies/{study_id}/results", params={"format": "csv"}).text
         if csv == "-":
@@ -327,7 +330,7 @@ def plot(
     api: ApiOpt = DEFAULT_API,
 ) -> None:
     """Write the study's metric against its varied parameter (a heat map when two vary)."""
-    _check_plot(output)
+    _check_plot(output, "--output")
     fmt = "svg" if output.lower().endswith(".svg") else "png"
     data = Client(api, None).response("GET", f"/studies/{study_id}/plots/{metric}", params={"format": fmt}).content
     write_file(data, output)

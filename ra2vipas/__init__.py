@@ -41,11 +41,11 @@ _here = _Path(__file__).resolve().parent
 if not (_here / "services").is_dir() and (_here.parent / "services" / "__init__.py").is_file():
     __path__.append(_os.fspath(_here.parent))  # type: ignore[name-defined]  # noqa: F821
 
-from ra2vipas.api import Client, ClientError, simulate, study, to_dataframe  # noqa: E402
+from ra2vipas.api import Client, ClientError, paired_test, simulate, study, to_dataframe  # noqa: E402
 from ra2vipas.services.controller.contract import EpisodeContext, Policy, PolicyDecision, RigDescription  # noqa: E402
 
-__all__ = ["Client", "ClientError", "EpisodeContext", "Policy", "PolicyDecision", "RigDescription", "simulate", "study",
-           "to_dataframe", "__version__"]
+__all__ = ["Client", "ClientError", "EpisodeContext", "Policy", "PolicyDecision", "RigDescription", "paired_test", "simulate",
+           "study", "to_dataframe", "__version__"]
 
 try:
     from importlib.metadata import version as _version

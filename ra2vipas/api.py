@@ -54,7 +54,8 @@ def simulate(preset: str = "paper", overrides: Mapping[str, Any] | None = None, 
     -------
     dict
         The results object (DR curves with Wilson bands, final DR, t90, in-FoV, POD R²,
-        calibration).
+        calibration), with ``outcomes`` (per algorithm, the final hit of every test) and
+        ``paired`` (every pair of algorithms compared test by test: McNemar's exact test).
 
     Raises
     ------
@@ -92,6 +93,31 @@ def study(vary: Mapping[str, Iterable[Any]], preset: str = "paper", overrides: M
         raise ValueError("vary: expected a mapping {parameter: [values]} with at least one parameter")
     grid = {str(k): list(v) for k, v in vary.items()}
     return run_study(preset, dict(overrides or {}), grid, tests, seed, names, float(stop_confidence), workers=workers or 1)
+
+
+def paired_test(hits_a: Iterable[Any], hits_b: Iterable[Any], a: str = "a", b: str = "b") -> dict[str, Any]:
+    """Two algorithms' final answers compared test by test (McNemar's exact test), e.g. on a
+    results object's ``outcomes`` (``results["paired"]`` has every pair of its algorithms
+    already) or on the same algorithm in two campaigns with the same seed (test k meets the
+    world drawn from (seed, k) in both, changed only by what differs).
+
+    Parameters
+    ----------
+    hits_a, hits_b : iterables of 1/0 (or bool), None for a test not recorded
+        The final hit of each test, by test index.
+    a, b : str
+        Names for the two sides.
+
+    Returns
+    -------
+    dict
+        ``tests`` (both recorded), ``both``, ``only_a``, ``only_b``, ``neither``,
+        ``dr_difference`` (DR of a minus b on those tests) and ``p_value`` (two-sided exact
+        binomial test of ``only_a`` among the discordant tests, p = 1/2).
+    """
+    from ra2vipas.services.orchestrator.metrics import paired_comparison
+
+    return paired_comparison(a, list(hits_a), b, list(hits_b))
 
 
 class ClientError(Exception):
@@ -242,13 +268,16 @@ def to_dataframe(results: Mapping[str, Any]):
     """A results object as a tidy pandas DataFrame (needs pandas: ``pip install
     'ra2vipas[pandas]'``): a campaign's, one row per (algorithm, step) with time, DR and its
     Wilson band, led by what was run (preset, seed, tests, one column per override: the CSV
-    ``dr`` table); a study's, its ``rows`` (one per point x algorithm)."""
+    ``dr`` table); a study's, its ``rows`` (one per point x algorithm) with the columns of
+    ``ra2vipas study results ID --csv`` in the same order, in this process or through ``Client``."""
     try:
         import pandas as pd
     except ImportError:
         raise ImportError("to_dataframe needs pandas: pip install 'ra2vipas[pandas]'") from None
-    if "rows" in results and "points" in results:  # a study
-        return pd.DataFrame(list(results["rows"]))
+    if "rows" in results and "points" in results:  # a study: the CSV's columns, in the CSV's order
+        from ra2vipas.services.orchestrator.study import study_columns, table_rows
+
+        return pd.DataFrame(table_rows(results), columns=study_columns(results))
     from ra2vipas.services.orchestrator.api.export import curve_rows
 
     return pd.DataFrame(curve_rows(dict(results)))

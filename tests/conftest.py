@@ -24,10 +24,12 @@ SMALL = {"steps": 40, "n_train": 300}
 
 def untimed(results: dict) -> dict:
     """A results object without what depends on the wall clock (speeds, latencies, training
-    time), so two runs of the same campaign compare equal value for value."""
+    time) or names the run (its campaign ``id``: null in this process), so two runs of the same
+    campaign compare equal value for value."""
     import json
 
     out = json.loads(json.dumps(results))
+    out.pop("id", None)
     out.pop("steps_per_second", None)
     out.pop("latency_ms", None)
     out["pod"].pop("train_seconds", None)

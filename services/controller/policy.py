@@ -5,6 +5,12 @@ pan angle s_t (``StepMeasurement``: two RSSI values and the nu frames of anonymo
 bearings) and returns the next pan angle s_{t+1} and the current estimate gamma_hat_t of the
 Tx bearing (paper eqs. 25-27). It never sees ranges, identities or the true POD.
 
+A trap for a new policy: under the ``paper`` antenna model (eq. 6) Rx(dir) reads
+z_dir = g(d) * rho, a negative dBm path loss scaled by rho <= 1 (1 when aligned), so the reading
+*dips* where the antenna points at the Tx (at 2 m: -36 dBm aligned, 0 dBm at 90 deg); "point where
+Rx(dir) is strongest" looks away. Score Rx(dir) samples by the rig's response (as below), never
+by their raw level; under ``db-gain`` (z_dir = g(d) + 10 log10 rho) the reading peaks when aligned.
+
 What it believes, after t samples:
 
 * **Radio**, when the rig says how Rx(dir) responds (paper eq. 6 or the dB-gain model; the

@@ -104,6 +104,20 @@ class RunReport:
         return self.steps / self.seconds if self.seconds > 0 else None
 
 
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during ``run_points``: ``report`` holds the results of the tests finished before
+    it (each point's first tests, in test order, the same for any worker count), marked
+    ``partial`` with ``tests_recorded`` per algorithm; a point with none is None (and ``report``
+    is None if no test finished at all)."""
+
+    def __init__(self, report: "RunReport | None", done: int, total: int) -> None:
+        super().__init__()
+        self.report = report
+        self.study: dict[str, Any] | None = None  # run_study: the partial study results
+        self.done = done
+        self.total = total
+
+
 def default_workers() -> int:
     """The cores this process may run on."""
     try:
@@ -215,12 +229,14 @@ def plan(points: Sequence[Point], chunk: int) -> Iterator[tuple[int, int, int]]:
 
 
 def run_points(points: Sequence[Point], workers: int | None = None, progress: Callable[[int, int], None] | None = None,
-               settings: ControllerSettings | None = None) -> RunReport:
+               settings: ControllerSettings | None = None,
+               on_trained: Callable[[int, TrainedPOD], None] | None = None) -> RunReport:
     """Run every point's tests x algorithms episodes on ``workers`` processes (default: every
     core; 1: in this process) and return each point's results object.
 
     ``progress(done, total)`` is called in this process as episodes finish (after each episode
-    with one worker, after each chunk with more).
+    with one worker, after each chunk with more); ``on_trained(point, pod)`` once per point when
+    its POD model is ready, before its first episode is handed out.
     """
     if not points:
         raise ValueError("no point to run")
@@ -240,10 +256,10 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
         if progress:
             progress(done, total)
 
+    models: list[Future] = []
     pool = worker_pool(workers)
     try:
         trained: dict[tuple[str, int], Future] = {}
-        models: list[Future] = []
         for p in points:  # every point's model first: a study's points train in parallel
             key = (p.scenario.model_dump_json(), p.seed)
             if key not in trained:
@@ -252,6 +268,7 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
         for _ in range(workers - len(trained)):  # start every worker now, while the models train, not in the timed part
             pool.submit(os.getpid)
         started: float | None = None
+        announced: set[int] = set()
         in_flight: deque[tuple[int, int, int, Future]] = deque()
         jobs = plan(points, chunk)
 
@@ -262,7 +279,11 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
                 return False
             i, first, stop = job
             p = points[i]
-            model = models[i].result().model
+            trained_pod = models[i].result()
+            if on_trained is not None and i not in announced:
+                announced.add(i)
+                on_trained(i, trained_pod)
+            model = trained_pod.model
             if started is None:
                 started = time.perf_counter()
             on_episode = tick if workers == 1 else None
@@ -277,14 +298,18 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
             i, first, stop, future = in_flight.popleft()
             rows, rss = future.result()
             worker_rss = max(worker_rss, rss)
-            for test_row in rows:
+            for k, test_row in enumerate(rows, start=first):
                 for a, ep in zip(points[i].algorithms, test_row):
-                    tallies[i][a].add(ep.hits, ep.in_fov, ep.confidences, ep.decided_step, ep.steps_run)
+                    tallies[i][a].add(ep.hits, ep.in_fov, ep.confidences, ep.decided_step, ep.steps_run, test_index=k)
                     if workers > 1:
                         tick()
             submit_next()
         seconds = time.perf_counter() - (started or time.perf_counter())
         pods = [m.result() for m in models]
+    except KeyboardInterrupt:
+        if isinstance(pool, ProcessPoolExecutor):
+            _stop_pool(pool)
+        raise Interrupted(_partial_report(points, tallies, models, workers, worker_rss), done, total) from None
     except BaseException:
         if isinstance(pool, ProcessPoolExecutor):
             _stop_pool(pool)
@@ -296,6 +321,25 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
     results = [results_object(p.preset, p.scenario, p.tests, p.seed, pod, tallies[i], sps, p.stop_confidence)
                for i, (p, pod) in enumerate(zip(points, pods))]
     return RunReport(results=results, steps=steps, seconds=seconds, workers=workers, worker_peak_rss_kb=worker_rss)
+
+
+def _partial_report(points: Sequence[Point], tallies: list[dict[str, AlgorithmTally]], models: list[Future], workers: int,
+                    worker_rss: int) -> RunReport | None:
+    """The results of the tests reduced before an interruption (``Interrupted``)."""
+    results: list[dict[str, Any] | None] = []
+    for p, per, model in zip(points, tallies, models):
+        shown = {a: t for a, t in per.items() if t.tests}
+        if not shown or not model.done() or model.cancelled() or model.exception() is not None:
+            results.append(None)
+            continue
+        res = results_object(p.preset, p.scenario, p.tests, p.seed, model.result(), shown, None, p.stop_confidence)
+        res["partial"] = True
+        res["tests_recorded"] = {a: t.tests for a, t in shown.items()}
+        results.append(res)
+    if all(r is None for r in results):
+        return None
+    steps = sum(t.steps_run for per in tallies for t in per.values())
+    return RunReport(results=results, steps=steps, seconds=0.0, workers=workers, worker_peak_rss_kb=worker_rss)  # type: ignore[arg-type]
 
 
 def _stop_pool(pool: ProcessPoolExecutor) -> None:
@@ -332,10 +376,18 @@ def run_study(preset: str, overrides: dict[str, Any], vary: dict[str, Sequence[A
     check_size(len(grid), tests, len(algorithms))
     points = [Point(preset=preset, scenario=scenario, tests=tests, seed=seed, algorithms=tuple(algorithms),
                     stop_confidence=stop_confidence) for _, scenario in grid]
-    report = run_points(points, workers=workers, progress=progress, settings=settings)
     resolved = {n: list(dict.fromkeys(values[n] for values, _ in grid)) for n in vary}
     meta = {"id": None, "name": name, "status": "done", "preset": preset, "overrides": dict(overrides), "vary": resolved,
             "algorithms": list(algorithms), "tests": tests, "seed": seed, "mode": "fast", "stop_confidence": stop_confidence}
+    try:
+        report = run_points(points, workers=workers, progress=progress, settings=settings)
+    except Interrupted as stop:  # Ctrl-C: the study of the tests finished so far, marked partial, travels with it
+        results = stop.report.results if stop.report is not None else [None] * len(grid)
+        shown = [{"point": i, "values": values, "campaign_id": None, "status": "cancelled", "results": res,
+                  "tests": (res or {}).get("tests_recorded")}
+                 for i, ((values, _), res) in enumerate(zip(grid, results))]
+        stop.study = study_results({**meta, "status": "cancelled"}, shown, None, partial=True)
+        raise
     shown = [{"point": i, "values": values, "campaign_id": None, "status": "done", "results": res}
              for i, ((values, _), res) in enumerate(zip(grid, report.results))]
     out = study_results(meta, shown, report.steps_per_second)

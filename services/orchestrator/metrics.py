@@ -198,6 +198,39 @@ def wilson_interval(successes: float, trials: int, z: float = Z95) -> tuple[floa
     return lo, hi
 
 
+def mcnemar_exact(only_a: int, only_b: int) -> float:
+    """Two-sided exact McNemar test of two algorithms scored on the same tests: under H0 (equal
+    discovery rates) each discordant test (one found the Tx, the other did not) is equally
+    likely to favour either, so ``only_a`` ~ Binomial(only_a + only_b, 1/2); the p-value is the
+    exact binomial test's (1 with no discordant test)."""
+    from scipy.stats import binomtest
+
+    n = int(only_a) + int(only_b)
+    if n == 0:
+        return 1.0
+    return float(binomtest(int(only_a), n, 0.5, alternative="two-sided").pvalue)
+
+
+def paired_comparison(name_a: str, hits_a, name_b: str, hits_b) -> dict[str, Any]:
+    """Two algorithms' final hits (1/0 per test index, None where a test was not recorded)
+    compared on the tests both ran: the 2 x 2 counts, the difference of their DR on those tests
+    and the exact McNemar p-value (``mcnemar_exact``)."""
+    pairs = [(bool(x), bool(y)) for x, y in zip(hits_a, hits_b) if x is not None and y is not None]
+    both = sum(1 for x, y in pairs if x and y)
+    only_a = sum(1 for x, y in pairs if x and not y)
+    only_b = sum(1 for x, y in pairs if y and not x)
+    n = len(pairs)
+    return {"a": name_a, "b": name_b, "tests": n, "both": both, "only_a": only_a, "only_b": only_b,
+            "neither": n - both - only_a - only_b, "dr_difference": round((only_a - only_b) / n, 6) if n else None,
+            "p_value": _rounded(mcnemar_exact(only_a, only_b)) if n else None}
+
+
+def paired_comparisons(outcomes: dict[str, list]) -> list[dict[str, Any]]:
+    """``paired_comparison`` of every pair of algorithms, in the order given (a before b)."""
+    names = list(outcomes)
+    return [paired_comparison(a, outcomes[a], b, outcomes[b]) for i, a in enumerate(names) for b in names[i + 1:]]
+
+
 def time_to_level(dr: np.ndarray, level: float, rf_period_s: float) -> float | None:
     """Earliest time (s) after which DR_t >= level up to the end; None if the last DR is below."""
     dr = np.asarray(dr)

@@ -24,6 +24,7 @@ from typing import Any, Callable, Literal
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors import physics
@@ -48,6 +49,28 @@ def run_title(results: dict[str, Any], name: str | None = None, width: int = 90)
         recorded = sorted(set((results.get("tests_recorded") or {}).values()))
         tests = f"partial: {'/'.join(map(str, recorded)) or 0} of {results['tests']} tests"
     line = f"{name + ' — ' if name else ''}{what}: {tests}, seed {results['seed']}"
+    if results.get("stop_confidence"):
+        line += f", each test stopped at confidence {results['stop_confidence']:g}"
+    return "\n".join(textwrap.wrap(line, width)) or line
+
+
+def overlay_title(runs: list[tuple[str, dict[str, Any]]], label: str | None = None, width: int = 90) -> str:
+    """An overlay's title: what every campaign shares, so the legend need only say what differs:
+    the preset, tests and seed, every scenario parameter overridden alike in all of them (the
+    resolved value is the same everywhere and differs from the first one's preset), and the
+    stop confidence."""
+    import textwrap
+
+    results = [r for _, r in runs]
+    first = results[0]
+    shared = [f"{k} {first[k]}" for k in ("preset", "tests", "seed") if len({str(r[k]) for r in results}) == 1]
+    for name, value in (first.get("overrides") or {}).items():
+        if name != label and all((r.get("scenario") or {}).get(name) == first["scenario"].get(name) for r in results):
+            shared.append(f"{name}={value}")
+    stops = {r.get("stop_confidence") or 0.0 for r in results}
+    if len(stops) == 1 and stops != {0.0}:
+        shared.append(f"stopped at confidence {stops.pop():g}")
+    line = "DR_t" + (f" by {label}" if label else "") + (f": {', '.join(shared)}" if shared else "")
     return "\n".join(textwrap.wrap(line, width)) or line
 
 
@@ -204,10 +227,27 @@ def _times_for_plot(t: np.ndarray, deg: np.ndarray) -> np.ndarray:
     return np.insert(np.asarray(t, dtype=float), jumps + 1, np.nan)
 
 
+def episode_bearings(episode: dict[str, Any], steps: int) -> np.ndarray:
+    """(steps, N) bearings [rad] of every target at each step of a recorded episode: the walkers'
+    recorded trajectories (``trajectories``, as the episode page animates them), the others
+    held at their step-0 bearing."""
+    bearings = np.asarray(episode["bearings"], dtype=float)
+    out = np.tile(bearings, (max(steps, 1), 1))
+    for walk in episode.get("trajectories") or []:
+        path = np.asarray(walk["bearings_rad"], dtype=float)
+        if path.size:
+            n = min(len(out), path.size)
+            out[:n, walk["index"]] = path[:n]
+            out[n:, walk["index"]] = path[n - 1]
+    return out
+
+
 def episode_figure(scenario: Scenario, episode: dict[str, Any]) -> Figure:
     """One test: the targets seen from above with the FoV at the final estimate (left), and the
-    pan angle s_t, the FoV around it and the estimate gamma_hat_t against time (right)."""
-    bearings = np.asarray(episode["bearings"], dtype=float)
+    pan angle s_t, the FoV around it and the estimate gamma_hat_t against time (right), with
+    every target's bearing, the Tx's in red: a line over time for targets that walk (their
+    recorded trajectory, as on the episode page), so the estimate is read against where the Tx
+    was at each step; walkers are drawn where they ended, their path behind them."""
     ranges = np.asarray(episode["ranges"], dtype=float)
     tx = int(episode["tx_index"])
     pans = np.degrees(np.asarray(episode["pans"], dtype=float))
@@ -216,27 +256,48 @@ def episode_figure(scenario: Scenario, episode: dict[str, Any]) -> Figure:
     period = scenario.rf_period_s
     t = (np.arange(len(est)) + 1) * period
     fov = scenario.fov_half_angle_deg
+    track = episode_bearings(episode, len(est))  # (T, N) rad
+    walks = {w["index"]: w for w in episode.get("trajectories") or []}
+    ranges_now = ranges.copy()
+    for i, w in walks.items():
+        if w.get("ranges_m"):
+            ranges_now[i] = w["ranges_m"][min(len(est), len(w["ranges_m"])) - 1]
+    bearings = track[-1]
 
     fig = Figure(figsize=(11.0, 4.6), dpi=110)
     grid = fig.add_gridspec(1, 2, width_ratios=(1.0, 1.7))
     top = fig.add_subplot(grid[0, 0], projection="polar")
+    for i, w in walks.items():
+        n = min(len(est), len(w["bearings_rad"]), len(w.get("ranges_m") or []))
+        if n:
+            top.plot(w["bearings_rad"][:n], w["ranges_m"][:n], color="tab:red" if i == tx else "0.7", linewidth=0.9,
+                     alpha=0.8 if i == tx else 0.6, label="Tx path" if i == tx else None)
     others = np.arange(len(bearings)) != tx
-    top.scatter(bearings[others], ranges[others], s=22, color="0.45", label="targets")
-    top.scatter([bearings[tx]], [ranges[tx]], s=110, marker="*", color="tab:red", label="Tx", zorder=3)
-    rmax = float(max(ranges.max(), 1.0)) * 1.1
+    top.scatter(bearings[others], ranges_now[others], s=22, color="0.45", label="targets")
+    top.scatter([bearings[tx]], [ranges_now[tx]], s=110, marker="*", color="tab:red", label="Tx", zorder=3)
+    rmax = float(max(ranges_now.max(), ranges.max(), 1.0)) * 1.1
     final = math.radians(float(est[-1]))
     wedge = np.linspace(final - math.radians(fov), final + math.radians(fov), 30)
     top.fill_between(wedge, 0, rmax, color="tab:blue", alpha=0.15, label="FoV at final $\\hat\\gamma$")
     top.plot([final, final], [0, rmax], color="tab:blue", linewidth=1.4)
     top.set_rmax(rmax)
-    top.set_title("targets (range m, bearing)", fontsize=9)
+    top.set_title("targets at the last step (range m, bearing)" if walks else "targets (range m, bearing)", fontsize=9)
     top.legend(loc="lower left", bbox_to_anchor=(-0.15, -0.18), fontsize=7, ncol=3, frameon=False)
 
     ax = fig.add_subplot(grid[0, 1])
-    for i, b in enumerate(np.degrees(bearings)):
-        if i != tx:
-            ax.axhline(b, color="0.8", linewidth=0.7)
-    ax.axhline(float(np.degrees(bearings[tx])), color="tab:red", linewidth=1.4, label="Tx bearing")
+    deg = np.degrees(track)
+    for i in range(track.shape[1]):
+        if i == tx:
+            continue
+        if i in walks:
+            ax.plot(_times_for_plot(t, deg[:, i]), _unwrapped_for_plot(deg[:, i]), color="0.8", linewidth=0.7)
+        else:
+            ax.axhline(deg[0, i], color="0.8", linewidth=0.7)
+    if tx in walks:
+        ax.plot(_times_for_plot(t, deg[:, tx]), _unwrapped_for_plot(deg[:, tx]), color="tab:red", linewidth=1.4,
+                label="Tx bearing (walking)")
+    else:
+        ax.axhline(float(deg[0, tx]), color="tab:red", linewidth=1.4, label="Tx bearing")
     ax.fill_between(t, pans - fov, pans + fov, step="mid", color="tab:green", alpha=0.12, linewidth=0, label="FoV at s$_t$")
     ax.plot(t, pans, ".", color="tab:green", markersize=3.5, label="pan angle s$_t$")
     ax.plot(_times_for_plot(t, est), _unwrapped_for_plot(est), color="tab:blue", linewidth=1.5, label="estimate $\\hat\\gamma_t$")
@@ -263,6 +324,9 @@ METRIC_LABELS = {"dr_final": "final discovery rate DR (association rule)", "time
                  "calibration_confidence_final": "mean final confidence", "decision_accuracy": "accuracy of early decisions",
                  "decision_median_s": "median time to decision [s]", "decision_p90_s": "90th percentile time to decision [s]",
                  "decision_undecided": "share undecided at the horizon"}
+
+
+NEVER_REACHED = {"time_to_dr90_s": "never"}  # metrics whose null means the level was never reached, and the cell's label
 
 
 def band_fields(metric: str) -> tuple[str, str] | None:
@@ -293,9 +357,12 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
     """
     params = results["parameters"]
     rows = [r for r in results["rows"] if r.get(metric) is not None]
+    # a row whose metric is null because the level was never reached (t90 of a DR that ends
+    # below 0.9) is a result, not a hole: its heat-map cell says "never"
+    never = [r for r in results["rows"] if metric in NEVER_REACHED and metric in r and r[metric] is None]
     if len(params) > 2:
         raise ValueError(f"a study figure shows one or two varied parameters; this study varies {len(params)}")
-    if not rows:
+    if not rows and not (never and len(params) == 2):
         raise ValueError(f"no point reports {metric} yet")
     algorithms = [a for a in results["algorithms"] if any(r["algorithm"] == a for r in rows)]
     label = METRIC_LABELS.get(metric, metric)
@@ -328,8 +395,9 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
         fig.tight_layout()
         return fig
     ny, nx = params
-    ys, xs = _ordered([r[ny] for r in rows]), _ordered([r[nx] for r in rows])
-    values = [r[metric] for r in rows]
+    algorithms = [a for a in results["algorithms"] if any(r["algorithm"] == a for r in rows + never)]
+    ys, xs = _ordered([r[ny] for r in rows + never]), _ordered([r[nx] for r in rows + never])
+    values = [r[metric] for r in rows] or [0.0, 1.0]
     vmin, vmax = (0.0, 1.0) if metric in ("dr_final", "in_fov_final") else (min(values), max(values))
     fig = Figure(figsize=(3.2 * len(algorithms) + 1.4, max(3.6, 0.35 * len(ys) + 2.6)), dpi=120, layout="constrained")
     axes = fig.subplots(1, len(algorithms), squeeze=False)[0]
@@ -340,6 +408,11 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
             if r["algorithm"] == a:
                 grid[ys.index(r[ny]), xs.index(r[nx])] = r[metric]
         image = ax.imshow(grid, origin="lower", aspect="auto", vmin=vmin, vmax=vmax, cmap="viridis")
+        for r in never:
+            if r["algorithm"] == a:
+                i, j = ys.index(r[ny]), xs.index(r[nx])
+                ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, facecolor="0.88", edgecolor="0.6", hatch="//", linewidth=0.5))
+                ax.text(j, i, NEVER_REACHED[metric], ha="center", va="center", fontsize=7, color="black")
         ax.set_xticks(range(len(xs)), [f"{v:g}" if isinstance(v, float) else str(v) for v in xs], fontsize=8)
         ax.set_yticks(range(len(ys)), [f"{v:g}" if isinstance(v, float) else str(v) for v in ys], fontsize=8)
         if len(xs) * len(ys) <= 64:
@@ -352,6 +425,8 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
     axes[0].set_ylabel(ny)
     if image is not None:
         fig.colorbar(image, ax=list(axes), label=label, shrink=0.9)
+    if any(r["algorithm"] in algorithms for r in never):
+        title += "\nnever: DR does not stay at 0.9 or more by the end of the test"
     fig.suptitle(title, fontsize=10)
     return fig
 

@@ -37,7 +37,8 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from ra2vipas.services.orchestrator.metrics import (
-    decision_summary, ece_sampling_floor, expected_calibration_error, reliability_bins, time_to_level, wilson_interval,
+    decision_summary, ece_sampling_floor, expected_calibration_error, paired_comparisons, reliability_bins, time_to_level,
+    wilson_interval,
 )
 
 BINS = 10  # the calibration bins of metrics.expected_calibration_error
@@ -72,6 +73,7 @@ class AlgorithmTally:
         self._final_hits = array("b")
         self._final_conf = array("d")
         self._decided: list[int | None] = []
+        self._test_index = array("q")  # each episode's test index, in arrival order (its final hit: _final_hits)
         self._with_conf = True  # every episode so far carried per-step confidences
         self._bin_n = np.zeros(BINS, dtype=np.int64)
         self._bin_conf = [0] * BINS  # exact sums, in units of 2**-1074 (_exact_units)
@@ -79,10 +81,12 @@ class AlgorithmTally:
         self._samples = 0  # every (test, step) confidence, binned or not (metrics' denominator)
         self._bin_hits = np.zeros(BINS, dtype=np.int64)
 
-    def add(self, hits, in_fov, confidences=None, decided_step: int | None = None, steps_run: int | None = None) -> None:
+    def add(self, hits, in_fov, confidences=None, decided_step: int | None = None, steps_run: int | None = None,
+            test_index: int | None = None) -> None:
         """One episode: its per-step hits and in-FoV flags (``steps`` long), its per-step
         confidences (``steps`` long, or None/empty from a controller that sends none), the step
-        it decided at (early decisions) and how many control steps it actually ran.
+        it decided at (early decisions), how many control steps it actually ran and its test
+        index (default: the episodes arrive in test order, 0, 1, ...).
 
         Raises
         ------
@@ -93,6 +97,7 @@ class AlgorithmTally:
         f = np.asarray(in_fov, dtype=bool)
         if h.shape != (self.steps,) or f.shape != (self.steps,):
             raise ValueError(f"an episode's hits and in-FoV flags must have {self.steps} steps, got {h.shape} and {f.shape}")
+        self._test_index.append(self.tests if test_index is None else int(test_index))
         self.tests += 1
         self.steps_run += self.steps if steps_run is None else int(steps_run)
         self._hit_counts += h
@@ -117,6 +122,14 @@ class AlgorithmTally:
                 else:
                     self._bin_special[b].append(value)
             self._final_conf.append(float(c[-1]))
+
+    def outcomes(self, tests: int) -> list[int | None]:
+        """The final hit (1/0) of tests 0 .. ``tests`` - 1, None for a test not added."""
+        out: list[int | None] = [None] * tests
+        for k, hit in zip(self._test_index, self._final_hits):
+            if 0 <= k < tests:
+                out[k] = int(hit)
+        return out
 
     def _bin_mean_confidence(self, b: int, n: int) -> float:
         """The mean confidence of bin ``b`` (n samples): its exact sum, correctly rounded (int / int
@@ -273,6 +286,10 @@ def results_object(preset: str, scenario, tests: int, seed: int, pod, tallies: M
 
     out = summarize(preset, scenario, tests, seed, pod, {}, steps_per_second, stop_confidence)
     out["algorithms"] = {name: tally.summary(decisions=stop_confidence > 0.0) for name, tally in tallies.items()}
+    # per test, each algorithm's final hit, and every pair of algorithms compared on the tests
+    # both ran (every algorithm meets the same world in test k: McNemar's exact test)
+    out["outcomes"] = {name: tally.outcomes(tests) for name, tally in tallies.items()}
+    out["paired"] = paired_comparisons(out["outcomes"])
     add_provenance(out)
     warnings = dr_warnings(out)
     if warnings:

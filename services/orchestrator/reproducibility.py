@@ -186,7 +186,10 @@ def results_tolerance(flipped: dict[str, int], tests: int) -> Callable[[str, str
     CPUs, where ``flipped[algorithm]`` of its ``tests`` tests took another path."""
     def rule(path: str, key: str) -> float | None:
         parts = path.split("/")
-        count = flipped.get(parts[2], 0) if len(parts) > 2 and parts[1] == "algorithms" else 0
+        if len(parts) > 1 and parts[1].startswith("paired") and any(flipped.values()):
+            return None  # McNemar blocks: functions of the per-test outcomes, unit-tested
+        name = parts[2].split("[")[0] if len(parts) > 2 else ""
+        count = flipped.get(name, 0) if parts[1] in ("algorithms", "outcomes") else 0
         if count:
             return count / tests + 1e-6 if key in DECISION_FRACTION_KEYS else None
         return FITTED_KEYS.get(key, 0.0)

@@ -829,7 +829,7 @@ def reduce_recorded(rows: Iterable[dict[str, Any]], algorithms: Iterable[str],
     checks = RigChecks()
     for row in rows:
         tallies[row["algorithm"]].add(row["hits"], row["in_fov"], held(row.get("confidences") or [], steps) or None,
-                                      row.get("decided_step"), row["n_estimates"])
+                                      row.get("decided_step"), row["n_estimates"], test_index=row.get("test_index"))
         latencies.add(row.get("latencies") or ())
         checks.add(row.get("rig"), row.get("model_check"))
     return tallies, latencies, checks

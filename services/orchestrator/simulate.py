@@ -119,6 +119,7 @@ def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: Train
         )
     resolved = scenario.model_dump(mode="json")
     out = {
+        "id": None,  # the campaign's id where one names it (the API's results); None in this process
         "preset": preset,
         "overrides": overrides_of(preset, resolved),
         "scenario": resolved,
@@ -130,6 +131,17 @@ def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: Train
     }
     if stop_confidence > 0.0:
         out["stop_confidence"] = stop_confidence
+    if outcomes:
+        from ra2vipas.services.orchestrator.metrics import paired_comparisons
+
+        finals: dict[str, list[int | None]] = {}
+        for name, runs in outcomes.items():
+            finals[name] = [None] * tests
+            for o in runs:
+                if 0 <= o.test_index < tests and o.hits:
+                    finals[name][o.test_index] = int(o.hits[-1])
+        out["outcomes"] = finals
+        out["paired"] = paired_comparisons(finals)
     add_provenance(out)
     return out
 
@@ -158,10 +170,11 @@ def overrides_of(preset: str, scenario: dict[str, Any]) -> dict[str, Any]:
 def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = registry.BUILTINS,
                  settings: ControllerSettings | None = None,
                  progress: Callable[[int, int], None] | None = None, stop_confidence: float = 0.0,
-                 workers: int = 1) -> dict[str, Any]:
+                 workers: int = 1, on_trained: Callable[[TrainedPOD], None] | None = None) -> dict[str, Any]:
     """Train once, run tests x algorithms episodes, return the results object.
 
-    ``progress(done, total)`` is called as episodes finish; ``stop_confidence`` > 0 ends each
+    ``progress(done, total)`` is called as episodes finish, ``on_trained(pod)`` once the POD
+    model is trained (before the first episode); ``stop_confidence`` > 0 ends each
     episode at its first step that confident (its answer final) and adds ``decision`` blocks.
     ``workers`` > 1 runs the tests on that many processes (``engine.run_points``), with results
     identical value for value to ``workers=1``; outcomes are reduced as they arrive, never
@@ -171,4 +184,5 @@ def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorit
 
     point = Point(preset=preset, scenario=scenario, tests=tests, seed=seed, algorithms=tuple(algorithms),
                   stop_confidence=stop_confidence)
-    return run_points([point], workers=workers, progress=progress, settings=settings).results[0]
+    announce = None if on_trained is None else (lambda _i, pod: on_trained(pod))
+    return run_points([point], workers=workers, progress=progress, settings=settings, on_trained=announce).results[0]

@@ -395,10 +395,13 @@ class Store:
         return _campaign_dict(row, counts)
 
     def campaigns(self, *, status: str | None = None, preset: str | None = None, name: str | None = None, limit: int = 50,
-                  offset: int = 0) -> tuple[list[dict], int]:
+                  offset: int = 0, standalone: bool = False) -> tuple[list[dict], int]:
         """One page of campaigns (without their results objects), newest first, optionally
-        filtered (``name``: exact); and how many match in all."""
+        filtered (``name``: exact; ``standalone``: not the points of a study); and how many
+        match in all."""
         clause, args = _where(status=status, preset=preset, name=name)
+        if standalone:
+            clause += (" AND " if clause else " WHERE ") + "study_id IS NULL"
         with self._reading() as db:
             total = db.execute(f"SELECT COUNT(*) FROM campaigns{clause}", args).fetchone()[0]
             rows = db.execute(f"SELECT {_LIST_COLUMNS} FROM campaigns{clause} ORDER BY created_at DESC, id LIMIT ? OFFSET ?",

@@ -19,7 +19,6 @@ from __future__ import annotations
 import csv
 import io
 import itertools
-import json
 import re
 from decimal import Decimal, InvalidOperation
 from enum import Enum
@@ -36,7 +35,7 @@ MAX_STUDY_EPISODES = 200_000  # points x tests x algorithms: what one request ma
 ROW_HEAD = ("point",)
 ROW_CORE = ("algorithm", "tests", "dr_final", "ci95_lo", "ci95_hi", "time_to_dr90_s", "in_fov_final", "pod_r2")
 PER_STEP = frozenset({"dr", "dr_ci95"})  # per-step curves: in each point's campaign results, not in the rows
-NOT_METRICS = frozenset({"point", "tests", "algorithm", "campaign_id"})
+NOT_METRICS = frozenset({"point", "preset", "seed", "tests", "algorithm", "campaign_id"})
 
 
 class StudyError(ValueError):
@@ -206,13 +205,15 @@ def flatten(block: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 def point_rows(point: int, values: Mapping[str, Any], results: Mapping[str, Any], campaign_id: str | None = None,
                tests: Mapping[str, int] | None = None) -> list[dict[str, Any]]:
     """One row per algorithm of a point's results object: the point, its varied values, the
-    algorithm, the tests it rests on, the flattened block, the POD R² and the campaign."""
+    preset and seed, the algorithm, the tests it rests on, the flattened block, the POD R² and the campaign."""
     rows = []
     pod_r2 = (results.get("pod") or {}).get("r2")
     for algorithm, block in results["algorithms"].items():
         flat = flatten(block)
-        row: dict[str, Any] = {"point": point, **values, "algorithm": algorithm,
-                               "tests": (tests or {}).get(algorithm, results["tests"])}
+        row: dict[str, Any] = {"point": point, **values}
+        if "preset" in results:  # what was run (a hand-made results object may lack it)
+            row.update(preset=results["preset"], seed=results["seed"])
+        row.update(algorithm=algorithm, tests=(tests or {}).get(algorithm, results["tests"]))
         for key in ROW_CORE[2:-1]:
             row[key] = flat.pop(key, None)
         row["pod_r2"] = pod_r2
@@ -255,7 +256,8 @@ def study_results(meta: Mapping[str, Any], points: Sequence[Mapping[str, Any]], 
             rows += point_rows(p["point"], p["values"], res, p.get("campaign_id"), p.get("tests"))
         shown.append({"point": p["point"], "values": dict(p["values"]), "campaign_id": p.get("campaign_id"), "status": p["status"],
                       "pod": dict(res["pod"]) if res else None,
-                      "steps_per_second": res.get("steps_per_second") if res else None})
+                      "steps_per_second": res.get("steps_per_second") if res else None,
+                      "paired": list(res.get("paired") or []) if res else None})
     return {
         "id": meta.get("id"), "name": meta.get("name"), "status": meta["status"], "partial": partial,
         "preset": meta["preset"], "overrides": dict(meta["overrides"]), "vary": {k: list(v) for k, v in meta["vary"].items()},
@@ -266,24 +268,46 @@ def study_results(meta: Mapping[str, Any], points: Sequence[Mapping[str, Any]], 
     }
 
 
+def table_rows(results: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The study's rows as one table, columns in one order wherever the results object comes
+    from (this process, or the API, whose rows list their declared fields first): ``study_id``,
+    ``point``, the varied parameters, what was run (``preset``, ``seed``, one column per
+    override, ``stop_confidence`` when early decisions were on), ``algorithm``, ``tests``, the
+    core metrics (final DR, its Wilson interval, t90, in-FoV, POD R²), every other field in
+    order of first appearance, and ``campaign_id`` last."""
+    head = {"study_id": results.get("id")}
+    run = {"preset": results["preset"], "seed": results["seed"], **dict(results.get("overrides") or {})}
+    if results.get("stop_confidence"):
+        run["stop_confidence"] = results["stop_confidence"]
+    lead = [*ROW_HEAD, *results["parameters"], *run, "algorithm", "tests", *ROW_CORE[2:]]
+    rest: dict[str, None] = {}
+    for row in results["rows"]:
+        rest.update(dict.fromkeys(k for k in row if k not in lead and k != "campaign_id"))
+    columns = ["study_id", *lead, *rest, "campaign_id"]
+    out = []
+    for row in results["rows"]:
+        full = {**head, **run, **row}
+        out.append({c: full.get(c) for c in columns})
+    return out
+
+
+def study_columns(results: Mapping[str, Any]) -> list[str]:
+    """The columns of ``table_rows`` (also when there is no row yet)."""
+    rows = table_rows(results)
+    if rows:
+        return list(rows[0])
+    run = ["preset", "seed", *(results.get("overrides") or {})] + (["stop_confidence"] if results.get("stop_confidence") else [])
+    return ["study_id", *ROW_HEAD, *results["parameters"], *run, "algorithm", "tests", *ROW_CORE[2:], "campaign_id"]
+
+
 def write_study_csv(results: Mapping[str, Any]) -> str:
-    """The study's results as CSV: ``# key: <JSON>`` header lines (study id, preset, overrides,
-    vary, tests, seed, algorithms, status), then one row per point x algorithm; columns are
-    the union of the rows' fields in order of first appearance."""
+    """The study's results as a plain CSV (one header row, no comment lines: ``pandas.read_csv``
+    reads it as it is): one row per point x algorithm, the columns of ``table_rows``, so every
+    row says what was run and files of several studies concatenate."""
     out = io.StringIO()
-    out.write("# ra2vipas study results (CSV v1)\n")
-    for key in ("id", "name", "status", "partial", "preset", "overrides", "vary", "tests", "seed", "algorithms", "mode",
-                "stop_confidence"):
-        out.write(f"# {'study_id' if key == 'id' else key}: {json.dumps(results.get(key), separators=(',', ':'))}\n")
-    columns: dict[str, None] = {}
-    for row in results["rows"]:
-        for key in row:
-            columns.setdefault(key, None)
-    if not columns:
-        columns = dict.fromkeys((*ROW_HEAD, *results["parameters"], *ROW_CORE, "campaign_id"))
-    writer = csv.DictWriter(out, fieldnames=list(columns), lineterminator="\n", restval="")
+    writer = csv.DictWriter(out, fieldnames=study_columns(results), lineterminator="\n", restval="")
     writer.writeheader()
-    for row in results["rows"]:
+    for row in table_rows(results):
         writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
     return out.getvalue()
 

@@ -210,7 +210,7 @@ def point_results(store: Store, campaign: dict[str, Any]) -> tuple[dict[str, Any
     tallies = {a: AlgorithmTally(steps, scenario.rf_period_s) for a in algorithms}
     for row in store.episode_outcomes(campaign["id"]):
         tallies[row["algorithm"]].add(row["hits"], row["in_fov"], held(row.get("confidences") or [], steps) or None,
-                                      row.get("decided_step"), row["n_estimates"])
+                                      row.get("decided_step"), row["n_estimates"], test_index=row.get("test_index"))
     shown = {a: t for a, t in tallies.items() if t.tests}
     if not shown:
         return None, {}, True

@@ -323,13 +323,14 @@ def replay_scores(rec: Recording) -> dict[str, Any]:
         hits, in_fov, _ = score_episode(np.asarray(res.estimates_rad), truth_bearings(truth, steps), truth.tx_index,
                                         scenario.fov_half_angle_rad, steps, res.decided_step)
         tallies[ep.start.algorithm].add(hits, in_fov, held(list(res.confidences), steps) or None, res.decided_step,
-                                        len(res.estimates_rad))
+                                        len(res.estimates_rad), test_index=ep.start.test_index)
         checks.add(res.rig, None if res.model_check is None else res.model_check.model_dump(mode="json"))
         if ep.timing is not None:
             latencies.add(ep.timing.latencies_ms)
     pod_block = (rec.results or {}).get("pod") or {}
     pod = TrainedPOD(model=None, r2=pod_block.get("r2"), train_seconds=pod_block.get("train_seconds") or 0.0)
     results = results_object(c["preset"], scenario, c["tests"], c["seed"], pod, tallies, None, c.get("stop_confidence") or 0.0)
+    results["id"] = c.get("id")  # the recorded campaign's, as its API results carry it
     if latencies.count:
         results["latency_ms"] = latencies.summary()
     checks.notes(results)

@@ -97,10 +97,9 @@ def test_results_one_row_per_point_and_algorithm_equal_to_the_points_campaigns(d
         assert row["calibration_ece_final_floor"] == block["calibration"]["ece_final_floor"] is not None
         assert row["tests"] == 3
     text = http.get(f"/studies/{done_study['id']}/results", params={"format": "csv"}).text
-    lines = [ln for ln in text.splitlines() if not ln.startswith("#")]
-    rows = list(csv.DictReader(io.StringIO("\n".join(lines))))
+    rows = list(csv.DictReader(io.StringIO(text)))
     assert len(rows) == 4 and rows[0]["n_targets"] == "4" and float(rows[0]["dr_final"]) == res["rows"][0]["dr_final"]
-    assert f"# study_id: \"{done_study['id']}\"" in text
+    assert {r["study_id"] for r in rows} == {done_study["id"]} and rows[0]["preset"] == "paper" and rows[0]["seed"] == "3"
     assert http.get(f"/studies/{done_study['id']}/results", headers={"Accept": "text/csv"}).headers["content-type"].startswith("text/csv")
 
 
@@ -149,8 +148,8 @@ def test_a_study_with_stop_confidence_reports_decisions_in_its_rows(grid_study, 
         assert [row["decision_accuracy_ci95_lo"], row["decision_accuracy_ci95_hi"]] == decision["accuracy_ci95"]
         assert row["decision_median_s"] == decision["median_s"]
     text = http.get(f"/studies/{grid_study['id']}/results", params={"format": "csv"}).text
-    rows = list(csv.DictReader(io.StringIO("\n".join(ln for ln in text.splitlines() if not ln.startswith("#")))))
-    assert "# stop_confidence: 0.9" in text
+    rows = list(csv.DictReader(io.StringIO(text)))
+    assert {r["stop_confidence"] for r in rows} == {"0.9"}
     assert [float(r["decision_accuracy"]) for r in rows] == [r["decision_accuracy"] for r in res["rows"]]
 
 

@@ -87,8 +87,8 @@ def test_ctrl_c_on_watch_prints_the_id_and_the_commands_and_leaves_the_campaign_
 
 
 def test_ctrl_c_on_start_wait_prints_the_id_and_the_commands_and_leaves_the_campaign_running(live):
-    """`campaign start --wait` follows through the same code as `watch`; the id it never printed
-    (only its vanished progress bar showed it) is in the message."""
+    """`campaign start --wait` follows through the same code as `watch`; the id it printed first,
+    on its own line, is in the message too."""
     name = "ctrl-c-on-start-wait"
     _no_stream_open(live)
     proc = _cli("campaign", "start", "--wait", "--name", name, "--algorithms", "ra2vipas", "--tests", "400", "--seed", "9",
@@ -103,7 +103,7 @@ def test_ctrl_c_on_start_wait_prints_the_id_and_the_commands_and_leaves_the_camp
     cid = c["id"]
     assert proc.returncode == 130, (out, err)
     _says_how_to_come_back(err, cid, live.url)
-    assert out == ""  # no results table: it never finished
+    assert out == f"campaign {cid}\n"  # its id, and no results table: it never finished
     assert _progress(live, cid)["status"] in ("running", "done")
     httpx.post(f"{live.url}/campaigns/{cid}/cancel", timeout=30)
 

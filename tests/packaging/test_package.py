@@ -24,12 +24,46 @@ def test_the_declared_packages_are_every_folder_of_services_and_cli():
     assert declared == found
 
 
+SETUPTOOLS_NOISE = ("BuildBackendWarning", "SetuptoolsDeprecationWarning", "SetuptoolsWarning", "is absent from the `packages`")
+
+
 @pytest.fixture(scope="module")
-def wheel(tmp_path_factory) -> Path:
+def built(tmp_path_factory) -> tuple[Path, str]:
+    """A wheel built from the checkout as ``pip install .`` builds it, and what pip printed."""
     out = tmp_path_factory.mktemp("wheel")
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(out), str(ROOT)],
-                   check=True, capture_output=True, timeout=300)
-    return next(out.glob("ra2vipas-*.whl"))
+    proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(out), str(ROOT)],
+                          check=True, capture_output=True, text=True, timeout=300)
+    return next(out.glob("ra2vipas-*.whl")), proc.stdout + proc.stderr
+
+
+@pytest.fixture(scope="module")
+def wheel(built) -> Path:
+    return built[0]
+
+
+def test_building_the_wheel_prints_no_setuptools_warning(built):
+    """The dashboard's templates and static files are package data, declared as such: no
+    "Package '...dashboard.templates' is absent from the `packages` configuration"."""
+    noise = [line for line in built[1].splitlines() if any(word in line for word in SETUPTOOLS_NOISE)]
+    assert not noise, noise
+
+
+def test_make_setups_editable_install_prints_no_setuptools_warning(tmp_path):
+    """``make setup``'s editable install (its command and environment, read from the Makefile),
+    into a fresh virtual environment, prints no setuptools warning."""
+    import re
+    import shlex
+
+    makefile = (ROOT / "Makefile").read_text()
+    quiet = dict(kv.split("=", 1) for kv in shlex.split(re.search(r"^EDITABLE_QUIET := (.*)$", makefile, re.MULTILINE).group(1)))
+    assert "$(EDITABLE_QUIET) $(BIN)/pip install" in makefile
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(tmp_path / "venv")], check=True, timeout=120)
+    env = {k: v for k, v in __import__("os").environ.items() if k != "PYTHONWARNINGS"} | quiet
+    proc = subprocess.run([sys.executable, "-m", "pip", "--python", str(tmp_path / "venv/bin/python"), "install", "--quiet",
+                           "--no-deps", "-e", str(ROOT)], capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr
+    noise = [line for line in (proc.stdout + proc.stderr).splitlines() if any(word in line for word in SETUPTOOLS_NOISE)]
+    assert not noise, noise
 
 
 def test_a_wheel_installs_one_top_level_package(wheel):

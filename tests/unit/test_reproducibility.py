@@ -70,3 +70,11 @@ def test_results_compare_fits_within_their_tolerance_and_decisions_exactly():
     assert r.differences(now(dr=(0.5, 1.0), ci=(0.5, 1.0), ece=0.2), then, one_flip) == []
     assert r.differences(now(dr=(0.0, 0.75)), then, one_flip)  # two tests' worth
     assert r.differences(now(r2=0.9), then, one_flip)  # the POD model is not the algorithm's
+
+
+def test_per_test_outcomes_and_paired_blocks_of_a_flipped_algorithm_are_left_to_the_decision_check():
+    then = {"outcomes": {"a": [1, 1], "b": [1, 0]}, "paired": [{"a": "a", "b": "b", "p_value": 1.0}]}
+    now = {"outcomes": {"a": [1, 0], "b": [1, 0]}, "paired": [{"a": "a", "b": "b", "p_value": 0.5}]}
+    assert r.differences(now, then, r.results_tolerance({}, tests=2))
+    assert r.differences(now, then, r.results_tolerance({"a": 1}, tests=2)) == []
+    assert r.differences({**now, "outcomes": {"a": [1, 1], "b": [0, 0]}}, then, r.results_tolerance({"a": 1}, tests=2))

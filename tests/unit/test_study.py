@@ -83,8 +83,9 @@ def test_rows_results_object_and_csv():
                                {"point": 1, "values": {"n_targets": 10}, "status": "running", "results": results_of(0.5)}], partial=True)
     assert res["parameters"] == ["n_targets"] and len(res["rows"]) == 2 and res["points"][0]["pod"] is None and res["partial"]
     text = write_study_csv(res)
-    header = [ln for ln in text.splitlines() if not ln.startswith("#")][0]
-    assert header.startswith("point,n_targets,algorithm,tests,dr_final,ci95_lo,ci95_hi") and '# study_id: "s"' in text
+    header, first = text.splitlines()[:2]
+    assert header.startswith("study_id,point,n_targets,preset,seed,algorithm,tests,dr_final,ci95_lo,ci95_hi")
+    assert first.startswith("s,1,10,paper,1,rapas,3,0.5,") and "#" not in text
 
 
 @pytest.mark.parametrize("counts, expected", [

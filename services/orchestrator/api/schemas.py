@@ -178,6 +178,22 @@ class AlgorithmResults(BaseModel):
     decision: Optional[Decision] = Field(None, description="early decision (campaigns with stop_confidence > 0)")
 
 
+class PairedComparison(BaseModel):
+    """Two algorithms on the tests both ran (test k is the same world for each): the 2 x 2 counts
+    of their final answers, the DR difference and McNemar's exact test."""
+
+    a: str
+    b: str
+    tests: int = Field(description="tests both recorded")
+    both: int = Field(description="tests both found the Tx in")
+    only_a: int = Field(description="tests only a found the Tx in")
+    only_b: int = Field(description="tests only b found the Tx in")
+    neither: int
+    dr_difference: Optional[float] = Field(description="DR of a minus DR of b on these tests: (only_a - only_b) / tests")
+    p_value: Optional[float] = Field(description="two-sided exact McNemar p-value (binomial test of only_a among the "
+                                                 "discordant tests, p = 1/2)")
+
+
 class LatencySummary(BaseModel):
     p50: float
     p99: float
@@ -186,6 +202,7 @@ class LatencySummary(BaseModel):
 class ResultsPublic(BaseModel):
     """The results object, the same as ``ra2vipas simulate --json`` prints."""
 
+    id: Optional[str] = Field(None, description="the campaign's id (null for a campaign run in-process: `simulate`)")
     preset: str
     overrides: dict[str, Any] = Field(default_factory=dict, description="the scenario's parameters that differ from the preset's "
                                                                           "(what --set would say to rebuild it), typed")
@@ -200,6 +217,9 @@ class ResultsPublic(BaseModel):
     partial: Optional[bool] = Field(None, description="true for a cancelled or failed campaign: the reduction of the episodes "
                                                       "recorded before it stopped (tests_recorded says how many per algorithm)")
     tests_recorded: Optional[dict[str, int]] = Field(None, description="partial results only: tests recorded per algorithm")
+    outcomes: Optional[dict[str, list[Optional[int]]]] = Field(None, description="per algorithm, the final hit (1/0) of every test "
+                                                                                 "by index (null: not recorded)")
+    paired: Optional[list[PairedComparison]] = Field(None, description="every pair of algorithms compared test by test (McNemar)")
     warnings: Optional[list[str]] = Field(None, description="what makes these numbers suspect, e.g. every radio algorithm far below "
                                                             "chance, or Rx(dir)'s samples contradicting the assumed antenna model")
     assumptions: Optional[dict[str, Any]] = Field(None, description="present when some episodes ran on undescribed rigs: they were "

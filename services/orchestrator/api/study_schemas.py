@@ -9,7 +9,7 @@ from typing import Annotated, Any, Optional
 from pydantic import BaseModel, ConfigDict, Field
 
 from ra2vipas.services.orchestrator.api.schemas import (
-    CampaignCreate, CampaignStatus, OverrideValue, ParameterName, PODSummary, Progress,
+    CampaignCreate, CampaignStatus, OverrideValue, PairedComparison, ParameterName, PODSummary, Progress,
 )
 from ra2vipas.services.orchestrator.study import MAX_POINTS, MAX_STUDY_EPISODES, MAX_VARIED
 
@@ -95,6 +95,7 @@ class StudyResultPoint(BaseModel):
     status: CampaignStatus
     pod: Optional[PODSummary]
     steps_per_second: Optional[float]
+    paired: Optional[list[PairedComparison]] = Field(None, description="the point's algorithms compared test by test (McNemar)")
 
 
 class StudyResults(BaseModel):

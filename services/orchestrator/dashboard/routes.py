@@ -178,21 +178,28 @@ def _final(store: Store, cid: str) -> dict[str, Any]:
     return _FINALS[cid]
 
 
-def _campaign_list(store: Store, status_: str | None, preset: str | None, offset: int) -> dict[str, Any]:
-    rows, total = store.campaigns(status=status_, preset=preset or None, limit=PAGE, offset=offset)
+PointsFilter = Optional[Literal["", "show"]]  # the points of studies: hidden ("") or shown
+
+
+def _campaign_list(store: Store, status_: str | None, preset: str | None, offset: int, points: bool = False) -> dict[str, Any]:
+    """One page of the home table: campaigns newest first, a study's points only when asked
+    (they are listed, in grid order, on their study's page); and how many points are hidden."""
+    rows, total = store.campaigns(status=status_, preset=preset or None, limit=PAGE, offset=offset, standalone=not points)
+    hidden = 0 if points else store.campaigns(status=status_, preset=preset or None, limit=0)[1] - total
     items = []
     for row in rows:
         c = campaign_public(row, storage_fault=store.fault)
         items.append({"c": c, "final": _final(store, c.id) if c.status == "done" else None})
-    return {"items": items, "pages": _pages(total, offset)}
+    return {"items": items, "pages": _pages(total, offset), "hidden_points": hidden}
 
 
 @router.get("/", response_class=HTMLResponse)
 def home(request: Request, status_: Annotated[StatusFilter, Query(alias="status")] = None,
          preset: Annotated[Optional[str], Query(max_length=64)] = None,
-         offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> HTMLResponse:
-    listing = _campaign_list(_store(request), status_, preset, offset)
-    query = {"status": status_ or "", "preset": preset or "", "offset": offset}
+         offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+         points: Annotated[PointsFilter, Query(description="show: list the points of studies too")] = None) -> HTMLResponse:
+    listing = _campaign_list(_store(request), status_, preset, offset, points == "show")
+    query = {"status": status_ or "", "preset": preset or "", "offset": offset, "points": points or ""}
     return _page(request, "home.html", "Campaigns", "campaigns", presets=list(PRESETS), query=query,
                  statuses=["queued", "training", "running", "done", "failed", "cancelled"], **listing)
 
@@ -200,7 +207,8 @@ def home(request: Request, status_: Annotated[StatusFilter, Query(alias="status"
 @router.get("/ui/streams/campaigns")
 async def campaigns_stream(request: Request, status_: Annotated[StatusFilter, Query(alias="status")] = None,
                            preset: Annotated[Optional[str], Query(max_length=64)] = None,
-                           offset: Annotated[int, Query(ge=0, le=10**9)] = 0) -> StreamingResponse:
+                           offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+                           points: Annotated[PointsFilter, Query()] = None) -> StreamingResponse:
     """The home page's table body (``event: rows``, HTML) whenever it changes."""
     store = _store(request)
 
@@ -208,7 +216,7 @@ async def campaigns_stream(request: Request, status_: Annotated[StatusFilter, Qu
         try:
             last, last_sent = None, time.monotonic()
             while not await request.is_disconnected():
-                listing = await run_in_threadpool(_campaign_list, store, status_, preset, offset)
+                listing = await run_in_threadpool(_campaign_list, store, status_, preset, offset, points == "show")
                 html = _fragment(request, "_campaign_rows.html", **listing)
                 if html != last:
                     yield _sse("rows", html)

@@ -26,17 +26,22 @@ def finished_results(campaign: dict[str, Any], store: Any = None) -> dict[str, A
     ``store``), the reduction of the episodes it recorded, marked ``partial`` with
     ``tests_recorded``; 409 while it runs or if nothing was recorded."""
     if campaign["status"] == "done" and campaign["results"] is not None:
-        return _with_overrides(campaign["results"])
+        return _with_id(campaign, _with_overrides(campaign["results"]))
     p = campaign["progress"]
     if store is not None and campaign["status"] in ("cancelled", "failed") and p["done"]:
         from ra2vipas.services.orchestrator.study_store import point_results
 
         results, tests, _ = point_results(store, campaign)
         if results is not None:
-            return {**_with_overrides(results), "partial": True, "tests_recorded": tests}
+            return _with_id(campaign, {**_with_overrides(results), "partial": True, "tests_recorded": tests})
     raise HTTPException(status.HTTP_409_CONFLICT,
                         f"campaign {campaign['id']} is {campaign['status']} ({p['done']}/{p['total']} episodes done): no results"
                         + (" yet" if campaign["status"] in ("queued", "running") else ""))
+
+
+def _with_id(campaign: dict[str, Any], results: dict[str, Any]) -> dict[str, Any]:
+    """The results object led by the id of the campaign it is of (null in this process)."""
+    return {"id": campaign["id"], **{k: v for k, v in results.items() if k != "id"}}
 
 
 def _with_overrides(results: dict[str, Any]) -> dict[str, Any]:

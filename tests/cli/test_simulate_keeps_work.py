@@ -1,0 +1,93 @@
+"""``simulate`` never throws finished work away (issue 23, point 3): an output file that cannot
+be written is refused before any test runs, and Ctrl-C prints the tests finished so far, marked
+partial, and exits 130."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from tests.api.live import SMALL
+from tests.cli.conftest import ROOT, one_error_line, ra2vipas
+
+SETS = [f"--set={k}={v}" for k, v in SMALL.items()]
+
+
+def test_a_bad_output_path_is_refused_before_any_test_runs(tmp_path):
+    started = time.monotonic()
+    proc = ra2vipas("simulate", "--tests", "5000", "-a", "rapas", "--plot", "/nonexistent/x.png", timeout=60)
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert one_error_line(proc) == "error: --plot: cannot write /nonexistent/x.png: no such directory /nonexistent"
+    assert time.monotonic() - started < 30  # 5000 tests would take minutes
+    folder = tmp_path / "a-folder.svg"
+    folder.mkdir()
+    proc = ra2vipas("simulate", "--tests", "5000", "--reliability-plot", str(folder), timeout=60)
+    assert proc.returncode == 1 and "is a directory" in one_error_line(proc)
+    proc = ra2vipas("simulate", "--tests", "5000", "--vary", "n_targets=4,8", "--plot", "/nonexistent/s.png", timeout=60)
+    assert proc.returncode == 1 and "no such directory /nonexistent" in one_error_line(proc)
+
+
+def _interrupted(*args: str, after_s: float) -> tuple[int, str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("RA2VIPAS_API", "RA2VIPAS_TOKEN")}
+    proc = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", "simulate", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT, env={**env, "COLUMNS": "200"}, start_new_session=True)
+    try:
+        time.sleep(after_s)
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole foreground group: the workers too
+        out, err = proc.communicate(timeout=60)
+        return proc.returncode, out, err
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+def test_ctrl_c_on_simulate_prints_the_partial_table_and_exits_130():
+    code, out, err = _interrupted("--tests", "3000", "-a", "rapas,sweep", "--seed", "4", "--workers", "2", *SETS, after_s=12.0)
+    assert code == 130, err
+    said = " ".join(out.split())
+    assert "partial results: the campaign stopped before its end" in said and "PARTIAL:" in said and "of 3000 tests" in said
+    assert "Traceback" not in err and "interrupted after" in err and "the results above are partial" in err
+
+
+def test_ctrl_c_on_simulate_json_prints_partial_results():
+    import json
+
+    code, out, err = _interrupted("--tests", "3000", "-a", "rapas", "--workers", "1", "--json", *SETS, after_s=10.0)
+    assert code == 130, err
+    results = json.loads(out.strip().splitlines()[-1])
+    assert results["partial"] is True and 0 < results["tests_recorded"]["rapas"] < 3000
+
+
+def test_simulate_dynamic_says_within_a_second_that_it_trains_the_pod_model():
+    """The first seconds (a minute on a first run: the numerical kernels compile) are not a blank
+    terminal (issue 23, point 6): one line at once, another when the model is trained."""
+    env = {k: v for k, v in os.environ.items() if k not in ("RA2VIPAS_API", "RA2VIPAS_TOKEN")}
+    started = time.monotonic()
+    proc = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", "simulate", "--preset", "dynamic", "--tests", "1", "-a", "rapas",
+                             "--set", "steps=20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
+                            start_new_session=True)
+    try:
+        first = proc.stderr.readline()
+        said_after = time.monotonic() - started
+        rest = proc.communicate(timeout=300)[1]
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert first.startswith("training the POD model on 900 self-supervised samples (dynamic, seed 1), then 1 episodes"), first
+    assert said_after < 1.0, f"the first line came after {said_after:.2f} s"
+    assert proc.returncode == 0, rest
+    assert "POD model trained (R² " in rest and "running 1 episodes" in rest
+
+
+def test_ctrl_c_on_a_study_prints_its_partial_rows_and_exits_130():
+    code, out, err = _interrupted("--vary", "n_targets=6,8", "--tests", "3000", "-a", "rapas", "--workers", "1", *SETS[:2],
+                                  after_s=10.0)
+    assert code == 130, err
+    said = " ".join(out.split())
+    assert "— partial" in said and "rapas" in said
+    assert "Traceback" not in err and "the rows above are partial" in err

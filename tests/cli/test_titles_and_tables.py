@@ -1,0 +1,84 @@
+"""Figures and tables say what the reader needs (issue 23, point 8): an overlay's title names the
+settings all its campaigns share; a DR plot of early-stopping tests says so; a time-to-DR90 heat
+map labels the cells that never reach 0.9; a cancelled campaign's table says how many tests were
+recorded and that its algorithms are unpaired."""
+
+from __future__ import annotations
+
+import re
+
+from ra2vipas.cli.output import print_results
+from ra2vipas.services.orchestrator.plots import dr_figure, overlay_title, study_figure
+
+
+def results_of(n_targets: int, **extra) -> dict:
+    block = {"dr": [0.5, 0.75], "dr_final": 0.75, "ci95": [0.6, 0.8], "dr_ci95": [[0.4, 0.6], [0.6, 0.8]], "time_to_dr90_s": None,
+             "in_fov_final": 0.8}
+    return {"preset": "paper", "overrides": {"n_targets": n_targets, "rf_noise_db": 2.0}, "tests": 12, "seed": 1,
+            "scenario": {"rf_period_s": 0.1, "steps": 2, "n_targets": n_targets, "rf_noise_db": 2.0}, "pod": {"r2": 0.9, "train_seconds": 0.1},
+            "algorithms": {"ra2vipas": dict(block), "rapas": dict(block)}, "steps_per_second": None, **extra}
+
+
+def test_an_overlays_title_names_every_setting_its_campaigns_share():
+    runs = [("n_targets=30", results_of(30)), ("n_targets=10", results_of(10))]
+    assert overlay_title(runs, "n_targets") == "DR_t by n_targets: preset paper, tests 12, seed 1, rf_noise_db=2.0"
+    other = results_of(10)
+    other["scenario"]["rf_noise_db"] = 4.0
+    other["overrides"]["rf_noise_db"] = 4.0
+    assert "rf_noise_db" not in overlay_title([("a", results_of(30)), ("b", other)])
+    stopped = [("a", results_of(30, stop_confidence=0.95)), ("b", results_of(10, stop_confidence=0.95))]
+    assert overlay_title(stopped).endswith("stopped at confidence 0.95")
+
+
+def test_a_dr_plot_of_early_stopping_tests_says_so():
+    title = dr_figure(results_of(30, stop_confidence=0.95)).axes[0].get_title()
+    assert "each test stopped at confidence 0.95" in " ".join(title.split())
+
+
+def test_a_time_to_dr90_heat_map_labels_the_cells_that_never_reach_it():
+    rows = []
+    for n in (4, 8):
+        for noise in (2.0, 6.0):
+            t90 = None if noise == 6.0 else 1.2
+            rows.append({"point": len(rows), "n_targets": n, "rf_noise_db": noise, "algorithm": "ra2vipas", "tests": 3, "dr_final": 0.5,
+                         "ci95_lo": 0.2, "ci95_hi": 0.8, "time_to_dr90_s": t90, "in_fov_final": 0.5, "pod_r2": 0.9, "campaign_id": None})
+    study = {"preset": "paper", "parameters": ["n_targets", "rf_noise_db"], "algorithms": ["ra2vipas"], "tests": 3, "seed": 1,
+             "rows": rows, "partial": False}
+    fig = study_figure(study, "time_to_dr90_s")
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert texts.count("never") == 2 and texts.count("1.20") == 2
+    assert "never: DR does not stay at 0.9" in fig._suptitle.get_text()
+    rows_none = [{**r, "time_to_dr90_s": None} for r in rows]  # no cell reaches it: still a figure, all labelled
+    assert [t.get_text() for t in study_figure({**study, "rows": rows_none}, "time_to_dr90_s").axes[0].texts].count("never") == 4
+
+
+def test_a_cancelled_campaigns_table_says_what_was_recorded_and_that_it_is_unpaired(capsys):
+    res = results_of(30, partial=True, tests_recorded={"ra2vipas": 17, "rapas": 16})
+    res["tests"] = 60
+    print_results(res)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "PARTIAL: 16–17 of 60 tests" in out and "(60 tests" not in out
+    assert "tests recorded: ra2vipas 17, rapas 16 (of 60)" in out
+    assert re.search(r"the algorithms are unpaired: they rest on different numbers of tests", out)
+
+
+def test_an_overlay_of_campaigns_with_one_seed_pairs_them_test_by_test():
+    from ra2vipas.cli.campaign import overlay_pairs
+
+    a = results_of(30, outcomes={"ra2vipas": [1] * 8 + [0, 0], "rapas": [1] * 10})
+    b = results_of(10, outcomes={"ra2vipas": [0] * 8 + [1, 1], "rapas": [1] * 10})
+    lines = overlay_pairs([("n_targets=30", a), ("n_targets=10", b), ("seed 2", {**b, "seed": 2})])
+    assert lines == [
+        "paired, ra2vipas: n_targets=30 vs n_targets=10: 10 tests, found only by the first 8, only by the second 2, "
+        "DR difference +0.600, McNemar p = 0.109",
+        "paired, rapas: n_targets=30 vs n_targets=10: 10 tests, found only by the first 0, only by the second 0, "
+        "DR difference +0.000, McNemar p = 1"]
+
+
+def test_a_study_results_points_carry_their_paired_tests():
+    import ra2vipas
+    from tests.api.live import SMALL
+
+    study = ra2vipas.study({"rf_noise_db": [2.0, 6.0]}, overrides=SMALL, tests=3, seed=2, algorithms=["ra2vipas", "rapas"])
+    for point in study["points"]:
+        assert [(p["a"], p["b"], p["tests"]) for p in point["paired"]] == [("ra2vipas", "rapas", 3)]
