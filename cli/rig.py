@@ -28,8 +28,8 @@ import typer
 
 from ra2vipas.cli.output import EXIT_USAGE, fail
 from ra2vipas.cli.services import (
-    ConfigOpt, ConnectOpt, ListenOpt, LogOpt, ModeOpt, OldModeOpt, open_error, warn_if_unreachable, warn_while_alone,
-    zenoh_settings,
+    ConfigOpt, ConnectOpt, ListenOpt, LogOpt, ModeOpt, OldModeOpt, PolicyOpt, open_error, served_policies, warn_if_unreachable,
+    warn_while_alone, zenoh_settings,
 )
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
@@ -58,6 +58,7 @@ def rig(
     rig: Annotated[Optional[str], typer.Option("--rig", envvar="RA2VIPAS_RIG",
                                                help="Rig name (default: this host's name, e.g. the container's).")] = None,
     beta: Annotated[float, typer.Option(min=0.0, help="UCB exploration weight beta.")] = 4.0,
+    policy: PolicyOpt = None,
     mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
     zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO",
 ) -> None:
@@ -76,6 +77,7 @@ def rig(
     except ValueError as err:
         fail(str(err), EXIT_USAGE)
     settings = zenoh_settings(mode, connect, listen, zenoh_config, old_mode)
+    served = list(served_policies(policy).values())
     try:
         os.nice(-5)  # like `ra2vipas sensors|controller`: the control loop first, where allowed
     except OSError:
@@ -91,7 +93,7 @@ def rig(
             fail(open_error(err, settings))
         warn_while_alone(buses[0].session, settings)
         warn_if_unreachable(settings)
-        nodes.append(ControllerNode(buses[1], name, ControllerSettings(beta=beta)))
+        nodes.append(ControllerNode(buses[1], name, ControllerSettings(beta=beta), policies=served))
         nodes.append(SensorsNode(buses[0], name))
         gc.collect()
         gc.freeze()

@@ -36,6 +36,21 @@ ListenOpt = Annotated[Optional[list[str]], typer.Option("--listen", "-l", metava
 ConfigOpt = Annotated[Optional[str], typer.Option("--zenoh-config", metavar="FILE", help="Zenoh JSON5 configuration file, applied first [env RA2VIPAS_ZENOH_CONFIG].")]
 LogOpt = Annotated[str, typer.Option("--log-level", envvar="RA2VIPAS_LOG_LEVEL", help="Log level.")]
 RigOpt = Annotated[str, typer.Option("--rig", envvar="RA2VIPAS_RIG", help="Rig name (one sensing platform and its controller).")]
+PolicyOpt = Annotated[Optional[list[str]], typer.Option("--policy", "-p", metavar="NAME", envvar="RA2VIPAS_POLICY", help="A pointing policy this controller serves: an installed name (ra2vipas policies) or module:Class (repeatable or comma-separated) [env RA2VIPAS_POLICY; default: every installed policy]. The orchestrator hands this rig only episodes of these.")]
+
+
+def served_policies(policies: list[str] | None) -> dict[str, str]:
+    """The controller's served policies from ``--policy`` values (each may be comma-separated;
+    none: every installed one), checked here: one that does not load is one stderr line and
+    exit 2."""
+    from ra2vipas.services.controller import registry
+    from ra2vipas.services.controller.node import served_policies as served
+
+    names = [n.strip() for value in policies or [] for n in value.replace(" ", ",").split(",") if n.strip()]
+    try:
+        return served(names or None)
+    except registry.UnknownPolicy as err:
+        fail(str(err), EXIT_USAGE)
 
 
 def zenoh_settings(mode, connect, listen, config, old_mode: str | None = None) -> ZenohSettings:
@@ -173,9 +188,10 @@ def sensors(rig: RigOpt = "rig-1",
 
 
 def controller(rig: RigOpt = "rig-1", beta: Annotated[float, typer.Option(min=0.0, help="UCB exploration weight beta.")] = 4.0,
-               mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+               policy: PolicyOpt = None, mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
                zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
-    """Run a rig's Ra²ViPAS controller: measurements in, pan commands out."""
+    """Run a rig's controller: measurements in, pan commands out, for the pointing policies it
+    serves (--policy; default every installed one), which it announces on rig/{rig}/policies."""
     from ra2vipas.services.controller.node import ControllerNode
     from ra2vipas.services.controller.policy import ControllerSettings
     from ra2vipas.services.protocol.keys import check_chunk
@@ -183,9 +199,10 @@ def controller(rig: RigOpt = "rig-1", beta: Annotated[float, typer.Option(min=0.
 
     configure_logging(log_level)
     _check_rig(rig, check_chunk)
+    served = list(served_policies(policy).values())
     _claim_cpu()
     run_node(f"controller[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config, old_mode),
-             lambda bus: ControllerNode(bus, rig, ControllerSettings(beta=beta)))
+             lambda bus: ControllerNode(bus, rig, ControllerSettings(beta=beta), policies=served))
 
 
 def learner(name: Annotated[str, typer.Option("--name", envvar="RA2VIPAS_LEARNER_NAME", help="Instance name.")] = "learner",

@@ -10,8 +10,15 @@
   step (or the first whose confidence reaches ``EpisodeStart.stop_confidence``: an early,
   final decision), publishes the episode's ``EpisodeResult`` on the result plane.
 
+* ``rig/<rig>/policies`` (protocol 1.2): a queryable answering with the ``ControllerInfo``,
+  the pointing policies this controller serves (``ra2vipas controller --policy NAME``; by
+  default every installed one, ``services/controller/registry.py``). The orchestrator asks it
+  when this node's liveliness token appears and hands the rig only episodes of those
+  policies; an ``EpisodeStart`` naming another fails at once, naming the ones it serves.
+
 Only measurements reach the controller: it subscribes to nothing on the truth plane.
-Many episodes may be in flight at once; each has its own ``Controller``.
+Many episodes may be in flight at once; each has its own policy object. The liveliness token
+is declared last, after the subscribers and the queryable.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ from __future__ import annotations
 import logging
 import threading
 from dataclasses import dataclass, field
+from typing import Sequence
 
 from ra2vipas.services.controller import registry
 from ra2vipas.services.controller.builtins import BuiltinPolicy
@@ -28,8 +36,8 @@ from ra2vipas.services.controller.policy import (
 )
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeResult, EpisodeStart, EpisodeStop, Measurement, Mode, ModelCheck, PODRequest, PODResponse, dump,
-    episode_control_adapter, training_job_id,
+    Command, ControllerInfo, EpisodeResult, EpisodeStart, EpisodeStop, Measurement, Mode, ModelCheck, PODRequest, PODResponse,
+    PolicyOffer, dump, episode_control_adapter, training_job_id,
 )
 from ra2vipas.services.protocol.rig import RigDescriptor
 from ra2vipas.services.protocol.pod import PODModel
@@ -75,13 +83,53 @@ def warm_up() -> None:
             pan = ctl.step(StepMeasurement(step=t, pan_rad=pan, rf=RFSample(iso_rssi_dbm=-40.0, dir_rssi_dbm=-35.0), frames=frames)).next_pan_rad
 
 
-class ControllerNode:
-    """One rig's controller process. All state lives on ``self.loop``'s thread."""
+def served_policies(policies: Sequence[str] | None = None) -> dict[str, str]:
+    """What a controller serves: wire name -> what ``registry.create`` loads. ``policies``
+    are installed names or ``module:Class`` (served under the class's ``name``, which must then
+    be a valid wire name); None or empty: every installed policy. Raises
+    ``registry.UnknownPolicy`` naming one that does not load or has no wire name."""
+    if not policies:
+        return {name: name for name in registry.names()}
+    out: dict[str, str] = {}
+    for spec in dict.fromkeys(policies):
+        registry.load(spec)
+        name = registry.result_name(spec)
+        if not registry.is_valid_name(name):
+            raise registry.UnknownPolicy(f"policy {spec!r} has no name to serve it under on the wire: give its class a "
+                                         f"`name` matching {registry.NAME_PATTERN}, or register it (entry point "
+                                         f"{registry.GROUP})")
+        out.setdefault(name, spec)
+    return out
 
-    def __init__(self, bus: Bus, rig: str, settings: ControllerSettings | None = None) -> None:
+
+def controller_info(rig: str, served: dict[str, str]) -> ControllerInfo:
+    """The ``ControllerInfo`` of a controller serving ``served`` (``served_policies``)."""
+    offers = []
+    for name, spec in served.items():
+        try:
+            found = registry.info(spec)
+            package, version = found.package, found.version
+        except registry.UnknownPolicy:
+            package, version = "", ""
+        offers.append(PolicyOffer(name=name, package=package[:200] if package != "?" else "",
+                                  version=version[:100] if version != "?" else ""))
+    return ControllerInfo(rig=rig, policies=tuple(offers), protocol=PROTOCOL_VERSION)
+
+
+class ControllerNode:
+    """One rig's controller process. All state lives on ``self.loop``'s thread.
+
+    ``policies``: the policies it serves (installed names or ``module:Class``; None: every
+    installed policy). Raises ``registry.UnknownPolicy`` for one that does not load."""
+
+    def __init__(self, bus: Bus, rig: str, settings: ControllerSettings | None = None,
+                 policies: Sequence[str] | None = None) -> None:
         self.bus = bus
         self.rig = keys.check_chunk(rig)
         self.settings = settings or ControllerSettings()
+        self.served = served_policies(policies)
+        self.info = controller_info(self.rig, self.served)
+        info_payload = dump(self.info)
         self.loop = EventLoop(f"controller-{rig}")
         self.episodes: dict[str, _Episode] = {}
         self.models: dict[str, PODModel] = {}
@@ -95,7 +143,8 @@ class ControllerNode:
         self._handles = [
             bus.subscribe(keys.episode_control(rig), lambda _k, p: self.loop.post(self._on_control, p)),
             bus.subscribe(keys.measurement(rig), lambda _k, p: self.loop.post(self._on_measurement, p)),
-            bus.announce(keys.alive("controller", rig)),
+            bus.serve(keys.rig_policies(rig), lambda _k, _p: info_payload),
+            bus.announce(keys.alive("controller", rig)),  # last: whoever sees it may query the policies
         ]
 
     # -- episode lifecycle ------------------------------------------------------------------
@@ -109,6 +158,10 @@ class ControllerNode:
         if msg.episode_id in self.episodes:
             return
         self.episodes[msg.episode_id] = _Episode(start=msg)
+        if msg.algorithm not in self.served:
+            self._fail(msg.episode_id, f"controller of rig {self.rig} does not serve policy {msg.algorithm!r}; it serves: "
+                                       f"{', '.join(self.served)}")
+            return
         if self.descriptors.get(msg.campaign_id, _ASKING) is not _ASKING:
             self._with_model(msg)
             return
@@ -180,7 +233,7 @@ class ControllerNode:
         ep.sensors = self._sensor_config(ep.start)
         context = episode_context(ep.sensors, model, ep.start.scenario, ep.start.seed, ep.start.test_index)
         try:
-            ep.policy = registry.create(ep.start.algorithm, context, self.settings)
+            ep.policy = registry.create(self.served.get(ep.start.algorithm, ep.start.algorithm), context, self.settings)
         except registry.UnknownPolicy as err:
             self._fail(episode_id, f"controller of rig {self.rig}: {err}")
             return

@@ -15,9 +15,12 @@ For each campaign it
 A rig is live while both its sensors and its controller hold their liveliness tokens (once both
 have left it is forgotten: no longer listed in ``/rigs``); when
 its sensors come up the scheduler asks the rig what it is (``rig/<rig>/info``, a
-``RigDescriptor``; a v1 node answers nothing and the rig is *undescribed*). A campaign's
-episodes go only to the rigs it targets (``targeting``: named rigs or a rig kind) whose
-descriptor its scenario does not contradict (``protocol.rig.conflicts``). If a
+``RigDescriptor``; a v1 node answers nothing and the rig is *undescribed*), and when its
+controller comes up which pointing policies that controller serves (``rig/<rig>/policies``, a
+``ControllerInfo``; a 1.0 or 1.1 controller answers nothing and serves the four built-ins). A
+campaign's episodes go only to the rigs it targets (``targeting``: named rigs or a rig kind)
+whose descriptor its scenario does not contradict (``protocol.rig.conflicts``), and an episode
+of policy P only to a rig whose controller serves P. If a
 rig disappears, its unfinished episodes go back to the queue and are run again from scratch
 elsewhere: every draw of test k depends only on (seed, k), so the rerun gives the result the
 lost run would have given, and ``finish_episode`` never records a test twice. On start, the
@@ -58,11 +61,13 @@ from ra2vipas.services.orchestrator.study_store import StudyStore
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.orchestrator.rigcheck import RigChecks
 from ra2vipas.services.protocol.messages import (
-    EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, ErrorReply, Mode, PODRequest, PODResponse,
-    TrainingRequest, TrainingTruth, dump,
+    ControllerInfo, EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, ErrorReply, Mode, PODRequest,
+    PODResponse, TrainingRequest, TrainingTruth, dump,
 )
 from ra2vipas.services.protocol.rig import RigDescriptor, conflicts, speaks
-from ra2vipas.services.protocol.versions import PROTOCOL_VERSION, campaign_features, describe_missing, missing_features
+from ra2vipas.services.protocol.versions import (
+    BUILTIN_POLICIES, PROTOCOL_VERSION, campaign_features, describe_missing, missing_features,
+)
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
@@ -130,6 +135,8 @@ class _Rig:
     since: float = 0.0  # epoch seconds of the last change of ``live`` (for the dashboard's "live since" / "last seen")
     descriptor: RigDescriptor | None = None
     described: str = "unknown"  # unknown (sensors down) | asking | described | undescribed (a v1 node)
+    controller_info: ControllerInfo | None = None
+    announced: str = "unknown"  # unknown (controller down) | asking | announced | silent (a 1.0/1.1 controller)
 
     @property
     def live(self) -> bool:
@@ -137,8 +144,16 @@ class _Rig:
 
     @property
     def ready(self) -> bool:
-        """Live, and its descriptor (or its absence) is known: episodes may go there."""
-        return self.live and self.described in ("described", "undescribed")
+        """Live, and its descriptor and its controller's policies (or their absence) are known:
+        episodes may go there."""
+        return self.live and self.described in ("described", "undescribed") and self.announced in ("announced", "silent")
+
+    @property
+    def policies(self) -> tuple[str, ...] | None:
+        """The policies its controller serves (a silent controller: the built-ins); None while not known."""
+        if self.announced == "announced" and self.controller_info is not None:
+            return tuple(p.name for p in self.controller_info.policies)
+        return BUILTIN_POLICIES if self.announced == "silent" else None
 
 
 class Scheduler:
@@ -532,8 +547,24 @@ class Scheduler:
                 continue
             if run.mode is Mode.realtime and not allow_realtime:
                 continue
-            return run, run.pending.popleft()
+            at = self._servable(run, rig)
+            if at is None:
+                continue
+            return run, _pop_at(run.pending, at)
         return None
+
+    def _servable(self, run: _Run, rig: str | None) -> int | None:
+        """The index in ``run.pending`` of its first episode whose policy the controller of
+        ``rig`` serves (any rig: 0), or None if it has none."""
+        if not run.pending:
+            return None
+        if rig is None:
+            return 0
+        st = self.rigs.get(rig)
+        served = st.policies if st is not None else None
+        if not served or (run.algorithms and set(run.algorithms).isdisjoint(served)):
+            return None
+        return next((i for i, k in enumerate(run.pending) if k.algorithm in served), None)
 
     def _next_of_study(self, study: str, allow_realtime: bool, rig: str | None = None) -> tuple[_Run, EpisodeKey] | None:
         """The next episode of a study: from the point whose next test is the earliest (then the
@@ -544,17 +575,21 @@ class Scheduler:
         members = [r for r in self.runs.values() if r.study == study]
         all_trained = all(r.pod is not None for r in members)
         best: _Run | None = None
+        best_k = best_at = 0
         for r in members:
             if r.pod is None or not r.pending or (r.mode is Mode.realtime and not allow_realtime):
                 continue
             if rig is not None and not self._eligible(r, rig):
                 continue
-            k = r.pending[0].test_index
+            at = self._servable(r, rig)
+            if at is None:
+                continue
+            k = r.pending[at].test_index
             if r.tests > 1 and k >= r.tests - 1 and not all_trained:
                 continue
-            if best is None or (k, r.point) < (best.pending[0].test_index, best.point):
-                best = r
-        return None if best is None else (best, best.pending.popleft())
+            if best is None or (k, r.point) < (best_k, best.point):
+                best, best_k, best_at = r, k, at
+        return None if best is None else (best, _pop_at(best.pending, best_at))
 
     def _is_realtime(self, eid: str) -> bool:
         flight = self.flights.get(eid)
@@ -722,6 +757,12 @@ class Scheduler:
                 for run in list(self.runs.values()):  # campaigns waiting for sensors to train on: ask again now
                     if run.awaiting_sensors and run.pod is None and run.model_retry_at is not None:
                         self._request_model(run)
+        if role == "controller":
+            rig.controller_info, rig.announced = None, "unknown"
+            if up:  # its token is declared after its queryable: ask which policies it serves
+                rig.announced = "asking"
+                self.bus.query(keys.rig_policies(name), b"", DESCRIPTOR_TIMEOUT_S,
+                               lambda replies: self.loop.post(self._on_controller_info, name, replies))
         if rig.live != was_live or not rig.since:
             rig.since = time.time()
         if was_live and not rig.live:
@@ -763,6 +804,27 @@ class Scheduler:
         for run in self.runs.values():
             run.eligible.pop(name, None)
         self._dispatch()
+
+    def _on_controller_info(self, name: str, replies: list[Reply]) -> None:
+        rig = self.rigs.get(name)
+        if rig is None or not rig.controller or rig.announced != "asking":
+            return
+        info, passed_over = first_valid_reply(replies, ControllerInfo, "ControllerInfo")
+        if info is not None and info.rig != name:
+            log.warning("the controller of rig %s answers for rig %s; taken to serve the built-ins only", name, info.rig)
+            info = None
+        rig.controller_info = info
+        rig.announced = "announced" if info is not None else "silent"
+        if info is None:
+            log.info("the controller of rig %s says nothing of its policies%s: it serves the built-ins (%s)", name,
+                     f" ({passed_over[-1]})" if passed_over else "", ", ".join(BUILTIN_POLICIES))
+        else:
+            log.info("the controller of rig %s serves %s", name, ", ".join(p.name for p in info.policies))
+        self._dispatch()
+
+    def served(self) -> dict[str, tuple[str, ...] | None]:
+        """The policies each live rig's controller serves (None: not known yet); thread-safe copy."""
+        return {name: st.policies for name, st in list(self.rigs.items()) if st.live}
 
     def protocols(self) -> dict[str, str | None]:
         """The protocol version each known rig speaks (``rig.speaks``: 1.0 when undescribed; None
@@ -808,12 +870,24 @@ class Scheduler:
             "rigs": {name: {"sensors": st.sensors, "controller": st.controller, "in_flight": len(st.in_flight),
                             "since": st.since, "described": st.described,
                             "descriptor": None if st.descriptor is None else st.descriptor.model_dump(mode="json"),
-                            "protocol": speaks(st.descriptor) if st.described in ("described", "undescribed") else None}
+                            "protocol": speaks(st.descriptor) if st.described in ("described", "undescribed") else None,
+                            "announced": st.announced, "policies": _policies_public(st),
+                            "controller_protocol": st.controller_info.protocol if st.controller_info is not None else None}
                      for name, st in list(self.rigs.items())},
             "learners": sorted(self.learners),
             "rejected": dict(self.rejected),
             "waiting_writes": len(self._deferred),
         }
+
+
+def _policies_public(rig: _Rig) -> list[dict[str, str]] | None:
+    """The policies a rig's controller serves, each ``{name, package, version}`` (a silent
+    controller's built-ins with package ``ra2vipas`` and no version); None while not known."""
+    if rig.controller_info is not None:
+        return [p.model_dump(mode="json") for p in rig.controller_info.policies]
+    if rig.policies is None:
+        return None
+    return [{"name": name, "package": "ra2vipas", "version": ""} for name in rig.policies]
 
 
 def reduce_recorded(rows: Iterable[dict[str, Any]], algorithms: Iterable[str],
@@ -833,6 +907,15 @@ def reduce_recorded(rows: Iterable[dict[str, Any]], algorithms: Iterable[str],
         latencies.add(row.get("latencies") or ())
         checks.add(row.get("rig"), row.get("model_check"))
     return tallies, latencies, checks
+
+
+def _pop_at(pending: deque, at: int) -> EpisodeKey:
+    """Take the ``at``-th item out of ``pending`` (the first one in the usual case)."""
+    if at == 0:
+        return pending.popleft()
+    key = pending[at]
+    del pending[at]
+    return key
 
 
 def episode_id(key: EpisodeKey, attempt: int) -> str:

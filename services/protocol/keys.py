@@ -14,7 +14,8 @@ result    the controller's per-episode trace (estimates, pans), for scoring; the
 truth     the simulator's ground truth, for scoring only; never read by a controller or
           a learner
 model     the learner's queryable serving the POD model
-rig       what each rig says about itself (its ``RigDescriptor``), a queryable
+rig       what each rig says about itself: its sensors' ``RigDescriptor`` and its controller's
+          ``ControllerInfo`` (the policies it serves), two queryables
 alive     liveliness tokens: who is up
 ========  =============================================================================
 
@@ -156,6 +157,20 @@ def rig_info(rig: str) -> str:
 def rig_info_any() -> str:
     """Every rig's descriptor queryable (what the orchestrator may query)."""
     return f"{PREFIX}/rig/*/info"
+
+
+def rig_policies(rig: str) -> str:
+    """Queryable of a rig's controller (protocol 1.2): the pointing policies it serves
+    (``ControllerInfo``: each policy's name, package and version, and the protocol the
+    controller speaks). Any query payload (empty is fine). The orchestrator queries it when
+    the controller's liveliness token appears and hands that rig only episodes of those
+    policies. A 1.0 or 1.1 controller serves none: it serves the four built-ins."""
+    return f"{PREFIX}/rig/{check_chunk(rig)}/policies"
+
+
+def rig_policies_any() -> str:
+    """Every rig's controller-info queryable (what the orchestrator may query)."""
+    return f"{PREFIX}/rig/*/policies"
 
 
 # -- liveliness --------------------------------------------------------------------------------

@@ -142,6 +142,28 @@ class ErrorReply(_Message):
                                    description="on result/{rig}/rejected: the episode whose message the node rejected")
 
 
+# -- rig plane (the controller's half) ----------------------------------------------------------
+
+class PolicyOffer(_Message):
+    """One pointing policy a controller serves: its wire name and where it comes from."""
+
+    name: AlgorithmName
+    package: str = Field("", max_length=200, description="the distribution that provides it (ra2vipas for the built-ins; "
+                                                          "free text, empty if not known)")
+    version: str = Field("", max_length=100, description="that distribution's version (free text, empty if not known)")
+
+
+class ControllerInfo(_Message):
+    """What a rig's controller serves (controller -> orchestrator, reply on ``rig/{rig}/policies``;
+    protocol 1.2). The orchestrator hands this rig only episodes whose ``algorithm`` is one of
+    ``policies``. A controller that serves no such queryable (1.0, 1.1) serves the four built-ins."""
+
+    rig: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$", description="the rig's name (its key chunk)")
+    policies: tuple[PolicyOffer, ...] = Field(min_length=1, max_length=1000, description="the policies it runs, by name")
+    protocol: str = Field("1.2", pattern=VERSION_PATTERN, description="the protocol version the controller speaks (1.2: the "
+                                                                      "version that introduced this message)")
+
+
 # -- result plane ------------------------------------------------------------------------------
 
 class ModelCheck(_Message):
@@ -233,7 +255,7 @@ class TrainingTruth(_Message):
 
 WIRE_MESSAGES: tuple[type[BaseModel], ...] = (
     EpisodeStart, EpisodeStop, Command, Measurement, TrainingRequest, TrainingStream,
-    PODRequest, PODResponse, ErrorReply, EpisodeResult, EpisodeTiming, EpisodeTruth, TrainingTruth,
+    PODRequest, PODResponse, ErrorReply, ControllerInfo, PolicyOffer, EpisodeResult, EpisodeTiming, EpisodeTruth, TrainingTruth,
     RFSample, CameraFrame, TrainingSample, TargetTrajectory, PODModel, Scenario, RigDescriptor, RxDirResponse, ModelCheck,
 )
 

@@ -10,7 +10,10 @@ adding only optional fields (docs/protocol.md, "Compatibility"):
   and the key ``result/{rig}/rejected``.
 * ``1.2``: ``EpisodeStart.algorithm`` (and every ``algorithm`` field) may name any pointing
   policy (``messages.POLICY_NAME_PATTERN``), not only the four built-ins: a node of 1.0 or 1.1
-  validates it against the closed list and rejects another name.
+  validates it against the closed list and rejects another name. A controller says which
+  policies it serves (``ControllerInfo``, queryable ``rig/{rig}/policies``); one that serves no
+  such queryable (1.0, 1.1) serves the four built-ins, and the orchestrator hands a rig only
+  episodes of the policies its controller serves.
 
 Every field added after 1.0 carries the version that added it in its schema (``"since"``).
 A sender omits such a field while it holds its default (``messages.dump``), so a message that

@@ -34,12 +34,13 @@ sensors        put ``data/{rig}/measurement``, ``truth/{rig}/episode`` (a *simul
 controller     put ``data/{rig}/command``, ``result/{rig}/episode`` and ``result/{rig}/rejected``;
                subscribe to its
                rig's ``control`` and ``data/{rig}/measurement``; query ``model/pod`` and
-               ``rig/{rig}/info``; hold ``alive/controller/{rig}``
+               ``rig/{rig}/info``; serve ``rig/{rig}/policies`` (the policies it serves);
+               hold ``alive/controller/{rig}``
 rig            both of the above for one rig (``ra2vipas rig``: one process, two sessions)
 learner        serve ``model/pod``; query ``data/*/training``; hold ``alive/learner/{name}``
 orchestrator   put ``control/*/episode``; subscribe to ``result/*/…`` and
-               ``truth/*/episode``; query ``model/pod``, ``truth/*/training`` and
-               ``rig/*/info``; watch
+               ``truth/*/episode``; query ``model/pod``, ``truth/*/training``,
+               ``rig/*/info`` and ``rig/*/policies``; watch
                ``alive/**``; hold ``alive/orchestrator/{name}``
 operator       put ``truth/*/episode`` and serve ``truth/*/training`` (ground truth entered
                for real rigs); nothing else
@@ -145,6 +146,9 @@ def _controller(rig: str) -> list[Grant]:
         Grant(EGRESS, (PUT,), (keys.episode_control(rig), keys.measurement(rig))),
         Grant(INGRESS, (QUERY,), (keys.pod_model(), keys.rig_info(rig))),
         Grant(EGRESS, (REPLY,), (keys.pod_model(), keys.rig_info(rig))),
+        Grant(INGRESS, (QUERYABLE, REPLY), (keys.rig_policies(rig),)),
+        # the orchestrator's query reaches the queryable with its wildcard
+        Grant(EGRESS, (QUERY,), (keys.rig_policies(rig), keys.rig_policies_any())),
         Grant(INGRESS, (TOKEN,), (keys.alive("controller", rig),)),
     ]
 
@@ -165,8 +169,8 @@ def _orchestrator(name: str) -> list[Grant]:
         Grant(INGRESS, (PUT,), (keys.episode_control_all(),)),
         Grant(INGRESS, (SUBSCRIBE,), observed),
         Grant(EGRESS, (PUT,), observed),
-        Grant(INGRESS, (QUERY,), (keys.pod_model(), keys.training_truth_any(), keys.rig_info_any())),
-        Grant(EGRESS, (REPLY,), (keys.pod_model(), keys.training_truth_any(), keys.rig_info_any())),
+        Grant(INGRESS, (QUERY,), (keys.pod_model(), keys.training_truth_any(), keys.rig_info_any(), keys.rig_policies_any())),
+        Grant(EGRESS, (REPLY,), (keys.pod_model(), keys.training_truth_any(), keys.rig_info_any(), keys.rig_policies_any())),
         Grant(INGRESS, (LIVELINESS_SUBSCRIBER, LIVELINESS_QUERY), (keys.alive_all(),)),
         Grant(EGRESS, (TOKEN,), (keys.alive_all(),)),
         Grant(INGRESS, (TOKEN,), (keys.alive("orchestrator", name),)),

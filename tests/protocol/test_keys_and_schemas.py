@@ -27,7 +27,7 @@ CONCRETE = {
     "result": [keys.episode_result(RIG), keys.episode_timing(RIG), keys.episode_rejected(RIG)],
     "truth": [keys.episode_truth(RIG), keys.training_truth(RIG)],
     "model": [keys.pod_model()],
-    "rig": [keys.rig_info(RIG)],
+    "rig": [keys.rig_info(RIG), keys.rig_policies(RIG)],
     "alive": [keys.alive(role, "x") for role in keys.ROLES],
 }
 WILDCARDS = {
@@ -35,7 +35,7 @@ WILDCARDS = {
     "control": [keys.episode_control_all()],
     "result": [keys.episode_result_all(), keys.episode_timing_all(), keys.episode_rejected_all()],
     "truth": [keys.episode_truth_all(), keys.training_truth_any()],
-    "rig": [keys.rig_info_any()],
+    "rig": [keys.rig_info_any(), keys.rig_policies_any()],
     "alive": [keys.alive_all()],
 }
 

@@ -308,6 +308,12 @@ class PresetPublic(PresetSummary):
     parameters: dict[str, ParameterPublic]
 
 
+class ServedPolicy(BaseModel):
+    name: str
+    package: str = Field("", description="the distribution it comes from, as the controller says (empty: not said)")
+    version: str = Field("", description="that distribution's version, as the controller says (empty: not said)")
+
+
 class RigPublic(BaseModel):
     name: str
     live: bool = Field(description="both its sensors and its controller hold their Zenoh liveliness tokens")
@@ -319,6 +325,13 @@ class RigPublic(BaseModel):
     descriptor: Optional[dict[str, Any]] = Field(None, description="its RigDescriptor (docs/protocol.md), when described")
     protocol: Optional[str] = Field(None, description="the protocol version its nodes speak: its descriptor's, 1.0 when undescribed, "
                                                       "null while not known (docs/protocol.md, \"Compatibility\")")
+    announced: str = Field("unknown", description="announced (its controller serves its ControllerInfo on rig/{rig}/policies) | "
+                                                  "silent (a 1.0 or 1.1 controller: it serves the four built-ins) | asking | "
+                                                  "unknown (its controller is down)")
+    policies: Optional[list[ServedPolicy]] = Field(None, description="the pointing policies its controller serves: only episodes "
+                                                   "of these go there (null while not known)")
+    controller_protocol: Optional[str] = Field(None, description="the protocol version its controller says it speaks (null: "
+                                                                 "silent or not known)")
 
 
 class SupervisedService(BaseModel):

@@ -107,7 +107,8 @@ def rigs_public(status: dict[str, Any], services: list[SupervisedService] | None
     """The scheduler's view of the mesh (from Zenoh liveliness) as the API shows it."""
     rigs = [RigPublic(name=name, live=st["sensors"] and st["controller"], sensors=st["sensors"], controller=st["controller"],
                       in_flight=st["in_flight"], described=st.get("described", "unknown"), descriptor=st.get("descriptor"),
-                      protocol=st.get("protocol"))
+                      protocol=st.get("protocol"), announced=st.get("announced", "unknown"), policies=st.get("policies"),
+                      controller_protocol=st.get("controller_protocol"))
             for name, st in sorted(status["rigs"].items())]
     return RigsPublic(rigs=rigs, learners=list(status["learners"]), services=services or [])
 

@@ -36,7 +36,9 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
     into the scenario (docs/protocol.md, "Rig descriptor"). A campaign that uses a protocol
     feature newer than a targeted rig speaks (``stop_confidence`` on a rig that serves no
     descriptor: protocol 1.0) is a 422 naming the rig, the feature and both versions
-    (docs/protocol.md, "Compatibility").
+    (docs/protocol.md, "Compatibility"). A policy that no live controller among the targeted
+    rigs serves is a 422 listing the ones they serve (with no such rig live yet: a policy not
+    installed here).
     """
     try:
         scenario = build_scenario(body.preset, body.overrides)
@@ -53,7 +55,8 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
         raise RequestValidationError([{"loc": ("body", *where.split(".")), "msg": msg, "type": "value_error"}
                                       for where, msg in err.errors]) from None
     algorithms = list(dict.fromkeys(body.algorithms))
-    check_policies(algorithms)
+    check_policies(algorithms, {name: served for name, served in scheduler.served().items()
+                                if name in live and _targets(name, body.rigs, body.rig_kind, descriptors)})
     resolved = scenario.model_dump(mode="json")
     taken = list((targeting or {}).get("rig_values", {}))  # the rigs' values count as overrides of the preset
     overrides = {name: resolved[name] for name in [*body.overrides, *taken]}  # stored with the scenario's types (3 -> 3.0)
@@ -67,6 +70,16 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
     row = store.campaign(cid)
     assert row is not None
     return campaign_public(row, storage_fault=store.fault)
+
+
+def _targets(rig: str, rigs: list[str] | None, rig_kind: str | None, descriptors: dict) -> bool:
+    """Whether a campaign that targets ``rigs`` / ``rig_kind`` may run on live rig ``rig``."""
+    if rigs and rig not in rigs:
+        return False
+    if rig_kind:
+        descriptor = descriptors.get(rig)
+        return descriptor is not None and descriptor.kind == rig_kind
+    return True
 
 
 @router.get("", response_model=CampaignPage, responses=responses(422))

@@ -46,19 +46,36 @@ def list_policies() -> list[PolicyPublic]:
     return out
 
 
-def check_policies(names: list[str]) -> None:
-    """422 naming a policy that is not installed, with the ones that are."""
-    known = registry.names()
-    unknown = [n for n in names if n not in known]
+def check_policies(names: list[str], served: dict[str, tuple[str, ...] | None] | None = None) -> None:
+    """422 naming a policy the campaign cannot run, with the ones it can.
+
+    ``served``: the policies each live rig the campaign may run on serves (``Scheduler.served``;
+    None: not known yet). Once one of them is known, a policy must be served by a live
+    controller (the list is their union); a rig whose controller has not answered yet may
+    still serve any installed one. With no such rig live (campaigns may be queued before the
+    rigs come up), a policy must be installed here (the registry)."""
+    known = [p for p in (served or {}).values() if p is not None]
+    if known:
+        available = list(dict.fromkeys(name for policies in known for name in policies))
+        pending = any(p is None for p in served.values())
+        unknown = [n for n in names if n not in available and not (pending and n in registry.names())]
+        if unknown:
+            raise RequestValidationError([{"loc": ("body", "algorithms"), "type": "value_error",
+                                           "msg": f"no live controller serves policy {unknown[0]!r}; available: "
+                                                  f"{', '.join(available)}"}])
+        return
+    installed = registry.names()
+    unknown = [n for n in names if n not in installed]
     if unknown:
         raise RequestValidationError([{"loc": ("body", "algorithms"), "type": "value_error",
-                                       "msg": f"unknown policy {unknown[0]!r}; available: {', '.join(known)}"}])
+                                       "msg": f"unknown policy {unknown[0]!r}; available: {', '.join(installed)}"}])
 
 
 @router.get("/rigs", response_model=RigsPublic)
 def list_rigs(scheduler: SchedulerDep, settings: SettingsDep) -> RigsPublic:
     """Rigs (sensors + controller) and learners seen through Zenoh liveliness; a rig is live
     while both its nodes hold their tokens, and one whose nodes have both left is no longer
-    listed. Under ``ra2vipas up``, ``services`` lists the stack's services that crashed and
+    listed. Each rig shows the policies its controller serves (``policies``: only episodes of
+    those go there; a 1.0 or 1.1 controller serves the four built-ins). Under ``ra2vipas up``, ``services`` lists the stack's services that crashed and
     wait to be restarted (backing off when in a crash loop)."""
     return rigs_public(scheduler.status(), supervised_services(settings.supervisor_status))

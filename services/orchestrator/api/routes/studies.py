@@ -60,7 +60,7 @@ def create_study(body: StudyCreate, response: Response, store: StoreDep, schedul
     protocol feature (``stop_confidence``) no live rig speaks is a 422 naming the rigs.
     """
     algorithms = list(dict.fromkeys(body.algorithms))
-    check_policies(algorithms)
+    check_policies(algorithms, scheduler.served())
     try:
         grid = expand(body.preset, body.overrides, body.vary)
         check_size(len(grid), body.tests, len(algorithms))
