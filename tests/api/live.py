@@ -29,13 +29,14 @@ SMALL = {"steps": 20, "n_train": 200, "n_targets": 8}
 class LiveAPI:
     def __init__(self, db_path: Path | str, *, rigs: tuple[str, ...] = ("rig-1",), learner: bool = True,
                  token: str | None = None, window: int = 4, plot_rate: float = 10000.0,
-                 sensors: dict[str, dict] | None = None) -> None:
-        """``sensors``: keyword arguments of a rig's ``SensorsNode`` (its descriptor, ``describe``)."""
+                 sensors: dict[str, dict] | None = None, controllers: dict[str, dict] | None = None) -> None:
+        """``sensors``: keyword arguments of a rig's ``SensorsNode`` (its descriptor, ``describe``);
+        ``controllers``: of its ``ControllerNode`` (``policies``, the ones it serves)."""
         self.db_path = str(db_path)
         self.bus = MemoryBus()
         self.nodes: list = []
         for rig in rigs:
-            self.nodes += [SensorsNode(self.bus, rig, **(sensors or {}).get(rig, {})), ControllerNode(self.bus, rig)]
+            self.nodes += [SensorsNode(self.bus, rig, **(sensors or {}).get(rig, {})), ControllerNode(self.bus, rig, **(controllers or {}).get(rig, {}))]
         if learner:
             self.nodes.append(LearnerNode(self.bus))
         settings = OrchestratorSettings(host="127.0.0.1", port=0, db_path=self.db_path, window=window, expect_rigs=len(rigs),

@@ -57,6 +57,11 @@ def v1_schema_of(key: str, reply: bool = False) -> str | None:
     return None if names is None else names[1 if reply else 0]
 
 
+class _Undeclared:
+    def undeclare(self) -> None:
+        pass
+
+
 class StrictV1Bus:
     """The bus as a 1.0 node sees it (see the module docstring). ``check_sent``: also record
     what the node sends that a 1.0 receiver would reject; ``as_v1_request``: rewrite the
@@ -95,6 +100,9 @@ class StrictV1Bus:
         return self.bus.subscribe(key, lambda k, p: callback(k, p) if self._accept(k, p) else None)
 
     def serve(self, key: str, handler):
+        if v1_schema_of(key) is None:  # a 1.0 node serves nothing on a newer key (e.g. rig/{rig}/policies)
+            return _Undeclared()
+
         def strict(k: str, payload: bytes) -> bytes:
             if not self._accept(k, payload):
                 from ra2vipas.services.transport.bus import QueryError

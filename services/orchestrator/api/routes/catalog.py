@@ -56,7 +56,8 @@ def check_policies(names: list[str], served: dict[str, tuple[str, ...] | None] |
     rigs come up), a policy must be installed here (the registry)."""
     known = [p for p in (served or {}).values() if p is not None]
     if known:
-        available = list(dict.fromkeys(name for policies in known for name in policies))
+        union = {name for policies in known for name in policies}
+        available = [n for n in registry.BUILTINS if n in union] + sorted(union - set(registry.BUILTINS))
         pending = any(p is None for p in served.values())
         unknown = [n for n in names if n not in available and not (pending and n in registry.names())]
         if unknown:
