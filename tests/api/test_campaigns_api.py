@@ -93,7 +93,7 @@ def test_list_rejects_bad_query_parameters(http, params, field):
 BAD_BODIES = [
     ({"tests": 0}, "tests: Input should be greater than or equal to 1"),
     ({"tests": 10001}, "tests: Input should be less than or equal to 10000"),
-    ({"algorithms": ["ra2vipas", "magic"]}, "algorithms: unknown policy 'magic'; available: ra2vipas, rapas, ravipas, sweep"),
+    ({"algorithms": ["ra2vipas", "magic"]}, "algorithms: no live controller serves policy 'magic'; available: ra2vipas, rapas, ravipas, sweep"),
     ({"algorithms": ["Magic!"]}, "algorithms.0: String should match pattern"),
     ({"algorithms": []}, "algorithms: List should have at least 1 item"),
     ({"mode": "slow"}, "mode: Input should be 'fast' or 'realtime'"),
