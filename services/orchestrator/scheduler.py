@@ -180,6 +180,7 @@ class Scheduler:
         self._heal_wait = heal_backoff_s[0]
         self._heal_at: float | None = None
         self._resumed = False
+        self._provenance: dict[str, dict[str, str]] = {}  # policy -> {package, version} as a controller announced it
         self._handles = [
             bus.watch_alive(keys.alive_all(), lambda k, up: self.loop.post(self._on_alive, k, up)),
             bus.subscribe(keys.episode_result_all(), lambda k, p: self.loop.post(self._on_result, k, p)),
@@ -721,6 +722,9 @@ class Scheduler:
         steps_run = sum(t.steps_run for t in tallies.values())
         sps = (steps_run / elapsed) if elapsed > 0 else None
         results = results_object(c["preset"], run.scenario, c["tests"], c["seed"], run.pod, tallies, sps, run.stop_confidence)
+        announced = {name: self._provenance[name] for name in results["algorithms"] if name in self._provenance}
+        if announced:  # the controllers that ran a policy know its package best (the orchestrator may not have it)
+            results["policies"] = {**results.get("policies", {}), **announced}
         if latencies.count:
             results["latency_ms"] = latencies.summary()
         checks.notes(results)
@@ -820,6 +824,9 @@ class Scheduler:
                      f" ({passed_over[-1]})" if passed_over else "", ", ".join(BUILTIN_POLICIES))
         else:
             log.info("the controller of rig %s serves %s", name, ", ".join(p.name for p in info.policies))
+            for offer in info.policies:
+                if offer.name not in BUILTIN_POLICIES and offer.package:
+                    self._provenance[offer.name] = {"package": offer.package, "version": offer.version or "?"}
         self._dispatch()
 
     def served(self) -> dict[str, tuple[str, ...] | None]:

@@ -114,6 +114,9 @@ def test_an_episode_goes_only_to_a_rig_whose_controller_serves_its_policy(mesh):
     assert [p["name"] for p in rigs["rig-a"]["policies"]] == ["spin", "rapas"] and rigs["rig-a"]["announced"] == "announced"
     assert "spin" not in [p["name"] for p in rigs["rig-b"]["policies"]]
     assert rigs["rig-a"]["controller_protocol"] == "1.2"
+    # the orchestrator has no spin installed: the results name where rig-a's controller said it came from
+    assert c["results"]["policies"] == {"spin": {"package": rigs["rig-a"]["policies"][0]["package"], "version": "?"}}
+    assert c["results"]["policies"]["spin"]["package"] not in ("", "?")
 
 
 def test_a_controller_that_announces_nothing_still_gets_the_builtins_episodes(mesh):
