@@ -297,12 +297,21 @@ def trace_table(trace: dict[str, Any]) -> Table:
 def rigs_table(body: dict[str, Any]) -> Table:
     """``GET /rigs``."""
     table = Table(title=f"Rigs (learners: {', '.join(body['learners']) or 'none'})")
-    for col in ("rig", "live", "sensors", "controller", "episodes in flight", "descriptor"):
+    for col in ("rig", "live", "sensors", "controller", "episodes in flight", "policies", "descriptor"):
         table.add_column(col)
     for r in body["rigs"]:
         table.add_row(r["name"], "yes" if r["live"] else "no", "up" if r["sensors"] else "down",
-                      "up" if r["controller"] else "down", str(r["in_flight"]), describe_rig(r))
+                      "up" if r["controller"] else "down", str(r["in_flight"]), served_policies(r), describe_rig(r))
     return table
+
+
+def served_policies(r: dict[str, Any]) -> str:
+    """The policies a rig's controller serves, by name (``GET /rigs``: ``policies``)."""
+    policies = r.get("policies")
+    if policies is None:
+        return "asking..." if r.get("announced") == "asking" else "-"
+    names = ", ".join(p["name"] for p in policies)
+    return f"{names} (announces none: a 1.0/1.1 controller)" if r.get("announced") == "silent" else names
 
 
 def describe_rig(r: dict[str, Any]) -> str:

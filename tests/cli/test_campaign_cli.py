@@ -165,6 +165,8 @@ def test_rigs_table_and_json(live):
     assert table.returncode == 0 and "rig-1" in table.stdout and "learners: learner" in table.stdout
     body = last_json(ra2vipas("rigs", "list", "--json", env={"RA2VIPAS_API": live.url}).stdout)
     assert body["rigs"][0]["name"] == "rig-1" and body["rigs"][0]["live"] is True
+    assert [p["name"] for p in body["rigs"][0]["policies"]][:4] == ["ra2vipas", "rapas", "ravipas", "sweep"]
+    assert "policies" in table.stdout
     old = ra2vipas("rigs", "--json", "--api", live.url)  # the old spelling still lists, with a warning
     assert old.returncode == 0 and [r["name"] for r in last_json(old.stdout)["rigs"]] == [r["name"] for r in body["rigs"]]
     assert old.stderr.strip() == "warning: `ra2vipas rigs` is deprecated; use `ra2vipas rigs list`"
