@@ -30,6 +30,8 @@ def _start(server, **body):
 def test_rigs_show_the_policies_their_controllers_serve(server):
     with server.client() as http:
         rigs = {r["name"]: r for r in http.get("/rigs").json()["rigs"]}
+        page = http.get("/ui/rigs").text
+    assert '<td class="policies">spin</td>' in page  # the dashboard's rigs page too
     assert rigs["spin-1"]["announced"] == "announced" and rigs["spin-1"]["controller_protocol"] == "1.2"
     assert [p["name"] for p in rigs["spin-1"]["policies"]] == ["spin"]
     assert [p["name"] for p in rigs["all-1"]["policies"]][:4] == list(BUILTINS)
