@@ -86,10 +86,19 @@ def warm_up() -> None:
 def served_policies(policies: Sequence[str] | None = None) -> dict[str, str]:
     """What a controller serves: wire name -> what ``registry.create`` loads. ``policies``
     are installed names or ``module:Class`` (served under the class's ``name``, which must then
-    be a valid wire name); None or empty: every installed policy. Raises
-    ``registry.UnknownPolicy`` naming one that does not load or has no wire name."""
+    be a valid wire name); None or empty: every installed policy that loads (one that does not
+    is left out, with a warning). Raises ``registry.UnknownPolicy`` naming a given one that
+    does not load or has no wire name."""
     if not policies:
-        return {name: name for name in registry.names()}
+        out = {}
+        for name in registry.names():
+            try:
+                registry.load(name)
+            except registry.UnknownPolicy as err:
+                log.warning("not serving policy %s: %s", name, err)
+                continue
+            out[name] = name
+        return out
     out: dict[str, str] = {}
     for spec in dict.fromkeys(policies):
         registry.load(spec)
