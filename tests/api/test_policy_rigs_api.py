@@ -59,3 +59,21 @@ def test_a_policy_served_by_one_controller_runs_there_only(server):
     for t in tests:
         by_policy.setdefault(t["algorithm"], set()).add(t["rig"])
     assert by_policy["spin"] == {"spin-1"} and by_policy["rapas"] == {"all-1"}
+
+
+def test_a_study_naming_a_policy_served_by_one_controller_runs_it_there_only(server):
+    with server.client() as http:
+        r = http.post("/studies", json={"preset": "paper", "overrides": SMALL, "vary": {"rf_noise_db": [2.0, 4.0]},
+                                        "algorithms": ["rapas", "spin"], "tests": 2, "seed": 5})
+        assert r.status_code == 201, r.text
+        points = r.json()["points"]
+        assert http.post("/studies", json={"preset": "paper", "overrides": SMALL, "vary": {"rf_noise_db": [2.0, 4.0]},
+                                           "algorithms": ["nope"], "tests": 1, "seed": 5}).status_code == 422
+    by_policy: dict[str, set[str]] = {}
+    for point in points:
+        done = server.wait(point["campaign_id"])
+        assert done["status"] == "done", done["error"]
+        with server.client() as http:
+            for t in http.get(f"/campaigns/{point['campaign_id']}/tests", params={"limit": 200}).json()["items"]:
+                by_policy.setdefault(t["algorithm"], set()).add(t["rig"])
+    assert by_policy == {"spin": {"spin-1"}, "rapas": {"all-1"}}
