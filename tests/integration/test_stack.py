@@ -49,6 +49,10 @@ def test_up_starts_router_orchestrator_learner_and_two_rigs(stack):
     rigs = httpx.get(f"{stack['api']}/rigs", timeout=10).json()["rigs"]
     assert [(r["name"], r["described"], r["descriptor"]["kind"]) for r in rigs] == [("rig-1", "described", "simulated"),
                                                                                    ("rig-2", "described", "simulated")]
+    # and each controller's policies (rig/{rig}/policies), through the same access control
+    assert [(r["name"], r["announced"], r["controller_protocol"]) for r in rigs] == [("rig-1", "announced", "1.2"),
+                                                                                    ("rig-2", "announced", "1.2")]
+    assert all([p["name"] for p in r["policies"]][:4] == ["ra2vipas", "rapas", "ravipas", "sweep"] for r in rigs)
 
 
 def test_campaign_through_the_cli_equals_simulate_value_for_value(stack):
