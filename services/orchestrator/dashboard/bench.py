@@ -27,11 +27,12 @@ from typing import Any
 
 import numpy as np
 
+from ra2vipas.services.controller.registry import BUILTINS
 from ra2vipas.services.orchestrator.metrics import summarize_algorithm
 from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol.scenario import build_scenario
 
-ALGORITHMS = ["ra2vipas", "rapas", "ravipas", "sweep"]
+ALGORITHMS = list(BUILTINS)
 STUDY_TESTS = 1000  # tests per point of the bench's study (at most)
 SKILL = {"ra2vipas": (0.99, 8), "rapas": (0.92, 25), "ravipas": (0.68, 40), "sweep": (0.98, 80)}  # final hit rate, settling step
 
