@@ -8,6 +8,8 @@ from __future__ import annotations
 import ast
 import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -35,9 +37,6 @@ def test_a_study_runs_an_installed_policy_and_its_rows_name_it(installed):  # no
     # the Python API: the same study, the same rows
     code = ("import json, ra2vipas; print(json.dumps(ra2vipas.study({'n_targets': [4, 8]}, overrides={'steps': 30, 'n_train': 300}, "
             "tests=2, seed=3, algorithms=['greedy', 'ra2vipas'])))")
-    import subprocess
-    import sys
-
     api = subprocess.run([sys.executable, "-c", code], env=installed, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert api.returncode == 0, api.stderr[-2000:]
     in_python = json.loads(api.stdout.strip().splitlines()[-1])
