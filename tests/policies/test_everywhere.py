@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ra2vipas.services.controller import registry
 from ra2vipas.services.controller.registry import BUILTINS
 from ra2vipas.services.orchestrator import names, plots, robustness
 from ra2vipas.services.orchestrator.dashboard import data
@@ -44,6 +45,47 @@ def test_a_study_runs_an_installed_policy_and_its_rows_name_it(installed):  # no
     strip = ("steps_per_second",)
     assert [{k: v for k, v in r.items() if k not in strip} for r in in_python["rows"]] == \
            [{k: v for k, v in r.items() if k not in strip} for r in study["rows"]]
+
+
+@pytest.fixture()
+def importable(installed):  # noqa: F811
+    """The installed example importable in this process too (its folder on sys.path), for an
+    API server and its in-memory mesh of controller nodes running here; undone afterwards."""
+    site = installed["PYTHONPATH"]
+    sys.path.insert(0, site)
+    registry.refresh()
+    try:
+        yield
+    finally:
+        sys.path.remove(site)
+        for module in [m for m in sys.modules if m == "my_policy" or m.startswith("my_policy.")]:
+            del sys.modules[module]
+        registry.refresh()
+
+
+def test_a_study_through_the_api_runs_an_installed_policy_and_shows_it(importable, tmp_path):
+    from tests.api.test_studies_api import BODY, wait_study
+
+    server = LiveAPI(tmp_path / "s.db").start()
+    try:
+        with server.client() as http:
+            r = http.post("/studies", json={**BODY, "algorithms": ["greedy", "ra2vipas"], "tests": 2})
+            assert r.status_code == 201, r.text
+            s = wait_study(server, r.json()["id"])
+            assert s["status"] == "done", s
+            results = http.get(f"/studies/{s['id']}/results").json()
+            csv = http.get(f"/studies/{s['id']}/results", params={"format": "csv"}).text
+            svg = http.get(f"/studies/{s['id']}/plots/dr_final", params={"format": "svg"})
+            page = http.get(f"/ui/studies/{s['id']}")
+    finally:
+        server.stop()
+    assert {(r["point"], r["algorithm"]) for r in results["rows"]} == {(p, a) for p in (0, 1) for a in ("greedy", "ra2vipas")}
+    assert results["policies"] == PROVENANCE
+    assert sum(line.split(",").count("greedy") for line in csv.splitlines()[1:]) == 2
+    assert svg.status_code == 200 and "greedy" in svg.text
+    assert page.status_code == 200
+    chart = json.loads(re.search(r'<script type="application/json" id="study-data">(.*?)</script>', page.text, re.S).group(1))
+    assert chart["colors"] == names.web_colours(["greedy", "ra2vipas"])
 
 
 def test_the_robustness_bench_adds_an_installed_policy_and_its_paired_difference(installed):  # noqa: F811
