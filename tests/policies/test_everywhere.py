@@ -219,3 +219,14 @@ def test_no_list_of_the_builtins_names_outside_the_registry_and_the_protocol():
         if all(re.search(rf"\b{name}\b\s*:", text) for name in BUILTINS):
             offenders.append(path.relative_to(ROOT).as_posix())
     assert not offenders, f"lists of the built-ins' names: derive them from registry.BUILTINS / names(): {offenders}"
+
+
+def test_the_radio_warning_counts_the_builtins_that_read_rx_dir_never_a_policy_whose_cues_are_unknown():
+    from ra2vipas.services.orchestrator.rigcheck import dr_warnings, radio_algorithms
+
+    assert radio_algorithms() == tuple(a for a in BUILTINS if a != "ravipas")  # RaViPAS: the camera and Rx(iso) only
+    scenario = {"n_targets": 20, "antenna_model": "paper"}
+    far_below = {"dr_final": 0.0}
+    assert dr_warnings({"scenario": scenario, "tests": 200, "algorithms": {"greedy": far_below, "ravipas": far_below}}) == []
+    warned = dr_warnings({"scenario": scenario, "tests": 200, "algorithms": {"greedy": far_below, "rapas": far_below}})
+    assert len(warned) == 1 and "rapas 0.00" in warned[0] and "greedy" not in warned[0]
