@@ -16,6 +16,13 @@ from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 app = typer.Typer(help="Speed benchmarks (print JSON with --json).", no_args_is_help=True)
 
 
+def _complete_policies(incomplete: str) -> list[str]:
+    """Shell completion of a policy name: every installed policy (``registry.names()``)."""
+    from ra2vipas.services.controller import registry
+
+    return [n for n in registry.names() if n.startswith(incomplete)]
+
+
 def _percentile(values: list[float], q: float) -> float:
     ordered = sorted(values)
     idx = min(len(ordered) - 1, max(0, round(q / 100.0 * (len(ordered) - 1))))
@@ -35,10 +42,10 @@ def bench_step(
     Reports the median and p99 over all steps and over the last step of each test (when the
     controller holds n_test = 120 samples). Targets: median <= 1 ms; on dynamic also p99 <= 3 ms.
     """
-    from ra2vipas.services.controller.policy import ALGORITHMS
+    from ra2vipas.services.controller.registry import BUILTINS
 
-    if algorithm not in ALGORITHMS:
-        fail(f"unknown algorithm {algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
+    if algorithm not in BUILTINS:  # it times the built-ins' Controller
+        fail(f"unknown algorithm {algorithm!r}; choose from {', '.join(BUILTINS)}", EXIT_USAGE)
     from ra2vipas.services.controller.policy import Controller, sensor_config_from_scenario, tuned_settings
     from ra2vipas.services.orchestrator.simulate import train_pod
     from ra2vipas.services.protocol.scenario import PRESETS, build_scenario
@@ -143,17 +150,16 @@ def bench_mesh(
     import tempfile
 
     from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
-    from ra2vipas.services.protocol.messages import ALGORITHMS
-
+    from ra2vipas.services.controller import registry
     from ra2vipas.services.protocol.scenario import PRESETS
 
-    if memory_algorithm not in ALGORITHMS:
-        fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
+    if memory_algorithm not in registry.names():
+        fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(registry.names())}", EXIT_USAGE)
     if preset not in PRESETS:
         fail(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}", EXIT_USAGE)
     sizes = _sizes(memory_tests, "--memory-tests")
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count") or max(1, min(os.cpu_count() or 1, 16))
-    algorithms = ["ra2vipas", "rapas", "ravipas"]
+    algorithms = [a for a in registry.BUILTINS if a != "sweep"]  # the active built-ins
     report: dict = {"benchmark": "mesh", "preset": preset, "rigs": rigs, "window": window,
                     "targets": {"steps_per_second": 2000 if preset == "dynamic" else 2200, "latency_p99_ms": 5.0}, "steps_per_second": None}
     with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
@@ -442,9 +448,10 @@ def bench_plots(
     import httpx
 
     from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
+    from ra2vipas.services.controller.registry import BUILTINS
 
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count") or max(1, min(os.cpu_count() or 1, 16))
-    algorithms = ["ra2vipas", "rapas", "ravipas"]
+    algorithms = [a for a in BUILTINS if a != "sweep"]  # the active built-ins
     body = {"preset": "paper", "tests": tests, "seed": seed, "algorithms": algorithms}
     report: dict = {"benchmark": "plots", "rigs": rigs, "plot_clients": clients, "readers": readers,
                     "retry_cap_s": retry_cap, "client_nice": client_nice,
@@ -547,6 +554,10 @@ def bench_robustness(
     seed: Annotated[int, typer.Option(min=0, help="Campaign seed of every scenario.")] = 1,
     scenario: Annotated[Optional[list[str]], typer.Option("--scenario", help="Run only these scenarios (repeatable; default: all).")] = None,
     workers: Annotated[int, typer.Option(min=0, max=256, help="Worker processes (0: one per CPU core).")] = 0,
+    algorithm: Annotated[Optional[list[str]], typer.Option("--algorithm", "-a", autocompletion=_complete_policies,
+                                                           help="Add this policy's column and its paired difference against "
+                                                                "Ra²ViPAS (repeatable): any installed policy (`ra2vipas policies`) "
+                                                                "or module:Class.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Every algorithm on a spread of worlds (placement, crowds, noise, antenna shapes and
@@ -556,7 +567,13 @@ def bench_robustness(
 
     Per scenario: final DR of each algorithm with its Wilson 95 % interval, the paired
     difference Ra²ViPAS - best single cue with its 95 % interval (requirement: upper bound >= 0),
-    and Ra²ViPAS / oracle. Takes minutes: ~17 scenarios x 200 tests x 4 algorithms.
+    and Ra²ViPAS / oracle. Takes minutes: ~17 scenarios x 200 tests x 4 algorithms. Each
+    --algorithm adds that policy's column and Ra²ViPAS - it, paired the same way (with
+    McNemar's exact p in --json); the other columns do not change.
+
+    Example:
+
+        ra2vipas bench robustness --algorithm greedy --scenario paper --scenario clutter
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -567,23 +584,33 @@ def bench_robustness(
         with Progress(TextColumn("[bold]robustness[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("tests"), TimeElapsedColumn(),
                       console=stderr, transient=True) as bar:
             task = bar.add_task("tests", total=tests * len(scenario or robustness.SCENARIOS))
-            report = robustness.run(tests, seed, scenario, workers or None, lambda done, total: bar.update(task, completed=done))
-    except ValueError as err:
+            report = robustness.run(tests, seed, scenario, workers or None, lambda done, total: bar.update(task, completed=done),
+                                    algorithms=algorithm or ())
+    except ValueError as err:  # an unknown scenario or policy (registry.UnknownPolicy)
         fail(str(err), EXIT_USAGE)
     if as_json:
         print_json(report)
         return
     from rich.table import Table
 
+    columns = report.get("algorithms", robustness.ALGORITHMS)
+    others = [a for a in columns if a not in robustness.ALGORITHMS]
     table = Table(title=f"Robustness: {tests} paired tests per scenario, seed {seed}; DR at the horizon")
-    for col in ("scenario", *robustness.ALGORITHMS, "oracle", "Ra²ViPAS - best cue [95% CI]", "Ra²ViPAS/oracle"):
+    for col in ("scenario", *columns, "oracle", "Ra²ViPAS - best cue [95% CI]", *(f"Ra²ViPAS - {a} [95% CI]" for a in others),
+                "Ra²ViPAS/oracle"):
         table.add_column(col, justify="left" if col == "scenario" else "right")
+
+    def difference(d: dict, versus: str = "") -> str:
+        lo, hi = d["difference_ci95"]
+        return f"{d['difference']:+.3f} [{lo:+.3f}, {hi:+.3f}]{versus}" + ("" if d["not_worse"] else " ✗")
+
     for name, s in report["scenarios"].items():
-        lo, hi = s["difference_ci95"]
-        table.add_row(name, *(f"{s['dr'][a]:.3f}" for a in (*robustness.ALGORITHMS, "oracle")),
-                      f"{s['difference']:+.3f} [{lo:+.3f}, {hi:+.3f}] vs {s['best_single_cue']}" + ("" if s["not_worse"] else " ✗"),
+        table.add_row(name, *(f"{s['dr'][a]:.3f}" for a in (*columns, "oracle")), difference(s, f" vs {s['best_single_cue']}"),
+                      *(difference(s["versus_ra2vipas"][a]) for a in others),
                       "—" if s["ra2vipas_over_oracle"] is None else f"{s['ra2vipas_over_oracle']:.3f}")
     stdout.print(table)
+    for name, found in (report.get("policies") or {}).items():
+        stdout.print(f"{name}: {found['package']} {found['version']}")
 
 
 @app.command("calibrate")
@@ -724,16 +751,16 @@ def bench_simulate(
     import subprocess
     import sys
 
+    from ra2vipas.services.controller import registry
     from ra2vipas.services.orchestrator.engine import Point, default_workers, run_points
-    from ra2vipas.services.protocol.messages import ALGORITHMS
     from ra2vipas.services.protocol.scenario import build_scenario
 
-    if memory_algorithm not in ALGORITHMS:
-        fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(ALGORITHMS)}", EXIT_USAGE)
+    if memory_algorithm not in registry.names():
+        fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(registry.names())}", EXIT_USAGE)
     sizes = _sizes(memory_tests, "--memory-tests")
     n = workers or default_workers()
     scenario = build_scenario("paper")
-    point = Point("paper", scenario, tests, seed, tuple(ALGORITHMS))
+    point = Point("paper", scenario, tests, seed, registry.BUILTINS)
     available_before = _cpu_available(n)
     one = run_points([point], workers=1)
     many = run_points([point], workers=n)
@@ -766,7 +793,7 @@ def bench_simulate(
     if as_json:
         print_json(report)
         return
-    stdout.print(f"simulate, paper scenario, {tests} tests x {len(ALGORITHMS)} algorithms ({one.steps} steps): "
+    stdout.print(f"simulate, paper scenario, {tests} tests x {len(registry.BUILTINS)} algorithms ({one.steps} steps): "
                  f"{report['steps_per_second_1']:.0f} steps/s on 1 worker, {report['steps_per_second_n']:.0f} on {many.workers}: "
                  f"speedup {report['speedup']} (a CPU loop: {report['cpu_loop_speedup']}); results identical: {report['identical']}")
     for m in report["memory"]:

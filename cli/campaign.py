@@ -20,7 +20,7 @@ from ra2vipas.cli.output import (
 )
 from ra2vipas.cli.polish import deprecated, prefer
 from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
-from ra2vipas.services.protocol.messages import ALGORITHMS
+from ra2vipas.services.controller import registry
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
 app = typer.Typer(help="Start, watch and read campaigns on a running stack (see `ra2vipas up`).", no_args_is_help=True)
@@ -31,6 +31,11 @@ IdArg = Annotated[str, typer.Argument(help="Campaign id (see `ra2vipas campaign 
 
 def _complete(choices):
     return lambda incomplete: [c for c in choices if c.startswith(incomplete)]
+
+
+def _complete_policies(incomplete: str) -> list[str]:
+    """Every installed policy (``registry.names()``, read when completing, not at import)."""
+    return [n for n in registry.names() if n.startswith(incomplete)]
 
 
 def _follow(client: Client, cid: str, as_json_lines: bool = False) -> dict:
@@ -311,7 +316,7 @@ def watch(campaign_id: IdArg,
 def results(
     campaign_id: IdArg,
     per_test: Annotated[bool, typer.Option("--per-test", help="The per-test outcome table instead of the DR table.")] = False,
-    algorithm: Annotated[Optional[str], typer.Option(help="Only this algorithm (its DR row, or with --per-test its tests).", autocompletion=_complete(ALGORITHMS))] = None,
+    algorithm: Annotated[Optional[str], typer.Option(help="Only this algorithm (its DR row, or with --per-test its tests).", autocompletion=_complete_policies)] = None,
     hit: Annotated[Optional[bool], typer.Option("--hit/--miss", show_default=False, help="With --per-test: only the tests whose final answer was (--hit) or was not (--miss) the Tx.")] = None,
     limit: Annotated[int, typer.Option(min=1, max=200, help="With --per-test: page size.")] = 50,
     offset: Annotated[int, typer.Option(min=0, help="With --per-test: rows to skip.")] = 0,
@@ -327,8 +332,8 @@ def results(
 
         ra2vipas campaign results 3f2a9c0d1b7e --per-test --algorithm ra2vipas --miss
     """
-    if algorithm is not None and algorithm not in ALGORITHMS:
-        fail(f"--algorithm must be one of {', '.join(ALGORITHMS)}, got {algorithm!r}", EXIT_USAGE)
+    if algorithm is not None and not registry.is_valid_name(algorithm):  # the API names the ones the campaign ran
+        fail(f"--algorithm must be a policy name ({registry.NAME_PATTERN}), got {algorithm!r}", EXIT_USAGE)
     client = Client(api, token)
     if hit is not None and not per_test:
         fail("--hit/--miss select rows of the per-test table: add --per-test", EXIT_USAGE)
@@ -344,7 +349,8 @@ def results(
     body = client.request("GET", f"/campaigns/{campaign_id}/results")
     if algorithm is not None:
         if algorithm not in body["algorithms"]:
-            fail(f"campaign {campaign_id} has no results for {algorithm!r}; it ran {', '.join(body['algorithms'])}", EXIT_USAGE)
+            fail(f"--algorithm must be one of the algorithms campaign {campaign_id} ran ({', '.join(body['algorithms'])}), "
+                 f"got {algorithm!r}", EXIT_USAGE)
         body = {**body, "algorithms": {algorithm: body["algorithms"][algorithm]}}
         if "outcomes" in body:  # one algorithm: nothing to pair it with
             body["outcomes"] = {algorithm: body["outcomes"].get(algorithm)}
@@ -359,7 +365,7 @@ def results(
 def trace(
     campaign_id: IdArg,
     test: Annotated[int, typer.Option("--test", min=0, max=MAX_TESTS - 1, help="The test index k.")] = 0,
-    algorithm: Annotated[str, typer.Option(help="The algorithm.", autocompletion=_complete(ALGORITHMS))] = "ra2vipas",
+    algorithm: Annotated[str, typer.Option(help="The algorithm.", autocompletion=_complete_policies)] = "ra2vipas",
     as_json: JsonOpt = False, api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
 ) -> None:
     """One finished test step by step: pan angle, reward, estimate γ̂_t, the chosen target î_t
@@ -460,7 +466,7 @@ def plot(
     kind: Annotated[str, typer.Option("--kind", "-k", help="dr: DR curves (Fig. 4); pod: learned POD (Fig. 3); reliability: calibration of the final confidences; episode: one test (needs --test and --algorithm).", autocompletion=_complete(("dr", "pod", "reliability", "episode")))] = "dr",
     label: Annotated[Optional[str], typer.Option("--label", metavar="PARAM", help="Overlay: name each campaign's curves by this scenario parameter (e.g. n_targets) or by name, id, preset, seed or tests (default: name, else id, with the overrides).")] = None,
     test: Annotated[Optional[int], typer.Option("--test", min=0, max=MAX_TESTS - 1, help="With --kind episode: the test index.")] = None,
-    algorithm: Annotated[Optional[str], typer.Option(help="With --kind episode: the algorithm; with several campaigns: draw only this algorithm.", autocompletion=_complete(ALGORITHMS))] = None,
+    algorithm: Annotated[Optional[str], typer.Option(help="With --kind episode: the algorithm; with several campaigns: draw only this algorithm.", autocompletion=_complete_policies)] = None,
     output: Annotated[Optional[str], typer.Option("--output", "-o", metavar="FILE", help="PNG or SVG file (default: campaign-ID-KIND.png).")] = None,
     api: ApiOpt = DEFAULT_API, token: TokenOpt = None,
 ) -> None:

@@ -135,7 +135,7 @@ def replay(
 ) -> None:
     """Re-score a recording (and compare with the results it recorded), or re-run a controller
     on its episodes where the pans it asks for match the recorded ones."""
-    from ra2vipas.services.protocol.messages import ALGORITHMS
+    from ra2vipas.services.controller.registry import BUILTINS
     from ra2vipas.services.rigs.recording import RecordingError, read_mcap, replay_scores, rerun, rerun_summary
 
     try:
@@ -145,8 +145,8 @@ def replay(
             same = _comparable(results) == _comparable(rec.results) if rec.results is not None else None
             body = {"campaign": rec.campaign["id"], "source": rec.source, "matches_recorded_results": same, "results": results}
         else:
-            if rerun_algorithm != "same" and rerun_algorithm not in ALGORITHMS:
-                fail(f"--rerun must be 'same' or one of {', '.join(ALGORITHMS)}, got {rerun_algorithm!r}", EXIT_USAGE)
+            if rerun_algorithm != "same" and rerun_algorithm not in BUILTINS:  # a rerun drives the built-ins' Controller
+                fail(f"--rerun must be 'same' or one of {', '.join(BUILTINS)}, got {rerun_algorithm!r}", EXIT_USAGE)
             runs = rerun(rec, None if rerun_algorithm == "same" else rerun_algorithm)
             body = {"campaign": rec.campaign["id"], "source": rec.source, "rerun": rerun_summary(runs)}
     except RecordingError as err:

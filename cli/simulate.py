@@ -12,7 +12,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from ra2vipas.cli.output import EXIT_USAGE, check_output, emit_results, fail, print_json, print_results, stderr
 from ra2vipas.services.controller import registry
 from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
-from ra2vipas.services.protocol.messages import ALGORITHMS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, build_scenario, parse_overrides
 
 
@@ -20,7 +19,7 @@ def parse_algorithms(value: str | None) -> list[str]:
     """``a,b`` -> ["a", "b"]: installed policies (``ra2vipas.policies`` entry points, the
     built-ins among them) or ``module:Class``, order kept, duplicates dropped."""
     if value is None or not value.strip():
-        return list(ALGORITHMS)
+        return list(registry.BUILTINS)
     try:
         return registry.check([raw.strip() for raw in value.split(",")])
     except registry.UnknownPolicy as err:
@@ -31,7 +30,7 @@ def simulate(
     preset: Annotated[str, typer.Option(help=f"Scenario preset: {', '.join(PRESETS)}.")] = "paper",
     tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Monte Carlo tests per algorithm (N_tests).")] = 50,
     seed: Annotated[int, typer.Option(min=0, help="Campaign seed; fixes every random draw of every test.")] = 1,
-    algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated pointing policies: the built-ins " + ", ".join(ALGORITHMS) + " (default: all four), any installed policy (`ra2vipas policies`), or module:Class.")] = None,
+    algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated pointing policies: the built-ins " + ", ".join(registry.BUILTINS) + " (default: all four), any installed policy (`ra2vipas policies`), or module:Class.")] = None,
     overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help="Override a scenario parameter, e.g. --set n_targets=30 (repeatable; see `ra2vipas presets show paper`).")] = None,
     stop_confidence: Annotated[float, typer.Option("--stop-confidence", min=0.0, max=0.999999, help="End each episode at the first step whose confidence reaches this, its answer final (0: off); the results then report accuracy and time to decision.")] = 0.0,
     as_json: Annotated[bool, typer.Option("--json", help="Print the results object as one JSON line (last line of stdout).")] = False,

@@ -203,7 +203,7 @@ def start(
     preset: Annotated[str, typer.Option(help=f"Scenario preset: {', '.join(PRESETS)}.")] = "paper",
     tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Monte Carlo tests per point and algorithm.")] = 50,
     seed: Annotated[int, typer.Option(min=0, help="The seed of every point (points are paired test by test).")] = 1,
-    algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of ra2vipas, rapas, ravipas, sweep (default: all).")] = None,
+    algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated pointing policies: the built-ins (default: all four), any installed policy (`ra2vipas policies`), or module:Class.")] = None,
     overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help="Override a scenario parameter at every point (repeatable).")] = None,
     mode: Annotated[str, typer.Option(help="fast or realtime.")] = "fast",
     name: Annotated[Optional[str], typer.Option(help="A label for the study.")] = None,

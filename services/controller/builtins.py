@@ -24,6 +24,9 @@ class BuiltinPolicy(Policy):
     controller's ``Decision`` (the contract's fields plus the confidence map's covariates)."""
 
     algorithm: ClassVar[str] = ""
+    reads_rx_dir: ClassVar[bool] = True
+    """Whether its decisions use the directional receiver's readings (``rigcheck``: a wrong
+    Rx(dir) model shows in these policies' DR)."""
 
     def __init__(self, context: EpisodeContext, settings: ControllerSettings | None = None) -> None:
         super().__init__(context)
@@ -49,6 +52,7 @@ class RaPAS(BuiltinPolicy):
 class RaViPAS(BuiltinPolicy):
     name = algorithm = "ravipas"
     summary = "RaViPAS: camera + Rx(iso) only"
+    reads_rx_dir = False
 
 
 class Sweep(BuiltinPolicy):

@@ -75,7 +75,7 @@ def warm_up() -> None:
 
     sc = Scenario(steps=14)  # past the warm-up sweep, so UCB and probe kernels are loaded too
     model = PODModel(rssi_grid_dbm=(-60.0, -20.0), mean=(0.0, 0.5), std=(0.1, 0.1), rf_noise_db=3.0, n_train=2, frames_per_rf=sc.frames_per_rf)
-    for algorithm in ("ra2vipas", "rapas", "ravipas"):
+    for algorithm in (a for a in registry.BUILTINS if a != "sweep"):  # the active built-ins load every kernel
         ctl = Controller(algorithm, sensor_config_from_scenario(sc), model)
         pan = ctl.first_pan()
         for t in range(sc.steps):

@@ -26,10 +26,13 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
+from ra2vipas.services.controller.registry import BUILTINS
+from ra2vipas.services.orchestrator.names import colours, label as _label
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors import physics
 
-LABELS = {"ra2vipas": "Ra²ViPAS", "rapas": "RaPAS", "ravipas": "RaViPAS", "sweep": "sweep (non-active)"}
+LABELS = {name: _label(name, non_active=True) for name in BUILTINS}
+"""The built-ins' labels in figures; any other policy is labelled with its name."""
 FORMATS = ("png", "svg")
 MEDIA_TYPES = {"png": "image/png", "svg": "image/svg+xml"}
 MAX_SCATTER = 3000  # truth points drawn in the POD figure (a uniform subsample beyond this)
@@ -80,10 +83,12 @@ def dr_figure(results: dict[str, Any], name: str | None = None) -> Figure:
     period = results["scenario"]["rf_period_s"]
     fig = Figure(figsize=(7.0, 4.2), dpi=120)
     ax = fig.subplots()
+    colour = colours(results["algorithms"])
     for algorithm, block in results["algorithms"].items():
         dr = block["dr"]
         t = [(i + 1) * period for i in range(len(dr))]
-        line = ax.plot(t, dr, label=f"{LABELS.get(algorithm, algorithm)} (final {block['dr_final']:.3f})", linewidth=1.8)[0]
+        line = ax.plot(t, dr, label=f"{LABELS.get(algorithm, algorithm)} (final {block['dr_final']:.3f})", linewidth=1.8,
+                       color=colour[algorithm])[0]
         lo = [b[0] for b in block["dr_ci95"]]
         hi = [b[1] for b in block["dr_ci95"]]
         ax.fill_between(t, lo, hi, color=line.get_color(), alpha=0.15, linewidth=0)
@@ -100,7 +105,12 @@ def dr_figure(results: dict[str, Any], name: str | None = None) -> Figure:
     return fig
 
 
-_ALGORITHM_STYLES = {"ra2vipas": "-", "rapas": "--", "ravipas": "-.", "sweep": ":"}
+_BUILTIN_STYLES = ("-", "--", "-.", ":")  # one per registry.BUILTINS, in order
+_OTHER_STYLE = (0, (6, 1.5, 1, 1.5, 1, 1.5))  # any other policy: dash-dot-dot
+
+
+def _line_style(algorithm: str) -> Any:
+    return _BUILTIN_STYLES[BUILTINS.index(algorithm)] if algorithm in BUILTINS else _OTHER_STYLE
 
 
 def overlay_figure(runs: list[tuple[str, dict[str, Any]]], title: str = "") -> Figure:
@@ -116,7 +126,7 @@ def overlay_figure(runs: list[tuple[str, dict[str, Any]]], title: str = "") -> F
             dr = block["dr"]
             t = [(i + 1) * period for i in range(len(dr))]
             x_max = max(x_max, len(dr) * period)
-            ax.plot(t, dr, color=colour, linestyle=_ALGORITHM_STYLES.get(algorithm, "-"), linewidth=1.6,
+            ax.plot(t, dr, color=colour, linestyle=_line_style(algorithm), linewidth=1.6,
                     label=f"{label}, {LABELS.get(algorithm, algorithm)} (final {block['dr_final']:.3f})")
             ax.fill_between(t, [b[0] for b in block["dr_ci95"]], [b[1] for b in block["dr_ci95"]], color=colour, alpha=0.08,
                             linewidth=0)
@@ -146,6 +156,7 @@ def reliability_figure(results: dict[str, Any], name: str | None = None) -> Figu
     fig = Figure(figsize=(5.6, 5.0), dpi=120)
     ax = fig.subplots()
     ax.plot([0, 1], [0, 1], color="0.6", linestyle=":", linewidth=1, label="perfectly calibrated")
+    colour = colours(results["algorithms"])
     for algorithm, block in results["algorithms"].items():
         cal = block.get("calibration")
         if not cal:
@@ -154,7 +165,8 @@ def reliability_figure(results: dict[str, Any], name: str | None = None) -> Figu
         if not pts:
             continue
         x, y, n = zip(*pts)
-        line = ax.plot(x, y, marker="o", linewidth=1.5, label=f"{LABELS.get(algorithm, algorithm)} (ECE {cal['ece_final']:.3f})")[0]
+        line = ax.plot(x, y, marker="o", linewidth=1.5, label=f"{LABELS.get(algorithm, algorithm)} (ECE {cal['ece_final']:.3f})",
+                       color=colour[algorithm])[0]
         total = sum(n)
         ax.scatter(x, y, s=[20 + 300 * k / total for k in n], color=line.get_color(), alpha=0.35)
     ax.set_xlim(0.0, 1.0)
@@ -375,11 +387,13 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
         fig = Figure(figsize=(7.0, 4.2), dpi=120)
         ax = fig.subplots()
         lo_key, hi_key = band_fields(metric)
+        colour = colours(results["algorithms"])
         for a in algorithms:
             mine = {r[name]: r for r in rows if r["algorithm"] == a}
             pts = [(x if numeric else i, mine[x]) for i, x in enumerate(xs) if x in mine]
             x = [p[0] for p in pts]
-            line = ax.plot(x, [p[1][metric] for p in pts], marker="o", linewidth=1.8, label=LABELS.get(a, a))[0]
+            line = ax.plot(x, [p[1][metric] for p in pts], marker="o", linewidth=1.8, label=LABELS.get(a, a),
+                           color=colour[a])[0]
             if all(p[1].get(lo_key) is not None and p[1].get(hi_key) is not None for p in pts):
                 ax.fill_between(x, [p[1][lo_key] for p in pts], [p[1][hi_key] for p in pts], color=line.get_color(), alpha=0.15,
                                 linewidth=0)

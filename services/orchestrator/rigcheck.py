@@ -19,12 +19,12 @@ from __future__ import annotations
 import statistics
 from array import array
 from collections import Counter
+from functools import lru_cache
 from typing import Any, Iterable
 
 from scipy.stats import binom
 
-RADIO_ALGORITHMS = ("ra2vipas", "rapas", "sweep")
-"""The algorithms that use Rx(dir) (RaViPAS uses the camera and Rx(iso) only)."""
+from ra2vipas.services.controller import registry
 CHANCE_P_VALUE = 1e-3  # one-sided binomial test of "no better than below chance"
 CONTRADICTION_NATS = 3.0  # lobe evidence below -this: the opposite orientation fits e^3 = 20 times better
 CONTRADICTED_SHARE = 0.5  # warn when at least this share of the radio episodes is contradicted
@@ -35,6 +35,15 @@ def _other_model(rx_dir: str) -> str:
             "db-gain": "the paper's model (a dBm value scaled by rho: its reading dips when aligned)"}.get(rx_dir, "another model")
 
 
+@lru_cache(maxsize=1)
+def radio_algorithms() -> tuple[str, ...]:
+    """The built-ins that read Rx(dir) (``BuiltinPolicy.reads_rx_dir``; RaViPAS uses the camera
+    and Rx(iso) only). A user's policy is never counted: which cues it reads is not known here,
+    and a below-chance DR of a policy that may ignore Rx(dir), or read it its own way, says
+    nothing of how the rig's antenna was modelled."""
+    return tuple(n for n in registry.BUILTINS if getattr(registry.load(n), "reads_rx_dir", False))
+
+
 def dr_warnings(results: dict[str, Any]) -> list[str]:
     """A warning when every radio algorithm's final DR is far below chance, 1/N (the Tx is one
     of N targets): pooled over the radio algorithms, P(X <= hits | tests, 1/N) < 1e-3 and the DR
@@ -43,7 +52,7 @@ def dr_warnings(results: dict[str, Any]) -> list[str]:
     scenario = results.get("scenario") or {}
     n_targets = int(scenario.get("n_targets") or 0)
     tests = int(results.get("tests") or 0)
-    radio = {a: block for a, block in (results.get("algorithms") or {}).items() if a in RADIO_ALGORITHMS}
+    radio = {a: block for a, block in (results.get("algorithms") or {}).items() if a in radio_algorithms()}
     if n_targets < 2 or not radio or tests < 1:
         return []
     chance = 1.0 / n_targets

@@ -8,6 +8,11 @@ per-test differences, which are paired because every algorithm meets the same wo
 k); and the oracle's DR (``services.orchestrator.oracle``: the Bayes-MAP choice given the true
 model, the true trajectories and a sweep's measurements). Tests run in a process pool; every
 draw depends only on (seed, test index), so the numbers do not depend on the worker count.
+
+Any other policy (``run(..., algorithms=["greedy"])``: a registered name or ``module:Class``,
+``services/controller/registry.py``) gets its own column beside the built-ins and its paired
+difference against Ra²ViPAS (``versus_ra2vipas``: the same normal interval on the per-test
+differences, with McNemar's exact test); the built-ins' numbers do not change with it.
 """
 
 from __future__ import annotations
@@ -20,12 +25,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ra2vipas.services.orchestrator.metrics import Z95, wilson_interval
+from ra2vipas.services.controller import registry
+from ra2vipas.services.orchestrator.metrics import Z95, paired_comparison, wilson_interval
 from ra2vipas.services.orchestrator.oracle import oracle_choice
 from ra2vipas.services.orchestrator.simulate import run_test, train_pod
 from ra2vipas.services.protocol.scenario import Scenario, build_scenario
 
-ALGORITHMS = ("ra2vipas", "rapas", "ravipas", "sweep")
+ALGORITHMS = registry.BUILTINS
+"""The columns every run has (the built-ins, in their order); ``run(algorithms=...)`` adds others."""
 SINGLE_CUES = ("rapas", "ravipas")
 
 SCENARIOS: dict[str, tuple[str, dict[str, Any]]] = {
@@ -56,53 +63,81 @@ def _scenario_and_model(name: str, seed: int) -> tuple[Scenario, Any]:
     return scenario, train_pod(scenario, seed).model
 
 
-def run_chunk(name: str, seed: int, tests: list[int]) -> dict[str, list[int]]:
-    """Final hits (0/1) of every algorithm and of the oracle on the given tests of a scenario
-    (what a pool worker runs; the POD model is trained once per worker and scenario)."""
+def run_chunk(name: str, seed: int, tests: list[int], others: tuple[str, ...] = ()) -> dict[str, list[int]]:
+    """Final hits (0/1) of every built-in, of the policies ``others`` and of the oracle on the
+    given tests of a scenario (what a pool worker runs; the POD model is trained once per
+    worker and scenario)."""
     scenario, model = _scenario_and_model(name, seed)
-    out: dict[str, list[int]] = {a: [] for a in (*ALGORITHMS, "oracle")}
+    out: dict[str, list[int]] = {a: [] for a in (*ALGORITHMS, *others, "oracle")}
     for k in tests:
-        for a in ALGORITHMS:
+        for a in (*ALGORITHMS, *others):
             out[a].append(int(run_test(scenario, seed, k, a, model).hits[-1]))
         choice, tx = oracle_choice(scenario, seed, k)
         out["oracle"].append(int(choice == tx))
     return out
 
 
+def paired_difference(hits_a: list[int], hits_b: list[int]) -> tuple[float, float]:
+    """The mean of the per-test differences a - b of two policies' final hits on the same tests
+    (paired: test k is the same world for both) and the half-width of its normal 95 % interval
+    (infinite with one test)."""
+    diff = np.asarray(hits_a, dtype=float) - np.asarray(hits_b, dtype=float)
+    half = Z95 * float(diff.std(ddof=1)) / math.sqrt(diff.size) if diff.size > 1 else float("inf")
+    return float(diff.mean()), half
+
+
+def _difference(mean: float, half: float) -> dict[str, Any]:
+    return {"difference": round(mean, 4), "difference_ci95": [round(mean - half, 4), round(mean + half, 4)],
+            "not_worse": bool(mean + half >= 0.0)}
+
+
 def summarize_scenario(name: str, hits: dict[str, list[int]]) -> dict[str, Any]:
-    """The report of one scenario from its per-test final hits."""
+    """The report of one scenario from its per-test final hits (every built-in's, the oracle's
+    and any other policy's: those get a ``versus_ra2vipas`` block each)."""
     n = len(hits["ra2vipas"])
     block: dict[str, Any] = {"preset": SCENARIOS[name][0], "overrides": SCENARIOS[name][1], "tests": n, "dr": {}, "ci95": {}}
     for a, h in hits.items():
         block["dr"][a] = round(sum(h) / n, 4)
         block["ci95"][a] = [round(v, 4) for v in wilson_interval(sum(h), n)]
     best = max(SINGLE_CUES, key=lambda a: (sum(hits[a]), a == "rapas"))
-    diff = np.asarray(hits["ra2vipas"], dtype=float) - np.asarray(hits[best], dtype=float)
-    half = Z95 * float(diff.std(ddof=1)) / math.sqrt(n) if n > 1 else float("inf")
     block["best_single_cue"] = best
-    block["difference"] = round(float(diff.mean()), 4)
-    block["difference_ci95"] = [round(float(diff.mean()) - half, 4), round(float(diff.mean()) + half, 4)]
-    block["not_worse"] = bool(float(diff.mean()) + half >= 0.0)
+    block.update(_difference(*paired_difference(hits["ra2vipas"], hits[best])))
     oracle = block["dr"]["oracle"]
     block["ra2vipas_over_oracle"] = round(block["dr"]["ra2vipas"] / oracle, 4) if oracle > 0 else None
+    others = [a for a in hits if a not in ALGORITHMS and a != "oracle"]
+    if others:
+        block["versus_ra2vipas"] = {}
+        for a in others:  # Ra²ViPAS - a, as the table's Ra²ViPAS - best single cue; not_worse: Ra²ViPAS's
+            mcnemar = paired_comparison("ra2vipas", hits["ra2vipas"], a, hits[a])
+            block["versus_ra2vipas"][a] = {**_difference(*paired_difference(hits["ra2vipas"], hits[a])),
+                                           "only_ra2vipas": mcnemar["only_a"], "only_other": mcnemar["only_b"],
+                                           "p_value": mcnemar["p_value"]}
     return block
 
 
 def run(tests: int = 200, seed: int = 1, scenarios: list[str] | None = None, workers: int | None = None,
-        progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+        progress: Callable[[int, int], None] | None = None, algorithms: list[str] | tuple[str, ...] = ()) -> dict[str, Any]:
     """The benchmark: ``tests`` paired tests per scenario, on ``workers`` processes (default:
-    every core)."""
+    every core), of the built-ins and of the policies ``algorithms`` (registered names or
+    ``module:Class``; a built-in among them is already there).
+
+    Raises
+    ------
+    ValueError
+        An unknown scenario, or a policy that is not installed (``registry.UnknownPolicy``).
+    """
     names = list(scenarios or SCENARIOS)
     unknown = [s for s in names if s not in SCENARIOS]
     if unknown:
         raise ValueError(f"unknown scenario {unknown[0]!r}; choose from {', '.join(SCENARIOS)}")
+    others = tuple(a for a in (registry.check(list(algorithms)) if algorithms else []) if a not in ALGORITHMS)
     workers = max(1, workers or os.cpu_count() or 1)
     chunk = max(1, min(25, tests // max(1, workers)))
     jobs = [(name, list(range(lo, min(tests, lo + chunk)))) for name in names for lo in range(0, tests, chunk)]
-    hits: dict[str, dict[str, list[tuple[int, int]]]] = {name: {a: [] for a in (*ALGORITHMS, "oracle")} for name in names}
+    hits: dict[str, dict[str, list[tuple[int, int]]]] = {name: {a: [] for a in (*ALGORITHMS, *others, "oracle")} for name in names}
     done = 0
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(run_chunk, name, seed, ks): (name, ks) for name, ks in jobs}
+        futures = {pool.submit(run_chunk, name, seed, ks, others): (name, ks) for name, ks in jobs}
         for future, (name, ks) in futures.items():
             part = future.result()
             for a, h in part.items():
@@ -111,6 +146,9 @@ def run(tests: int = 200, seed: int = 1, scenarios: list[str] | None = None, wor
             if progress:
                 progress(done, tests * len(names))
     report: dict[str, Any] = {"benchmark": "robustness", "tests": tests, "seed": seed, "workers": workers, "scenarios": {}}
+    if others:  # absent otherwise, so the built-ins' report is what it always was
+        report["algorithms"] = [*ALGORITHMS, *others]
+        report["policies"] = registry.provenance(others)
     for name in names:
         ordered = {a: [h for _, h in sorted(v)] for a, v in hits[name].items()}
         report["scenarios"][name] = summarize_scenario(name, ordered)

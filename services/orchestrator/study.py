@@ -258,7 +258,10 @@ def study_results(meta: Mapping[str, Any], points: Sequence[Mapping[str, Any]], 
                       "pod": dict(res["pod"]) if res else None,
                       "steps_per_second": res.get("steps_per_second") if res else None,
                       "paired": list(res.get("paired") or []) if res else None})
-    return {
+    policies: dict[str, Any] = {}
+    for p in points:  # where each policy outside the built-ins came from, as its points' results say
+        policies.update(((p.get("results") or {}).get("policies")) or {})
+    out = {
         "id": meta.get("id"), "name": meta.get("name"), "status": meta["status"], "partial": partial,
         "preset": meta["preset"], "overrides": dict(meta["overrides"]), "vary": {k: list(v) for k, v in meta["vary"].items()},
         "parameters": list(meta["vary"]), "algorithms": list(meta["algorithms"]), "tests": meta["tests"], "seed": meta["seed"],
@@ -266,6 +269,9 @@ def study_results(meta: Mapping[str, Any], points: Sequence[Mapping[str, Any]], 
         "points": shown, "rows": rows,
         "steps_per_second": None if steps_per_second is None else round(steps_per_second, 1),
     }
+    if policies:  # absent when every policy is a built-in, as in a campaign's results
+        out["policies"] = policies
+    return out
 
 
 def table_rows(results: Mapping[str, Any]) -> list[dict[str, Any]]:

@@ -180,5 +180,6 @@ def test_reliability_series_keeps_non_empty_bins_and_is_none_without_calibration
             {"lo": 0.5, "hi": 1.0, "n": 4, "confidence": 0.8, "accuracy": 0.75}]
     series = data.reliability_series({"algorithms": {"ra2vipas": {"calibration": {"ece_final": 0.05, "reliability": bins}},
                                                      "sweep": {"dr_final": 1.0}}})
-    assert series == {"algorithms": {"ra2vipas": {"label": "Ra²ViPAS", "ece": 0.05, "confidence": [0.8], "accuracy": [0.75], "n": [4]}}}
+    assert series == {"algorithms": {"ra2vipas": {"label": "Ra²ViPAS", "color": "#1f6fb4", "ece": 0.05, "confidence": [0.8],
+                                                  "accuracy": [0.75], "n": [4]}}}
     assert data.reliability_series({"algorithms": {"rapas": {"dr_final": 1.0}}}) is None

@@ -10,14 +10,15 @@ from typing import Annotated, Any, Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StringConstraints
 
-from ra2vipas.services.protocol.messages import ALGORITHMS, AlgorithmName
+from ra2vipas.services.controller.registry import BUILTINS
+from ra2vipas.services.protocol.messages import AlgorithmName
 
 MAX_TESTS = 10000
 MAX_OVERRIDES = 64
 MAX_PAGE = 200
 MAX_OFFSET = 1_000_000_000
 
-ALGORITHM_NAMES = ALGORITHMS  # the built-in policies, a campaign's default
+ALGORITHM_NAMES = BUILTINS  # the built-in policies, a campaign's default
 MAX_POLICIES = 16
 CampaignStatus = Literal["queued", "training", "running", "done", "failed", "cancelled"]
 EpisodeStatus = Literal["pending", "running", "done", "cancelled"]

@@ -117,3 +117,5 @@ class StudyResults(BaseModel):
     points: list[StudyResultPoint]
     rows: list[StudyRow]
     steps_per_second: Optional[float]
+    policies: Optional[dict[str, dict[str, str]]] = Field(None, description="policies outside the built-ins: the package and version "
+                                                                            "each came from ({name: {package, version}})")

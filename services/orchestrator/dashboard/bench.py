@@ -27,27 +27,30 @@ from typing import Any
 
 import numpy as np
 
+from ra2vipas.services.controller.registry import BUILTINS
 from ra2vipas.services.orchestrator.metrics import summarize_algorithm
 from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol.scenario import build_scenario
 
-ALGORITHMS = ["ra2vipas", "rapas", "ravipas", "sweep"]
+ALGORITHMS = list(BUILTINS)
 STUDY_TESTS = 1000  # tests per point of the bench's study (at most)
 SKILL = {"ra2vipas": (0.99, 8), "rapas": (0.92, 25), "ravipas": (0.68, 40), "sweep": (0.98, 80)}  # final hit rate, settling step
 
 
-def seed_campaign(store: Store, tests: int, seed: int = 1) -> str:
-    """Write a finished campaign of ``tests`` synthetic tests of every algorithm; return its id."""
+def seed_campaign(store: Store, tests: int, seed: int = 1, algorithms: list[str] | None = None) -> str:
+    """Write a finished campaign of ``tests`` synthetic tests of every built-in (or of
+    ``algorithms``: any names, a policy outside ``SKILL`` as a middling one); return its id."""
+    algorithms = list(algorithms or ALGORITHMS)
     scenario = build_scenario("paper").model_dump(mode="json")
     steps, n = scenario["steps"], scenario["n_targets"]
     rng = np.random.default_rng(seed)
-    cid = store.create_campaign(preset="paper", overrides={"n_targets": n}, scenario=scenario, algorithms=ALGORITHMS, tests=tests,
+    cid = store.create_campaign(preset="paper", overrides={"n_targets": n}, scenario=scenario, algorithms=algorithms, tests=tests,
                                 seed=seed, mode="fast", name=f"bench: {tests} tests")
     now = time.time()
     summaries = {}
     rows = []
-    for algorithm in ALGORITHMS:
-        rate, settle = SKILL[algorithm]
+    for algorithm in algorithms:
+        rate, settle = SKILL.get(algorithm, (0.8, 30))
         finals = rng.random(tests) < rate
         settles = np.clip(rng.geometric(1.0 / settle, tests), 1, steps)
         t = np.arange(steps)[None, :]

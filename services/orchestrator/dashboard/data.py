@@ -12,15 +12,11 @@ import numpy as np
 
 from ra2vipas.services.orchestrator.api.views import outcome_public, trace_public
 from ra2vipas.services.orchestrator.metrics import Z95, wrap
+from ra2vipas.services.orchestrator.names import label, web_colours
 from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol.scenario import Scenario, build_scenario, field_range
 
-LABELS = {"ra2vipas": "Ra²ViPAS", "rapas": "RaPAS", "ravipas": "RaViPAS", "sweep": "sweep"}
 MAX_POINTS = 600  # points per curve sent to a page (a longer curve is subsampled evenly, its last point kept)
-
-
-def label(algorithm: str) -> str:
-    return LABELS.get(algorithm, algorithm)
 
 
 def subsample(n: int, max_points: int = MAX_POINTS) -> np.ndarray:
@@ -140,14 +136,16 @@ def summary_table(results: dict[str, Any]) -> dict[str, Any]:
 
 def dr_curves(results: dict[str, Any], max_points: int = MAX_POINTS) -> dict[str, Any]:
     """The DR curves of a finished campaign as the page's chart takes them: time axis and, per
-    algorithm, DR_t with its Wilson band (subsampled to ``max_points``)."""
+    algorithm, its label and colour (``names.web_colours``) and DR_t with its Wilson band
+    (subsampled to ``max_points``)."""
     period = results["scenario"]["rf_period_s"]
     algorithms = {}
     steps = 0
+    colour = web_colours(results["algorithms"])
     for name, block in results["algorithms"].items():
         steps = len(block["dr"])
         keep = subsample(steps, max_points)
-        algorithms[name] = {"label": label(name), "n": results["tests"],
+        algorithms[name] = {"label": label(name), "color": colour[name], "n": results["tests"],
                             "dr": [block["dr"][i] for i in keep],
                             "lo": [block["dr_ci95"][i][0] for i in keep],
                             "hi": [block["dr_ci95"][i][1] for i in keep]}
@@ -189,15 +187,16 @@ class LiveDR:
         """The curves now (an algorithm without a finished test has empty lists)."""
         keep = subsample(self.steps, max_points)
         out = {}
+        colour = web_colours(self.successes)
         with self._lock:
             for name, k in self.successes.items():
                 n = self.counts[name]
                 if n == 0:
-                    out[name] = {"label": label(name), "n": 0, "dr": [], "lo": [], "hi": []}
+                    out[name] = {"label": label(name), "color": colour[name], "n": 0, "dr": [], "lo": [], "hi": []}
                     continue
                 p = k[keep] / n
                 lo, hi = _wilson(k[keep], n)
-                out[name] = {"label": label(name), "n": n, "dr": np.round(p, 6).tolist(), "lo": np.round(lo, 6).tolist(),
+                out[name] = {"label": label(name), "color": colour[name], "n": n, "dr": np.round(p, 6).tolist(), "lo": np.round(lo, 6).tolist(),
                              "hi": np.round(hi, 6).tolist()}
         return {"t": [round((i + 1) * self.period, 10) for i in keep], "algorithms": out}
 
@@ -285,13 +284,14 @@ def reliability_series(results: dict[str, Any]) -> dict[str, Any] | None:
     confidences): per algorithm that has them, the non-empty bins' mean confidence, accuracy and
     count, and its final-step ECE; None when no algorithm carries bins."""
     out = {}
+    colour = web_colours(results.get("algorithms", {}))
     for name, block in results.get("algorithms", {}).items():
         cal = block.get("calibration") or {}
         bins = [b for b in cal.get("reliability") or [] if b.get("n") and b.get("confidence") is not None]
         if not bins:
             continue
         bins.sort(key=lambda b: b["confidence"])
-        out[name] = {"label": label(name), "ece": cal.get("ece_final"), "confidence": [b["confidence"] for b in bins],
+        out[name] = {"label": label(name), "color": colour[name], "ece": cal.get("ece_final"), "confidence": [b["confidence"] for b in bins],
                      "accuracy": [b["accuracy"] for b in bins], "n": [b["n"] for b in bins]}
     return {"algorithms": out} if out else None
 
@@ -325,7 +325,7 @@ def study_metrics(rows: list[dict[str, Any]], parameters: list[str]) -> list[dic
 
 def study_chart(results: dict[str, Any]) -> dict[str, Any]:
     """What the study page's plot draws: the varied parameters and their values in grid order,
-    the algorithms with their labels, the metrics and the rows (each row's varied values, its
+    the algorithms with their labels and colours, the metrics and the rows (each row's varied values, its
     algorithm, the tests it rests on and its numeric fields, interval bounds included)."""
     params = results["parameters"]
     rows = []
@@ -334,7 +334,7 @@ def study_chart(results: dict[str, Any]) -> dict[str, Any]:
                 or (isinstance(v, (int, float)) and not isinstance(v, bool))}
         rows.append(keep)
     return {"parameters": params, "vary": results["vary"], "partial": results["partial"], "status": results["status"],
-            "algorithms": {a: label(a) for a in results["algorithms"]}, "metrics": study_metrics(results["rows"], params), "rows": rows}
+            "algorithms": {a: label(a) for a in results["algorithms"]}, "colors": web_colours(results["algorithms"]), "metrics": study_metrics(results["rows"], params), "rows": rows}
 
 
 def study_table(points: list[dict[str, Any]], results: dict[str, Any]) -> dict[str, Any]:

@@ -31,9 +31,10 @@ from starlette.middleware.gzip import GZipMiddleware
 from starlette.routing import NoMatchFound
 from starlette.staticfiles import StaticFiles
 
+from ra2vipas.services.controller import registry
 from ra2vipas.services.orchestrator.api.deps import get_campaign
 from ra2vipas.services.orchestrator.api.routes.events import MAX_STREAMS, _streams
-from ra2vipas.services.orchestrator.api.schemas import ALGORITHM_NAMES, MAX_TESTS
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.orchestrator.api.views import campaign_progress, campaign_public, rigs_public, supervised_services
 from ra2vipas.services.orchestrator.dashboard import data
 from ra2vipas.services.orchestrator.storage import ACTIVE, FINISHED, Store
@@ -367,11 +368,11 @@ def campaign_pod(request: Request, campaign_id: CampaignId) -> JSONResponse:
 
 @router.get("/ui/campaigns/{campaign_id}/tests/{test_index}/{algorithm}", response_class=HTMLResponse)
 def episode_page(request: Request, campaign_id: CampaignId, test_index: Annotated[int, PathParam(ge=0, le=MAX_TESTS - 1)],
-                 algorithm: Annotated[str, PathParam(max_length=16)]) -> HTMLResponse:
+                 algorithm: Annotated[str, PathParam(max_length=64)]) -> HTMLResponse:
     store = _store(request)
     try:
         row = _campaign_or_404(store, campaign_id)
-        if algorithm not in ALGORITHM_NAMES or algorithm not in row["algorithms"] or test_index >= row["tests"]:
+        if algorithm not in row["algorithms"] or test_index >= row["tests"]:
             raise HTTPException(status.HTTP_404_NOT_FOUND, f"campaign {campaign_id} has no test {test_index} of {algorithm}")
     except HTTPException as err:
         return _not_found(request, err)
@@ -430,8 +431,8 @@ def _preset_or_default(preset: Optional[str]) -> str:
 def new_campaign(request: Request, preset: Annotated[Optional[str], Query(max_length=64)] = None) -> HTMLResponse:
     name = _preset_or_default(preset)
     return _page(request, "new.html", "New campaign", "new", presets=PRESET_DESCRIPTIONS, preset=name,
-                 parameters=data.parameter_inputs(name), description=PRESET_DESCRIPTIONS[name], algorithms=list(ALGORITHM_NAMES),
-                 max_tests=MAX_TESTS)
+                 parameters=data.parameter_inputs(name), description=PRESET_DESCRIPTIONS[name], algorithms=list(registry.names()),
+                 builtins=registry.BUILTINS, max_tests=MAX_TESTS)
 
 
 @router.get("/ui/new/parameters", response_class=HTMLResponse)

@@ -6,13 +6,14 @@
   "use strict";
 
   const TOKEN_KEY = "ra2vipas.apiToken";   // sessionStorage: this tab only, never a URL
-  const COLORS = { ra2vipas: "#1f6fb4", rapas: "#d0402b", ravipas: "#2b8f3a", sweep: "#8a5ac2" };
+  // each policy's colour comes with the data (the server's names.web_colours: a built-in's
+  // own, any other policy's from its name); this is only for data that carries none
   const FALLBACK = ["#1f6fb4", "#d0402b", "#2b8f3a", "#8a5ac2", "#b8860b"];
   const FINISHED = ["done", "failed", "cancelled"];
 
   const $ = (sel, root) => (root || document).querySelector(sel);
   const $$ = (sel, root) => Array.from((root || document).querySelectorAll(sel));
-  const color = (name, i) => COLORS[name] || FALLBACK[i % FALLBACK.length];
+  const color = (given, i) => given || FALLBACK[i % FALLBACK.length];
   const alpha = (hex, a) => hex + Math.round(a * 255).toString(16).padStart(2, "0");
   const fixed = (v, d) => (v === null || v === undefined || Number.isNaN(v) ? "—" : Number(v).toFixed(d));
 
@@ -96,7 +97,7 @@
     const names = Object.keys(data.algorithms);
     const series = [{ label: "t [s]" }], bands = [], columns = [data.t];
     names.forEach((name, i) => {
-      const a = data.algorithms[name], c = color(name, i), base = series.length;
+      const a = data.algorithms[name], c = color(a.color, i), base = series.length;
       series.push({ label: a.label, stroke: c, width: 2, points: { show: false }, spanGaps: false });
       series.push({ label: a.label + " low", stroke: "transparent", points: { show: false } });
       series.push({ label: a.label + " high", stroke: "transparent", points: { show: false } });
@@ -122,7 +123,7 @@
       item.className = "legend-item";
       item.innerHTML = '<input type="checkbox" checked id="' + id + '"> <span class="sw"></span> ' +
         a.label + ' <span class="num value" data-alg="' + name + '"></span>';
-      item.querySelector(".sw").style.background = color(name, i);  // CSSOM: the page's CSP allows no style attributes
+      item.querySelector(".sw").style.background = color(a.color, i);  // CSSOM: the page's CSP allows no style attributes
       item.querySelector("input").addEventListener("change", (e) => {
         const base = 1 + 3 * i;
         [base, base + 1, base + 2].forEach((s) => plot.setSeries(s, { show: e.target.checked }));
@@ -193,7 +194,7 @@
     const tables = [[[0, 1], [0, 1]]].concat(names.map((name) => [d.algorithms[name].confidence, d.algorithms[name].accuracy]));
     const series = [{ label: "confidence" }, { label: "perfectly calibrated", stroke: "#888", width: 1, dash: [4, 4], points: { show: false } }];
     names.forEach((name, i) => {
-      const c = color(name, i);
+      const c = color(d.algorithms[name].color, i);
       series.push({ label: d.algorithms[name].label, stroke: c, width: 2, spanGaps: true, points: { show: true, size: 7, fill: c, stroke: c } });
     });
     const height = Math.min(340, Math.max(240, Math.round(chartWidth(el) * 0.85)));
@@ -207,7 +208,7 @@
       item.className = "legend-item";
       item.innerHTML = '<span class="sw"></span> ' + a.label +
         (a.ece === null || a.ece === undefined ? "" : ' <span class="num">ECE ' + fixed(a.ece, 3) + "</span>");
-      item.querySelector(".sw").style.background = color(name, i);
+      item.querySelector(".sw").style.background = color(a.color, i);
       legend.appendChild(item);
     });
     resizeWith(el, plot, height);
@@ -330,7 +331,7 @@
     const names = Object.keys(chart.algorithms).filter((a) => chart.rows.some((r) => r.algorithm === a));
     const series = [{ label: name }], bands = [], columns = [pos];
     names.forEach((a, i) => {
-      const c = color(a, i), base = series.length;
+      const c = color((chart.colors || {})[a], i), base = series.length;
       const mine = new Map(chart.rows.filter((r) => r.algorithm === a).map((r) => [key(r[name]), r]));
       const at = (f) => xs.map((x) => { const r = mine.get(key(x)); return r && typeof r[f] === "number" ? r[f] : null; });
       series.push({ label: chart.algorithms[a], stroke: c, width: 2, spanGaps: true, show: !hidden.has(a),
@@ -361,7 +362,7 @@
       item.className = "legend-item";
       item.innerHTML = '<input type="checkbox"' + (hidden.has(a) ? "" : " checked") + '> <span class="sw"></span> ' +
         chart.algorithms[a] + ' <span class="num value" data-alg="' + a + '"></span>';
-      item.querySelector(".sw").style.background = color(a, i);
+      item.querySelector(".sw").style.background = color((chart.colors || {})[a], i);
       item.querySelector("input").addEventListener("change", (e) => {
         if (e.target.checked) hidden.delete(a); else hidden.add(a);
         [1, 2, 3].forEach((k) => plot.setSeries(3 * i + k, { show: e.target.checked }));
