@@ -97,7 +97,9 @@ def test_reads_of_a_finished_campaign_conform_to_their_schema(api_schema, bare_a
     200 responses (results as JSON and CSV, outcome pages, traces, figures, the event
     stream) are validated, not only the 404s."""
     operation = api_schema[path][method]
-    fixed = {"campaign_id": fuzz_db[1], **({"test_index": 1} if "{test_index}" in path else {})}
+    fixed = {"campaign_id": fuzz_db[1], **({"test_index": 1} if "{test_index}" in path else {}),
+             # a policy name is any name matching the pattern (protocol 1.2): name one the campaign ran
+             **({"algorithm": "sweep"} if "{algorithm}" in path else {})}
     statuses = set()
 
     @given(case=operation.as_strategy(generation_mode=GenerationMode.POSITIVE, path_parameters=fixed))

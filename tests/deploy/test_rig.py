@@ -19,6 +19,7 @@ import zenoh
 from ra2vipas.cli.rig import controller_settings, rig_name_from_host
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
+from tests.conftest import differences, untimed
 from tests.deploy.compose import environment, interpolate, load, ra2vipas_argv
 from tests.deploy.conftest import ROOT, clean_env, free_port, wait_port
 
@@ -91,11 +92,8 @@ def test_the_compose_deployment_on_one_host_runs_a_campaign_through_a_rig(procs,
     sim = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "simulate", *args, "--json"], capture_output=True, text=True,
                          timeout=300, cwd=ROOT)
     assert sim.returncode == 0, sim.stderr
-    got, want = (json.loads(p.stdout.strip().splitlines()[-1]) for p in (mesh, sim))
-    for results in (got, want):
-        results.pop("steps_per_second", None)
-        results["pod"].pop("train_seconds", None)
-    assert got == want
+    got, want = (untimed(json.loads(p.stdout.strip().splitlines()[-1])) for p in (mesh, sim))
+    assert got == want, differences(got, want)
 
     assert {keys.alive("sensors", name), keys.alive("controller", name)} <= set(alive_tokens(endpoint))
     rig.proc.send_signal(signal.SIGTERM)

@@ -26,6 +26,7 @@ import zenoh
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
+from tests.conftest import untimed
 from tests.deploy.conftest import ROOT, Service, Services, clean_env, free_port, wait_port
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
@@ -198,14 +199,6 @@ def test_an_authenticated_rig_may_use_its_own_keys_and_nothing_else(deployment):
     while "rig-1" in deployment.rigs() and time.monotonic() < deadline:  # its tokens went with its session
         time.sleep(0.2)
     assert "rig-1" not in deployment.rigs()  # both its nodes left: no longer listed (issue 18)
-
-
-def untimed(results: dict) -> dict:
-    results = json.loads(json.dumps(results))
-    results.pop("steps_per_second", None)
-    results.pop("latency_ms", None)
-    results["pod"].pop("train_seconds", None)
-    return results
 
 
 def campaign_args(tests: int, seed: int, algorithms: str) -> list[str]:

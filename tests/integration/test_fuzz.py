@@ -15,6 +15,7 @@ from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import Command, EpisodeResult, EpisodeStart, EpisodeTruth, Measurement
 from ra2vipas.services.protocol.scenario import build_scenario
+from tests.conftest import differences, untimed
 from tests.integration.conftest import Procs, alive, children_of, stack_zenoh_session, start_stack, stop_stack
 
 VALID = {
@@ -113,8 +114,5 @@ def test_thousands_of_hostile_messages_crash_nothing(stack):
         time.sleep(0.1)
     assert c["status"] == "done", c["error"]
     got = httpx.get(f"{stack['api']}/campaigns/{cid}/results", timeout=10).json()
-    expected = run_campaign("paper", build_scenario("paper", overrides), 3, 17, ["ra2vipas", "ravipas"])
-    for d in (got, expected):
-        d.pop("steps_per_second")
-        d["pod"].pop("train_seconds")
-    assert got == expected
+    expected = untimed(run_campaign("paper", build_scenario("paper", overrides), 3, 17, ["ra2vipas", "ravipas"]))
+    assert untimed(got) == expected, differences(untimed(got), expected)

@@ -238,7 +238,8 @@ def _browser(url: str, chromium: str, pages: dict[str, str]) -> dict[str, Any]:
             warmup.new_page().goto("/ui/rigs", wait_until="load")
             warmup.close()
             for name, path in pages.items():
-                context = browser.new_context(viewport={"width": 1280, "height": 800}, base_url=url)
+                # bypass_csp: the timing probes are the benchmark's scripts, which the pages' CSP (no eval) forbids
+                context = browser.new_context(viewport={"width": 1280, "height": 800}, base_url=url, bypass_csp=True)
                 page = context.new_page()
                 page.goto(path, wait_until="load")
                 cold = _measure(page)
