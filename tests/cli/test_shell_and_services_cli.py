@@ -30,7 +30,9 @@ def complete(words: str) -> list[str]:
 
 def test_the_installed_command_shows_its_bash_completion_script():
     assert SCRIPT.exists(), "pip install -e . puts the ra2vipas command next to the interpreter"
-    proc = subprocess.run([str(SCRIPT), "--show-completion", "bash"], capture_output=True, text=True, timeout=60)
+    # run from bash, as a user does: typer reads the shell from the parent processes (shellingham),
+    # which a test runner started without a shell above it does not have
+    proc = subprocess.run(["bash", "-c", f"'{SCRIPT}' --show-completion bash"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "_RA2VIPAS_COMPLETE=complete_bash" in proc.stdout and "complete -o default -F _ra2vipas_completion ra2vipas" in proc.stdout
 
