@@ -310,7 +310,12 @@ def served_policies(r: dict[str, Any]) -> str:
     policies = r.get("policies")
     if policies is None:
         return "asking..." if r.get("announced") == "asking" else "-"
-    names = ", ".join(p["name"] for p in policies)
+    from ra2vipas.services.controller.registry import BUILTINS
+
+    served = [p["name"] for p in policies]
+    if set(BUILTINS) <= set(served):  # the usual case, said briefly: the built-ins and what else
+        served = ["built-ins"] + [name for name in served if name not in BUILTINS]
+    names = ", ".join(served)
     return f"{names} (announces none: a 1.0/1.1 controller)" if r.get("announced") == "silent" else names
 
 
