@@ -106,6 +106,50 @@ def _run_campaign_id(api: str, body: dict, timeout: float, poll: float = 0.1) ->
     return httpx.get(f"{api}/campaigns/{c['id']}/results", timeout=30).json(), wall, c["id"]
 
 
+class _CostListener:
+    """Joins a stack's Zenoh network (its credentials) and keeps every episode result and
+    timing report the rigs publish: the stage costs the nodes measured (``StepCosts``)."""
+
+    def __init__(self, stack) -> None:
+        from ra2vipas.services.protocol import keys
+        from ra2vipas.services.transport.zenoh_bus import ZenohBus
+        from ra2vipas.services.transport.zenoh_config import ZenohSettings
+
+        env = stack.credentials.env() if stack.credentials is not None else {}
+        self.results: list[bytes] = []
+        self.timings: list[bytes] = []
+        self.bus = ZenohBus(ZenohSettings.from_sources(mode="client", connect=[stack.router_endpoint], env=env), workers=1)
+        self.bus.subscribe(keys.episode_result_all(), lambda _k, p: self.results.append(p))
+        self.bus.subscribe(keys.episode_timing_all(), lambda _k, p: self.timings.append(p))
+
+    def clear(self) -> None:
+        self.results.clear()
+        self.timings.clear()
+
+    def breakdown(self, realtime: bool = False) -> dict:
+        """``costs.step_breakdown`` over the episodes both nodes reported costs for."""
+        from ra2vipas.services.protocol.messages import EpisodeResult, EpisodeTiming
+        from ra2vipas.services.transport.costs import step_breakdown
+
+        ctl = {r.episode_id: r.costs for r in map(EpisodeResult.model_validate_json, list(self.results)) if r.costs is not None}
+        timings = {t.episode_id: t for t in map(EpisodeTiming.model_validate_json, list(self.timings)) if t.costs is not None}
+        both = [eid for eid in ctl if eid in timings]
+        latencies = [v for eid in both for v in timings[eid].latencies_ms] if realtime else None
+        return step_breakdown([ctl[e] for e in both], [timings[e].costs for e in both], latencies)
+
+    def close(self) -> None:
+        self.bus.close()
+
+
+def _inprocess_steps_per_second(preset: str, tests: int, algorithms: list[str]) -> tuple[float, dict]:
+    """The same campaign in-process on one worker (``simulate``): steps/s and DR_final per algorithm."""
+    from ra2vipas.services.orchestrator.engine import Point, run_points
+    from ra2vipas.services.protocol.scenario import build_scenario
+
+    run = run_points([Point(preset, build_scenario(preset), tests, 1, tuple(algorithms))], workers=1)
+    return run.steps_per_second or 0.0, {a: b["dr_final"] for a, b in run.results[0]["algorithms"].items()}
+
+
 @app.command("mesh")
 def bench_mesh(
     rigs: Annotated[int, typer.Option("--rig-count", min=0, max=16, help="Sensor+controller pairs for fast mode (0: one per CPU core).")] = 0,
@@ -117,6 +161,7 @@ def bench_mesh(
     memory_steps: Annotated[int, typer.Option(min=1, max=1000, help="n_test of the memory campaigns (short, so 10 000 tests take minutes).")] = 20,
     memory_algorithm: Annotated[str, typer.Option(help="The algorithm of the memory campaigns.")] = "rapas",
     preset: Annotated[str, typer.Option(help="Scenario preset of the fast and realtime campaigns (paper, dynamic, ...).")] = "paper",
+    inprocess: Annotated[bool, typer.Option(help="Also run the fast campaign in-process on one worker: mesh_over_inprocess.")] = True,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Start local stacks and measure them through the real processes.
@@ -126,7 +171,11 @@ def bench_mesh(
     for paper, >= 2 000 for dynamic).
     Realtime mode: REALTIME_TESTS tests paced at T_RF on one rig (one platform in the loop);
     reports the sample-to-command latency p50/p99 measured by the sensors (target p99 <= 5
-    ms). Memory (with --memory-tests): one campaign of each size (MEMORY_STEPS steps,
+    ms). Both report ``step_breakdown``: per step, each service's time queued on its event
+    loop, decoding and validating, computing, encoding and publishing, as the services measured
+    it, and the transport between them (services/transport/costs.py). The fast campaign is
+    also run in-process on one worker: ``mesh_over_inprocess`` is mesh steps/s over that
+    (``--no-inprocess`` skips it). Memory (with --memory-tests): one campaign of each size (MEMORY_STEPS steps,
     MEMORY_ALGORITHM) on RIG_COUNT rigs, each on a fresh stack; reports the orchestrator
     process's peak resident memory (VmHWM) and its resident memory before and after (VmRSS).
     Every stack is stopped afterwards.
@@ -166,28 +215,47 @@ def bench_mesh(
             stack = stack_of(rigs, "fast")
             try:
                 stack.start()
+                listener = _CostListener(stack)
                 body = {"preset": preset, "tests": tests, "seed": 1, "algorithms": algorithms}
-                fast, fast_wall = _run_campaign(stack.api_url, body, 1800)
+                try:
+                    fast, fast_wall = _run_campaign(stack.api_url, body, 1800)
+                    time.sleep(0.2)
+                    breakdown = listener.breakdown()
+                finally:
+                    listener.close()
                 report["fast"] = {
                     "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
                     "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
                     "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
+                    "step_breakdown": breakdown,
                 }
                 report["steps_per_second"] = fast["steps_per_second"]
             except (StackError, TimeoutError, RuntimeError) as err:
                 fail(f"bench mesh (fast): {err}")
             finally:
                 stack.stop()
+            if inprocess:
+                sps1, dr1 = _inprocess_steps_per_second(preset, tests, algorithms)
+                report["inprocess_steps_per_second_1"] = round(sps1, 1)
+                report["mesh_over_inprocess"] = round(report["steps_per_second"] / sps1, 3) if sps1 else None
+                report["fast"]["dr_final_equals_inprocess"] = dr1 == report["fast"]["dr_final"]
         report["latency_ms"] = None
         if realtime_tests:
             stack = stack_of(1, "realtime")
             try:
                 stack.start()
-                rt, rt_wall = _run_campaign(stack.api_url, {"preset": preset, "tests": realtime_tests, "seed": 1,
-                                                            "algorithms": ["ra2vipas"], "mode": "realtime"}, 900, poll=1.0)
+                listener = _CostListener(stack)
+                try:
+                    rt, rt_wall = _run_campaign(stack.api_url, {"preset": preset, "tests": realtime_tests, "seed": 1,
+                                                                "algorithms": ["ra2vipas"], "mode": "realtime"}, 900, poll=1.0)
+                    time.sleep(0.2)
+                    breakdown = listener.breakdown(realtime=True)
+                finally:
+                    listener.close()
                 report["latency_ms"] = rt.get("latency_ms")
                 report["realtime"] = {"rigs": 1, "tests": realtime_tests, "samples": realtime_tests * (rt["scenario"]["steps"] - 1),
-                                      "wall_seconds": round(rt_wall, 3), "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"]}
+                                      "wall_seconds": round(rt_wall, 3), "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"],
+                                      "step_breakdown": breakdown}
             except (StackError, TimeoutError, RuntimeError) as err:
                 fail(f"bench mesh (realtime): {err}")
             finally:
