@@ -284,6 +284,113 @@ def bench_mesh(
                      f"{m['orchestrator_rss_after_mb']} MB after), {m['seconds']} s")
 
 
+def _cpu_of(pid: int) -> float:
+    """CPU seconds (user + system) a process has used so far."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rpartition(")")[2].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+@app.command("orchestrator")
+def bench_orchestrator(
+    tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Tests of the campaign (x 3 algorithms = episodes).")] = 1000,
+    rig_count: Annotated[int, typer.Option(min=1, max=64, help="Fake rigs answering episodes.")] = 4,
+    window: Annotated[int, typer.Option(min=1, max=1024, help="Episodes in flight per rig.")] = 64,
+    preset: Annotated[str, typer.Option(help="Scenario preset (paper, dynamic, ...).")] = "paper",
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
+) -> None:
+    """How many episodes one orchestrator scores and stores per second, with rigs faked at the
+    wire level (services/rigs/instant.py: each EpisodeStart is answered at once by a
+    precomputed EpisodeTruth and EpisodeResult), so nothing but the orchestrator does real work.
+
+    Starts a stack without rigs (router, learner, orchestrator), joins it with RIG_COUNT
+    instant rigs in this process and runs the PRESET campaign (TESTS tests x ra2vipas, rapas,
+    ravipas). Reports ``episodes_per_second`` (episodes over the time from the campaign's
+    first episode to its last, after training; target >= 1 000 for paper episodes), the
+    orchestrator's CPU use over that time (1.0 = one core: saturated) and the fake rigs'.
+
+    Example:
+
+        ra2vipas bench orchestrator --json
+    """
+    import tempfile
+
+    import httpx
+
+    from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
+    from ra2vipas.services.protocol.scenario import PRESETS
+    from ra2vipas.services.rigs.instant import InstantRig
+    from ra2vipas.services.transport.zenoh_bus import ZenohBus
+    from ra2vipas.services.transport.zenoh_config import ZenohSettings
+
+    if preset not in PRESETS:
+        fail(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}", EXIT_USAGE)
+    algorithms = ["ra2vipas", "rapas", "ravipas"]
+    with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
+        stack = Stack(StackConfig(rigs=0, port=free_port(), db_path=os.path.join(tmp, "orchestrator.db"), window=window,
+                                  log_dir=os.path.join(tmp, "logs"), log_level="WARNING"))
+        bus = fakes = None
+        try:
+            stack.start()
+            env = stack.credentials.env() if stack.credentials is not None else {}
+            bus = ZenohBus(ZenohSettings.from_sources(mode="client", connect=[stack.router_endpoint], env=env))
+            fakes = [InstantRig(bus, f"rig-{i}") for i in range(1, rig_count + 1)]
+            orchestrator = next(c for c in stack.children if c.name == "orchestrator").proc.pid
+            api = stack.api_url
+            deadline = time.monotonic() + 30
+            while len([r for r in httpx.get(f"{api}/rigs", timeout=10).json()["rigs"] if r["live"]]) < rig_count:
+                if time.monotonic() > deadline:
+                    raise StackError("the orchestrator did not see the fake rigs within 30 s")
+                time.sleep(0.1)
+            started = time.perf_counter()
+            c = httpx.post(f"{api}/campaigns", json={"preset": preset, "tests": tests, "seed": 1, "algorithms": algorithms},
+                           timeout=30).json()
+            running_at = cpu_at = own_at = None
+            while c["status"] not in ("done", "failed", "cancelled"):
+                if time.perf_counter() - started > 1800:
+                    raise TimeoutError(f"campaign {c['id']} did not finish within 1800 s")
+                time.sleep(0.02)
+                c = httpx.get(f"{api}/campaigns/{c['id']}", timeout=30).json()
+                if running_at is None and c["status"] == "running":
+                    running_at, cpu_at, own_at = time.perf_counter(), _cpu_of(orchestrator), time.process_time()
+            done_at, cpu_done, own_done = time.perf_counter(), _cpu_of(orchestrator), time.process_time()
+            if c["status"] != "done":
+                raise RuntimeError(f"campaign {c['id']} {c['status']}: {c.get('error')}")
+            results = httpx.get(f"{api}/campaigns/{c['id']}/results", timeout=30).json()
+        except (StackError, TimeoutError, RuntimeError, httpx.HTTPError) as err:
+            fail(f"bench orchestrator: {err}")
+        finally:
+            for fake in fakes or []:
+                fake.close()
+            if bus is not None:
+                bus.close()
+            stack.stop()
+    episodes = tests * len(algorithms)
+    steps = results["scenario"]["steps"]
+    seconds = done_at - (running_at or started)
+    report = {
+        "benchmark": "orchestrator", "preset": preset, "tests": tests, "episodes": episodes, "steps": steps,
+        "fake_rigs": rig_count, "window": window,
+        "episodes_per_second": round(episodes / seconds, 1) if seconds > 0 else None,
+        "episodes_per_second_from_results": round(results["steps_per_second"] / steps, 1) if results.get("steps_per_second") else None,
+        "seconds": round(seconds, 3), "wall_seconds_with_training": round(done_at - started, 3),
+        "orchestrator_cpu": round((cpu_done - (cpu_at or 0.0)) / seconds, 3) if seconds > 0 else None,
+        "fake_rigs_cpu": round((own_done - (own_at or 0.0)) / seconds, 3) if seconds > 0 else None,
+        "answered": sum(f.answered for f in fakes or []),
+        "target_episodes_per_second": 1000,
+        "load_average": [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None,
+    }
+    if as_json:
+        print_json(report)
+        return
+    stdout.print(f"orchestrator: {report['episodes_per_second']} {preset} episodes/s scored and stored ({episodes} episodes, "
+                 f"{rig_count} instant rigs x {window} in flight; target 1000); orchestrator CPU {report['orchestrator_cpu']} cores, "
+                 f"fake rigs {report['fake_rigs_cpu']}")
+
+
 def _sizes(text: str, option: str) -> list[int]:
     """Comma-separated campaign sizes (tests) of a memory benchmark; a usage error if malformed."""
     try:
