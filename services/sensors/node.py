@@ -72,6 +72,7 @@ class SensorsNode:
         if self.descriptor.rig != rig:
             raise ValueError(f"the descriptor names rig {self.descriptor.rig!r}, this node is rig {rig!r}")
         self.clock = clock
+        self.report_costs = describe  # a node that serves no descriptor speaks 1.0: no StepCosts (1.2)
         self.loop = EventLoop(f"sensors-{rig}")
         self.episodes: dict[str, _Episode] = {}
         self._finished: dict[str, None] = {}
@@ -146,9 +147,9 @@ class SensorsNode:
         payload = dump(ep.last)
         costs.lap("encode")
         if cmd.step == steps - 1:
-            # the costs go just before the last sample, so they reach the orchestrator before the result
-            costs.replied()
-            self.bus.publish(keys.episode_timing(self.rig), dump(EpisodeTiming(episode_id=cmd.episode_id, costs=costs.report())))
+            if self.report_costs:  # just before the last sample, so they reach the orchestrator before the result
+                costs.replied()
+                self.bus.publish(keys.episode_timing(self.rig), dump(EpisodeTiming(episode_id=cmd.episode_id, costs=costs.report())))
             self.bus.publish(self._measurement_key, payload)
             self._end(cmd.episode_id)
             return
@@ -206,7 +207,7 @@ class SensorsNode:
             return
         self.bus.publish(keys.episode_timing(self.rig), dump(EpisodeTiming(
             episode_id=episode_id, latencies_ms=tuple(round(v, 4) for v in ep.latencies_ms), late_commands=ep.late,
-            costs=ep.costs.report())))
+            costs=ep.costs.report() if self.report_costs else None)))
         self._end(episode_id)
 
     def _schedule(self, when: float, episode_id: str, step: int) -> None:
