@@ -111,7 +111,9 @@ def step_breakdown(controller: list[StepCosts], sensors: list[StepCosts], latenc
     controller ``outside`` - sensors' stages. ``transport_ms_sensors_view`` is the same
     derived the other way round (sensors ``outside`` - the controller's stages): the two
     agree when both nodes' timers are right. ``step_ms`` is the controller's span per step,
-    measured as one interval; ``parts_sum_ms`` the sum of the parts.
+    measured as one interval; ``parts_sum_ms`` the sum of the parts. With several episodes in
+    flight per rig a step's ``queued`` time is mostly other episodes' steps: ``*_busy_ms`` (the
+    stages but the queue) is what one step costs each node's worker thread.
 
     Realtime episodes (``latencies_ms``, the sensors' sample->command latencies): the
     latency is the sensors' publish, the transport both ways, the controller's stages and
@@ -127,7 +129,11 @@ def step_breakdown(controller: list[StepCosts], sensors: list[StepCosts], latenc
         out["transport_ms_sensors_view"] = round(sen["outside_ms"] - _own(ctl), 4)
         out["step_ms"] = ctl["span_ms"]
         out["parts_sum_ms"] = round(_own(ctl) + _own(sen) + transport, 4)
-        out["controller_compute_share"] = round(ctl["compute_ms"] / ctl["span_ms"], 4) if ctl["span_ms"] else None
+        out["controller_busy_ms"] = round(_own(ctl) - ctl["queued_ms"], 4)
+        out["sensors_busy_ms"] = round(_own(sen) - sen["queued_ms"], 4)
+        # of the controller's worker-thread time, the share its policy's step takes: what a rig core
+        # spends on the algorithm when the controller is the busy process (queueing is not work)
+        out["controller_compute_share"] = round(ctl["compute_ms"] / out["controller_busy_ms"], 4) if out["controller_busy_ms"] else None
         return out
     latency = sum(latencies_ms) / len(latencies_ms) if latencies_ms else 0.0
     others = _own(ctl) + sen["publish_ms"] + sen["queued_ms"] + sen["decode_ms"]

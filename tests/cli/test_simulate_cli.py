@@ -173,6 +173,19 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
     assert _ra2vipas_processes() == before, "the benchmark's stacks left processes behind"
 
 
+def test_bench_orchestrator_scores_episodes_of_instant_rigs_and_leaves_nothing_behind():
+    """`bench orchestrator` (issue 22): a stack without rigs, fake rigs at the wire level in the
+    benchmark's process answering every episode at once; every episode is answered once, the
+    campaign finishes, and the orchestrator's rate and CPU use are reported."""
+    before = _ra2vipas_processes()
+    proc = ra2vipas("bench", "orchestrator", "--tests", "20", "--rig-count", "2", "--window", "16", "--json", timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["benchmark"] == "orchestrator" and report["episodes"] == 60 and report["answered"] == 60
+    assert report["episodes_per_second"] > 0 and report["orchestrator_cpu"] >= 0 and report["target_episodes_per_second"] == 1000
+    assert _ra2vipas_processes() == before, "the benchmark's stack left processes behind"
+
+
 def _check_breakdown(b: dict, episodes: int, steps: int) -> None:
     """A fast-mode step breakdown of `bench mesh` adds up (issue 22): each node reported every
     episode and step; the stages, the transport and the step time are non-negative; the parts
