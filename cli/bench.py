@@ -278,6 +278,12 @@ def bench_mesh(
         lat = report["latency_ms"] or {}
         stdout.print(f"mesh ({rigs} rigs): {report['steps_per_second']} control steps/s in fast mode (target 2200); "
                      f"realtime sample->command latency p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms (target p99 <= 5)")
+    b = (report.get("fast") or {}).get("step_breakdown") or {}
+    if b.get("step_ms") is not None:
+        c = b["controller"]
+        stdout.print(f"per step: controller busy {b['controller_busy_ms']} ms (compute {c['compute_ms']}, publish {c['publish_ms']}, "
+                     f"decode {c['decode_ms']}, encode {c['encode_ms']}), sensors busy {b['sensors_busy_ms']} ms, transport "
+                     f"{b['transport_ms']} ms; mesh over in-process (1 worker): {report.get('mesh_over_inprocess')}")
     for m in report.get("memory") or []:
         stdout.print(f"{m['tests']} tests ({m['steps']} steps, {m['algorithm']}, {rigs} rigs): orchestrator peak RSS "
                      f"{m['orchestrator_peak_rss_mb']} MB ({m['orchestrator_rss_before_mb']} MB before the campaign, "
