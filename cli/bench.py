@@ -113,6 +113,50 @@ def _run_campaign_id(api: str, body: dict, timeout: float, poll: float = 0.1) ->
     return httpx.get(f"{api}/campaigns/{c['id']}/results", timeout=30).json(), wall, c["id"]
 
 
+class _CostListener:
+    """Joins a stack's Zenoh network (its credentials) and keeps every episode result and
+    timing report the rigs publish: the stage costs the nodes measured (``StepCosts``)."""
+
+    def __init__(self, stack) -> None:
+        from ra2vipas.services.protocol import keys
+        from ra2vipas.services.transport.zenoh_bus import ZenohBus
+        from ra2vipas.services.transport.zenoh_config import ZenohSettings
+
+        env = stack.credentials.env() if stack.credentials is not None else {}
+        self.results: list[bytes] = []
+        self.timings: list[bytes] = []
+        self.bus = ZenohBus(ZenohSettings.from_sources(mode="client", connect=[stack.router_endpoint], env=env), workers=1)
+        self.bus.subscribe(keys.episode_result_all(), lambda _k, p: self.results.append(p))
+        self.bus.subscribe(keys.episode_timing_all(), lambda _k, p: self.timings.append(p))
+
+    def clear(self) -> None:
+        self.results.clear()
+        self.timings.clear()
+
+    def breakdown(self, realtime: bool = False) -> dict:
+        """``costs.step_breakdown`` over the episodes both nodes reported costs for."""
+        from ra2vipas.services.protocol.messages import EpisodeResult, EpisodeTiming
+        from ra2vipas.services.transport.costs import step_breakdown
+
+        ctl = {r.episode_id: r.costs for r in map(EpisodeResult.model_validate_json, list(self.results)) if r.costs is not None}
+        timings = {t.episode_id: t for t in map(EpisodeTiming.model_validate_json, list(self.timings)) if t.costs is not None}
+        both = [eid for eid in ctl if eid in timings]
+        latencies = [v for eid in both for v in timings[eid].latencies_ms] if realtime else None
+        return step_breakdown([ctl[e] for e in both], [timings[e].costs for e in both], latencies)
+
+    def close(self) -> None:
+        self.bus.close()
+
+
+def _inprocess_steps_per_second(preset: str, tests: int, algorithms: list[str]) -> tuple[float, dict]:
+    """The same campaign in-process on one worker (``simulate``): steps/s and DR_final per algorithm."""
+    from ra2vipas.services.orchestrator.engine import Point, run_points
+    from ra2vipas.services.protocol.scenario import build_scenario
+
+    run = run_points([Point(preset, build_scenario(preset), tests, 1, tuple(algorithms))], workers=1)
+    return run.steps_per_second or 0.0, {a: b["dr_final"] for a, b in run.results[0]["algorithms"].items()}
+
+
 @app.command("mesh")
 def bench_mesh(
     rigs: Annotated[int, typer.Option("--rig-count", min=0, max=16, help="Sensor+controller pairs for fast mode (0: one per CPU core).")] = 0,
@@ -124,6 +168,7 @@ def bench_mesh(
     memory_steps: Annotated[int, typer.Option(min=1, max=1000, help="n_test of the memory campaigns (short, so 10 000 tests take minutes).")] = 20,
     memory_algorithm: Annotated[str, typer.Option(help="The algorithm of the memory campaigns.")] = "rapas",
     preset: Annotated[str, typer.Option(help="Scenario preset of the fast and realtime campaigns (paper, dynamic, ...).")] = "paper",
+    inprocess: Annotated[bool, typer.Option(help="Also run the fast campaign in-process on one worker: mesh_over_inprocess.")] = True,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Start local stacks and measure them through the real processes.
@@ -133,7 +178,11 @@ def bench_mesh(
     for paper, >= 2 000 for dynamic).
     Realtime mode: REALTIME_TESTS tests paced at T_RF on one rig (one platform in the loop);
     reports the sample-to-command latency p50/p99 measured by the sensors (target p99 <= 5
-    ms). Memory (with --memory-tests): one campaign of each size (MEMORY_STEPS steps,
+    ms). Both report ``step_breakdown``: per step, each service's time queued on its event
+    loop, decoding and validating, computing, encoding and publishing, as the services measured
+    it, and the transport between them (services/transport/costs.py). The fast campaign is
+    also run in-process on one worker: ``mesh_over_inprocess`` is mesh steps/s over that
+    (``--no-inprocess`` skips it). Memory (with --memory-tests): one campaign of each size (MEMORY_STEPS steps,
     MEMORY_ALGORITHM) on RIG_COUNT rigs, each on a fresh stack; reports the orchestrator
     process's peak resident memory (VmHWM) and its resident memory before and after (VmRSS).
     Every stack is stopped afterwards.
@@ -172,28 +221,47 @@ def bench_mesh(
             stack = stack_of(rigs, "fast")
             try:
                 stack.start()
+                listener = _CostListener(stack)
                 body = {"preset": preset, "tests": tests, "seed": 1, "algorithms": algorithms}
-                fast, fast_wall = _run_campaign(stack.api_url, body, 1800)
+                try:
+                    fast, fast_wall = _run_campaign(stack.api_url, body, 1800)
+                    time.sleep(0.2)
+                    breakdown = listener.breakdown()
+                finally:
+                    listener.close()
                 report["fast"] = {
                     "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
                     "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
                     "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
+                    "step_breakdown": breakdown,
                 }
                 report["steps_per_second"] = fast["steps_per_second"]
             except (StackError, TimeoutError, RuntimeError) as err:
                 fail(f"bench mesh (fast): {err}")
             finally:
                 stack.stop()
+            if inprocess:
+                sps1, dr1 = _inprocess_steps_per_second(preset, tests, algorithms)
+                report["inprocess_steps_per_second_1"] = round(sps1, 1)
+                report["mesh_over_inprocess"] = round(report["steps_per_second"] / sps1, 3) if sps1 else None
+                report["fast"]["dr_final_equals_inprocess"] = dr1 == report["fast"]["dr_final"]
         report["latency_ms"] = None
         if realtime_tests:
             stack = stack_of(1, "realtime")
             try:
                 stack.start()
-                rt, rt_wall = _run_campaign(stack.api_url, {"preset": preset, "tests": realtime_tests, "seed": 1,
-                                                            "algorithms": ["ra2vipas"], "mode": "realtime"}, 900, poll=1.0)
+                listener = _CostListener(stack)
+                try:
+                    rt, rt_wall = _run_campaign(stack.api_url, {"preset": preset, "tests": realtime_tests, "seed": 1,
+                                                                "algorithms": ["ra2vipas"], "mode": "realtime"}, 900, poll=1.0)
+                    time.sleep(0.2)
+                    breakdown = listener.breakdown(realtime=True)
+                finally:
+                    listener.close()
                 report["latency_ms"] = rt.get("latency_ms")
                 report["realtime"] = {"rigs": 1, "tests": realtime_tests, "samples": realtime_tests * (rt["scenario"]["steps"] - 1),
-                                      "wall_seconds": round(rt_wall, 3), "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"]}
+                                      "wall_seconds": round(rt_wall, 3), "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"],
+                                      "step_breakdown": breakdown}
             except (StackError, TimeoutError, RuntimeError) as err:
                 fail(f"bench mesh (realtime): {err}")
             finally:
@@ -216,10 +284,125 @@ def bench_mesh(
         lat = report["latency_ms"] or {}
         stdout.print(f"mesh ({rigs} rigs): {report['steps_per_second']} control steps/s in fast mode (target 2200); "
                      f"realtime sample->command latency p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms (target p99 <= 5)")
+    b = (report.get("fast") or {}).get("step_breakdown") or {}
+    if b.get("step_ms") is not None:
+        c = b["controller"]
+        stdout.print(f"per step: controller busy {b['controller_busy_ms']} ms (compute {c['compute_ms']}, publish {c['publish_ms']}, "
+                     f"decode {c['decode_ms']}, encode {c['encode_ms']}), sensors busy {b['sensors_busy_ms']} ms, transport "
+                     f"{b['transport_ms']} ms; mesh over in-process (1 worker): {report.get('mesh_over_inprocess')}")
     for m in report.get("memory") or []:
         stdout.print(f"{m['tests']} tests ({m['steps']} steps, {m['algorithm']}, {rigs} rigs): orchestrator peak RSS "
                      f"{m['orchestrator_peak_rss_mb']} MB ({m['orchestrator_rss_before_mb']} MB before the campaign, "
                      f"{m['orchestrator_rss_after_mb']} MB after), {m['seconds']} s")
+
+
+def _cpu_of(pid: int) -> float:
+    """CPU seconds (user + system) a process has used so far."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rpartition(")")[2].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+@app.command("orchestrator")
+def bench_orchestrator(
+    tests: Annotated[int, typer.Option(min=1, max=MAX_TESTS, help="Tests of the campaign (x 3 algorithms = episodes).")] = 1000,
+    rig_count: Annotated[int, typer.Option(min=1, max=64, help="Fake rigs answering episodes.")] = 4,
+    window: Annotated[int, typer.Option(min=1, max=1024, help="Episodes in flight per rig.")] = 64,
+    preset: Annotated[str, typer.Option(help="Scenario preset (paper, dynamic, ...).")] = "paper",
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
+) -> None:
+    """How many episodes one orchestrator scores and stores per second, with rigs faked at the
+    wire level (services/rigs/instant.py: each EpisodeStart is answered at once by a
+    precomputed EpisodeTruth and EpisodeResult), so nothing but the orchestrator does real work.
+
+    Starts a stack without rigs (router, learner, orchestrator), joins it with RIG_COUNT
+    instant rigs in this process and runs the PRESET campaign (TESTS tests x ra2vipas, rapas,
+    ravipas). Reports ``episodes_per_second`` (the campaign's steps/s over its n_test: episodes
+    over the orchestrator's own time from the campaign's first episode to its last, after
+    training; target >= 1 000 for paper episodes), and the orchestrator's and the fake rigs'
+    CPU use while it ran (in cores, polled every 0.25 s; 1.0 = one core: the orchestrator's
+    scheduler thread, holding the GIL, saturates about there).
+
+    Example:
+
+        ra2vipas bench orchestrator --json
+    """
+    import tempfile
+
+    import httpx
+
+    from ra2vipas.cli.stack import Stack, StackConfig, StackError, free_port
+    from ra2vipas.services.protocol.scenario import PRESETS
+    from ra2vipas.services.rigs.instant import InstantRig
+    from ra2vipas.services.transport.zenoh_bus import ZenohBus
+    from ra2vipas.services.transport.zenoh_config import ZenohSettings
+
+    if preset not in PRESETS:
+        fail(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}", EXIT_USAGE)
+    algorithms = ["ra2vipas", "rapas", "ravipas"]
+    with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
+        stack = Stack(StackConfig(rigs=0, port=free_port(), db_path=os.path.join(tmp, "orchestrator.db"), window=window,
+                                  log_dir=os.path.join(tmp, "logs"), log_level="WARNING"))
+        bus = fakes = None
+        try:
+            stack.start()
+            env = stack.credentials.env() if stack.credentials is not None else {}
+            bus = ZenohBus(ZenohSettings.from_sources(mode="client", connect=[stack.router_endpoint], env=env))
+            fakes = [InstantRig(bus, f"rig-{i}") for i in range(1, rig_count + 1)]
+            orchestrator = next(c for c in stack.children if c.name == "orchestrator").proc.pid
+            api = stack.api_url
+            deadline = time.monotonic() + 30
+            while len([r for r in httpx.get(f"{api}/rigs", timeout=10).json()["rigs"] if r["live"]]) < rig_count:
+                if time.monotonic() > deadline:
+                    raise StackError("the orchestrator did not see the fake rigs within 30 s")
+                time.sleep(0.1)
+            started = time.perf_counter()
+            c = httpx.post(f"{api}/campaigns", json={"preset": preset, "tests": tests, "seed": 1, "algorithms": algorithms},
+                           timeout=30).json()
+            running_at = cpu_at = own_at = None
+            while c["status"] not in ("done", "failed", "cancelled"):
+                if time.perf_counter() - started > 1800:
+                    raise TimeoutError(f"campaign {c['id']} did not finish within 1800 s")
+                time.sleep(0.25)  # polls slowly: a request costs the orchestrator CPU
+                c = httpx.get(f"{api}/campaigns/{c['id']}", timeout=30).json()
+                if running_at is None and c["status"] == "running":
+                    running_at, cpu_at, own_at = time.perf_counter(), _cpu_of(orchestrator), time.process_time()
+            done_at, cpu_done, own_done = time.perf_counter(), _cpu_of(orchestrator), time.process_time()
+            if c["status"] != "done":
+                raise RuntimeError(f"campaign {c['id']} {c['status']}: {c.get('error')}")
+            results = httpx.get(f"{api}/campaigns/{c['id']}/results", timeout=30).json()
+        except (StackError, TimeoutError, RuntimeError, httpx.HTTPError) as err:
+            fail(f"bench orchestrator: {err}")
+        finally:
+            for fake in fakes or []:
+                fake.close()
+            if bus is not None:
+                bus.close()
+            stack.stop()
+    episodes = tests * len(algorithms)
+    steps = results["scenario"]["steps"]
+    seconds = done_at - (running_at or started)
+    report = {
+        "benchmark": "orchestrator", "preset": preset, "tests": tests, "episodes": episodes, "steps": steps,
+        "fake_rigs": rig_count, "window": window,
+        # the orchestrator's own clock: from the campaign's first episode to its last (its steps/s over n_test)
+        "episodes_per_second": round(results["steps_per_second"] / steps, 1) if results.get("steps_per_second") else None,
+        "seconds_polled": round(seconds, 3), "wall_seconds_with_training": round(done_at - started, 3),
+        "orchestrator_cpu": round((cpu_done - (cpu_at or 0.0)) / seconds, 3) if seconds > 0 else None,
+        "fake_rigs_cpu": round((own_done - (own_at or 0.0)) / seconds, 3) if seconds > 0 else None,
+        "answered": sum(f.answered for f in fakes or []),
+        "target_episodes_per_second": 1000,
+        "load_average": [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None,
+    }
+    if as_json:
+        print_json(report)
+        return
+    stdout.print(f"orchestrator: {report['episodes_per_second']} {preset} episodes/s scored and stored ({episodes} episodes, "
+                 f"{rig_count} instant rigs x {window} in flight; target 1000); orchestrator CPU {report['orchestrator_cpu']} cores, "
+                 f"fake rigs {report['fake_rigs_cpu']}")
 
 
 def _sizes(text: str, option: str) -> list[int]:

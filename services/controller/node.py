@@ -42,6 +42,7 @@ from ra2vipas.services.protocol.messages import (
 from ra2vipas.services.protocol.rig import RigDescriptor
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
+from ra2vipas.services.transport.costs import CostClock
 from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, decode_or_reject, first_valid_reply
 
@@ -65,6 +66,7 @@ class _Episode:
     rewards: list[float] = field(default_factory=list)
     confidences: list[float] = field(default_factory=list)
     says_confidence: bool = True  # False once the policy gave a step no confidence
+    costs: CostClock = field(default_factory=CostClock)
 
 
 def warm_up() -> None:
@@ -247,6 +249,7 @@ class ControllerNode:
             self._fail(episode_id, f"controller of rig {self.rig}: {err}")
             return
         self.bus.publish(self._command_key, dump(Command(episode_id=episode_id, step=0, pan_rad=float(ep.policy.first_pan()))))
+        ep.costs.start()
 
     def _fail(self, episode_id: str, error: str) -> None:
         if self.episodes.pop(episode_id, None) is None:
@@ -256,12 +259,16 @@ class ControllerNode:
 
     # -- stepping ---------------------------------------------------------------------------
     def _on_measurement(self, payload: bytes) -> None:
+        posted, started = self.loop.posted_ns, self.loop.started_ns
         m = decode_or_drop(Measurement, payload, "measurement", log)
         if m is None:
             return
         ep = self.episodes.get(m.episode_id)
         if ep is None or ep.policy is None or m.step != ep.next_step:
             return  # not ours, not started, or a duplicate
+        costs = ep.costs
+        costs.mark_arrival(posted, started)
+        costs.lap("decode")
         sc = ep.start.scenario
         if len(m.frames) != ep.sensors.frames_per_rf:
             log.warning("episode %s step %d: %d frames, expected %d; dropped", m.episode_id, m.step, len(m.frames),
@@ -280,14 +287,22 @@ class ControllerNode:
         stop = ep.start.stop_confidence
         decided = stop > 0.0 and confidence is not None and confidence >= stop
         if ep.next_step < sc.steps and not decided:
-            command = dump(Command(episode_id=m.episode_id, step=ep.next_step, pan_rad=float(decision.next_pan_rad)))
-            self.bus.publish(self._command_key, command, express=ep.start.mode is Mode.realtime)
+            command = Command(episode_id=m.episode_id, step=ep.next_step, pan_rad=float(decision.next_pan_rad))
+            costs.lap("compute")
+            payload = dump(command)
+            costs.lap("encode")
+            self.bus.publish(self._command_key, payload, express=ep.start.mode is Mode.realtime)
+            costs.lap("publish")
+            costs.replied()
             return
         self.episodes.pop(m.episode_id, None)
+        check = model_check(ep.sensors, ep.policy.controller if isinstance(ep.policy, BuiltinPolicy) else None)
+        costs.lap("compute")
+        costs.replied()  # the span ends here: the result's own encoding and publication are not in it
         self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(
             episode_id=m.episode_id, rig=self.rig, estimates_rad=tuple(ep.estimates), pans_rad=tuple(ep.pans), rewards=tuple(ep.rewards),
             confidences=tuple(ep.confidences) if ep.says_confidence else (), decided_step=m.step if decided else None,
-            model_check=model_check(ep.sensors, ep.policy.controller if isinstance(ep.policy, BuiltinPolicy) else None))))
+            model_check=check, costs=costs.report())))
 
     def close(self) -> None:
         undeclare_all(self._handles)

@@ -687,7 +687,7 @@ class Scheduler:
             hits=[bool(h) for h in hits], in_fov=[bool(f) for f in in_fov], estimates=list(res.estimates_rad),
             pans=list(res.pans_rad), rewards=list(res.rewards), chosen=[int(i) for i in chosen],
             tx_index=truth.tx_index, bearings=list(truth.bearings_rad), ranges=list(truth.ranges_m),
-            latencies=list(flight.timing.latencies_ms) if flight.timing else None,
+            latencies=list(flight.timing.latencies_ms) if flight.timing and run.mode is Mode.realtime else None,
             trajectories=[t.model_dump(mode="json") for t in truth.trajectories] or None,
             confidences=list(res.confidences) or None, decided_step=decided,
             model_check=None if res.model_check is None else res.model_check.model_dump(mode="json"),

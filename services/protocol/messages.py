@@ -182,6 +182,33 @@ class ModelCheck(_Message):
         "null without Rx(dir)"))
 
 
+_MS = Field(default=0.0, ge=0.0, le=1e9)
+SINCE_1_2 = {"since": "1.2"}
+"""Schema mark of a field added in protocol 1.2 that only our nodes send to the orchestrator."""
+
+
+class StepCosts(_Message):
+    """Where one node's time went in one episode, summed over its steps [ms] (optional part of
+    ``EpisodeResult``, the controller's, and of ``EpisodeTiming``, the sensors'; for benchmarks).
+
+    Per handled step message: ``queued`` on the node's event loop after it arrived,
+    ``decode`` (and validate), ``compute`` (the handler's work), ``encode`` (the reply's JSON),
+    ``publish`` (handing it to Zenoh); ``outside``: from the node's reply to the arrival of
+    the episode's next message (the other node and the transport); ``span``: from the node's
+    first publication of the episode to its last. The stages are contiguous, so
+    ``outside + queued + decode + compute + encode + publish`` ~ ``span``.
+    """
+
+    steps: int = Field(default=0, ge=0, le=10 * MAX_STEPS, description="step messages handled")
+    queued_ms: float = _MS
+    decode_ms: float = _MS
+    compute_ms: float = _MS
+    encode_ms: float = _MS
+    publish_ms: float = _MS
+    outside_ms: float = _MS
+    span_ms: float = _MS
+
+
 class EpisodeResult(_Message):
     """The controller's trace of one episode (controller -> orchestrator).
 
@@ -206,15 +233,21 @@ class EpisodeResult(_Message):
     decided_step: int | None = Field(default=None, ge=0, le=MAX_STEPS, json_schema_extra=SINCE_1_1)
     model_check: ModelCheck | None = Field(default=None, description="how the rig was modelled (optional; v1 controllers send none)",
                                            json_schema_extra=SINCE_1_1)
+    costs: StepCosts | None = Field(default=None, json_schema_extra=SINCE_1_2,
+                                    description="the controller's time per stage in this episode (optional; for benchmarks)")
 
 
 class EpisodeTiming(_Message):
-    """Realtime episodes only: for each step, the time from the sensors publishing sample t to
-    receiving the command for step t+1 [ms] (sensors -> orchestrator)."""
+    """Realtime episodes: for each step, the time from the sensors publishing sample t to
+    receiving the command for step t+1 [ms] (sensors -> orchestrator). Since 1.2 the
+    simulated sensors also send one in fast mode, with ``costs`` only, just before the
+    episode's last measurement (so it reaches the orchestrator before the result)."""
 
     episode_id: str = _ID
     latencies_ms: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
     late_commands: int = Field(default=0, ge=0, description="commands that arrived after the next sample was taken")
+    costs: StepCosts | None = Field(default=None, json_schema_extra=SINCE_1_2,
+                                    description="the sensors' time per stage in this episode (optional; for benchmarks)")
 
 
 # -- truth plane -------------------------------------------------------------------------------
@@ -257,6 +290,7 @@ WIRE_MESSAGES: tuple[type[BaseModel], ...] = (
     EpisodeStart, EpisodeStop, Command, Measurement, TrainingRequest, TrainingStream,
     PODRequest, PODResponse, ErrorReply, ControllerInfo, PolicyOffer, EpisodeResult, EpisodeTiming, EpisodeTruth, TrainingTruth,
     RFSample, CameraFrame, TrainingSample, TargetTrajectory, PODModel, Scenario, RigDescriptor, RxDirResponse, ModelCheck,
+    StepCosts,
 )
 
 

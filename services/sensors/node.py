@@ -38,6 +38,7 @@ from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors.physics import wrap
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode, episode_truth
 from ra2vipas.services.transport.bus import Bus, QueryError, undeclare_all
+from ra2vipas.services.transport.costs import CostClock, now_ns
 from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_reject
 
@@ -57,6 +58,7 @@ class _Episode:
     sent_at: dict[int, float] = field(default_factory=dict)
     latencies_ms: list[float] = field(default_factory=list)
     late: int = 0
+    costs: CostClock = field(default_factory=CostClock)
 
 
 class SensorsNode:
@@ -70,6 +72,7 @@ class SensorsNode:
         if self.descriptor.rig != rig:
             raise ValueError(f"the descriptor names rig {self.descriptor.rig!r}, this node is rig {rig!r}")
         self.clock = clock
+        self.report_costs = describe  # a node that serves no descriptor speaks 1.0: no StepCosts (1.2)
         self.loop = EventLoop(f"sensors-{rig}")
         self.episodes: dict[str, _Episode] = {}
         self._finished: dict[str, None] = {}
@@ -110,6 +113,7 @@ class SensorsNode:
             self._on_command(early)
 
     def _on_command(self, payload: bytes) -> None:
+        posted, started = self.loop.posted_ns, self.loop.started_ns
         cmd = decode_or_reject(Command, payload, "command", log, self.bus, self.rig, "sensors")
         if cmd is None:
             return
@@ -123,6 +127,8 @@ class SensorsNode:
                     self._early.pop(next(iter(self._early)))
             return
         if ep.start.mode is Mode.realtime:
+            ep.costs.queued += max(0, started - posted)
+            ep.costs.decode += now_ns() - started
             self._realtime_command(ep, cmd)
             return
         steps = ep.start.scenario.steps
@@ -133,10 +139,23 @@ class SensorsNode:
         if cmd.step != expected or cmd.step >= steps:
             log.warning("episode %s: command for step %d, expected %d; dropped", cmd.episode_id, cmd.step, expected)
             return
+        costs = ep.costs
+        costs.mark_arrival(posted, started)
+        costs.lap("decode")
         ep.last = self._sense(ep, cmd.step, cmd.pan_rad)
-        self.bus.publish(self._measurement_key, dump(ep.last))
+        costs.lap("compute")
+        payload = dump(ep.last)
+        costs.lap("encode")
         if cmd.step == steps - 1:
+            if self.report_costs:  # just before the last sample, so they reach the orchestrator before the result
+                costs.replied()
+                self.bus.publish(keys.episode_timing(self.rig), dump(EpisodeTiming(episode_id=cmd.episode_id, costs=costs.report())))
+            self.bus.publish(self._measurement_key, payload)
             self._end(cmd.episode_id)
+            return
+        self.bus.publish(self._measurement_key, payload)
+        costs.lap("publish")
+        costs.replied()
 
     def _sense(self, ep: _Episode, step: int, pan: float) -> Measurement:
         if not -math.pi <= pan < math.pi:  # the pan unit reaches the commanded angle, reported wrapped (docs/protocol.md)
@@ -166,10 +185,15 @@ class SensorsNode:
         if ep is None or step != ep.next_step:
             return
         steps = ep.start.scenario.steps
+        ep.costs.begin(self.loop.started_ns)
         m = self._sense(ep, step, ep.pan)
+        ep.costs.lap("compute")
         payload = dump(m)
+        ep.costs.lap("encode")
         ep.sent_at[step] = self.clock()
         self.bus.publish(self._measurement_key, payload, express=True)
+        ep.costs.lap("publish")
+        ep.costs.replied()
         ep.next_step = step + 1
         period = ep.start.scenario.rf_period_s
         if ep.next_step < steps:
@@ -182,7 +206,8 @@ class SensorsNode:
         if ep is None:
             return
         self.bus.publish(keys.episode_timing(self.rig), dump(EpisodeTiming(
-            episode_id=episode_id, latencies_ms=tuple(round(v, 4) for v in ep.latencies_ms), late_commands=ep.late)))
+            episode_id=episode_id, latencies_ms=tuple(round(v, 4) for v in ep.latencies_ms), late_commands=ep.late,
+            costs=ep.costs.report() if self.report_costs else None)))
         self._end(episode_id)
 
     def _schedule(self, when: float, episode_id: str, step: int) -> None:

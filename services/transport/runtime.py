@@ -10,6 +10,7 @@ import re
 import signal
 import sys
 import threading
+import time
 from typing import Any, Callable, Iterable
 
 from ra2vipas.services.protocol import keys
@@ -25,10 +26,15 @@ class EventLoop:
     disk, a long SQLite transaction or a busy CPU in a handler can never stall message
     delivery (the zenoh-python docs: callbacks must not block). One FIFO queue per node keeps
     the order in which messages arrived, and node state needs no other locking.
+
+    While a handler runs, ``posted_ns`` and ``started_ns`` (``time.perf_counter_ns``) say when
+    it was posted and when the worker took it: its time queued (``services/transport/costs.py``).
     """
 
     def __init__(self, name: str) -> None:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self.posted_ns = 0
+        self.started_ns = 0
         self._stopped = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
@@ -36,7 +42,7 @@ class EventLoop:
     def post(self, fn: Callable[..., None], *args) -> None:
         """Queue ``fn(*args)`` to run on the worker thread (dropped once the loop is stopped)."""
         if not self._stopped.is_set():
-            self._queue.put((fn, args))
+            self._queue.put((fn, args, time.perf_counter_ns()))
 
     def backlog(self) -> int:
         """Handlers queued and not yet run (approximate)."""
@@ -55,7 +61,8 @@ class EventLoop:
             item = self._queue.get()
             if item is None:
                 return
-            fn, args = item
+            fn, args, self.posted_ns = item
+            self.started_ns = time.perf_counter_ns()
             try:
                 fn(*args)
             except Exception:

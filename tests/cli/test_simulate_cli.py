@@ -156,6 +156,12 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
     assert 0 < report["latency_ms"]["p50"] <= report["latency_ms"]["p99"]
     expected = run_campaign("paper", build_scenario("paper"), 2, 1, ["ra2vipas", "rapas", "ravipas"])
     assert report["fast"]["dr_final"] == {a: s["dr_final"] for a, s in expected["algorithms"].items()}
+    assert report["fast"]["dr_final_equals_inprocess"] is True and report["inprocess_steps_per_second_1"] > 0
+    assert report["mesh_over_inprocess"] == round(report["steps_per_second"] / report["inprocess_steps_per_second_1"], 3)
+    _check_breakdown(report["fast"]["step_breakdown"], episodes=6, steps=2 * 3 * 120)
+    rt = report["realtime"]["step_breakdown"]
+    assert rt["controller"]["steps"] == rt["sensors"]["steps"] == 120
+    assert rt["transport_ms"] >= -0.05 * rt["latency_ms"]  # the parts the services timed fit in the latency the sensors measured
     [memory] = report["memory"]
     assert {k: memory[k] for k in ("tests", "steps", "algorithm", "episodes")} == {
         "tests": 3, "steps": 5, "algorithm": "rapas", "episodes": 3}
@@ -165,6 +171,39 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
     small = run_campaign("paper", build_scenario("paper", {"steps": 5}), 3, 1, ["rapas"])
     assert memory["dr_final"] == small["algorithms"]["rapas"]["dr_final"]
     assert _ra2vipas_processes() == before, "the benchmark's stacks left processes behind"
+
+
+def test_bench_orchestrator_scores_episodes_of_instant_rigs_and_leaves_nothing_behind():
+    """`bench orchestrator` (issue 22): a stack without rigs, fake rigs at the wire level in the
+    benchmark's process answering every episode at once; every episode is answered once, the
+    campaign finishes, and the orchestrator's rate and CPU use are reported."""
+    before = _ra2vipas_processes()
+    proc = ra2vipas("bench", "orchestrator", "--tests", "20", "--rig-count", "2", "--window", "16", "--json", timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["benchmark"] == "orchestrator" and report["episodes"] == 60 and report["answered"] == 60
+    assert report["episodes_per_second"] > 0 and report["orchestrator_cpu"] >= 0 and report["target_episodes_per_second"] == 1000
+    assert _ra2vipas_processes() == before, "the benchmark's stack left processes behind"
+
+
+def _check_breakdown(b: dict, episodes: int, steps: int) -> None:
+    """A fast-mode step breakdown of `bench mesh` adds up (issue 22): each node reported every
+    episode and step; the stages, the transport and the step time are non-negative; the parts
+    sum to the step time the controller measured as one interval (its span per step) within 2 %
+    (the stages are contiguous: a gap in the timers would show here); and the transport derived
+    from the controller's side (its wait minus the sensors' stages) agrees with the transport
+    derived from the sensors' side (their wait minus the controller's stages) within 10 % of a
+    step: two processes' timers, measured independently, account for the same step."""
+    stages = ("queued_ms", "decode_ms", "compute_ms", "encode_ms", "publish_ms")
+    for role in ("controller", "sensors"):
+        part = b[role]
+        assert part["episodes"] == episodes and part["steps"] == steps, (role, part)
+        assert all(part[s] >= 0 for s in (*stages, "outside_ms", "span_ms")), (role, part)
+    assert b["step_ms"] > 0 and b["transport_ms"] >= 0 and b["transport_ms_sensors_view"] >= 0, b
+    assert b["parts_sum_ms"] == pytest.approx(b["step_ms"], rel=0.02), b
+    own = sum(b["controller"][s] + b["sensors"][s] for s in stages)
+    assert own + b["transport_ms"] == pytest.approx(b["parts_sum_ms"], abs=1e-3)
+    assert abs(b["transport_ms"] - b["transport_ms_sensors_view"]) <= 0.1 * b["step_ms"], b
 
 
 @pytest.mark.parametrize("args, words", [

@@ -219,3 +219,29 @@ def test_early_decisions_over_the_bus_equal_the_in_process_simulation(mesh):
     stops = {EpisodeStop.model_validate_json(p).episode_id for k, p in bus.published
              if k == keys.episode_control("rig-1") and b'"decided early"' in p}
     assert len(stops) == len(decided)
+
+
+def test_the_step_costs_the_nodes_report_add_up(mesh):
+    """Each node times its steps (issue 22: services/transport/costs.py) and reports them once
+    per episode, the controller in its EpisodeResult, the sensors in an EpisodeTiming (fast mode
+    too); every step is counted on both sides, and the parts of a step add up to the step the
+    controller measures (within 2 %: its stages are contiguous), with the transport (here the
+    in-memory bus's dispatcher thread) non-negative from either side."""
+    from ra2vipas.services.protocol.messages import EpisodeResult, EpisodeTiming
+    from ra2vipas.services.transport.costs import step_breakdown
+
+    bus, store, scheduler = mesh
+    c = _run(store, scheduler, "paper", SMALL, 2, 3, ["ra2vipas", "rapas"])
+    assert c["status"] == "done", c["error"]
+    results = [EpisodeResult.model_validate_json(p) for k, p in bus.published if k == keys.episode_result("rig-1")]
+    timings = {t.episode_id: t for k, p in bus.published if k == keys.episode_timing("rig-1")
+               for t in [EpisodeTiming.model_validate_json(p)]}
+    assert len(results) == 4 and set(timings) == {r.episode_id for r in results}
+    assert all(t.latencies_ms == () and t.costs.steps == 25 for t in timings.values())  # fast mode: costs only
+    b = step_breakdown([r.costs for r in results], [timings[r.episode_id].costs for r in results])
+    assert b["controller"]["steps"] == b["sensors"]["steps"] == 4 * 25
+    assert b["controller"]["compute_ms"] > 0 and b["sensors"]["compute_ms"] > 0
+    assert b["transport_ms"] >= 0 and b["transport_ms_sensors_view"] >= 0
+    assert b["parts_sum_ms"] == pytest.approx(b["step_ms"], rel=0.02)
+    assert 0 < b["controller_compute_share"] <= 1
+    assert c["results"].get("latency_ms") is None  # fast-mode timing reports carry no latencies into the results
