@@ -803,13 +803,14 @@ def bench_calibrate(
     algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of: ra2vipas, rapas, ravipas, sweep (default: all); each map is fitted on its own runs, so a subset prints the same maps.")] = None,
     from_s: Annotated[float, typer.Option("--from-s", min=0.0, max=60.0, help="Fit on the steps whose sample is taken this many seconds or more after the start (0: every step).")] = 0.0,
     workers: Annotated[Optional[int], typer.Option(min=1, max=1024, help="Worker processes running the scenarios (default: the CPU count); the maps do not depend on it.")] = None,
+    write: Annotated[bool, typer.Option("--write", help="Write the maps into the shipped file (services/controller/data/confidence_maps.json), one named coefficient each, with this command.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Refit the controllers' confidence maps (Platt scaling with covariates the controller
     measures: how likely the Tx walks, the fading correlation, the clutter density, the crowding
     around the answer) on a mix of simulated scenarios, and print them with the expected
-    calibration error before and after. The shipped maps (services/controller/policy.py TUNING)
-    come from `ra2vipas bench calibrate --tests 40 --seed 1001` (Ra²ViPAS's with `--from-s 3`)."""
+    calibration error before and after. The shipped maps (services/controller/data/confidence_maps.json)
+    come from `ra2vipas bench calibrate --tests 40 --seed 1001 --write` (Ra²ViPAS's with `--from-s 3`)."""
     from ra2vipas.cli.output import stderr
     from ra2vipas.cli.simulate import parse_algorithms
     from ra2vipas.services.orchestrator.calibration import calibrate
@@ -821,6 +822,11 @@ def bench_calibrate(
         fail(str(err), EXIT_USAGE)
     report = calibrate(names, tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"), from_s=from_s,
                        workers=workers or os.cpu_count() or 1)
+    if write:
+        from ra2vipas.services.controller.confidence import MAPS_FILE, write_maps
+
+        write_maps(report)
+        stderr.print(f"calibrate: wrote {', '.join(report['algorithms'])} into {MAPS_FILE}")
     if as_json:
         print_json(report)
     else:

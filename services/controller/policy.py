@@ -64,6 +64,7 @@ from scipy.special import gammaln
 
 from ra2vipas.services.controller import _kernels
 from ra2vipas.services.controller.circle_gp import LobeGP, RecentLobe
+from ra2vipas.services.controller.confidence import ConfidenceMap, shipped_maps
 from ra2vipas.services.controller.grid import CircleGrid
 from ra2vipas.services.controller.rf_filter import RFBearingFilter, RxDirModel
 from ra2vipas.services.controller.tracks import BearingTracker, wrap
@@ -115,8 +116,9 @@ class ControllerSettings:
     occlusion_halfwidth_rad: float = math.radians(5.0)  # an undetected target this close to a track's bearing may stand behind it
     occluded_probability: float = 0.9  # probability that such a target is hidden (its misses say nothing)
     answer_window_rad: float = math.radians(2.0)  # posterior mass within this of the answer is its confidence
-    # (A, ..., G): sigmoid((A + G tx_walks) logit(raw) + B + C tx_walks + D rho + E clutter + F crowding), see Controller._calibrated
-    confidence_calibration: tuple[float, ...] | None = None
+    # the Platt map of the raw confidence (named coefficients, confidence.py; the built-ins' are
+    # shipped in data/confidence_maps.json); a coefficient vector in ConfidenceMap.FIELDS order is accepted
+    confidence_calibration: ConfidenceMap | None = None
     # -- a Tx that walks
     rf_memory_s: float = 0.8  # memory of the recent-lobe fit (a walker crosses 10-30 degrees a second)
     ar1_lobe: bool = True  # the standing lobe's noise AR(1) (rho from Rx(iso)) rather than white with its evidence scaled
@@ -134,6 +136,8 @@ class ControllerSettings:
     rf_tail_dof: float = 2.0  # Student-t degrees of freedom of an RF sample's innovation (0: Gaussian)
 
     def __post_init__(self) -> None:
+        if self.confidence_calibration is not None and not isinstance(self.confidence_calibration, ConfidenceMap):
+            object.__setattr__(self, "confidence_calibration", ConfidenceMap.from_vector(self.confidence_calibration))
         if self.beta < 0:
             raise ValueError("beta must be >= 0")
         if self.grid_points < 16:
@@ -533,11 +537,9 @@ class Controller:
             self._crowding = math.exp(-float(gaps[1]) / CROWDING_SCALE_RAD)  # gaps[0]: the track named
         if self.settings.confidence_calibration is None:
             return float(min(max(raw, 0.0), 1.0))
-        A, B, C, D, E, F, G = (tuple(self.settings.confidence_calibration) + (0.0,) * 7)[:7]
         p = min(max(raw, RAW_CONFIDENCE_CLIP), 1.0 - RAW_CONFIDENCE_CLIP)
         logit = math.log(p / (1.0 - p))
-        z = (A + G * self._walks) * logit + B + C * self._walks + D * self._rho + E * self._clutter + F * self._crowding
-        return float(1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0))))
+        return self.settings.confidence_calibration(logit, self._walks, self._rho, self._clutter, self._crowding)
 
     def _refined_argmax(self, values: np.ndarray) -> float:
         """Grid argmax refined by a parabola through its two neighbours."""
@@ -613,20 +615,14 @@ class Controller:
 
 
 TUNING: dict[str, dict] = {
-    # confidence maps (A, B, C, D, E, F, G) from `ra2vipas bench calibrate --tests 40 --seed 1001` (10
-    # scenarios, 48 000 steps each; ECE on that data before -> after: rapas 0.363 -> 0.016,
-    # ravipas 0.134 -> 0.036, sweep 0.078 -> 0.022). Ra2ViPAS's is fitted from 3 s on
-    # (`-a ra2vipas --from-s 3`, 36 400 steps, 0.022 -> 0.008): its first 3 s (the warm-up sweep
-    # and first looks) are another regime, and fitting them pulled the map off where answers are
-    # read and decisions taken (final ECE on dynamic, seeds 1-9: mean 0.052 -> 0.036; paper unchanged)
-    "ra2vipas": {"confidence_calibration": (0.8252, 0.9813, 0.4, -0.6417, 1.8013, -0.8537, -0.7042)},
+    # the confidence maps are not here: they are data (data/confidence_maps.json, written by
+    # `ra2vipas bench calibrate --write`; confidence.py), added by tuned_settings.
     # RaPAS hears Rx(dir) only: no level from Rx(iso), so the generic lobe rather than the filter;
     # it names the peak of l_RF: with a walking Tx the white-noise fit, flattened by
     # (1 - rho) / (1 + rho), lets the recent lobe win more often than the sharper AR(1) fit
-    "rapas": {"rf_weight": 2.0, "ar1_lobe": False, "rf_filter": False, "confidence_calibration": (0.8284, 1.592, -1.585, 1.45, 0.0, 0.0, 0.4619)},
+    "rapas": {"rf_weight": 2.0, "ar1_lobe": False, "rf_filter": False},
     # with the camera as its only cue, RaViPAS does best trusting the POD model fully
-    "ravipas": {"pod_floor_std": 0.0, "pod_outlier": 0.0, "confidence_calibration": (2.1125, 2.7322, -3.3005, -0.4159, 1.0533, -0.2476, -1.7387)},
-    "sweep": {"confidence_calibration": (0.6912, 0.4884, -1.017, -0.0113, 1.4344, 0.7388, -0.3967)},
+    "ravipas": {"pod_floor_std": 0.0, "pod_outlier": 0.0},
 }
 """Per-algorithm departures from the ``ControllerSettings`` defaults, fitted like them on simulated
 campaigns (each baseline gets its own best settings, so comparisons are fair)."""
@@ -636,7 +632,12 @@ def tuned_settings(algorithm: "Algorithm | str", base: ControllerSettings | None
     """The settings an algorithm runs with: ``base`` (default ``ControllerSettings()``) with the
     algorithm's own tuning (``TUNING``) on top, whoever builds the controller (in-process
     campaigns and the controller service alike)."""
-    return dataclasses.replace(base or ControllerSettings(), **TUNING.get(Algorithm(algorithm).value, {}))
+    name = Algorithm(algorithm).value
+    tuning = {**TUNING.get(name, {})}
+    confidence_map = shipped_maps().get(name)
+    if confidence_map is not None:
+        tuning["confidence_calibration"] = confidence_map
+    return dataclasses.replace(base or ControllerSettings(), **tuning)
 
 
 def _logsumexp(values: np.ndarray) -> float:

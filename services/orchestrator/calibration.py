@@ -8,9 +8,10 @@ scaling" of posteriors), with covariates the controller measures itself (how lik
 walks, the fading correlation rho from Rx(iso), the tracker's clutter density, how close the
 nearest other track is to the answer), fits per algorithm
 sigmoid((A + G tx_walks) logit(raw) + B + C tx_walks + D rho + E clutter + F crowding) to the hit of every step of
-simulated tests over a mix of scenarios, with seeds that no benchmark uses. The fitted
-(A, ..., G) maps ship in ``services.controller.policy.TUNING``; this module is how they were made
-and how to remake them.
+simulated tests over a mix of scenarios, with seeds that no benchmark uses. The fitted maps ship,
+one named coefficient each (``confidence.ConfidenceMap``), in
+``services/controller/data/confidence_maps.json``; this module is how they were made and how to
+remake them (``ra2vipas bench calibrate --write``).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""The confidence maps the controllers ship with (``policy.TUNING``) are what the command their
-comment names fits now: `ra2vipas bench calibrate --tests 40 --seed 1001`, Ra²ViPAS's with
-`--from-s 3`. A map is compared by what it does on the fitting data (its likelihood, the
+"""The confidence maps the controllers ship with (services/controller/data/confidence_maps.json)
+are what the command the file names for each fits now: `ra2vipas bench calibrate --tests 40
+--seed 1001 --write`, Ra²ViPAS's with `--from-s 3`. A map is compared by what it does on the fitting data (its likelihood, the
 confidences it gives, its ECE: ``calibration.map_agreement``), not by its coefficients' digits,
 which another CPU moves. A change to a controller that moves its raw confidence fails here
 until the maps are refitted (and `make docs` rerun)."""
@@ -10,32 +10,31 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ra2vipas.services.controller.policy import ALGORITHMS, TUNING
+from ra2vipas.services.controller.confidence import shipped_entry, shipped_maps
+from ra2vipas.services.controller.policy import ALGORITHMS
 from ra2vipas.services.orchestrator.calibration import collect, fit_platt, map_agreement, map_drift
-
-FROM_S = {"ra2vipas": 3.0}
-
 
 @pytest.fixture(scope="module")
 def fitting_data() -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    return {a: collect(a, tests=40, seed=1001, from_s=FROM_S.get(a, 0.0), workers=2) for a in ALGORITHMS}
+    return {a: collect(a, tests=40, seed=1001, from_s=shipped_entry(a)["from_s"], workers=2) for a in ALGORITHMS}
 
 
 @pytest.mark.parametrize("algorithm", ALGORITHMS)
 def test_the_shipped_confidence_map_is_what_bench_calibrate_fits(fitting_data, algorithm):
     raw, covariates, hit = fitting_data[algorithm]
-    shipped = tuple(TUNING[algorithm]["confidence_calibration"])
+    shipped = shipped_maps()[algorithm].vector()
     refitted = fit_platt(raw, covariates, hit)
     drift = map_drift(map_agreement(raw, covariates, hit, shipped, refitted))
-    assert not drift, (f"{algorithm}: `ra2vipas bench calibrate -a {algorithm} --tests 40 --seed 1001 "
-                       f"--from-s {FROM_S.get(algorithm, 0.0):g}` fits {[round(v, 4) for v in refitted]}, "
-                       f"TUNING ships {list(shipped)}: {drift}")
+    assert shipped_entry(algorithm)["command"] == (f"ra2vipas bench calibrate -a {algorithm} --tests 40 --seed 1001 "
+                                                   f"--from-s {shipped_entry(algorithm)['from_s']:g} --write")
+    assert not drift, (f"{algorithm}: `{shipped_entry(algorithm)['command']}` fits {[round(v, 4) for v in refitted]}, "
+                       f"the file ships {list(shipped)}: {drift}")
 
 
 @pytest.mark.parametrize("algorithm", ALGORITHMS)
 def test_a_map_off_by_a_small_real_change_is_caught(fitting_data, algorithm):
     """The check can fail: the shipped map with its logit coefficient 5 % off is another map."""
     raw, covariates, hit = fitting_data[algorithm]
-    shipped = list(TUNING[algorithm]["confidence_calibration"])
+    shipped = list(shipped_maps()[algorithm].vector())
     off = [shipped[0] * 1.05, *shipped[1:]]
     assert map_drift(map_agreement(raw, covariates, hit, off, fit_platt(raw, covariates, hit)))
