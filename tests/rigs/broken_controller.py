@@ -1,0 +1,71 @@
+"""Deliberately broken controllers for the controller conformance kit's tests: our
+``ControllerNode`` with one bug each, chosen by the first argument.
+
+    python broken_controller.py ignores-stop --rig bad-c1 --connect tcp/ROUTER:7447
+    python broken_controller.py step-t --rig bad-c2 --connect tcp/ROUTER:7447
+
+* ``ignores-stop``: it keeps commanding the episodes it was told to stop;
+* ``step-t``: it answers Measurement(t) with a Command of step t instead of t + 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from ra2vipas.services.controller.node import ControllerNode
+from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.messages import EpisodeStop, decode, episode_control_adapter
+
+
+class IgnoresStop(ControllerNode):
+    def _on_control(self, payload: bytes) -> None:
+        msg, _ = decode(episode_control_adapter, payload)
+        if isinstance(msg, EpisodeStop):
+            return  # the bug
+        super()._on_control(payload)
+
+
+class _StepT:
+    """A bus whose Commands after step 0 carry the step of the measurement they answer."""
+
+    def __init__(self, bus, rig: str) -> None:
+        self._bus, self._key = bus, keys.command(rig)
+
+    def publish(self, key: str, payload: bytes, express: bool = False) -> None:
+        if key == self._key:
+            body = json.loads(payload)
+            if body["step"] > 0:
+                body["step"] -= 1  # the bug
+                payload = json.dumps(body).encode()
+        self._bus.publish(key, payload, express)
+
+    def __getattr__(self, name):
+        return getattr(self._bus, name)
+
+
+class StepT(ControllerNode):
+    def __init__(self, bus, rig: str, *args, **kwargs) -> None:
+        super().__init__(_StepT(bus, rig), rig, *args, **kwargs)
+
+
+BUGS = {"ignores-stop": IgnoresStop, "step-t": StepT}
+
+
+def main() -> None:
+    from ra2vipas.cli.services import run_node, zenoh_settings
+    from ra2vipas.services.transport.runtime import configure_logging
+
+    node_class = BUGS[sys.argv.pop(1)]
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--rig", required=True)
+    parser.add_argument("--connect", required=True)
+    args = parser.parse_args()
+    configure_logging("INFO")
+    run_node(f"broken controller[{args.rig}]", zenoh_settings("client", [args.connect], None, None),
+             lambda bus: node_class(bus, args.rig))
+
+
+if __name__ == "__main__":
+    main()
