@@ -10,15 +10,11 @@ import signal
 import subprocess
 import sys
 
-import pytest
-
-from ra2vipas.cli.stack import free_port
 from ra2vipas.services.controller.node import ControllerNode
 from ra2vipas.services.rigs.controller_conformance import RULES, check_controller
 from ra2vipas.services.transport.bus import MemoryBus
 from tests.integration.conftest import ROOT, wait_for_line
 from tests.rigs import broken_controller
-from tests.rigs.test_conformance import Scripts
 
 BROKEN = ROOT / "tests" / "rigs" / "broken_controller.py"
 
@@ -50,3 +46,45 @@ def test_a_controller_that_answers_with_step_t_fails_lockstep():
     assert results["command-0"].status == "pass"
     assert results["lockstep"].status == "fail"
     assert results["lockstep"].detail.startswith("Measurement(0) got no Command(1)"), results["lockstep"]
+
+
+def kit(endpoint: str, rig: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", "--controller", rig, "--connect", endpoint,
+                           "--zenoh-mode", "client", "--timeout", "5", *args], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "COLUMNS": "200"})
+
+
+def test_our_controller_process_passes_over_zenoh(router):
+    """The kit started first (``--wait``), so it probes the controller the moment its token
+    appears: the token is declared last."""
+    registry, endpoint = router
+    kit_proc = registry.start("protocol", "check", "--controller", "ctl-1", "--connect", endpoint, "--zenoh-mode", "client", "--json",
+                              "--timeout", "5", "--wait", "120")
+    wait_for_line(kit_proc, "watching for the controller of rig ctl-1", 60)
+    node = registry.start("controller", "--rig", "ctl-1", "--connect", endpoint, "--zenoh-mode", "client")
+    out, _ = kit_proc.communicate(timeout=300)
+    body = json.loads(out.strip().splitlines()[-1])
+    assert kit_proc.returncode == 0, out
+    assert {r["rule"]: r["status"] for r in body["rules"]} == dict.fromkeys(RULES, "pass"), body
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
+
+
+def test_a_broken_controller_process_fails_naming_the_rule(router):
+    registry, endpoint = router
+    node = registry.script(BROKEN, "ignores-stop", "--rig", "bad-c1", "--connect", endpoint)
+    wait_for_line(node, "up (zenoh", 120)
+    out = kit(endpoint, "bad-c1", "--json")
+    body = json.loads(out.stdout.strip().splitlines()[-1])
+    assert out.returncode == 1, out.stderr
+    assert {r["rule"]: r["detail"] for r in body["rules"] if r["status"] == "fail"} == {
+        "stop-mid-episode": "Measurement(1) after EpisodeStop got a Command"}
+    out = kit(endpoint, "bad-c1")
+    assert out.returncode == 1 and "rule(s) failed: stop-mid-episode" in out.stdout, out.stdout
+
+
+def test_check_takes_a_rig_or_a_controller():
+    for args in ((), ("--rig", "a", "--controller", "a"), ("--rig", "a", "--policy", "rapas")):
+        out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", *args], cwd=ROOT, capture_output=True,
+                             text=True, timeout=60)
+        assert out.returncode == 2, (args, out.stderr)
