@@ -61,6 +61,7 @@ def check(
 
     from ra2vipas.cli.output import stderr
     from ra2vipas.cli.services import zenoh_settings
+    from ra2vipas.services.protocol import keys
     from ra2vipas.services.protocol.keys import check_chunk
     from ra2vipas.services.transport.zenoh_bus import ZenohBus
 
@@ -88,6 +89,9 @@ def check(
         else:
             from ra2vipas.services.rigs.controller_conformance import ControllerKit, report
 
+            if _alive(bus, keys.alive("sensors", controller)):
+                fail(f"the sensors node of rig {controller} is up: the kit plays that rig's sensors, so stop it first (or check "
+                     f"the controller under a rig name no node uses)", 2)
             kit = ControllerKit(bus, controller, timeout, policy)
             what, role = f"the controller of rig {controller}", "controller"
         stderr.print(f"watching for {what} (its token alive/{role}/{name}, up to {timeout if wait is None else wait:g} s) ...")
@@ -98,6 +102,18 @@ def check(
     finally:
         bus.close()
     _print(report(results), f"Conformance of {what} (docs/protocol.md)", as_json)
+
+
+def _alive(bus, key: str, wait: float = 1.0) -> bool:
+    """Whether a liveliness token matching ``key`` is up (current tokens arrive within ``wait`` s)."""
+    import threading
+
+    up = threading.Event()
+    handle = bus.watch_alive(key, lambda _k, alive: up.set() if alive else None)
+    try:
+        return up.wait(wait)
+    finally:
+        handle.undeclare()
 
 
 def _print(body: dict, title: str, as_json: bool) -> None:

@@ -5,7 +5,9 @@
     python broken_controller.py step-t --rig bad-c2 --connect tcp/ROUTER:7447
 
 * ``ignores-stop``: it keeps commanding the episodes it was told to stop;
-* ``step-t``: it answers Measurement(t) with a Command of step t instead of t + 1.
+* ``step-t``: it answers Measurement(t) with a Command of step t instead of t + 1;
+* ``v1-0`` (not broken: old): it serves no ``rig/{rig}/policies`` and reports no rejection,
+  as a 1.0 controller; the kit skips those two optional rules.
 """
 
 from __future__ import annotations
@@ -50,7 +52,36 @@ class StepT(ControllerNode):
         super().__init__(_StepT(bus, rig), rig, *args, **kwargs)
 
 
-BUGS = {"ignores-stop": IgnoresStop, "step-t": StepT}
+class _V10:
+    """A bus that serves no rig/{rig}/policies and publishes nothing on result/{rig}/rejected."""
+
+    def __init__(self, bus, rig: str) -> None:
+        self._bus, self._rig = bus, rig
+
+    def serve(self, key: str, handler):
+        if key == keys.rig_policies(self._rig):
+            return _Nothing()
+        return self._bus.serve(key, handler)
+
+    def publish(self, key: str, payload: bytes, express: bool = False) -> None:
+        if key != keys.episode_rejected(self._rig):
+            self._bus.publish(key, payload, express)
+
+    def __getattr__(self, name):
+        return getattr(self._bus, name)
+
+
+class _Nothing:
+    def undeclare(self) -> None:
+        pass
+
+
+class V10(ControllerNode):
+    def __init__(self, bus, rig: str, *args, **kwargs) -> None:
+        super().__init__(_V10(bus, rig), rig, *args, **kwargs)
+
+
+BUGS = {"ignores-stop": IgnoresStop, "step-t": StepT, "v1-0": V10}
 
 
 def main() -> None:

@@ -35,6 +35,12 @@ def test_our_controller_passes_every_rule_on_the_in_memory_bus():
     assert {k: r.status for k, r in results.items()} == dict.fromkeys(RULES, "pass"), [r for r in results.values() if r.status != "pass"]
 
 
+def test_a_1_0_controller_passes_with_the_optional_rules_skipped():
+    results = run_kit(broken_controller.V10)
+    assert {k: r.status for k, r in results.items()} == {**dict.fromkeys(RULES, "pass"), "policies": "skip", "rejects-malformed": "skip"}
+    assert results["policies"].detail == "no reply: a 1.0 or 1.1 controller (it serves the four built-ins)"
+
+
 def test_a_controller_that_ignores_stop_fails_that_rule_only():
     results = run_kit(broken_controller.IgnoresStop)
     failed = {k: r.detail for k, r in results.items() if r.status == "fail"}
@@ -88,3 +94,14 @@ def test_check_takes_a_rig_or_a_controller():
         out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", *args], cwd=ROOT, capture_output=True,
                              text=True, timeout=60)
         assert out.returncode == 2, (args, out.stderr)
+
+
+def test_the_controller_kit_refuses_a_rig_whose_sensors_are_up(router):
+    """The kit plays the rig's sensors: with the real ones up, both would answer the controller."""
+    registry, endpoint = router
+    node = registry.start("sensors", "--rig", "busy-1", "--connect", endpoint, "--zenoh-mode", "client")
+    wait_for_line(node, "up (zenoh", 60)
+    out = kit(endpoint, "busy-1")
+    assert out.returncode == 2 and "the sensors node of rig busy-1 is up" in out.stderr, out.stderr
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
