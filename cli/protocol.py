@@ -61,7 +61,6 @@ def check(
 
     from ra2vipas.cli.output import stderr
     from ra2vipas.cli.services import zenoh_settings
-    from ra2vipas.services.protocol import keys
     from ra2vipas.services.protocol.keys import check_chunk
     from ra2vipas.services.transport.zenoh_bus import ZenohBus
 
@@ -89,9 +88,13 @@ def check(
         else:
             from ra2vipas.services.rigs.controller_conformance import ControllerKit, report
 
-            if _alive(bus, keys.alive("sensors", controller)):
+            up = _tokens(bus)
+            if ("sensors", controller) in up:
                 fail(f"the sensors node of rig {controller} is up: the kit plays that rig's sensors, so stop it first (or check "
                      f"the controller under a rig name no node uses)", 2)
+            if any(role == "learner" for role, _ in up):
+                fail("a learner is up on this mesh: the kit plays the learner (a query for the POD model reaches one of the two), "
+                     "so check the controller on a router without one", 2)
             kit = ControllerKit(bus, controller, timeout, policy)
             what, role = f"the controller of rig {controller}", "controller"
         stderr.print(f"watching for {what} (its token alive/{role}/{name}, up to {timeout if wait is None else wait:g} s) ...")
@@ -104,16 +107,30 @@ def check(
     _print(report(results), f"Conformance of {what} (docs/protocol.md)", as_json)
 
 
-def _alive(bus, key: str, wait: float = 1.0) -> bool:
-    """Whether a liveliness token matching ``key`` is up (current tokens arrive within ``wait`` s)."""
+def _tokens(bus, wait: float = 1.0) -> set[tuple[str, str]]:
+    """The (role, name) of every liveliness token up on the mesh (current tokens arrive within
+    ``wait`` s)."""
     import threading
+    import time
 
-    up = threading.Event()
-    handle = bus.watch_alive(key, lambda _k, alive: up.set() if alive else None)
+    from ra2vipas.services.protocol import keys
+
+    seen: set[tuple[str, str]] = set()
+    lock = threading.Lock()
+
+    def note(key: str, alive: bool) -> None:
+        parsed = keys.parse_alive(key)
+        if alive and parsed is not None:
+            with lock:
+                seen.add(parsed)
+
+    handle = bus.watch_alive(keys.alive_all(), note)
     try:
-        return up.wait(wait)
+        time.sleep(wait)
     finally:
         handle.undeclare()
+    with lock:
+        return set(seen)
 
 
 def _print(body: dict, title: str, as_json: bool) -> None:

@@ -310,19 +310,24 @@ class ControllerKit:
         if pan is None:
             pan = 0.0
         else:
-            self._result("command-0", True, f"after {(first.at - self._started_at) * 1e3:.0f} ms")
+            self._result("command-0", True, f"after {(first.at - self._started_at) * 1e3:.0f} ms (it asked the kit's sensors for the "
+                         f"descriptor {self.descriptor_queries} time(s) and its learner for the POD model {self.model_requests} "
+                         "time(s) so far)")
         for t in range(steps):
             self._measure(eid, t, pan, steps)
             if t + 1 == steps:
                 break
+            sent = self._mark()
             nxt = self._command(eid, t + 1, mark)
             if nxt is None:
-                wrong = [s.parsed.get("step") for s in self._matching(keys.command(self.rig), eid, mark) if s.parsed.get("step") != 0]
+                got = [s.parsed.get("step") for s in self._matching(keys.command(self.rig), eid, sent)]
                 self._result("lockstep", False, f"Measurement({t}) got no Command({t + 1}) within {self.timeout:g} s"
-                             + (f" (commands of steps {wrong})" if wrong else ""))
+                             + (f" (it sent commands of steps {got})" if got else ""))
+                self._result("result", False, "could not run: the episode did not reach its last step")
                 return
             pan = self._pan(nxt, "lockstep", f"Command({t + 1})")
             if pan is None:
+                self._result("result", False, "could not run: the episode did not reach its last step")
                 return
             if t == 2:
                 self._duplicates(eid, steps, pan, mark)
@@ -432,7 +437,7 @@ class ControllerKit:
         ]
         for key, payload in garbage:
             self.bus.publish(key, payload)
-        rejected = self._wait(lambda: self._matching(keys.episode_rejected(self.rig), bad, mark), timeout=min(self.timeout, 2.0))
+        rejected = self._wait(lambda: self._matching(keys.episode_rejected(self.rig), bad, mark), timeout=self.timeout)
         if rejected is None:
             self._result("rejects-malformed", None, "no ErrorReply on the rejected key (optional: a 1.0 controller drops it silently)")
         else:

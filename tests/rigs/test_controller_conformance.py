@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
 from ra2vipas.services.controller.node import ControllerNode
 from ra2vipas.services.rigs.controller_conformance import RULES, check_controller
@@ -51,7 +52,25 @@ def test_a_controller_that_answers_with_step_t_fails_lockstep():
     results = run_kit(broken_controller.StepT)
     assert results["command-0"].status == "pass"
     assert results["lockstep"].status == "fail"
-    assert results["lockstep"].detail.startswith("Measurement(0) got no Command(1)"), results["lockstep"]
+    assert results["lockstep"].detail == "Measurement(0) got no Command(1) within 3 s (it sent commands of steps [0])"
+    assert results["result"].detail == "could not run: the episode did not reach its last step"
+
+
+def test_a_query_handler_that_returns_none_sends_no_reply():
+    """How the kit's learner lets every request but its own pass (``Bus.serve``)."""
+    import threading
+
+    bus = MemoryBus()
+    bus.serve("a/b", lambda _k, p: p if p == b"mine" else None)
+    got = {}
+    try:
+        for payload in (b"mine", b"theirs"):
+            done = threading.Event()
+            bus.query("a/b", payload, 1.0, lambda replies, p=payload: (got.__setitem__(p, replies), done.set()))
+            assert done.wait(5)
+    finally:
+        bus.close()
+    assert [r.payload for r in got[b"mine"]] == [b"mine"] and got[b"theirs"] == []
 
 
 def kit(endpoint: str, rig: str, *args: str) -> subprocess.CompletedProcess:
@@ -105,3 +124,41 @@ def test_the_controller_kit_refuses_a_rig_whose_sensors_are_up(router):
     assert out.returncode == 2 and "the sensors node of rig busy-1 is up" in out.stderr, out.stderr
     os.killpg(node.pid, signal.SIGTERM)
     assert node.wait(30) == 0
+
+
+def test_the_controller_kit_refuses_a_mesh_with_a_learner(router):
+    """The kit plays the learner: a Zenoh query reaches one of two learners, so a controller's
+    request for the kit's model could go to the real one (and another's to the kit)."""
+    registry, endpoint = router
+    node = registry.start("learner", "--connect", endpoint, "--zenoh-mode", "client")
+    wait_for_line(node, "up (zenoh", 60)
+    out = kit(endpoint, "free-1")
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
+    assert out.returncode == 2 and "a learner is up on this mesh" in out.stderr, out.stderr
+
+
+def test_a_query_handler_that_returns_none_sends_no_reply_over_zenoh(router):
+    """A request that is not the kit's gets no reply from the kit's learner: no error reply
+    that a controller would take for the learner's answer."""
+    import threading
+
+    from ra2vipas.services.transport.zenoh_bus import ZenohBus
+    from ra2vipas.services.transport.zenoh_config import ZenohSettings
+
+    _registry, endpoint = router
+    buses = [ZenohBus(ZenohSettings(mode="client", connect=(endpoint,), multicast_scouting=False)) for _ in range(2)]
+    kit_side, asker = buses
+    try:
+        kit_side.serve("test/none/model", lambda _k, p: b'"kit"' if p == b"mine" else None)
+        time.sleep(0.5)
+        got = {}
+        for payload in (b"mine", b"theirs"):
+            done = threading.Event()
+            asker.query("test/none/model", payload, 5.0, lambda replies, p=payload: (got.__setitem__(p, replies), done.set()))
+            assert done.wait(15)
+    finally:
+        for bus in buses:
+            bus.close()
+    assert [(r.payload, r.ok) for r in got[b"mine"]] == [(b'"kit"', True)]
+    assert got[b"theirs"] == []
