@@ -47,6 +47,7 @@ RULES: dict[str, str] = {
     "lockstep": "each Measurement(t) is answered by one valid Command(t+1) of the same episode with a finite pan in [-pi, pi]; "
                 "none after the last step",
     "duplicate-measurement": "a repeated, an older or a future Measurement gets no Command (the episode does not advance)",
+    "duplicate-start": "a repeated EpisodeStart does not restart the episode (no second Command(0); the next step is answered)",
     "result": "after the last step, exactly one valid EpisodeResult: status done, naming the rig, one estimate and one pan "
               "per step",
     "stop-mid-episode": "after an EpisodeStop, a Measurement of that episode gets no Command and no EpisodeResult",
@@ -219,6 +220,8 @@ class ControllerKit:
     def run(self, steps: int = 6, wait: float | None = None) -> list[RuleResult]:
         """Run every rule; return the results in ``RULES`` order. ``wait``: how long to wait for
         the controller's liveliness token [s] (default: ``timeout``)."""
+        if steps < 5:
+            raise ValueError("the kit's episodes need at least 5 steps (it repeats measurements after step 2 and the start after step 3)")
         self._liveliness_and_policies(self.timeout if wait is None else wait)
         self._episode(steps)
         self._stop_mid_episode()
@@ -299,7 +302,7 @@ class ControllerKit:
         """command-0, lockstep, duplicate-measurement and result on one episode of ``steps`` steps."""
         eid = self._id("lockstep")
         mark = self._mark()
-        self._start(eid, steps)
+        start = self._start(eid, steps)
         first = self._command(eid, 0, mark, self.timeout + 5.0)  # the first episode may wait for the model
         if first is None:
             self._result("command-0", False, f"no Command(0) within {self.timeout + 5.0:g} s of the EpisodeStart")
@@ -331,6 +334,8 @@ class ControllerKit:
                 return
             if t == 2:
                 self._duplicates(eid, steps, pan, mark)
+            if t == 3:
+                self._duplicate_start(eid, start, mark)
         result = self._result_of(eid, mark)
         time.sleep(0.5)
         commands = self._matching(keys.command(self.rig), eid, mark)
@@ -354,6 +359,15 @@ class ControllerKit:
                          f"got a Command (steps {[s.parsed.get('step') for s in after[before:]]})")
         else:
             self._result("duplicate-measurement", True)
+
+    def _duplicate_start(self, eid: str, start: bytes, mark: int) -> None:
+        """After Command(4): the episode's EpisodeStart again. No second Command(0); the rest of
+        the episode (lockstep, result) shows it was not restarted."""
+        self.bus.publish(keys.episode_control(self.rig), start)
+        time.sleep(0.5)
+        zeros = self._matching(keys.command(self.rig), eid, mark, 0)
+        self._result("duplicate-start", len(zeros) == 1, "" if len(zeros) == 1 else
+                     f"a repeated EpisodeStart got another Command(0) ({len(zeros)} in all)")
 
     def _check_result(self, eid: str, mark: int, result: _Seen | None, steps: int, rule: str) -> bool:
         if result is None:
