@@ -51,8 +51,8 @@ RULES: dict[str, str] = {
     "result": "after the last step, exactly one valid EpisodeResult: status done, naming the rig, one estimate and one pan "
               "per step",
     "stop-mid-episode": "after an EpisodeStop, a Measurement of that episode gets no Command and no EpisodeResult",
-    "unserved-policy": "an EpisodeStart of a policy it does not serve gets an EpisodeResult with status failed naming the policy, "
-                       "and no Command",
+    "unserved-policy": "an EpisodeStart of a policy it does not serve gets an EpisodeResult with status failed naming the "
+                       "policy, and no Command",
     "malformed": "malformed control and measurement messages are dropped: the node stays up and runs the next episode",
     "rejects-malformed": "a malformed EpisodeStart naming an episode is rejected with an ErrorReply of that episode on "
                          "result/{rig}/rejected (protocol 1.1, optional: skip if none)",
@@ -181,7 +181,8 @@ class ControllerKit:
 
     def _start(self, eid: str, steps: int, algorithm: str | None = None, index: int = 0) -> bytes:
         payload = dump(EpisodeStart(episode_id=eid, campaign_id=f"conformance-{self._nonce}", test_index=index,
-                                    algorithm=algorithm or self.policy or "ra2vipas", seed=self.seed, scenario=self._scenario(steps)))
+                                    algorithm=algorithm or self.policy or "ra2vipas", seed=self.seed,
+                                    scenario=self._scenario(steps)))
         self._started_at = self.clock()
         self.bus.publish(keys.episode_control(self.rig), payload)
         return payload
@@ -221,7 +222,8 @@ class ControllerKit:
         """Run every rule; return the results in ``RULES`` order. ``wait``: how long to wait for
         the controller's liveliness token [s] (default: ``timeout``)."""
         if steps < 5:
-            raise ValueError("the kit's episodes need at least 5 steps (it repeats measurements after step 2 and the start after step 3)")
+            raise ValueError("the kit's episodes need at least 5 steps (it repeats measurements after step 2 and the start "
+                             "after step 3)")
         self._liveliness_and_policies(self.timeout if wait is None else wait)
         self._episode(steps)
         self._stop_mid_episode()
@@ -277,9 +279,11 @@ class ControllerKit:
         if info is not None and not any(r.ok for r in at_token):
             problems.append(f"rig/{self.rig}/policies did not answer when the token appeared (it does later)")
         if problems:
-            self._result("liveliness", False, "; ".join(problems) + ": declare the token only after every subscription and queryable")
+            self._result("liveliness", False,
+                         "; ".join(problems) + ": declare the token only after every subscription and queryable")
         else:
-            self._result("liveliness", True, "a probe episode (and the policies query) were answered as soon as the token was seen")
+            self._result("liveliness", True,
+                         "a probe episode (and the policies query) were answered as soon as the token was seen")
 
     def _info(self, replies: list) -> tuple[ControllerInfo | None, str]:
         why = "no reply"
@@ -313,9 +317,9 @@ class ControllerKit:
         if pan is None:
             pan = 0.0
         else:
-            self._result("command-0", True, f"after {(first.at - self._started_at) * 1e3:.0f} ms (it asked the kit's sensors for the "
-                         f"descriptor {self.descriptor_queries} time(s) and its learner for the POD model {self.model_requests} "
-                         "time(s) so far)")
+            self._result("command-0", True, f"after {(first.at - self._started_at) * 1e3:.0f} ms (it asked the kit's sensors "
+                         f"for the descriptor {self.descriptor_queries} time(s) and its learner for the POD model "
+                         f"{self.model_requests} time(s) so far)")
         for t in range(steps):
             self._measure(eid, t, pan, steps)
             if t + 1 == steps:
@@ -355,7 +359,8 @@ class ControllerKit:
         time.sleep(0.5)
         after = self._matching(keys.command(self.rig), eid, mark)
         if len(after) > before:
-            self._result("duplicate-measurement", False, "a repeated Measurement(2), an older Measurement(1) or a future Measurement(5) "
+            self._result("duplicate-measurement", False, "a repeated Measurement(2), an older Measurement(1) or a future "
+                         "Measurement(5) "
                          f"got a Command (steps {[s.parsed.get('step') for s in after[before:]]})")
         else:
             self._result("duplicate-measurement", True)
@@ -412,8 +417,8 @@ class ControllerKit:
         self._measure(eid, 1, 0.0, 6)
         time.sleep(1.0)
         after = self._matching(keys.command(self.rig), eid, late) + self._matching(keys.episode_result(self.rig), eid, late)
-        self._result("stop-mid-episode", not after, "" if not after else
-                     f"Measurement(1) after EpisodeStop got {'a Command' if after[0].key == keys.command(self.rig) else 'an EpisodeResult'}")
+        got = ("a Command" if after[0].key == keys.command(self.rig) else "an EpisodeResult") if after else ""
+        self._result("stop-mid-episode", not after, f"Measurement(1) after EpisodeStop got {got}" if after else "")
 
     def _unserved(self) -> None:
         if self.info is not None and any(p.name == UNSERVED for p in self.info.policies):
@@ -425,7 +430,8 @@ class ControllerKit:
         got = self._result_of(eid, mark)
         commands = self._matching(keys.command(self.rig), eid, mark)
         if got is None:
-            self._result("unserved-policy", False, f"no EpisodeResult within {self.timeout:g} s" + (" (it sent a Command)" if commands else ""))
+            self._result("unserved-policy", False,
+                         f"no EpisodeResult within {self.timeout:g} s" + (" (it sent a Command)" if commands else ""))
             return
         try:
             msg = EpisodeResult.model_validate_json(got.payload)
@@ -433,7 +439,8 @@ class ControllerKit:
             self._result("unserved-policy", False, f"invalid EpisodeResult: {_first(err)}")
             return
         if msg.status != "failed" or UNSERVED not in msg.error:
-            self._result("unserved-policy", False, f"status {msg.status}, error {msg.error[:200]!r} (expected failed, naming {UNSERVED})")
+            self._result("unserved-policy", False,
+                         f"status {msg.status}, error {msg.error[:200]!r} (expected failed, naming {UNSERVED})")
         else:
             self._result("unserved-policy", not commands, "it also sent a Command" if commands else "")
 
@@ -453,7 +460,8 @@ class ControllerKit:
             self.bus.publish(key, payload)
         rejected = self._wait(lambda: self._matching(keys.episode_rejected(self.rig), bad, mark), timeout=self.timeout)
         if rejected is None:
-            self._result("rejects-malformed", None, "no ErrorReply on the rejected key (optional: a 1.0 controller drops it silently)")
+            self._result("rejects-malformed", None,
+                         "no ErrorReply on the rejected key (optional: a 1.0 controller drops it silently)")
         else:
             try:
                 ErrorReply.model_validate_json(rejected.payload)

@@ -33,12 +33,14 @@ def run_kit(node_class, rig: str = "rig-1", **kw):
 def test_our_controller_passes_every_rule_on_the_in_memory_bus():
     results = run_kit(ControllerNode)
     assert list(results) == list(RULES)
-    assert {k: r.status for k, r in results.items()} == dict.fromkeys(RULES, "pass"), [r for r in results.values() if r.status != "pass"]
+    statuses = {k: r.status for k, r in results.items()}
+    assert statuses == dict.fromkeys(RULES, "pass"), [r for r in results.values() if r.status != "pass"]
 
 
 def test_a_1_0_controller_passes_with_the_optional_rules_skipped():
     results = run_kit(broken_controller.V10)
-    assert {k: r.status for k, r in results.items()} == {**dict.fromkeys(RULES, "pass"), "policies": "skip", "rejects-malformed": "skip"}
+    statuses = {k: r.status for k, r in results.items()}
+    assert statuses == {**dict.fromkeys(RULES, "pass"), "policies": "skip", "rejects-malformed": "skip"}
     assert results["policies"].detail == "no reply: a 1.0 or 1.1 controller (it serves the four built-ins)"
 
 
@@ -74,17 +76,17 @@ def test_a_query_handler_that_returns_none_sends_no_reply():
 
 
 def kit(endpoint: str, rig: str, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", "--controller", rig, "--connect", endpoint,
-                           "--zenoh-mode", "client", "--timeout", "5", *args], cwd=ROOT, capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "COLUMNS": "200"})
+    return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", "--controller", rig,
+                           "--connect", endpoint, "--zenoh-mode", "client", "--timeout", "5", *args],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ, "COLUMNS": "200"})
 
 
 def test_our_controller_process_passes_over_zenoh(router):
     """The kit started first (``--wait``), so it probes the controller the moment its token
     appears: the token is declared last."""
     registry, endpoint = router
-    kit_proc = registry.start("protocol", "check", "--controller", "ctl-1", "--connect", endpoint, "--zenoh-mode", "client", "--json",
-                              "--timeout", "5", "--wait", "120")
+    kit_proc = registry.start("protocol", "check", "--controller", "ctl-1", "--connect", endpoint, "--zenoh-mode", "client",
+                              "--json", "--timeout", "5", "--wait", "120")
     wait_for_line(kit_proc, "watching for the controller of rig ctl-1", 60)
     node = registry.start("controller", "--rig", "ctl-1", "--connect", endpoint, "--zenoh-mode", "client")
     out, _ = kit_proc.communicate(timeout=300)
@@ -110,8 +112,8 @@ def test_a_broken_controller_process_fails_naming_the_rule(router):
 
 def test_check_takes_a_rig_or_a_controller():
     for args in ((), ("--rig", "a", "--controller", "a"), ("--rig", "a", "--policy", "rapas")):
-        out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", *args], cwd=ROOT, capture_output=True,
-                             text=True, timeout=60)
+        out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", *args], cwd=ROOT,
+                             capture_output=True, text=True, timeout=60)
         assert out.returncode == 2, (args, out.stderr)
 
 
