@@ -68,6 +68,13 @@ def check(
         fail("give either --rig NAME (check its sensors node) or --controller NAME (check its controller)", 2)
     if policy is not None and controller is None:
         fail("--policy goes with --controller", 2)
+    if policy is not None:
+        import re
+
+        from ra2vipas.services.protocol.messages import POLICY_NAME_PATTERN
+
+        if not re.match(POLICY_NAME_PATTERN, policy):
+            fail(f"--policy {policy!r} is not a policy name ({POLICY_NAME_PATTERN})", 2)
     name = rig if rig is not None else controller
     try:
         check_chunk(name, "rig")

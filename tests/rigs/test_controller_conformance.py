@@ -111,7 +111,8 @@ def test_a_broken_controller_process_fails_naming_the_rule(router):
 
 
 def test_check_takes_a_rig_or_a_controller():
-    for args in ((), ("--rig", "a", "--controller", "a"), ("--rig", "a", "--policy", "rapas")):
+    for args in ((), ("--rig", "a", "--controller", "a"), ("--rig", "a", "--policy", "rapas"),
+                 ("--controller", "a", "--policy", "Bad!")):
         out = subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "protocol", "check", *args], cwd=ROOT,
                              capture_output=True, text=True, timeout=60)
         assert out.returncode == 2, (args, out.stderr)
