@@ -6,6 +6,8 @@
 
 * ``ignores-stop``: it keeps commanding the episodes it was told to stop;
 * ``step-t``: it answers Measurement(t) with a Command of step t instead of t + 1;
+* ``token-first``: it declares its liveliness token before anything else, then takes
+  ``SETUP_S`` to declare its subscriptions and queryable;
 * ``v1-0`` (not broken: old): it serves no ``rig/{rig}/policies`` and reports no rejection,
   as a 1.0 controller; the kit skips those two optional rules.
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 
 from ra2vipas.services.controller.node import ControllerNode
 from ra2vipas.services.protocol import keys
@@ -81,7 +84,34 @@ class V10(ControllerNode):
         super().__init__(_V10(bus, rig), rig, *args, **kwargs)
 
 
-BUGS = {"ignores-stop": IgnoresStop, "step-t": StepT, "v1-0": V10}
+SETUP_S = 1.0
+
+
+class _TokenAlready:
+    """A bus whose ``announce`` declares nothing: the token is already up."""
+
+    def __init__(self, bus) -> None:
+        self._bus = bus
+
+    def announce(self, key: str):
+        return _Nothing()
+
+    def __getattr__(self, name):
+        return getattr(self._bus, name)
+
+
+class TokenFirst(ControllerNode):
+    def __init__(self, bus, rig: str, *args, **kwargs) -> None:
+        self.early_token = bus.announce(keys.alive("controller", rig))  # the bug
+        time.sleep(SETUP_S)  # a slow start, say
+        super().__init__(_TokenAlready(bus), rig, *args, **kwargs)
+
+    def close(self) -> None:
+        super().close()
+        self.early_token.undeclare()
+
+
+BUGS = {"ignores-stop": IgnoresStop, "step-t": StepT, "token-first": TokenFirst, "v1-0": V10}
 
 
 def main() -> None:

@@ -11,8 +11,8 @@ import subprocess
 import sys
 import time
 
-from ra2vipas.services.controller.node import ControllerNode
-from ra2vipas.services.rigs.controller_conformance import RULES, check_controller
+from ra2vipas.services.controller.node import ControllerNode, warm_up
+from ra2vipas.services.rigs.controller_conformance import RULES, ControllerKit, check_controller
 from ra2vipas.services.transport.bus import MemoryBus
 from tests.integration.conftest import ROOT, wait_for_line
 from tests.rigs import broken_controller
@@ -56,6 +56,30 @@ def test_a_controller_that_answers_with_step_t_fails_lockstep():
     assert results["lockstep"].status == "fail"
     assert results["lockstep"].detail == "Measurement(0) got no Command(1) within 3 s (it sent commands of steps [0])"
     assert results["result"].detail == "could not run: the episode did not reach its last step"
+
+
+def test_a_controller_that_declares_its_token_first_fails_the_liveliness_rule():
+    """The kit started first sends an episode and queries the policies the moment the token
+    appears: a controller whose token comes before its subscriptions misses both."""
+    import threading
+
+    warm_up()  # compiled once in this process: the node's own warm-up is then quick, its set-up is SETUP_S
+    bus = MemoryBus()
+    kit = ControllerKit(bus, "rig-1", timeout=3.0)
+    out = []
+    runner = threading.Thread(target=lambda: out.extend(kit.run(wait=30)))
+    runner.start()
+    node = broken_controller.TokenFirst(bus, "rig-1")
+    try:
+        runner.join(120)
+    finally:
+        kit.close()
+        node.close()
+        bus.close()
+    failed = {r.rule: r.detail for r in out if r.status == "fail"}
+    assert failed == {"liveliness": "an EpisodeStart sent as soon as the token appeared got no Command(0) within 3 s; "
+                                    "rig/rig-1/policies did not answer when the token appeared (it does later): declare the "
+                                    "token only after every subscription and queryable"}, out
 
 
 def test_a_query_handler_that_returns_none_sends_no_reply():
