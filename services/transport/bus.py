@@ -35,7 +35,7 @@ class Handle(Protocol):
 
 
 Callback = Callable[[str, bytes], None]
-QueryHandler = Callable[[str, bytes], bytes]
+QueryHandler = Callable[[str, bytes], "bytes | None"]
 AliveCallback = Callable[[str, bool], None]
 RepliesCallback = Callable[[list[Reply]], None]
 
@@ -51,7 +51,8 @@ class Bus(Protocol):
 
     def serve(self, key: str, handler: QueryHandler) -> Handle:
         """Answer queries on ``key``: ``handler(key, payload)`` returns the reply payload or raises
-        ``QueryError``. Handlers run on a worker thread and may take long."""
+        ``QueryError``, or returns None to send no reply (a query that is not for it, e.g. the
+        conformance kit's learner). Handlers run on a worker thread and may take long."""
 
     def query(self, key: str, payload: bytes, timeout: float, callback: RepliesCallback) -> None:
         """Send a query; ``callback(replies)`` is called once with every reply received before
@@ -177,7 +178,9 @@ class MemoryBus:
             replies: list[Reply] = []
             for pattern, handler in servers[:1]:
                 try:
-                    replies.append(Reply(pattern, handler(pattern, payload)))
+                    answer = handler(pattern, payload)
+                    if answer is not None:
+                        replies.append(Reply(pattern, answer))
                 except QueryError as err:
                     replies.append(Reply(pattern, str(err).encode(), ok=False))
             callback(replies)

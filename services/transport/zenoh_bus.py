@@ -82,7 +82,8 @@ class ZenohBus:
                     log.exception("query handler on %s failed", key)
                     query.reply_err(f"internal error: {type(err).__name__}".encode(), encoding=zenoh.Encoding.TEXT_PLAIN)
                 else:
-                    query.reply(key, reply, encoding=JSON)
+                    if reply is not None:  # None: not for this queryable, no reply
+                        query.reply(key, reply, encoding=JSON)
             finally:
                 query.drop()
 

@@ -1,5 +1,6 @@
 """Fixtures of the real-rigs tests: an insecure local stack shared by the tests of this package
-that run the commands a user runs (``record``, ``survey record``, ``survey serve``)."""
+that run the commands a user runs (``record``, ``survey record``, ``survey serve``), and a bare
+router for the conformance kits' tests (one per test module)."""
 
 from __future__ import annotations
 
@@ -7,10 +8,34 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from tests.integration.conftest import ROOT, Procs, wait_for_line
+
+
+class Scripts(Procs):
+    """Also runs plain scripts (the example node), each in its own process group, killed at teardown."""
+
+    def script(self, path: Path, *args: str) -> subprocess.Popen:
+        p = subprocess.Popen([sys.executable, str(path), *args], cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": ""})
+        self.procs.append(p)
+        return p
+
+
+@pytest.fixture(scope="module")
+def router():
+    """A Zenoh router on a free loopback port: (the process registry, its endpoint)."""
+    from ra2vipas.cli.stack import free_port
+
+    registry = Scripts()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = registry.start("router", "--listen", endpoint)
+    wait_for_line(proc, "zenoh router up", 60)
+    yield registry, endpoint
+    registry.cleanup()
 
 
 @pytest.fixture(scope="package")

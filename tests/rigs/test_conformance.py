@@ -11,38 +11,15 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-import pytest
-
-from ra2vipas.cli.stack import free_port
 from ra2vipas.services.rigs.conformance import RULES, check_rig
 from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
-from tests.integration.conftest import ROOT, Procs, wait_for_line
+from tests.integration.conftest import ROOT, wait_for_line
+from tests.rigs.conftest import Scripts
 
 EXAMPLE = ROOT / "examples" / "hardware_node" / "hardware_node.py"
 BROKEN = ROOT / "tests" / "rigs" / "broken_node.py"
-
-
-class Scripts(Procs):
-    """Also runs plain scripts (the example node), each in its own process group, killed at teardown."""
-
-    def script(self, path: Path, *args: str) -> subprocess.Popen:
-        p = subprocess.Popen([sys.executable, str(path), *args], cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE,
-                             stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": ""})
-        self.procs.append(p)
-        return p
-
-
-@pytest.fixture(scope="module")
-def router():
-    registry = Scripts()
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = registry.start("router", "--listen", endpoint)
-    wait_for_line(proc, "zenoh router up", 60)
-    yield registry, endpoint
-    registry.cleanup()
 
 
 def kit(endpoint: str, rig: str) -> dict:
