@@ -132,7 +132,7 @@ class RFBearingFilter:
         self._iso_prev = iso_dbm
         self._level_walk = iso_dbm if n == 1 else self._lam * self._level_walk + (1.0 - self._lam) * iso_dbm
         level_stand = self._iso_sum / n
-        self.rho = rho = self._noise_correlation()
+        self.rho = self._noise_correlation()
         gain = self.response.gain(pan_rad - self.circle.angles)
         ll_stand = self._sample_loglik(dir_dbm, gain, level_stand, self._level_var(False))
         ll_walk = self._sample_loglik(dir_dbm, gain, self._level_walk, self._level_var(True))

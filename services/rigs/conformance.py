@@ -24,7 +24,15 @@ from pydantic import ValidationError
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Measurement, TrainingRequest, TrainingStream, dump,
+    Command,
+    EpisodeStart,
+    EpisodeStop,
+    EpisodeTiming,
+    EpisodeTruth,
+    Measurement,
+    TrainingRequest,
+    TrainingStream,
+    dump,
 )
 from ra2vipas.services.protocol.rig import RigDescriptor, apply_rig_values
 from ra2vipas.services.protocol.scenario import Scenario

@@ -36,7 +36,14 @@ import numpy as np
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Measurement, PODResponse,
+    Command,
+    EpisodeResult,
+    EpisodeStart,
+    EpisodeStop,
+    EpisodeTiming,
+    EpisodeTruth,
+    Measurement,
+    PODResponse,
     episode_control_adapter,
 )
 from ra2vipas.services.protocol.rig import RigDescriptor

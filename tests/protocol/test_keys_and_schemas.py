@@ -13,7 +13,14 @@ from pydantic import ValidationError
 from ra2vipas.cli.protocol import schema_documents
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeResult, EpisodeStart, Measurement, PODRequest, TrainingRequest, WIRE_MESSAGES, episode_control_adapter,
+    WIRE_MESSAGES,
+    Command,
+    EpisodeResult,
+    EpisodeStart,
+    Measurement,
+    PODRequest,
+    TrainingRequest,
+    episode_control_adapter,
     training_job_id,
 )
 from ra2vipas.services.protocol.scenario import build_scenario

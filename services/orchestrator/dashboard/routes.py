@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Annotated, Any, AsyncIterator, Callable, Literal, Optional
 
 from cachetools import LRUCache
-from fastapi import APIRouter, FastAPI, HTTPException, Path as PathParam, Query, Request, status
+from fastapi import APIRouter, FastAPI, HTTPException, Query, Request, status
+from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
 from fastapi.templating import Jinja2Templates

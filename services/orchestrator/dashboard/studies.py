@@ -9,10 +9,11 @@ import asyncio
 import json
 import threading
 import time
-from typing import Annotated, Any, AsyncIterator, Callable, Optional
+from typing import Annotated, Any, AsyncIterator, Callable
 
 from cachetools import LRUCache
-from fastapi import APIRouter, HTTPException, Path as PathParam, Query, Request
+from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, StreamingResponse
 
@@ -20,7 +21,17 @@ from ra2vipas.services.orchestrator.api.routes.studies import study_results_of
 from ra2vipas.services.orchestrator.api.views import study_public
 from ra2vipas.services.orchestrator.dashboard import data
 from ra2vipas.services.orchestrator.dashboard.routes import (
-    KEEPALIVE_S, PAGE, TICK_S, StatusFilter, _fragment, _html, _not_found, _page, _pages, _sse, _store, _stream,
+    KEEPALIVE_S,
+    PAGE,
+    TICK_S,
+    StatusFilter,
+    _fragment,
+    _not_found,
+    _page,
+    _pages,
+    _sse,
+    _store,
+    _stream,
 )
 from ra2vipas.services.orchestrator.storage import ACTIVE, FINISHED, Store
 from ra2vipas.services.orchestrator.study_store import StudyStore
