@@ -73,7 +73,7 @@ class RecordingError(Exception):
 
 
 def _schemas() -> dict[str, dict]:
-    from ra2vipas.cli.protocol import schema_documents
+    from ra2vipas.services.protocol.schemas import schema_documents
 
     return {name.removesuffix(".json"): doc for name, doc in schema_documents().items()}
 

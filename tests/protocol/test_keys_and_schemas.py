@@ -10,7 +10,6 @@ import pytest
 import zenoh
 from pydantic import ValidationError
 
-from ra2vipas.cli.protocol import schema_documents
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
     WIRE_MESSAGES,
@@ -24,6 +23,7 @@ from ra2vipas.services.protocol.messages import (
     training_job_id,
 )
 from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.protocol.schemas import schema_documents
 
 ROOT = Path(__file__).resolve().parents[2]
 RIG = "rig-7"
