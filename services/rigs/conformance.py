@@ -17,7 +17,7 @@ import math
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from pydantic import ValidationError
@@ -75,14 +75,6 @@ class _Seen:
     key: str
     payload: bytes
     at: float
-
-
-@dataclass
-class _Inbox:
-    """Everything the rig published on its measurement, timing and truth keys."""
-
-    items: "queue.Queue[_Seen]" = field(default_factory=queue.Queue)
-    log: list = field(default_factory=list)
 
 
 class ConformanceKit:

@@ -374,7 +374,7 @@ def rerun(rec: Recording, algorithm: str | None = None, settings=None, pan_toler
     """
     from ra2vipas.services.controller.policy import Controller, sensor_config_from_descriptor, sensor_config_from_scenario
     from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
-    from ra2vipas.services.sensors.physics import wrap
+    from ra2vipas.services.protocol.angles import wrap
 
     episodes = rec.recorded()
     if not any(ep.measurements for ep in episodes):
