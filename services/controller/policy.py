@@ -27,8 +27,8 @@ What it believes, after t samples:
 * **Vision** (``tracks.BearingTracker`` + the learned POD): every detected target i has an
   empirical POD p~_i = k_i/n_i; the Tx's POD is predicted from the mean iso RSSI,
   p_hat = p_hat_D(z_iso) (Sec. III-A). The detectability score is the likelihood ratio
-  l_D(i) = log N(p~_i; p_hat, v_i) - it is largest when the PODs match (MISSION defect 1:
-  the paper's -|p_hat - p~| is never positive and its product with y_RF prefers
+  l_D(i) = log N(p~_i; p_hat, v_i) - it is largest when the PODs match (the
+  paper's -|p_hat - p~| is never positive and its product with y_RF prefers
   misalignment).
 * **Fusion**: l(i) = l_RF(gamma_i) + l_D(i). The estimate is the maximiser over the detected
   bearings (the LOS condition, eq. 10, makes the Tx one of them); a bearing where no target
@@ -415,7 +415,8 @@ class Controller:
         (slope sigma_z)^2 / t + pod_floor_std^2, as a Beta distribution; a track's k detections in
         n frames are scored by the beta-binomial Bayes factor against an ordinary target's POD
         (``_kernels.pod_evidence``), and an undetected bearing by the probability that the Tx was
-        missed in every frame that looked there. Largest when the PODs match (MISSION defect 1).
+        missed in every frame that looked there. Largest when the PODs match (the paper's
+        -|p_hat - p~| is never positive).
         """
         if not self.uses_camera:
             return np.empty(0), None

@@ -1,4 +1,4 @@
-"""The controller: measurements in, next pan and estimate out (paper Sec. III-B, MISSION defects 1-3)."""
+"""The controller: measurements in, next pan and estimate out (paper Sec. III-B, and where it departs from the paper)."""
 
 from __future__ import annotations
 
@@ -268,7 +268,7 @@ def test_sweep_estimate_and_reward_peak_at_the_tx(model, tx_deg, paper_pod):
 
 @pytest.mark.parametrize("tx_deg", [30.0, -100.0, 179.0])
 def test_paper_reward_prefers_misalignment_ours_does_not(tx_deg, paper_pod):
-    """MISSION defect 1. The paper's y = y_D y_RF with y_D = -|p_hat - p~| <= 0 and
+    """The paper's y = y_D y_RF with y_D = -|p_hat - p~| <= 0 and
     y_RF = |z_dir| >= 0 is never positive, so on the same measurements it is maximised where
     Rx(dir) hears nothing, far from the Tx; the controller's fused objective peaks at the Tx."""
     sc = small_scenario(steps=144, n_targets=6)
