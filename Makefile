@@ -1,6 +1,6 @@
 # Two entry points for a fresh machine (see README):
 #   make campaign   set up .venv and run the paper campaign
-#   make test       set up .venv, install the system Chromium if missing, run the test suite
+#   make test       set up .venv, install the system Chromium if missing, run ruff check and the test suite
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -36,6 +36,7 @@ $(CHROMIUM):
 	$$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null
 
 test: setup browser
+	$(BIN)/ruff check .
 	$(BIN)/pytest -q
 
 # The README's result tables and figure from what the code prints (minutes): reruns the documented

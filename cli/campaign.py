@@ -15,12 +15,24 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from ra2vipas.cli.client import DEFAULT_API, ApiOpt, Client, JsonOpt, TokenOpt
 from ra2vipas.cli.output import (
-    EXIT_FAILED, EXIT_USAGE, campaign_tables, campaigns_table, emit_results, fail, outcomes_table, print_json, print_results, stderr, stdout,
-    check_output, trace_table, write_file,
+    EXIT_FAILED,
+    EXIT_USAGE,
+    campaign_tables,
+    campaigns_table,
+    check_output,
+    emit_results,
+    fail,
+    outcomes_table,
+    print_json,
+    print_results,
+    stderr,
+    stdout,
+    trace_table,
+    write_file,
 )
 from ra2vipas.cli.polish import deprecated, prefer
-from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.controller import registry
+from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
 app = typer.Typer(help="Start, watch and read campaigns on a running stack (see `ra2vipas up`).", no_args_is_help=True)
@@ -506,9 +518,8 @@ def plot(
 
 
 def _overlay(client: Client, campaign_ids: list[str], label: str | None, algorithm: str | None, output: str) -> None:
-    from ra2vipas.services.orchestrator.plots import overlay_title, write_overlay_plot
-
     from ra2vipas.cli.output import overrides_text
+    from ra2vipas.services.orchestrator.plots import overlay_title, write_overlay_plot
 
     runs = []
     for cid in dict.fromkeys(campaign_ids):

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import typer  # noqa: E402  (ra2vipas/__init__ pins BLAS to one thread before numpy loads)
+import typer
 
-from ra2vipas.cli import bench, campaign, presets, protocol, rigs, security, services, study, survey  # noqa: E402
-from ra2vipas.cli.record import record, replay  # noqa: E402
-from ra2vipas.cli.policies import policies  # noqa: E402
-from ra2vipas.cli.rig import rig  # noqa: E402
-from ra2vipas.cli.simulate import simulate  # noqa: E402
-from ra2vipas.cli.up import up  # noqa: E402
+from ra2vipas.cli import bench, campaign, presets, protocol, rigs, security, services, study, survey
+from ra2vipas.cli.policies import policies
+from ra2vipas.cli.record import record, replay
+from ra2vipas.cli.rig import rig
+from ra2vipas.cli.simulate import simulate
+from ra2vipas.cli.up import up
 
 app = typer.Typer(
     name="ra2vipas",

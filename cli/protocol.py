@@ -11,20 +11,9 @@ import typer
 
 from ra2vipas.cli.output import fail
 from ra2vipas.cli.services import ConfigOpt, ConnectOpt, ListenOpt, ModeOpt
+from ra2vipas.services.protocol.schemas import schema_documents
 
 app = typer.Typer(help="The wire protocol (key expressions and message schemas).", no_args_is_help=True)
-
-
-def schema_documents() -> dict[str, dict]:
-    """File name -> JSON Schema of every wire message."""
-    from ra2vipas.services.protocol.messages import WIRE_MESSAGES, episode_control_adapter
-
-    docs = {f"{m.__name__}.json": m.model_json_schema() for m in WIRE_MESSAGES}
-    docs["EpisodeControl.json"] = episode_control_adapter.json_schema()
-    from ra2vipas.services.rigs.survey import Survey
-
-    docs["Survey.json"] = Survey.model_json_schema()  # a file format, not a wire message: the survey rig's input
-    return docs
 
 
 @app.command("schemas")

@@ -28,8 +28,18 @@ import typer
 
 from ra2vipas.cli.output import EXIT_USAGE, fail
 from ra2vipas.cli.services import (
-    ConfigOpt, ConnectOpt, ListenOpt, LogOpt, ModeOpt, OldModeOpt, PolicyOpt, open_error, served_policies, warn_if_unreachable,
-    warn_while_alone, zenoh_settings,
+    ConfigOpt,
+    ConnectOpt,
+    ListenOpt,
+    LogOpt,
+    ModeOpt,
+    OldModeOpt,
+    PolicyOpt,
+    open_error,
+    served_policies,
+    warn_if_unreachable,
+    warn_while_alone,
+    zenoh_settings,
 )
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 

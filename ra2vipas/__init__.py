@@ -12,14 +12,14 @@ The Python API (the CLI and the REST API do the same things):
 The services and the command line live in the subpackages ``ra2vipas.services`` (the wire
 protocol, the simulated sensors, the learner, the controller, the orchestrator) and
 ``ra2vipas.cli``. In a source checkout they are the repository's ``services/`` and ``cli/``
-folders; an installed wheel has them inside this package.
+folders, mapped to these names by the editable install (``pip install -e .``, pyproject's
+package-dir); an installed wheel has them inside this package.
 """
 
 from __future__ import annotations
 
 import os as _os
 import sys as _sys
-from pathlib import Path as _Path
 
 # One BLAS/OpenMP thread. The linear algebra here is on matrices of a few hundred entries:
 # worker threads only spin and steal the cores the services need, and, worse, a threaded
@@ -34,12 +34,6 @@ if "numpy" in _sys.modules:
     from threadpoolctl import threadpool_limits as _threadpool_limits
 
     _threadpool_limits(1)
-
-# A source checkout keeps services/ and cli/ beside this folder: make them ra2vipas.services
-# and ra2vipas.cli (an installed wheel has them inside the package, and this does nothing).
-_here = _Path(__file__).resolve().parent
-if not (_here / "services").is_dir() and (_here.parent / "services" / "__init__.py").is_file():
-    __path__.append(_os.fspath(_here.parent))  # type: ignore[name-defined]  # noqa: F821
 
 from ra2vipas.api import Client, ClientError, paired_test, simulate, study, to_dataframe  # noqa: E402
 from ra2vipas.services.controller.contract import EpisodeContext, Policy, PolicyDecision, RigDescription  # noqa: E402

@@ -102,9 +102,9 @@ except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
     ) from exc
 
 from ra2vipas.services.controller.policy import SensorConfig, sensor_config_from_scenario
-from ra2vipas.services.controller.tracks import wrap
 from ra2vipas.services.orchestrator.metrics import score_episode, score_test
 from ra2vipas.services.orchestrator.simulate import TrainedPOD, train_pod
+from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement
 from ra2vipas.services.protocol.scenario import Scenario, build_scenario
 from ra2vipas.services.sensors.world import SimulatedPlatform

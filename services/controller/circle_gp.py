@@ -12,10 +12,10 @@ distance,
 
     k(s, s') = sf2 exp(-|e^{is} - e^{is'}|^2 / (2 l^2)) = sf2 exp(-2 sin^2((s - s')/2) / l^2),
 
-scikit-learn's ``ExpSineSquared`` with period 2 pi: -pi and pi are the same point (MISSION
-defect 2). For each candidate centre gamma on a grid, (c, A) have the generalised-least-squares
-solution of a GP with explicit basis functions (Rasmussen & Williams 2006, Sec. 2.7), and the
-profile log-likelihood -q(gamma)/2 scores gamma. Everything is kept incrementally: a new
+scikit-learn's ``ExpSineSquared`` with period 2 pi: -pi and pi are the same point (a
+kernel on the raw angle would put them 2 pi apart). For each candidate centre gamma on a grid,
+(c, A) have the generalised-least-squares solution of a GP with explicit basis functions
+(Rasmussen & Williams 2006, Sec. 2.7), and the profile log-likelihood -q(gamma)/2 scores gamma. Everything is kept incrementally: a new
 sample appends one row to the Cholesky factor and to L^{-1}[K(X, grid), H(X, grid)], so a
 control step costs O(n M) for n samples and M grid points, never an O(n^3) refit.
 """

@@ -32,18 +32,34 @@ from ra2vipas.services.controller import registry
 from ra2vipas.services.controller.builtins import BuiltinPolicy
 from ra2vipas.services.controller.contract import Policy, episode_context
 from ra2vipas.services.controller.policy import (
-    Controller, ControllerSettings, SensorConfig, sensor_config_from_descriptor, sensor_config_from_scenario,
+    Controller,
+    ControllerSettings,
+    SensorConfig,
+    sensor_config_from_descriptor,
+    sensor_config_from_scenario,
 )
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
-    Command, ControllerInfo, EpisodeResult, EpisodeStart, EpisodeStop, Measurement, Mode, ModelCheck, PODRequest, PODResponse,
-    PolicyOffer, dump, episode_control_adapter, training_job_id,
+    Command,
+    ControllerInfo,
+    EpisodeResult,
+    EpisodeStart,
+    EpisodeStop,
+    Measurement,
+    Mode,
+    ModelCheck,
+    PODRequest,
+    PODResponse,
+    PolicyOffer,
+    dump,
+    episode_control_adapter,
+    training_job_id,
 )
-from ra2vipas.services.protocol.rig import RigDescriptor
 from ra2vipas.services.protocol.pod import PODModel
+from ra2vipas.services.protocol.rig import RigDescriptor
+from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
 from ra2vipas.services.transport.costs import CostClock
-from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, decode_or_reject, first_valid_reply
 
 log = logging.getLogger(__name__)

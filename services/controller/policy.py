@@ -24,11 +24,11 @@ What it believes, after t samples:
   angle as a GP with an explicit generic lobe basis, whose profile log-likelihood l_RF(gamma)
   says how well "the main lobe is centred at gamma" explains the directional samples (the
   paper's J_RF, eq. 24, without knowing rho), beside a recent-samples lobe for a walking Tx.
-* **Vision** (``DetectionTracker`` + the learned POD): every detected target i has an
+* **Vision** (``tracks.BearingTracker`` + the learned POD): every detected target i has an
   empirical POD p~_i = k_i/n_i; the Tx's POD is predicted from the mean iso RSSI,
   p_hat = p_hat_D(z_iso) (Sec. III-A). The detectability score is the likelihood ratio
-  l_D(i) = log N(p~_i; p_hat, v_i) - it is largest when the PODs match (MISSION defect 1:
-  the paper's -|p_hat - p~| is never positive and its product with y_RF prefers
+  l_D(i) = log N(p~_i; p_hat, v_i) - it is largest when the PODs match (the
+  paper's -|p_hat - p~| is never positive and its product with y_RF prefers
   misalignment).
 * **Fusion**: l(i) = l_RF(gamma_i) + l_D(i). The estimate is the maximiser over the detected
   bearings (the LOS condition, eq. 10, makes the Tx one of them); a bearing where no target
@@ -66,8 +66,9 @@ from ra2vipas.services.controller import _kernels
 from ra2vipas.services.controller.circle_gp import LobeGP, RecentLobe
 from ra2vipas.services.controller.confidence import ConfidenceMap, shipped_maps
 from ra2vipas.services.controller.grid import CircleGrid
-from ra2vipas.services.controller.rf_filter import RFBearingFilter, RxDirModel
-from ra2vipas.services.controller.tracks import BearingTracker, wrap
+from ra2vipas.services.controller.rf_filter import RFBearingFilter, RxDirModel, logsumexp
+from ra2vipas.services.controller.tracks import BearingTracker
+from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
 from ra2vipas.services.protocol.pod import PODModel
 
@@ -394,8 +395,8 @@ class Controller:
         self.tx_walks = 1.0 / (1.0 + math.exp(-min(max(logit, -50.0), 50.0)))
         stand = l_static if cfg.ar1_lobe else kappa * l_static  # an AR(1) lobe fit has the correlation in it
         walk = kappa * l_recent
-        self._stand_rf = stand - _logsumexp(stand)
-        self._walk_norm = _logsumexp(walk)
+        self._stand_rf = stand - logsumexp(stand)
+        self._walk_norm = logsumexp(walk)
         walk = walk - self._walk_norm
         self._log_stand, self._log_walk = math.log(max(1.0 - self.tx_walks, 1e-300)), math.log(max(self.tx_walks, 1e-300))
         return np.logaddexp(self._log_stand + self._stand_rf, self._log_walk + walk)
@@ -418,7 +419,8 @@ class Controller:
         (slope sigma_z)^2 / t + pod_floor_std^2, as a Beta distribution; a track's k detections in
         n frames are scored by the beta-binomial Bayes factor against an ordinary target's POD
         (``_kernels.pod_evidence``), and an undetected bearing by the probability that the Tx was
-        missed in every frame that looked there. Largest when the PODs match (MISSION defect 1).
+        missed in every frame that looked there. Largest when the PODs match (the paper's
+        -|p_hat - p~| is never positive).
         """
         if not self.uses_camera:
             return np.empty(0), None
@@ -456,7 +458,7 @@ class Controller:
         cfg, rff, circle = self.settings, self.rff, self.circle
         ids = self.tracks.ids.tolist()
         joint = np.logaddexp(rff.log_joint_stand, rff.log_joint_walk)
-        out[:] = rff.track_evidence(ids) - _logsumexp(joint)
+        out[:] = rff.track_evidence(ids) - logsumexp(joint)
         means, sds, weights = self.tracks.components()
         det, frames = self.tracks.detections, self.tracks.frames_in_view
         for i in range(len(ids)):
@@ -638,11 +640,6 @@ def tuned_settings(algorithm: "Algorithm | str", base: ControllerSettings | None
     if confidence_map is not None:
         tuning["confidence_calibration"] = confidence_map
     return dataclasses.replace(base or ControllerSettings(), **tuning)
-
-
-def _logsumexp(values: np.ndarray) -> float:
-    top = float(values.max())
-    return top + math.log(float(np.exp(values - top).sum()))
 
 
 def _beta_of(mean: float, var: float) -> tuple[float, float]:

@@ -132,7 +132,7 @@ class RFBearingFilter:
         self._iso_prev = iso_dbm
         self._level_walk = iso_dbm if n == 1 else self._lam * self._level_walk + (1.0 - self._lam) * iso_dbm
         level_stand = self._iso_sum / n
-        self.rho = rho = self._noise_correlation()
+        self.rho = self._noise_correlation()
         gain = self.response.gain(pan_rad - self.circle.angles)
         ll_stand = self._sample_loglik(dir_dbm, gain, level_stand, self._level_var(False))
         ll_walk = self._sample_loglik(dir_dbm, gain, self._level_walk, self._level_var(True))
@@ -228,7 +228,7 @@ class RFBearingFilter:
         key = (self.n, self.walk_prior)
         if self._posterior_key != key:
             joint = np.logaddexp(self.log_joint_stand, self.log_joint_walk)
-            posterior = joint - _logsumexp(joint)
+            posterior = joint - logsumexp(joint)
             posterior.flags.writeable = False
             self._posterior, self._posterior_key = posterior, key
         return self._posterior
@@ -243,8 +243,8 @@ class RFBearingFilter:
     @property
     def p_walk(self) -> float:
         """P(the Tx walks | samples)."""
-        s = _logsumexp(self.log_joint_stand)
-        w = _logsumexp(self.log_joint_walk)
+        s = logsumexp(self.log_joint_stand)
+        w = logsumexp(self.log_joint_walk)
         return 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
 
     def most_informative_pan(self, stride: int = 2, mass: float = 1e-3) -> float:
@@ -279,13 +279,8 @@ def _t_const(nu: float) -> float:
     return math.lgamma(0.5 * (nu + 1.0)) - math.lgamma(0.5 * nu) - 0.5 * math.log(nu * math.pi)
 
 
-def arc_indices(circle: CircleGrid, centre: float, half_width: float) -> np.ndarray:
-    """Indices of the grid cells within ``half_width`` of ``centre`` (each once)."""
-    h = min(int(half_width / circle.step), circle.size // 2)
-    return (circle.nearest(centre) + np.arange(-h, h + (1 if 2 * h + 1 <= circle.size else 0))) % circle.size
-
-
-def _logsumexp(values: np.ndarray) -> float:
+def logsumexp(values: np.ndarray) -> float:
+    """log(sum(exp(values))) without overflow."""
     top = float(values.max())
     return top + math.log(float(np.exp(values - top).sum()))
 

@@ -20,13 +20,6 @@ import numpy as np
 from ra2vipas.services.controller import _tracker
 
 
-def wrap(angle):
-    """Wrap an angle (or a difference of angles) to [-pi, pi)."""
-    if isinstance(angle, float):
-        return (angle + math.pi) % (2.0 * math.pi) - math.pi
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
-
-
 @dataclass(frozen=True)
 class TrackerSettings:
     """Tuning of the bearing tracker (angles in radians, times in seconds).

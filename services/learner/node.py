@@ -19,7 +19,16 @@ from pydantic import ValidationError
 
 from ra2vipas.services.learner.pod import LearnerSettings, fit_pod
 from ra2vipas.services.protocol import keys
-from ra2vipas.services.protocol.messages import ErrorReply, PODRequest, PODResponse, TrainingRequest, TrainingStream, decode, dump, training_job_id
+from ra2vipas.services.protocol.messages import (
+    ErrorReply,
+    PODRequest,
+    PODResponse,
+    TrainingRequest,
+    TrainingStream,
+    decode,
+    dump,
+    training_job_id,
+)
 from ra2vipas.services.transport.bus import Bus, QueryError, Reply, undeclare_all
 from ra2vipas.services.transport.runtime import first_valid_reply
 

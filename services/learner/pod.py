@@ -1,6 +1,6 @@
 """Self-supervised learning of the camera's probability of detection p_D(r) as a function of
 the iso RSSI (paper Sec. III-A, eqs. 18-23), with the two effects the paper's footnote names
-and then ignores (MISSION defect 4):
+and then ignores:
 
 * heteroscedastic labels: the empirical POD p~_j = k_j / nu has variance p(1 - p)/nu
   (eq. 21);

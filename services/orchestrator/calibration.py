@@ -19,7 +19,6 @@ from __future__ import annotations
 from typing import Any, Callable, Iterable
 
 import numpy as np
-from scipy.optimize import minimize
 
 from ra2vipas.services.controller.policy import RAW_CONFIDENCE_CLIP, Controller, sensor_config_from_scenario, tuned_settings
 from ra2vipas.services.orchestrator.metrics import expected_calibration_error, score_test

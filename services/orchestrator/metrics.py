@@ -17,14 +17,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ra2vipas.services.protocol.angles import wrap
+
 if TYPE_CHECKING:
     from ra2vipas.services.protocol.messages import EpisodeTruth
 
 Z95 = 1.959963984540054
-
-
-def wrap(angle):
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def _per_step(bearings_rad, steps: int) -> np.ndarray:

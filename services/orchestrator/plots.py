@@ -27,7 +27,8 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from ra2vipas.services.controller.registry import BUILTINS
-from ra2vipas.services.orchestrator.names import colours, label as _label
+from ra2vipas.services.orchestrator.names import colours
+from ra2vipas.services.orchestrator.names import label as _label
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors import physics
 

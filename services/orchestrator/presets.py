@@ -7,7 +7,6 @@ from typing import Any
 
 from ra2vipas.services.protocol.scenario import PRESET_DESCRIPTIONS, PRESETS, Scenario, build_scenario, field_range
 
-
 # What a researcher needs before writing a policy on Rx(dir): under the paper's model (eq. 6) a
 # negative dBm value is scaled by rho <= 1, so the reading dips where the antenna is aligned.
 ANTENNA_NOTE = ("paper (eq. 6): z_dir = g(d)·ϱ scales a negative dBm path loss by ϱ ≤ 1 (1 when aligned), so Rx(dir) is "

@@ -37,7 +37,12 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from ra2vipas.services.orchestrator.metrics import (
-    decision_summary, ece_sampling_floor, expected_calibration_error, paired_comparisons, reliability_bins, time_to_level,
+    decision_summary,
+    ece_sampling_floor,
+    expected_calibration_error,
+    paired_comparisons,
+    reliability_bins,
+    time_to_level,
     wilson_interval,
 )
 

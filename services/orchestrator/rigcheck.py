@@ -25,6 +25,7 @@ from typing import Any, Iterable
 from scipy.stats import binom
 
 from ra2vipas.services.controller import registry
+
 CHANCE_P_VALUE = 1e-3  # one-sided binomial test of "no better than below chance"
 CONTRADICTION_NATS = 3.0  # lobe evidence below -this: the opposite orientation fits e^3 = 20 times better
 CONTRADICTED_SHARE = 0.5  # warn when at least this share of the radio episodes is contradicted

@@ -55,20 +55,35 @@ from ra2vipas.services.learner.node import NO_SENSORS
 from ra2vipas.services.learner.pod import predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
 from ra2vipas.services.orchestrator.reduce import AlgorithmTally, LatencyTally, results_object
+from ra2vipas.services.orchestrator.rigcheck import RigChecks
 from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
 from ra2vipas.services.orchestrator.storage import EpisodeKey, StorageFault, Store
 from ra2vipas.services.orchestrator.study_store import StudyStore
 from ra2vipas.services.protocol import keys
-from ra2vipas.services.orchestrator.rigcheck import RigChecks
 from ra2vipas.services.protocol.messages import (
-    ControllerInfo, EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, ErrorReply, Mode, PODRequest,
-    PODResponse, TrainingRequest, TrainingTruth, dump,
+    ControllerInfo,
+    EpisodeResult,
+    EpisodeStart,
+    EpisodeStop,
+    EpisodeTiming,
+    EpisodeTruth,
+    ErrorReply,
+    Mode,
+    PODRequest,
+    PODResponse,
+    TrainingRequest,
+    TrainingTruth,
+    dump,
 )
 from ra2vipas.services.protocol.rig import RigDescriptor, conflicts, speaks
-from ra2vipas.services.protocol.versions import (
-    BUILTIN_POLICIES, PROTOCOL_VERSION, campaign_features, describe_missing, missing_features,
-)
 from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.protocol.versions import (
+    BUILTIN_POLICIES,
+    PROTOCOL_VERSION,
+    campaign_features,
+    describe_missing,
+    missing_features,
+)
 from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
 

@@ -25,7 +25,12 @@ from enum import Enum
 from typing import Any, Iterable, Mapping, Sequence
 
 from ra2vipas.services.protocol.scenario import (
-    Scenario, ScenarioError, build_scenario, field_range, parse_value, suggest_parameter,
+    Scenario,
+    ScenarioError,
+    build_scenario,
+    field_range,
+    parse_value,
+    suggest_parameter,
 )
 
 MAX_POINTS = 256

@@ -17,14 +17,22 @@ import math
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from pydantic import ValidationError
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Measurement, TrainingRequest, TrainingStream, dump,
+    Command,
+    EpisodeStart,
+    EpisodeStop,
+    EpisodeTiming,
+    EpisodeTruth,
+    Measurement,
+    TrainingRequest,
+    TrainingStream,
+    dump,
 )
 from ra2vipas.services.protocol.rig import RigDescriptor, apply_rig_values
 from ra2vipas.services.protocol.scenario import Scenario
@@ -67,14 +75,6 @@ class _Seen:
     key: str
     payload: bytes
     at: float
-
-
-@dataclass
-class _Inbox:
-    """Everything the rig published on its measurement, timing and truth keys."""
-
-    items: "queue.Queue[_Seen]" = field(default_factory=queue.Queue)
-    log: list = field(default_factory=list)
 
 
 class ConformanceKit:

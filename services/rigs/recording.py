@@ -36,7 +36,14 @@ import numpy as np
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeResult, EpisodeStart, EpisodeStop, EpisodeTiming, EpisodeTruth, Measurement, PODResponse,
+    Command,
+    EpisodeResult,
+    EpisodeStart,
+    EpisodeStop,
+    EpisodeTiming,
+    EpisodeTruth,
+    Measurement,
+    PODResponse,
     episode_control_adapter,
 )
 from ra2vipas.services.protocol.rig import RigDescriptor
@@ -66,7 +73,7 @@ class RecordingError(Exception):
 
 
 def _schemas() -> dict[str, dict]:
-    from ra2vipas.cli.protocol import schema_documents
+    from ra2vipas.services.protocol.schemas import schema_documents
 
     return {name.removesuffix(".json"): doc for name, doc in schema_documents().items()}
 
@@ -367,7 +374,7 @@ def rerun(rec: Recording, algorithm: str | None = None, settings=None, pan_toler
     """
     from ra2vipas.services.controller.policy import Controller, sensor_config_from_descriptor, sensor_config_from_scenario
     from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
-    from ra2vipas.services.sensors.physics import wrap
+    from ra2vipas.services.protocol.angles import wrap
 
     episodes = rec.recorded()
     if not any(ep.measurements for ep in episodes):

@@ -14,8 +14,8 @@ publishes the episode's truth from the layout. The format is ``Survey`` (schema
 from __future__ import annotations
 
 import json
-import math
 import logging
+import math
 import queue
 import threading
 import time
@@ -28,7 +28,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, TrainingSample
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeStart, EpisodeStop, EpisodeTruth, Measurement, TrainingRequest, TrainingStream, decode, dump,
+    Command,
+    EpisodeStart,
+    EpisodeStop,
+    EpisodeTruth,
+    Measurement,
+    TrainingRequest,
+    TrainingStream,
+    decode,
+    dump,
     episode_control_adapter,
 )
 from ra2vipas.services.protocol.rig import RigDescriptor

@@ -29,17 +29,27 @@ import time
 from dataclasses import dataclass, field
 
 from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeStart, EpisodeStop, EpisodeTiming, Measurement, Mode, TrainingRequest,
-    TrainingStream, TrainingTruth, decode, dump, episode_control_adapter,
+    Command,
+    EpisodeStart,
+    EpisodeStop,
+    EpisodeTiming,
+    Measurement,
+    Mode,
+    TrainingRequest,
+    TrainingStream,
+    TrainingTruth,
+    decode,
+    dump,
+    episode_control_adapter,
 )
 from ra2vipas.services.protocol.rig import RigDescriptor, apply_rig_values
 from ra2vipas.services.protocol.scenario import Scenario
-from ra2vipas.services.sensors.physics import wrap
+from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode, episode_truth
 from ra2vipas.services.transport.bus import Bus, QueryError, undeclare_all
 from ra2vipas.services.transport.costs import CostClock, now_ns
-from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_reject
 
 log = logging.getLogger(__name__)

@@ -10,12 +10,8 @@ import math
 
 import numpy as np
 
+from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.scenario import AntennaModel, Scenario
-
-
-def wrap(angle: np.ndarray | float) -> np.ndarray | float:
-    """Wrap an angle (or a difference of angles) to [-pi, pi)."""
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def path_loss_dbm(sc: Scenario, distance_m: np.ndarray | float) -> np.ndarray:

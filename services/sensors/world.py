@@ -163,7 +163,7 @@ def _draw_point(sc: Scenario, rng: np.random.Generator, accept) -> np.ndarray:
 
 
 def place_targets(sc: Scenario, rng: np.random.Generator) -> GroundTruth:
-    """Draw the N targets and choose the Tx (MISSION: ``reference`` and ``uniform`` rules).
+    """Draw the N targets and choose the Tx (the ``reference`` and ``uniform`` rules).
 
     ``reference``: the Tx uniform in the square with range below ``tx_max_range_m``; every
     other target uniform in the square with |d_i - d_Tx| > ``min_range_gap_m``.

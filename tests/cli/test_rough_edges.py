@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 
 import ra2vipas
-from tests.cli.conftest import done_campaign, live, one_error_line, ra2vipas as run  # noqa: F401  (fixtures)
+from tests.cli.conftest import one_error_line
+from tests.cli.conftest import ra2vipas as run
 
 
 @pytest.mark.parametrize("variable, value, words", [

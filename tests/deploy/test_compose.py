@@ -23,7 +23,16 @@ from ra2vipas.services.orchestrator.settings import OrchestratorSettings
 from ra2vipas.services.protocol.keys import check_chunk
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 from tests.deploy.compose import (
-    COMPOSE_SCHEMA, ROOT, TLS_OVERRIDE_FILE, InterpolationError, environment, generated_rigs, interpolate, load, merge, our_services,
+    COMPOSE_SCHEMA,
+    ROOT,
+    TLS_OVERRIDE_FILE,
+    InterpolationError,
+    environment,
+    generated_rigs,
+    interpolate,
+    load,
+    merge,
+    our_services,
 )
 
 VARS = {"RA2VIPAS_TOKEN": "compose-test-token"}  # what an operator's .env must provide
@@ -193,7 +202,7 @@ def test_the_router_is_the_official_image_at_the_bindings_version():
                 proto, address = ep.split("/", 1)
                 host, port = address.rsplit(":", 1)
                 assert host in compose["services"], f"{variant}: {svc_name} connects to unknown host {host!r}"
-                assert any(l.startswith(f"{proto}/") and l.endswith(f":{port}") for l in listens), \
+                assert any(x.startswith(f"{proto}/") and x.endswith(f":{port}") for x in listens), \
                     f"{variant}: {svc_name} connects to {ep} but the router listens on {sorted(listens)}"
 
 

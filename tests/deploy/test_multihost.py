@@ -30,9 +30,9 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests.conftest import untimed
 from tests.deploy.compose import environment, interpolate, load, ra2vipas_argv
 from tests.deploy.conftest import ROOT, Services, clean_env
-from tests.conftest import untimed
 from tests.deploy.netns import NetnsError, destroy_namespace, ip, remove_stale_namespaces
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]

@@ -16,9 +16,6 @@ Needs root (network namespaces): without it the test fails and says so; it never
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -26,7 +23,7 @@ import httpx
 import pytest
 
 from tests.conftest import differences, untimed
-from tests.deploy.conftest import ROOT, Service, Services, clean_env
+from tests.deploy.conftest import Service, Services, clean_env
 from tests.deploy.netns import NetnsError, remove_stale_namespaces
 from tests.deploy.test_multihost import Network, simulate
 

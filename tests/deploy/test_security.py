@@ -16,8 +16,18 @@ import zenoh
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.transport.zenoh_config import (
-    AUTH_DICTIONARY, AUTH_PASSWORD, AUTH_USER, TLS_CONNECT_CERT, TLS_CONNECT_KEY, TLS_LISTEN_CERT, TLS_LISTEN_KEY, TLS_MTLS,
-    TLS_ROOT_CA, TLS_VERIFY_NAME, ZenohSettings, ZenohSettingsError,
+    AUTH_DICTIONARY,
+    AUTH_PASSWORD,
+    AUTH_USER,
+    TLS_CONNECT_CERT,
+    TLS_CONNECT_KEY,
+    TLS_LISTEN_CERT,
+    TLS_LISTEN_KEY,
+    TLS_MTLS,
+    TLS_ROOT_CA,
+    TLS_VERIFY_NAME,
+    ZenohSettings,
+    ZenohSettingsError,
 )
 from tests.deploy.conftest import clean_env, free_port, wait_port
 from tests.deploy.pki import CertificateAuthority, Identity

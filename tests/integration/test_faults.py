@@ -15,8 +15,8 @@ import pytest
 
 from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.protocol.scenario import build_scenario
-from tests.integration.conftest import Procs, alive, children_of, start_stack, stop_stack
 from tests.conftest import differences, untimed
+from tests.integration.conftest import Procs, alive, children_of, start_stack, stop_stack
 
 ALGORITHMS = ["ra2vipas", "rapas"]
 TESTS = 30

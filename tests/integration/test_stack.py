@@ -13,8 +13,8 @@ import httpx
 import pytest
 
 from ra2vipas.cli.stack import free_port
-from tests.integration.conftest import ROOT, Procs, alive, children_of, wait_for_line
 from tests.conftest import untimed
+from tests.integration.conftest import ROOT, Procs, alive, children_of, wait_for_line
 
 SMALL = ["--set", "steps=30", "--set", "n_train=250", "--set", "n_targets=10"]
 

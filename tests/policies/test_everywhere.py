@@ -24,7 +24,6 @@ from ra2vipas.services.orchestrator.storage import Store
 from tests.api.live import LiveAPI
 from tests.policies.test_example_policy import PROVENANCE, ROOT, SMALL, _run, installed  # noqa: F401  (a fixture)
 
-
 # -- a study and the robustness bench run the installed example -----------------------------------
 
 def test_a_study_runs_an_installed_policy_and_its_rows_name_it(installed):  # noqa: F811

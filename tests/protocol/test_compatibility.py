@@ -20,11 +20,11 @@ from pathlib import Path
 import pytest
 from jsonschema import Draft202012Validator
 
-from ra2vipas.cli.protocol import schema_documents
 from ra2vipas.services.protocol import messages
 from ra2vipas.services.protocol.messages import EpisodeStart, ErrorReply, PODRequest, PODResponse, dump
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.protocol.schemas import schema_documents
 from ra2vipas.services.protocol.versions import PROTOCOL_VERSION, V1_0, VERSIONS, newer
 
 ROOT = Path(__file__).resolve().parents[2]

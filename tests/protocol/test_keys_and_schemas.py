@@ -10,13 +10,20 @@ import pytest
 import zenoh
 from pydantic import ValidationError
 
-from ra2vipas.cli.protocol import schema_documents
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
-    Command, EpisodeResult, EpisodeStart, Measurement, PODRequest, TrainingRequest, WIRE_MESSAGES, episode_control_adapter,
+    WIRE_MESSAGES,
+    Command,
+    EpisodeResult,
+    EpisodeStart,
+    Measurement,
+    PODRequest,
+    TrainingRequest,
+    episode_control_adapter,
     training_job_id,
 )
 from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.protocol.schemas import schema_documents
 
 ROOT = Path(__file__).resolve().parents[2]
 RIG = "rig-7"

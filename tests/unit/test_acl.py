@@ -10,8 +10,21 @@ import zenoh
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.transport.acl import (
-    EGRESS, INGRESS, LIVELINESS_SUBSCRIBER, MESSAGES, PUT, QUERY, QUERYABLE, REPLY, SUBSCRIBE, TOKEN, AclError, Identity,
-    access_control, grants, standard_identities,
+    EGRESS,
+    INGRESS,
+    LIVELINESS_SUBSCRIBER,
+    MESSAGES,
+    PUT,
+    QUERY,
+    QUERYABLE,
+    REPLY,
+    SUBSCRIBE,
+    TOKEN,
+    AclError,
+    Identity,
+    access_control,
+    grants,
+    standard_identities,
 )
 
 

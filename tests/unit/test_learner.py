@@ -12,12 +12,12 @@ from scipy.stats import multivariate_normal
 from ra2vipas.services.learner.pod import (
     LearnedPOD,
     detection_counts,
-    training_clutter,
     fit_diffusion,
     fit_pod,
     forward_backward,
     predict,
     r2_score,
+    training_clutter,
 )
 from ra2vipas.services.protocol.measurements import CameraFrame, TrainingSample
 from ra2vipas.services.protocol.pod import PODModel

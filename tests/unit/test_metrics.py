@@ -8,8 +8,16 @@ import numpy as np
 import pytest
 
 from ra2vipas.services.orchestrator.metrics import (
-    Z95, associate, decision_summary, expected_calibration_error, reliability_bins, score_episode, score_test, summarize_algorithm,
-    time_to_level, wilson_interval,
+    Z95,
+    associate,
+    decision_summary,
+    expected_calibration_error,
+    reliability_bins,
+    score_episode,
+    score_test,
+    summarize_algorithm,
+    time_to_level,
+    wilson_interval,
 )
 
 D = math.radians

@@ -136,7 +136,9 @@ def test_the_most_informative_pan_separates_two_candidates():
     f._static = post.copy() + math.log(360)
     f._walk = post - np.log(np.exp(post).sum())
     pan = f.most_informative_pan(stride=1)
-    gains = lambda g: f.response.mean(-40.0, antenna_gain(CIRCLE.angles - g, 0.5))
+    def gains(g):
+        return f.response.mean(-40.0, antenna_gain(CIRCLE.angles - g, 0.5))
+
     diff = np.abs(gains(D(10.0)) - gains(D(50.0)))
     assert diff[CIRCLE.nearest(pan)] >= 0.99 * diff.max()
     assert abs(wrap(pan - D(30.0))) > D(5.0)

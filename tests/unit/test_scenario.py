@@ -6,8 +6,8 @@ import json
 import math
 
 import pydantic
-from pydantic import ValidationError
 import pytest
+from pydantic import ValidationError
 
 from ra2vipas.services.protocol.scenario import (
     PRESETS,

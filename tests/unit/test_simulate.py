@@ -7,8 +7,8 @@ import pytest
 
 from ra2vipas.services.controller.policy import ALGORITHMS
 from ra2vipas.services.learner.pod import predict, r2_score
-from ra2vipas.services.orchestrator.metrics import wilson_interval
 from ra2vipas.services.orchestrator import simulate
+from ra2vipas.services.orchestrator.metrics import wilson_interval
 from ra2vipas.services.orchestrator.simulate import run_campaign, run_test, train_pod
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode
 from tests.conftest import small_scenario

@@ -10,7 +10,16 @@ import pytest
 from ra2vipas.services.orchestrator import storage
 from ra2vipas.services.orchestrator.storage import CampaignActiveError, CampaignInStudyError, EpisodeKey, Store
 from ra2vipas.services.orchestrator.study import (
-    MAX_POINTS, StudyError, check_size, expand, flatten, parse_range, parse_vary, point_rows, status_of, study_results,
+    MAX_POINTS,
+    StudyError,
+    check_size,
+    expand,
+    flatten,
+    parse_range,
+    parse_vary,
+    point_rows,
+    status_of,
+    study_results,
     write_study_csv,
 )
 from ra2vipas.services.orchestrator.study_store import StudyStore

@@ -9,7 +9,13 @@ from typing import Annotated, Any, Optional
 from pydantic import BaseModel, ConfigDict, Field
 
 from ra2vipas.services.orchestrator.api.schemas import (
-    CampaignCreate, CampaignStatus, OverrideValue, PairedComparison, ParameterName, PODSummary, Progress,
+    CampaignCreate,
+    CampaignStatus,
+    OverrideValue,
+    PairedComparison,
+    ParameterName,
+    PODSummary,
+    Progress,
 )
 from ra2vipas.services.orchestrator.study import MAX_POINTS, MAX_STUDY_EPISODES, MAX_VARIED
 

@@ -4,17 +4,29 @@ from __future__ import annotations
 
 import json
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import ValidationError
 
 from ra2vipas.services.orchestrator.api.schemas import (
-    CampaignProgress, CampaignPublic, OutcomePublic, PODSummary, Progress, RigPublic, RigsPublic, SupervisedService, TargetPublic,
-    TracePublic, TraceStep,
+    CampaignProgress,
+    CampaignPublic,
+    OutcomePublic,
+    PODSummary,
+    Progress,
+    RigPublic,
+    RigsPublic,
+    SupervisedService,
+    TargetPublic,
+    TracePublic,
+    TraceStep,
 )
 from ra2vipas.services.orchestrator.metrics import time_to_level
 from ra2vipas.services.orchestrator.storage import ACTIVE, Fault
+
+if TYPE_CHECKING:
+    from ra2vipas.services.orchestrator.api.study_schemas import StudyPublic
 
 
 def campaign_progress(row: dict[str, Any], storage_fault: Fault | None = None) -> CampaignProgress:
@@ -113,7 +125,7 @@ def rigs_public(status: dict[str, Any], services: list[SupervisedService] | None
     return RigsPublic(rigs=rigs, learners=list(status["learners"]), services=services or [])
 
 
-def study_public(d: dict[str, Any], now: float | None = None) -> "StudyPublic":
+def study_public(d: dict[str, Any], now: float | None = None) -> StudyPublic:
     """A study (``StudyStore.study``) as the API shows it; ``points`` only if ``d`` has them."""
     from ra2vipas.services.orchestrator.api.study_schemas import StudyPoint, StudyPublic
 

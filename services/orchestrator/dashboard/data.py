@@ -11,9 +11,10 @@ from typing import Any
 import numpy as np
 
 from ra2vipas.services.orchestrator.api.views import outcome_public, trace_public
-from ra2vipas.services.orchestrator.metrics import Z95, wrap
+from ra2vipas.services.orchestrator.metrics import Z95
 from ra2vipas.services.orchestrator.names import label, web_colours
 from ra2vipas.services.orchestrator.storage import Store
+from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.scenario import Scenario, build_scenario, field_range
 
 MAX_POINTS = 600  # points per curve sent to a page (a longer curve is subsampled evenly, its last point kept)

@@ -12,17 +12,17 @@ Streams (``text/event-stream``) poll the database on the server, like
 
 from __future__ import annotations
 
-import asyncio
 import gzip
 import hashlib
 import json
 import time
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Any, AsyncIterator, Callable, Literal, Optional
+from typing import Annotated, Any, AsyncIterator, Awaitable, Callable, Literal, Optional
 
 from cachetools import LRUCache
-from fastapi import APIRouter, FastAPI, HTTPException, Path as PathParam, Query, Request, status
+from fastapi import APIRouter, FastAPI, HTTPException, Query, Request, status
+from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
 from fastapi.templating import Jinja2Templates
@@ -35,6 +35,7 @@ from ra2vipas.services.controller import registry
 from ra2vipas.services.orchestrator.api.deps import get_campaign
 from ra2vipas.services.orchestrator.api.routes.events import MAX_STREAMS, _streams
 from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
+from ra2vipas.services.orchestrator.api.sse import Changed, poll
 from ra2vipas.services.orchestrator.api.views import campaign_progress, campaign_public, rigs_public, supervised_services
 from ra2vipas.services.orchestrator.dashboard import data
 from ra2vipas.services.orchestrator.storage import ACTIVE, FINISHED, Store
@@ -154,6 +155,32 @@ def _stream(request: Request, body: Callable[[Callable[[], None]], AsyncIterator
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}, background=BackgroundTask(release))
 
 
+def _poll(request: Request, step: Callable[[], Awaitable[tuple[list[str], bool]]]) -> Callable[[Callable[[], None]], AsyncIterator[str]]:
+    """A stream's body: ``sse.poll`` every TICK_S while the browser is connected."""
+    async def connected() -> bool:
+        return not await request.is_disconnected()
+
+    async def body(release: Callable[[], None]) -> AsyncIterator[str]:
+        try:
+            async for chunk in poll(step, TICK_S, KEEPALIVE_S, connected):
+                yield chunk
+        finally:
+            release()
+
+    return body
+
+
+def _stream_changes(request: Request, event: str, html: Callable[[], Awaitable[str]]) -> StreamingResponse:
+    """A stream of one HTML fragment (``event: EVENT``) whenever it changes."""
+    changed = Changed()
+
+    async def step() -> tuple[list[str], bool]:
+        fragment = await html()
+        return ([_sse(event, fragment)] if changed(fragment) else []), False
+
+    return _stream(request, _poll(request, step))
+
+
 def _pages(total: int, offset: int, size: int = PAGE) -> dict[str, Any]:
     return {"total": total, "offset": offset, "size": size, "first": offset + 1 if total else 0, "last": min(total, offset + size),
             "prev": max(0, offset - size) if offset > 0 else None, "next": offset + size if offset + size < total else None}
@@ -213,23 +240,11 @@ async def campaigns_stream(request: Request, status_: Annotated[StatusFilter, Qu
     """The home page's table body (``event: rows``, HTML) whenever it changes."""
     store = _store(request)
 
-    async def body(release: Callable[[], None]) -> AsyncIterator[str]:
-        try:
-            last, last_sent = None, time.monotonic()
-            while not await request.is_disconnected():
-                listing = await run_in_threadpool(_campaign_list, store, status_, preset, offset, points == "show")
-                html = _fragment(request, "_campaign_rows.html", **listing)
-                if html != last:
-                    yield _sse("rows", html)
-                    last, last_sent = html, time.monotonic()
-                elif time.monotonic() - last_sent > KEEPALIVE_S:
-                    yield ": keep-alive\n\n"
-                    last_sent = time.monotonic()
-                await asyncio.sleep(TICK_S)
-        finally:
-            release()
+    async def html() -> str:
+        listing = await run_in_threadpool(_campaign_list, store, status_, preset, offset, points == "show")
+        return _fragment(request, "_campaign_rows.html", **listing)
 
-    return _stream(request, body)
+    return _stream_changes(request, "rows", html)
 
 
 # -- one campaign --------------------------------------------------------------------------------
@@ -323,34 +338,25 @@ async def campaign_live(request: Request, campaign_id: CampaignId) -> StreamingR
     row = await run_in_threadpool(_campaign_or_404, store, campaign_id)
     live = _live(request, row)
 
-    async def body(release: Callable[[], None]) -> AsyncIterator[str]:
-        try:
-            last, last_done, last_curves, last_sent = None, -1, 0.0, time.monotonic()
-            while not await request.is_disconnected():
-                current = await run_in_threadpool(store.campaign, campaign_id)
-                if current is None:
-                    yield _sse("deleted", json.dumps({"id": campaign_id}))
-                    return
-                finished = current["status"] in FINISHED
-                done = current["progress"]["done"]
-                if done != last_done and (finished or time.monotonic() - last_curves >= CURVES_EVERY_S):
-                    await run_in_threadpool(live.update, store)
-                    yield _sse("curves", json.dumps(live.snapshot(), separators=(",", ":")))
-                    last_done, last_curves, last_sent = done, time.monotonic(), time.monotonic()
-                progress = campaign_progress(current, store.fault).model_dump_json()
-                if progress != last:
-                    yield _sse("progress", progress)
-                    last, last_sent = progress, time.monotonic()
-                elif time.monotonic() - last_sent > KEEPALIVE_S:
-                    yield ": keep-alive\n\n"
-                    last_sent = time.monotonic()
-                if finished:
-                    return
-                await asyncio.sleep(TICK_S)
-        finally:
-            release()
+    changed, curves = Changed(), {"done": -1, "at": 0.0}
 
-    return _stream(request, body)
+    async def step() -> tuple[list[str], bool]:
+        current = await run_in_threadpool(store.campaign, campaign_id)
+        if current is None:
+            return [_sse("deleted", json.dumps({"id": campaign_id}))], True
+        chunks = []
+        finished = current["status"] in FINISHED
+        done = current["progress"]["done"]
+        if done != curves["done"] and (finished or time.monotonic() - curves["at"] >= CURVES_EVERY_S):
+            await run_in_threadpool(live.update, store)
+            chunks.append(_sse("curves", json.dumps(live.snapshot(), separators=(",", ":"))))
+            curves.update(done=done, at=time.monotonic())
+        progress = campaign_progress(current, store.fault).model_dump_json()
+        if changed(progress):
+            chunks.append(_sse("progress", progress))
+        return chunks, finished
+
+    return _stream(request, _poll(request, step))
 
 
 @router.get("/ui/campaigns/{campaign_id}/pod.json")
@@ -403,22 +409,10 @@ def rigs_page(request: Request) -> HTMLResponse:
 async def rigs_stream(request: Request) -> StreamingResponse:
     """The rigs table (``event: rigs``, HTML) whenever Zenoh liveliness changes it."""
 
-    async def body(release: Callable[[], None]) -> AsyncIterator[str]:
-        try:
-            last, last_sent = None, time.monotonic()
-            while not await request.is_disconnected():
-                html = _fragment(request, "_rigs.html", **_rigs_context(request))
-                if html != last:
-                    yield _sse("rigs", html)
-                    last, last_sent = html, time.monotonic()
-                elif time.monotonic() - last_sent > KEEPALIVE_S:
-                    yield ": keep-alive\n\n"
-                    last_sent = time.monotonic()
-                await asyncio.sleep(TICK_S)
-        finally:
-            release()
+    async def html() -> str:
+        return _fragment(request, "_rigs.html", **_rigs_context(request))
 
-    return _stream(request, body)
+    return _stream_changes(request, "rigs", html)
 
 
 # -- new campaign --------------------------------------------------------------------------------

@@ -5,22 +5,33 @@ the page's script through the REST API (``POST /studies/{id}/cancel``, ``DELETE
 
 from __future__ import annotations
 
-import asyncio
 import json
 import threading
 import time
-from typing import Annotated, Any, AsyncIterator, Callable, Optional
+from typing import Annotated, Any
 
 from cachetools import LRUCache
-from fastapi import APIRouter, HTTPException, Path as PathParam, Query, Request
+from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, StreamingResponse
 
 from ra2vipas.services.orchestrator.api.routes.studies import study_results_of
+from ra2vipas.services.orchestrator.api.sse import Changed
 from ra2vipas.services.orchestrator.api.views import study_public
 from ra2vipas.services.orchestrator.dashboard import data
 from ra2vipas.services.orchestrator.dashboard.routes import (
-    KEEPALIVE_S, PAGE, TICK_S, StatusFilter, _fragment, _html, _not_found, _page, _pages, _sse, _store, _stream,
+    PAGE,
+    StatusFilter,
+    _fragment,
+    _not_found,
+    _page,
+    _pages,
+    _poll,
+    _sse,
+    _store,
+    _stream,
+    _stream_changes,
 )
 from ra2vipas.services.orchestrator.storage import ACTIVE, FINISHED, Store
 from ra2vipas.services.orchestrator.study_store import StudyStore
@@ -51,23 +62,11 @@ async def studies_stream(request: Request, status_: Annotated[StatusFilter, Quer
     """The studies page's table body (``event: rows``, HTML) whenever it changes."""
     store = _store(request)
 
-    async def body(release: Callable[[], None]) -> AsyncIterator[str]:
-        try:
-            last, last_sent = None, time.monotonic()
-            while not await request.is_disconnected():
-                listing = await run_in_threadpool(_study_list, store, status_, offset)
-                html = _fragment(request, "_study_rows.html", **listing)
-                if html != last:
-                    yield _sse("rows", html)
-                    last, last_sent = html, time.monotonic()
-                elif time.monotonic() - last_sent > KEEPALIVE_S:
-                    yield ": keep-alive\n\n"
-                    last_sent = time.monotonic()
-                await asyncio.sleep(TICK_S)
-        finally:
-            release()
+    async def html() -> str:
+        listing = await run_in_threadpool(_study_list, store, status_, offset)
+        return _fragment(request, "_study_rows.html", **listing)
 
-    return _stream(request, body)
+    return _stream_changes(request, "rows", html)
 
 
 # -- one study -----------------------------------------------------------------------------------
@@ -139,31 +138,22 @@ async def study_live(request: Request, study_id: StudyId) -> StreamingResponse:
     await run_in_threadpool(_study_or_404, store, study_id)
     shared = _results(request)
 
-    async def body(release: Callable[[], None]) -> AsyncIterator[str]:
-        try:
-            last, last_results, last_sent = None, None, time.monotonic()
-            while not await request.is_disconnected():
-                study = await run_in_threadpool(StudyStore(store).study, study_id)
-                if study is None:
-                    yield _sse("deleted", json.dumps({"id": study_id}))
-                    return
-                progress = study_public(study).model_dump_json()
-                if progress != last:
-                    yield _sse("progress", progress)
-                    last, last_sent = progress, time.monotonic()
-                results = await run_in_threadpool(shared.get, store, study)
-                if results is not last_results:
-                    points = [p.model_dump() for p in study_public(study).points or []]
-                    table = _fragment(request, "_study_table.html", table=data.study_table(points, results), s=study_public(study))
-                    yield _sse("results", json.dumps({"chart": data.study_chart(results), "table": table}, separators=(",", ":")))
-                    last_results, last_sent = results, time.monotonic()
-                elif time.monotonic() - last_sent > KEEPALIVE_S:
-                    yield ": keep-alive\n\n"
-                    last_sent = time.monotonic()
-                if study["status"] in FINISHED:
-                    return
-                await asyncio.sleep(TICK_S)
-        finally:
-            release()
+    changed, shown = Changed(), [None]  # shown: the results object sent last (a new object when they change)
 
-    return _stream(request, body)
+    async def step() -> tuple[list[str], bool]:
+        study = await run_in_threadpool(StudyStore(store).study, study_id)
+        if study is None:
+            return [_sse("deleted", json.dumps({"id": study_id}))], True
+        chunks = []
+        progress = study_public(study).model_dump_json()
+        if changed(progress):
+            chunks.append(_sse("progress", progress))
+        results = await run_in_threadpool(shared.get, store, study)
+        if results is not shown[0]:
+            points = [p.model_dump() for p in study_public(study).points or []]
+            table = _fragment(request, "_study_table.html", table=data.study_table(points, results), s=study_public(study))
+            chunks.append(_sse("results", json.dumps({"chart": data.study_chart(results), "table": table}, separators=(",", ":"))))
+            shown[0] = results
+        return chunks, study["status"] in FINISHED
+
+    return _stream(request, _poll(request, step))

@@ -10,7 +10,14 @@ from fastapi.exceptions import RequestValidationError
 from ra2vipas.services.orchestrator.api.deps import Authorized, CampaignDep, SchedulerDep, StoreDep
 from ra2vipas.services.orchestrator.api.errors import responses
 from ra2vipas.services.orchestrator.api.routes.catalog import check_policies
-from ra2vipas.services.orchestrator.api.schemas import MAX_OFFSET, MAX_PAGE, CampaignCreate, CampaignPage, CampaignPublic, CampaignStatus
+from ra2vipas.services.orchestrator.api.schemas import (
+    MAX_OFFSET,
+    MAX_PAGE,
+    CampaignCreate,
+    CampaignPage,
+    CampaignPublic,
+    CampaignStatus,
+)
 from ra2vipas.services.orchestrator.api.views import campaign_public
 from ra2vipas.services.orchestrator.rigcheck import TargetingError, resolve_targeting
 from ra2vipas.services.orchestrator.storage import CampaignActiveError, CampaignInStudyError

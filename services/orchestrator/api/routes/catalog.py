@@ -5,9 +5,9 @@ from __future__ import annotations
 from fastapi import APIRouter, HTTPException, status
 from fastapi.exceptions import RequestValidationError
 
+from ra2vipas.services.controller import registry
 from ra2vipas.services.orchestrator.api.deps import SchedulerDep, SettingsDep
 from ra2vipas.services.orchestrator.api.errors import responses
-from ra2vipas.services.controller import registry
 from ra2vipas.services.orchestrator.api.schemas import PolicyPublic, PresetPublic, PresetSummary, RigsPublic
 from ra2vipas.services.orchestrator.api.views import rigs_public, supervised_services
 from ra2vipas.services.orchestrator.presets import preset_object, preset_summaries

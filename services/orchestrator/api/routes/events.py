@@ -8,9 +8,7 @@ ends after the event that shows the campaign finished (done, failed or cancelled
 
 from __future__ import annotations
 
-import asyncio
 import json
-import time
 from typing import Annotated, AsyncIterator, Callable
 
 from fastapi import APIRouter, HTTPException, Query, Request, status
@@ -21,6 +19,7 @@ from starlette.background import BackgroundTask
 from ra2vipas.services.orchestrator.api.deps import CampaignDep, StoreDep
 from ra2vipas.services.orchestrator.api.errors import responses
 from ra2vipas.services.orchestrator.api.schemas import CampaignProgress
+from ra2vipas.services.orchestrator.api.sse import Changed, poll
 from ra2vipas.services.orchestrator.api.views import campaign_progress
 from ra2vipas.services.orchestrator.storage import FINISHED, Store
 
@@ -96,23 +95,21 @@ async def campaign_events(campaign: CampaignDep, request: Request, store: StoreD
 
 
 async def _events(store: Store, cid: str, interval: float, release: Callable[[], None]) -> AsyncIterator[str]:
+    changed, sent = Changed(), [0]
+
+    async def step() -> tuple[list[str], bool]:
+        row = await run_in_threadpool(store.campaign, cid)
+        if row is None:
+            return [f"event: deleted\ndata: {json.dumps({'id': cid})}\n\n"], True
+        data = campaign_progress(row, store.fault).model_dump_json()
+        chunks = []
+        if changed(data):
+            sent[0] += 1
+            chunks.append(f"id: {sent[0]}\nevent: progress\ndata: {data}\n\n")
+        return chunks, row["status"] in FINISHED
+
     try:
-        last, last_sent, n = None, time.monotonic(), 0
-        while True:
-            row = await run_in_threadpool(store.campaign, cid)
-            if row is None:
-                yield f"event: deleted\ndata: {json.dumps({'id': cid})}\n\n"
-                return
-            data = campaign_progress(row, store.fault).model_dump_json()
-            if data != last:
-                n += 1
-                yield f"id: {n}\nevent: progress\ndata: {data}\n\n"
-                last, last_sent = data, time.monotonic()
-            elif time.monotonic() - last_sent > KEEPALIVE_S:
-                yield ": keep-alive\n\n"
-                last_sent = time.monotonic()
-            if row["status"] in FINISHED:
-                return
-            await asyncio.sleep(interval)
+        async for chunk in poll(step, interval, KEEPALIVE_S):
+            yield chunk
     finally:
         release()

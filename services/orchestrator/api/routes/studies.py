@@ -12,9 +12,9 @@ from fastapi.exceptions import RequestValidationError
 from ra2vipas.services.orchestrator import plots
 from ra2vipas.services.orchestrator.api.deps import Authorized, SchedulerDep, StoreDep
 from ra2vipas.services.orchestrator.api.errors import responses
-from ra2vipas.services.orchestrator.api.routes.catalog import check_policies
 from ra2vipas.services.orchestrator.api.negotiate import ImageFormat, ResultsFormat, image_format, results_format
 from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, plot_responses, serve_figure
+from ra2vipas.services.orchestrator.api.routes.catalog import check_policies
 from ra2vipas.services.orchestrator.api.schemas import MAX_OFFSET, MAX_PAGE, CampaignStatus
 from ra2vipas.services.orchestrator.api.study_schemas import StudyCreate, StudyPage, StudyPublic, StudyResults
 from ra2vipas.services.orchestrator.api.views import study_public

@@ -13,7 +13,13 @@ from ra2vipas.services.orchestrator.api.errors import responses
 from ra2vipas.services.orchestrator.api.negotiate import ImageFormat, image_format
 from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, plot_responses, serve_figure
 from ra2vipas.services.orchestrator.api.schemas import (
-    MAX_OFFSET, MAX_PAGE, MAX_TESTS, AlgorithmName, EpisodeStatus, OutcomePage, TracePublic,
+    MAX_OFFSET,
+    MAX_PAGE,
+    MAX_TESTS,
+    AlgorithmName,
+    EpisodeStatus,
+    OutcomePage,
+    TracePublic,
 )
 from ra2vipas.services.orchestrator.api.views import outcome_public, trace_public
 
