@@ -29,7 +29,16 @@ from pydantic import ValidationError
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.measurements import CameraFrame, RFSample
 from ra2vipas.services.protocol.messages import (
-    Command, ControllerInfo, EpisodeResult, EpisodeStart, EpisodeStop, ErrorReply, Measurement, PODRequest, PODResponse, dump,
+    Command,
+    ControllerInfo,
+    EpisodeResult,
+    EpisodeStart,
+    EpisodeStop,
+    ErrorReply,
+    Measurement,
+    PODRequest,
+    PODResponse,
+    dump,
     training_job_id,
 )
 from ra2vipas.services.protocol.pod import PODModel

@@ -14,6 +14,7 @@ from ra2vipas.services.controller.confidence import shipped_entry, shipped_maps
 from ra2vipas.services.controller.policy import ALGORITHMS
 from ra2vipas.services.orchestrator.calibration import collect, fit_platt, map_agreement, map_drift
 
+
 @pytest.fixture(scope="module")
 def fitting_data() -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     return {a: collect(a, tests=40, seed=1001, from_s=shipped_entry(a)["from_s"], workers=2) for a in ALGORITHMS}
