@@ -361,7 +361,8 @@ def results(
     body = client.request("GET", f"/campaigns/{campaign_id}/results")
     if algorithm is not None:
         if algorithm not in body["algorithms"]:
-            fail(f"campaign {campaign_id} has no results for {algorithm!r}; it ran {', '.join(body['algorithms'])}", EXIT_USAGE)
+            fail(f"campaign {campaign_id} has no results for {algorithm!r}: --algorithm must be one of the algorithms it ran "
+                 f"({', '.join(body['algorithms'])})", EXIT_USAGE)
         body = {**body, "algorithms": {algorithm: body["algorithms"][algorithm]}}
         if "outcomes" in body:  # one algorithm: nothing to pair it with
             body["outcomes"] = {algorithm: body["outcomes"].get(algorithm)}

@@ -54,7 +54,10 @@ def _interrupt(proc: subprocess.Popen) -> tuple[str, str]:
     """SIGINT (Ctrl-C) to a following CLI; its stdout and stderr once it exits."""
     try:
         proc.send_signal(signal.SIGINT)
-        return proc.communicate(timeout=30)
+        # the API it follows runs in this process beside the rigs' controllers: on a fresh clone
+        # their numerical kernels compile there (numba holds the GIL), which can stall the API's
+        # answers for tens of seconds
+        return proc.communicate(timeout=180)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

@@ -63,7 +63,7 @@ def _interrupted(*args: str, after_s: float) -> tuple[int, str, str]:
 
 def test_ctrl_c_on_simulate_prints_the_partial_table_and_exits_130():
     code, out, err = _interrupted("--tests", "3000", "-a", "rapas,sweep", "--seed", "4", "--workers", "2", *SETS, after_s=4.0)
-    assert code == 130, err
+    assert code == 130, (code, out[-800:], err[-2000:])
     said = " ".join(out.split())
     assert "partial results: the campaign stopped before its end" in said and "PARTIAL:" in said and "of 3000 tests" in said
     assert "Traceback" not in err and "interrupted after" in err and "the results above are partial" in err
@@ -73,7 +73,7 @@ def test_ctrl_c_on_simulate_json_prints_partial_results():
     import json
 
     code, out, err = _interrupted("--tests", "3000", "-a", "rapas", "--workers", "1", "--json", *SETS, after_s=3.0)
-    assert code == 130, err
+    assert code == 130, (code, out[-800:], err[-2000:])
     results = json.loads(out.strip().splitlines()[-1])
     assert results["partial"] is True and 0 < results["tests_recorded"]["rapas"] < 3000
 
@@ -103,7 +103,7 @@ def test_simulate_dynamic_says_within_a_second_that_it_trains_the_pod_model():
 def test_ctrl_c_on_a_study_prints_its_partial_rows_and_exits_130():
     code, out, err = _interrupted("--vary", "n_targets=6,8", "--tests", "3000", "-a", "rapas", "--workers", "1", *SETS[:2],
                                   after_s=10.0)
-    assert code == 130, err
+    assert code == 130, (code, out[-800:], err[-2000:])
     said = " ".join(out.split())
     assert "— partial" in said and "rapas" in said
     assert "Traceback" not in err and "the rows above are partial" in err
