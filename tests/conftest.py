@@ -22,6 +22,15 @@ from ra2vipas.services.sensors.world import GroundTruth, SimulatedPlatform
 SMALL = {"steps": 40, "n_train": 300}
 
 
+def restore_ctrl_c() -> None:
+    """``preexec_fn`` of a child a test will Ctrl-C: a runner started as a background job (``cmd &``
+    in a script) ignores SIGINT, and its children inherit that, so a Python child would install
+    no KeyboardInterrupt handler; the child gets the default disposition back, as under a terminal."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def untimed(results: dict) -> dict:
     """A results object without what depends on the wall clock (speeds, latencies, training
     time) or names the run (its campaign ``id``: null in this process), so two runs of the same

@@ -31,6 +31,7 @@ from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, Plo
 from ra2vipas.services.orchestrator.settings import OrchestratorSettings
 from ra2vipas.services.protocol.scenario import build_scenario
 from tests.api.live import SMALL, LiveAPI
+from tests.conftest import restore_ctrl_c
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 WAIT_S = 60.0
@@ -356,7 +357,7 @@ def test_renderer_processes_exit_when_the_api_process_is_killed(tmp_path):
     script.write_text(CHILD)
     root = Path(__file__).resolve().parents[2]
     proc = subprocess.Popen([sys.executable, str(script)], cwd=root, stdout=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONPATH": str(root)}, start_new_session=True)
+                            env={**os.environ, "PYTHONPATH": str(root)}, start_new_session=True, preexec_fn=restore_ctrl_c)
     renderer_pid = None
     try:
         renderer_pid = int(proc.stdout.readline())

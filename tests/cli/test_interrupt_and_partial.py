@@ -16,6 +16,7 @@ from ra2vipas.services.controller.node import ControllerNode
 from ra2vipas.services.orchestrator.scheduler import MAX_ATTEMPTS
 from tests.api.live import SMALL
 from tests.cli.conftest import ROOT, ra2vipas
+from tests.conftest import restore_ctrl_c
 
 LONG = {**SMALL, "steps": 120}
 
@@ -67,7 +68,7 @@ def _interrupt(proc: subprocess.Popen) -> tuple[str, str]:
 def _cli(*args: str) -> subprocess.Popen:
     env = {k: v for k, v in os.environ.items() if k not in ("RA2VIPAS_API", "RA2VIPAS_TOKEN")}
     return subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, cwd=ROOT, env=env, start_new_session=True)
+                            text=True, cwd=ROOT, env=env, start_new_session=True, preexec_fn=restore_ctrl_c)
 
 
 def _says_how_to_come_back(err: str, cid: str, api: str) -> None:

@@ -16,6 +16,7 @@ import pytest
 
 from ra2vipas.cli.stack import free_port
 from tests.cli.conftest import ROOT, ra2vipas
+from tests.conftest import restore_ctrl_c
 
 SCRIPT = Path(sys.executable).parent / "ra2vipas"
 
@@ -57,7 +58,7 @@ def orchestrator_process(tmp_path):
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", "orchestrator", "--port", str(port), "--db", str(tmp_path / "o.db"),
                              "--token", "flag-token", "--expect-rigs", "0", "--log-level", "WARNING"],
-                            cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            cwd=ROOT, start_new_session=True, preexec_fn=restore_ctrl_c, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env={k: v for k, v in os.environ.items() if k != "RA2VIPAS_TOKEN"})
     try:
         yield proc, f"http://127.0.0.1:{port}"

@@ -12,6 +12,7 @@ import time
 
 from tests.api.live import SMALL
 from tests.cli.conftest import ROOT, one_error_line, ra2vipas
+from tests.conftest import restore_ctrl_c
 
 SETS = [f"--set={k}={v}" for k, v in SMALL.items()]
 
@@ -41,7 +42,7 @@ def _interrupted(*args: str, after_s: float) -> tuple[int, str, str]:
     warm = [a if a != "3000" else "1" for a in args]
     subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "simulate", *warm], capture_output=True, cwd=ROOT, env=env, timeout=300)
     proc = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", "simulate", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env, start_new_session=True, preexec_fn=restore_ctrl_c)
     try:
         said: list[str] = []
         if "--vary" not in args:
@@ -85,7 +86,7 @@ def test_simulate_dynamic_says_within_a_second_that_it_trains_the_pod_model():
     started = time.monotonic()
     proc = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", "simulate", "--preset", "dynamic", "--tests", "1", "-a", "rapas",
                              "--set", "steps=20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=restore_ctrl_c)
     try:
         first = proc.stderr.readline()
         said_after = time.monotonic() - started

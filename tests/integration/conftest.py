@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import restore_ctrl_c
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -45,7 +47,7 @@ class Procs:
 
     def start(self, *args: str, env: dict | None = None, **kw) -> subprocess.Popen:
         full_env = {**os.environ, **(env or {})}
-        p = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", *args], cwd=ROOT, env=full_env, start_new_session=True,
+        p = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", *args], cwd=ROOT, env=full_env, start_new_session=True, preexec_fn=restore_ctrl_c,
                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
         self.procs.append(p)
         return p

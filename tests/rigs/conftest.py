@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import restore_ctrl_c
 from tests.integration.conftest import ROOT, Procs, wait_for_line
 
 
@@ -19,7 +20,7 @@ class Scripts(Procs):
     """Also runs plain scripts (the example node), each in its own process group, killed at teardown."""
 
     def script(self, path: Path, *args: str) -> subprocess.Popen:
-        p = subprocess.Popen([sys.executable, str(path), *args], cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE,
+        p = subprocess.Popen([sys.executable, str(path), *args], cwd=ROOT, start_new_session=True, preexec_fn=restore_ctrl_c, stdout=subprocess.PIPE,
                              stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": ""})
         self.procs.append(p)
         return p
