@@ -15,15 +15,7 @@ def policies(as_json: Annotated[bool, typer.Option("--json", help="One JSON line
     package's (entry points "ra2vipas.policies"; docs/policies.md says how to write one)."""
     from ra2vipas.services.controller import registry
 
-    rows = []
-    for name in registry.names():
-        found = registry.info(name)
-        try:
-            summary = registry.load(name).summary
-        except registry.UnknownPolicy as err:
-            summary = f"does not load: {err}"
-        rows.append({"name": name, "package": found.package, "version": found.version, "builtin": found.builtin,
-                     "summary": summary})
+    rows = registry.describe()
     if as_json:
         print_json(rows)
         return

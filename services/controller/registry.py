@@ -129,6 +129,21 @@ def load(name: str) -> type[Policy]:
     raise UnknownPolicy(f"unknown policy {name!r}; installed: {', '.join(names())} (or give module:Class)")
 
 
+def describe() -> list[dict[str, Any]]:
+    """Every registered policy as {name, package, version, builtin, summary}: what ``ra2vipas
+    policies`` prints and ``GET /policies`` answers (a policy that does not load says why)."""
+    rows = []
+    for name in names():
+        found = info(name)
+        try:
+            summary = load(name).summary
+        except UnknownPolicy as err:
+            summary = f"does not load: {err}"
+        rows.append({"name": name, "package": found.package, "version": found.version, "builtin": found.builtin,
+                     "summary": summary})
+    return rows
+
+
 def provenance(names) -> dict[str, dict[str, str]]:
     """{name: {"package", "version"}} of every policy among ``names`` that ra2vipas does not
     ship (results carry it; the built-ins come with ra2vipas itself). A name that does not load

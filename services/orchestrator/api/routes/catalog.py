@@ -35,15 +35,7 @@ def show_preset(name: str) -> PresetPublic:
 def list_policies() -> list[PolicyPublic]:
     """The pointing policies a campaign can name: the built-ins and every installed policy
     (entry points ``ra2vipas.policies``), with the package and version each comes from."""
-    out = []
-    for name in registry.names():
-        found = registry.info(name)
-        try:
-            summary = registry.load(name).summary
-        except registry.UnknownPolicy as err:
-            summary = f"does not load: {err}"
-        out.append(PolicyPublic(name=name, package=found.package, version=found.version, builtin=found.builtin, summary=summary))
-    return out
+    return [PolicyPublic(**row) for row in registry.describe()]
 
 
 def check_policies(names: list[str], served: dict[str, tuple[str, ...] | None] | None = None) -> None:
