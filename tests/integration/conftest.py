@@ -47,7 +47,14 @@ class Procs:
 
     def start(self, *args: str, env: dict | None = None, **kw) -> subprocess.Popen:
         full_env = {**os.environ, **(env or {})}
-        p = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", *args], cwd=ROOT, env=full_env, start_new_session=True, preexec_fn=restore_ctrl_c,
+        more = kw.pop("preexec_fn", None)
+
+        def before_exec() -> None:
+            restore_ctrl_c()
+            if more is not None:
+                more()
+
+        p = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", *args], cwd=ROOT, env=full_env, start_new_session=True, preexec_fn=before_exec,
                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
         self.procs.append(p)
         return p
