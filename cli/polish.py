@@ -19,6 +19,7 @@ import typer
 from typer import core as typer_core
 
 MARKUP = "markdown"
+INTERRUPTED = 130  # exit code of a command ended by Ctrl-C (128 + SIGINT)
 
 
 def polish(command: Any) -> Any:
@@ -76,9 +77,15 @@ def run(app: typer.Typer, argv: list[str] | None = None, prog_name: str = "ra2vi
     except _click.exceptions.ClickException as err:
         print(f"error: {one_line(err.format_message())}", file=sys.stderr)
         sys.exit(err.exit_code)
-    except typer.Abort:
+    except typer.Abort as err:
+        if isinstance(err.__cause__, KeyboardInterrupt):  # click turns a Ctrl-C into Abort
+            print("interrupted", file=sys.stderr)
+            sys.exit(INTERRUPTED)
         print("error: aborted", file=sys.stderr)
         sys.exit(1)
+    except KeyboardInterrupt:  # a Ctrl-C while the command tree is built
+        print("interrupted", file=sys.stderr)
+        sys.exit(INTERRUPTED)
     sys.exit(code if isinstance(code, int) else 0)
 
 

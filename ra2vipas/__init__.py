@@ -35,11 +35,33 @@ if "numpy" in _sys.modules:
 
     _threadpool_limits(1)
 
-from ra2vipas.api import Client, ClientError, paired_test, simulate, study, to_dataframe  # noqa: E402
-from ra2vipas.services.controller.contract import EpisodeContext, Policy, PolicyDecision, RigDescription  # noqa: E402
+# The public names load on first use (PEP 562), so that ``import ra2vipas`` (which every
+# service and the ``ra2vipas`` command do first) costs nothing, and a Ctrl-C while the command line
+# loads its libraries reaches its entry (``ra2vipas.cli.launch``), which ends it in one line.
+_EXPORTS = {
+    "Client": "ra2vipas.api", "ClientError": "ra2vipas.api", "paired_test": "ra2vipas.api", "simulate": "ra2vipas.api",
+    "study": "ra2vipas.api", "to_dataframe": "ra2vipas.api",
+    "EpisodeContext": "ra2vipas.services.controller.contract", "Policy": "ra2vipas.services.controller.contract",
+    "PolicyDecision": "ra2vipas.services.controller.contract", "RigDescription": "ra2vipas.services.controller.contract",
+}
 
-__all__ = ["Client", "ClientError", "EpisodeContext", "Policy", "PolicyDecision", "RigDescription", "paired_test", "simulate",
-           "study", "to_dataframe", "__version__"]
+__all__ = [*_EXPORTS, "__version__"]
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'ra2vipas' has no attribute {name!r}")
+    from importlib import import_module
+
+    value = getattr(import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_EXPORTS})
+
 
 try:
     from importlib.metadata import version as _version

@@ -72,7 +72,7 @@ def test_a_wheel_installs_one_top_level_package(wheel):
     assert tops == {"ra2vipas"}
     assert "ra2vipas/services/controller/policy.py" in names and "ra2vipas/cli/main.py" in names
     entry = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("entry_points.txt"))).decode()
-    assert "ra2vipas = ra2vipas.cli.main:main" in entry
+    assert "ra2vipas = ra2vipas.cli.launch:main" in entry
 
 
 def test_the_wheel_ships_the_gymnasium_env_and_its_extra(wheel):
