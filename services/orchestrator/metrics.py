@@ -277,6 +277,51 @@ def summarize_algorithm(hits: np.ndarray, in_fov: np.ndarray, rf_period_s: float
     }
 
 
+def summarize_tags(hits, in_fov, rf_period_s: float, confidences=None, decided_steps=None) -> dict[str, Any]:
+    """The results block of a search for K tags at once, from per-test, per-tag, per-step outcomes.
+
+    ``hits`` and ``in_fov`` have shape (tests, K, T): whether the target named for tag k at step t
+    carries tag k (the association rule of eq. 11, applied per tag), with a decided tag's final
+    answer repeated up to the horizon. ``confidences`` (tests, K, T) and ``decided_steps``
+    (tests x K, None where a tag was not decided) are optional.
+
+    Returns ``per_tag`` (one ``summarize_algorithm`` block per tag: DR_t with its Wilson band,
+    calibration, decision), ``mean_tag_dr_final``, ``all_found`` (the rate at which every tag's
+    named target is its carrier, DR-shaped, with its Wilson band and time to 0.9) and, with
+    ``decided_steps``, ``all_decided``: the time until all K tags are decided (median and 90th
+    percentile over the tests where all were, and the share where some tag never was).
+    """
+    hits = np.asarray(hits, dtype=float)
+    in_fov = np.asarray(in_fov, dtype=float)
+    if hits.ndim != 3 or hits.shape != in_fov.shape:
+        raise ValueError(f"hits and in_fov must have one shape (tests, K, T); got {hits.shape} and {in_fov.shape}")
+    tests, tags, _ = hits.shape
+    conf = None if confidences is None or not np.size(confidences) else np.asarray(confidences, dtype=float)
+    per_tag = [summarize_algorithm(hits[:, k, :], in_fov[:, k, :], rf_period_s,
+                                   None if conf is None else conf[:, k, :],
+                                   None if decided_steps is None else [row[k] for row in decided_steps])
+               for k in range(tags)]
+    everyone = hits.min(axis=1)  # (tests, T): 1 where every tag's answer is right
+    successes = everyone.sum(axis=0)
+    all_dr = successes / tests
+    bands = [wilson_interval(float(k), tests) for k in successes]
+    out: dict[str, Any] = {
+        "per_tag": per_tag,
+        "mean_tag_dr_final": round(_mean([block["dr_final"] for block in per_tag]), 6),
+        "all_found": {"dr": [round(float(v), 6) for v in all_dr], "dr_final": round(float(all_dr[-1]), 6),
+                      "ci95": [round(bands[-1][0], 6), round(bands[-1][1], 6)],
+                      "dr_ci95": [[round(lo, 6), round(hi, 6)] for lo, hi in bands],
+                      "time_to_dr90_s": time_to_level(all_dr, 0.9, rf_period_s)},
+    }
+    if decided_steps is not None:
+        last = [None if any(d is None for d in row) else max(row) for row in decided_steps]
+        times = np.asarray([(d + 1) * rf_period_s for d in last if d is not None], dtype=float)
+        out["all_decided"] = {"median_s": round(float(np.median(times)), 6) if times.size else None,
+                              "p90_s": round(float(np.percentile(times, 90)), 6) if times.size else None,
+                              "undecided": round(1.0 - times.size / tests, 6) if tests else None}
+    return out
+
+
 def _mean(values) -> float:
     """The mean with an exactly rounded sum (``math.fsum``): the same value whatever the order
     of the tests, so a campaign whose episodes finished in another order (other rigs, a rerun
