@@ -1,0 +1,229 @@
+"""Several tags at once (issue 21): K beliefs over the shared camera tracks, decided jointly.
+
+With K tags in a scene, every pan tells something about all of them: the receivers hear every
+tag at every step, the camera sees every person in view. The controller keeps, per tag k, the
+fused log-likelihood that camera track i carries it (l_k(i) = l_RF,k(gamma_i) + l_D,k(i), the
+single-tag fusion applied to tag k's own RF evidence and POD) and of "no detected track carries
+it" (the missed hypothesis, summed over the bearings no track covers). This module turns those
+K rows into what the controller reports and where it looks:
+
+* ``independent_posteriors``: each tag's posterior on its own (two tags may sit on one person:
+  a person may carry two tags, the default);
+* ``exclusive_posteriors`` / ``joint_assignment``: when the scenario says one person carries at
+  most one tag, the posterior marginals and the MAP assignment under that constraint, solved
+  jointly (the Hungarian algorithm on the K x tracks log-likelihoods,
+  ``scipy.optimize.linear_sum_assignment``), never greedily tag after tag;
+* ``pan_weights``: how much each tag's acquisition value counts in the one pan chosen for all
+  (a decided tag, confidence above ``stop_confidence``, counts nothing).
+
+Pure numpy/scipy: a unit test drives it without a network or a world.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.special import logsumexp
+
+#: The inclusion-exclusion sum is trusted when every tag's total is at least this share of its
+#: largest term (double precision keeps ~16 digits; below 1e-9 the cancellation could eat 7).
+RELIABLE_SHARE = 1e-9
+#: A track whose weight is below this share of each tag's largest weight is left out of the
+#: constraint when the joint assignments are enumerated one by one.
+NEGLIGIBLE = 1e-12
+#: Most joint assignments enumerated (in numpy) when inclusion-exclusion cannot be trusted.
+ENUMERATION_LIMIT = 200_000
+#: A log-likelihood standing for "impossible" in the assignment's cost matrix: finite, as
+#: ``linear_sum_assignment`` requires, and far below any real difference of log-likelihoods.
+IMPOSSIBLE = -1e9
+
+PanRule = Literal["entropy", "neediest"]
+
+
+def _checked(track_loglik, missed_loglik) -> tuple[np.ndarray, np.ndarray]:
+    tracks = np.asarray(track_loglik, dtype=float)
+    missed = np.asarray(missed_loglik, dtype=float)
+    if tracks.ndim != 2 or missed.shape != (tracks.shape[0],):
+        raise ValueError(f"track_loglik must be (K, M) and missed_loglik (K,); got {tracks.shape} and {missed.shape}")
+    return tracks, missed
+
+
+def independent_posteriors(track_loglik, missed_loglik) -> np.ndarray:
+    """Each tag's posterior over "track i carries it" (columns 0..M-1) and "no detected track
+    does" (column M), on its own.
+
+    Parameters
+    ----------
+    track_loglik : array of shape (K, M)
+        l_k(i), tag k's fused log-likelihood of track i.
+    missed_loglik : array of shape (K,)
+        Tag k's log-likelihood of being carried by no detected track.
+
+    Returns
+    -------
+    array of shape (K, M + 1), rows summing to 1.
+    """
+    tracks, missed = _checked(track_loglik, missed_loglik)
+    full = np.concatenate([tracks, missed[:, None]], axis=1)
+    return np.exp(full - logsumexp(full, axis=1, keepdims=True))
+
+
+def joint_assignment(track_loglik, missed_loglik) -> np.ndarray:
+    """The MAP assignment of tags to tracks when a track carries at most one tag.
+
+    Maximises sum_k l_k(a_k) over assignments where no two tags share a track, "missed" (no
+    detected track) being open to every tag: the Hungarian algorithm on a K x (M + K) matrix whose
+    last K columns are each tag's own "missed" (Kuhn-Munkres; ``linear_sum_assignment``).
+
+    Returns
+    -------
+    array of shape (K,): the track index of each tag, M for "missed".
+    """
+    tracks, missed = _checked(track_loglik, missed_loglik)
+    k, m = tracks.shape
+    own_missed = np.full((k, k), IMPOSSIBLE)
+    np.fill_diagonal(own_missed, missed)
+    gain = np.concatenate([tracks, own_missed], axis=1)
+    rows, cols = linear_sum_assignment(gain, maximize=True)
+    out = np.empty(k, dtype=np.int64)
+    out[rows] = np.where(cols < m, cols, m)
+    return out
+
+
+def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
+    """The posterior marginals of each tag when a track carries at most one tag.
+
+    P(a) is proportional to prod_k w_k(a_k), w_k = exp(l_k), over the assignments a in which no
+    two tags share a track ("missed", column M, may be shared); the marginal of tag k sums over
+    the others. Summed exactly by inclusion-exclusion over the partitions of the tags (Moebius
+    function of the partition lattice: mu = prod over blocks of (-1)^(|B|-1) (|B|-1)!), which
+    costs Bell(K) x K x M (5 partitions for 3 tags) instead of (M + 1) ** K; where that sum
+    cancels too much to trust in double precision (tags all but certain of one track), it is
+    enumerated over the tracks that carry any weight (``_enumerated``).
+
+    Returns
+    -------
+    array of shape (K, M + 1), rows summing to 1.
+    """
+    tracks, missed = _checked(track_loglik, missed_loglik)
+    k, m = tracks.shape
+    if k == 1 or m == 0:
+        return independent_posteriors(tracks, missed)
+    full = np.concatenate([tracks, missed[:, None]], axis=1)
+    w = np.exp(full - full.max(axis=1, keepdims=True))  # (K, M + 1), each row's largest 1
+    unnormalised = np.zeros_like(w)
+    largest_term = 0.0
+    totals = w.sum(axis=1)
+    for blocks in _partitions(list(range(k))):
+        mu = 1.0
+        shared: dict[int, np.ndarray] = {}  # tag -> per column c: the rest of its block's product at c
+        values: list[float] = []
+        for block in blocks:
+            size = len(block)
+            mu *= (-1.0) ** (size - 1) * math.factorial(size - 1)
+            if size == 1:
+                values.append(float(totals[block[0]]))
+                shared[block[0]] = np.ones(m + 1)
+                continue
+            product = np.prod(w[block, :m], axis=0)
+            values.append(float(product.sum()))
+            for tag in block:
+                rest = np.zeros(m + 1)
+                rest[:m] = np.prod(w[[t for t in block if t != tag], :m], axis=0)
+                shared[tag] = rest
+        term = mu * math.prod(values)
+        largest_term = max(largest_term, abs(term))
+        for i, block in enumerate(blocks):
+            others = math.prod(v for j, v in enumerate(values) if j != i)
+            for tag in block:
+                unnormalised[tag] += mu * others * shared[tag]
+    unnormalised *= w
+    z = unnormalised.sum(axis=1)
+    if (unnormalised < -RELIABLE_SHARE * largest_term).any() or (z <= RELIABLE_SHARE * largest_term).any():
+        return _enumerated(w, m)
+    return np.clip(unnormalised, 0.0, None) / z[:, None]
+
+
+def _partitions(items: list[int]):
+    """Every partition of ``items`` into blocks (Bell(len(items)) of them)."""
+    if len(items) == 1:
+        yield [items]
+        return
+    first, rest = items[0], items[1:]
+    for smaller in _partitions(rest):
+        for i in range(len(smaller)):
+            yield smaller[:i] + [[first, *smaller[i]]] + smaller[i + 1:]
+        yield [[first], *smaller]
+
+
+def _enumerated(w: np.ndarray, m: int) -> np.ndarray:
+    """``exclusive_posteriors`` by summing the joint assignments one by one (in numpy), over the
+    tracks some tag gives at least ``NEGLIGIBLE`` of its largest weight, at most the
+    ``ENUMERATION_LIMIT``-th root of them by weight; the others are left open to every tag, as
+    "missed" is (ruling out a track no tag can be on changes nothing at that share)."""
+    k = w.shape[0]
+    strongest = w[:, :m].max(axis=0)
+    order = np.argsort(-strongest, kind="stable")
+    most = max(1, int(ENUMERATION_LIMIT ** (1.0 / k)) - 1)
+    kept = np.sort(order[: min(most, int((strongest >= NEGLIGIBLE).sum()))])
+    rest = np.setdiff1d(np.arange(m), kept)
+    open_weight = w[:, m] + w[:, rest].sum(axis=1)  # (K,): missed and the tracks left open
+    cols = np.concatenate([w[:, kept], open_weight[:, None]], axis=1)  # (K, c + 1)
+    c = kept.size
+    joint = np.ones((c + 1,) * k)
+    for tag in range(k):
+        shape = [1] * k
+        shape[tag] = c + 1
+        joint = joint * cols[tag].reshape(shape)
+    grids = np.indices((c + 1,) * k, sparse=True)
+    for a in range(k):
+        for b in range(a + 1, k):
+            joint = np.where((grids[a] == grids[b]) & (grids[a] < c), 0.0, joint)
+    out = np.stack([joint.sum(axis=tuple(ax for ax in range(k) if ax != tag)) for tag in range(k)])
+    full = np.zeros_like(w)
+    full[:, kept] = out[:, :c]
+    spread = out[:, c] / open_weight  # what the open column took, shared in proportion to its parts
+    full[:, m] = w[:, m] * spread
+    full[:, rest] = w[:, rest] * spread[:, None]
+    return full / full.sum(axis=1, keepdims=True)
+
+
+def entropy(posteriors) -> np.ndarray:
+    """Shannon entropy [nats] of each row of a (K, C) array of posteriors."""
+    p = np.asarray(posteriors, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(p > 0, -p * np.log(p), 0.0)
+    return terms.sum(axis=1)
+
+
+def pan_weights(posteriors, decided, rule: PanRule = "entropy") -> np.ndarray:
+    """How much each tag's acquisition value counts in the one pan chosen for all K.
+
+    ``entropy``: in proportion to each undecided tag's posterior entropy (the summed entropy of
+    the K "which track carries tag k" posteriors is what a pan should reduce, and a tag's share
+    of it is its entropy); ``neediest``: all weight on the undecided tag with the largest
+    entropy. A decided tag weighs 0; with every tag decided all weights are 0 (the episode ends).
+
+    Returns
+    -------
+    array of shape (K,), summing to 1 (or all 0).
+    """
+    h = entropy(posteriors)
+    open_ = ~np.asarray(decided, dtype=bool)
+    if h.shape != open_.shape:
+        raise ValueError(f"one decided flag per tag: {open_.shape} for {h.shape[0]} tags")
+    out = np.zeros_like(h)
+    if not open_.any():
+        return out
+    if rule == "neediest":
+        out[int(np.argmax(np.where(open_, h, -np.inf)))] = 1.0
+        return out
+    if rule != "entropy":
+        raise ValueError(f"unknown pan rule {rule!r}: entropy or neediest")
+    weights = np.where(open_, h, 0.0)
+    if weights.sum() <= 0.0:  # every open tag already certain: share equally
+        weights = open_.astype(float)
+    return weights / weights.sum()

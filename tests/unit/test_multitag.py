@@ -1,0 +1,122 @@
+"""Several tags at once (issue 21): joint decisions over the shared camera tracks, by hand."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from ra2vipas.services.controller.multitag import (
+    entropy,
+    exclusive_posteriors,
+    independent_posteriors,
+    joint_assignment,
+    pan_weights,
+)
+
+LOG = math.log
+
+
+def _brute_force_marginals(tracks, missed):
+    k, m = tracks.shape
+    full = np.concatenate([tracks, missed[:, None]], axis=1)
+    out = np.zeros_like(full)
+    for a in itertools.product(range(m + 1), repeat=k):
+        real = [x for x in a if x < m]
+        if len(real) != len(set(real)):
+            continue
+        w = math.exp(sum(full[t, x] for t, x in enumerate(a)))
+        for t, x in enumerate(a):
+            out[t, x] += w
+    return out / out.sum(axis=1, keepdims=True)
+
+
+def test_one_tag_is_the_single_tag_posterior_with_or_without_the_constraint():
+    tracks = np.array([[0.3, -1.0, 2.0]])
+    missed = np.array([-0.5])
+    independent = independent_posteriors(tracks, missed)
+    assert independent.sum() == pytest.approx(1.0)
+    assert np.allclose(exclusive_posteriors(tracks, missed), independent)
+    assert joint_assignment(tracks, missed).tolist() == [2]
+
+
+def test_two_tags_on_neighbouring_people_are_resolved_as_the_likelihoods_say():
+    # people 0 and 1 stand side by side; tag A's radio favours 0 a little, tag B's favours 0 much more.
+    tracks = np.array([[LOG(0.55), LOG(0.45)], [LOG(0.9), LOG(0.1)]])
+    missed = np.array([LOG(1e-6)] * 2)
+    # without the constraint both name person 0 (a person may carry two tags)
+    assert independent_posteriors(tracks, missed)[:, :2].argmax(axis=1).tolist() == [0, 0]
+    # one person, one tag: A -> 1, B -> 0 (0.45 x 0.9 > 0.55 x 0.1), and A's marginal follows
+    assert joint_assignment(tracks, missed).tolist() == [1, 0]
+    post = exclusive_posteriors(tracks, missed)
+    assert post[0, 1] > 0.8 and post[1, 0] > 0.8
+
+
+def test_the_assignment_is_joint_where_greedy_fails():
+    """Greedy, tag by tag in order of confidence, takes track 0 for tag 0 (its best, 0.5) and leaves
+    tag 1 and tag 2 to fight over track 1; the joint optimum gives track 0 to tag 1."""
+    tracks = np.log(np.array([[0.5, 0.3, 0.2],
+                              [0.45, 0.45, 0.1],
+                              [0.05, 0.9, 0.05]]))
+    missed = np.full(3, -30.0)
+    greedy, taken = [], set()
+    for t in np.argsort(-tracks.max(axis=1)):  # the most confident tag first
+        best = max((i for i in range(3) if i not in taken), key=lambda i: tracks[t, i])
+        taken.add(best)
+        greedy.append((int(t), best))
+    greedy_score = sum(tracks[t, i] for t, i in greedy)
+    joint = joint_assignment(tracks, missed)
+    joint_score = sum(tracks[t, i] for t, i in enumerate(joint))
+    assert joint.tolist() == [2, 0, 1]
+    assert joint_score > greedy_score + 0.1
+
+
+def test_missed_is_open_to_every_tag():
+    tracks = np.array([[-20.0, -20.0], [-20.0, -20.0]])
+    missed = np.array([0.0, 0.0])
+    assert joint_assignment(tracks, missed).tolist() == [2, 2]
+    assert np.allclose(exclusive_posteriors(tracks, missed)[:, 2], 1.0, atol=1e-6)
+
+
+def test_exact_marginals_equal_a_brute_force_sum():
+    rng = np.random.default_rng(5)
+    tracks = rng.normal(0, 2, size=(3, 5))
+    missed = rng.normal(-1, 1, size=3)
+    assert np.allclose(exclusive_posteriors(tracks, missed), _brute_force_marginals(tracks, missed), atol=1e-12)
+
+
+def test_near_certain_tags_are_summed_one_by_one_where_inclusion_exclusion_would_cancel():
+    # both tags all but certain of track 0: the constraint leaves mass ~1e-12 of the unconstrained sum
+    tracks = np.array([[0.0, -28.0, -40.0, -45.0], [0.0, -30.0, -41.0, -45.0]])
+    missed = np.array([-60.0, -60.0])
+    post = exclusive_posteriors(tracks, missed)
+    assert np.allclose(post, _brute_force_marginals(tracks, missed), rtol=1e-6, atol=1e-15)
+    assert post[0, 1] > 0.5 and post[1, 0] > 0.5  # one of them takes track 0, the other its second best
+
+
+def test_many_tags_and_tracks_match_the_brute_force_sum():
+    rng = np.random.default_rng(11)
+    tracks = rng.normal(0, 3, size=(4, 6))
+    missed = rng.normal(-2, 1, size=4)
+    assert np.allclose(exclusive_posteriors(tracks, missed), _brute_force_marginals(tracks, missed), atol=1e-12)
+
+
+def test_decided_tags_stop_steering_the_pan():
+    post = np.array([[0.98, 0.01, 0.01], [0.4, 0.4, 0.2], [0.6, 0.3, 0.1]])
+    h = entropy(post)
+    w = pan_weights(post, decided=[True, False, False])
+    assert w[0] == 0.0 and w.sum() == pytest.approx(1.0)
+    assert w[1] / w[2] == pytest.approx(h[1] / h[2])
+    assert pan_weights(post, decided=[True, False, False], rule="neediest").tolist() == [0.0, 1.0, 0.0]
+    assert pan_weights(post, decided=[True, True, True]).tolist() == [0.0, 0.0, 0.0]
+
+
+def test_bad_shapes_and_rules_are_refused():
+    with pytest.raises(ValueError, match="K, M"):
+        independent_posteriors(np.zeros((2, 3)), np.zeros(3))
+    with pytest.raises(ValueError, match="one decided flag"):
+        pan_weights(np.full((2, 2), 0.5), decided=[False])
+    with pytest.raises(ValueError, match="unknown pan rule"):
+        pan_weights(np.full((2, 2), 0.5), decided=[False, False], rule="loudest")
