@@ -138,6 +138,14 @@ _LIST_COLUMNS = (
 _CAMPAIGN_COLUMNS = _LIST_COLUMNS + ", results"
 
 
+def new_record_id() -> str:
+    """A campaign's or study's id: 12 lower-case hex digits whose first is a letter (a-f), so that
+    no table reader takes it for a number (pandas reads an all-digit id as an integer, and one
+    such as ``123e45678901`` as a float). 16**11 x 6 ids: a clash needs ~10^6 records."""
+    digits = uuid.uuid4().hex[:12]
+    return "abcdef"[int(digits[0], 16) % 6] + digits[1:]
+
+
 class StoreError(Exception):
     """A storage operation failed (e.g. the file cannot be opened or is from a newer version)."""
 
@@ -370,7 +378,7 @@ class Store:
         """Insert a campaign and all its pending episodes in one transaction; return its id.
         ``targeting``: the rigs it may run on (``{"rigs", "rig_kind", "use_rig_values",
         "rig_values"}``), None for any rig."""
-        cid = uuid.uuid4().hex[:12]
+        cid = new_record_id()
         now = time.time()
         with self.transaction() as db:
             db.execute(

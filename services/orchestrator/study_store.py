@@ -15,10 +15,9 @@ from __future__ import annotations
 
 import json
 import time
-import uuid
 from typing import Any, Sequence
 
-from ra2vipas.services.orchestrator.storage import ACTIVE, CampaignActiveError, Store
+from ra2vipas.services.orchestrator.storage import ACTIVE, CampaignActiveError, Store, new_record_id
 from ra2vipas.services.orchestrator.study import status_of
 
 # the study's status in SQL (for filtering a page), the same rule as study.status_of
@@ -55,7 +54,7 @@ class StudyStore:
         StorageFault
             The database cannot be written (nothing was).
         """
-        sid = uuid.uuid4().hex[:12]
+        sid = new_record_id()
         now = time.time()
         cids = []
         with self.store.transaction() as db:
@@ -64,7 +63,7 @@ class StudyStore:
                        (sid, name, preset, json.dumps(overrides), json.dumps(vary), json.dumps(algorithms), tests, seed, mode,
                         stop_confidence, now))
             for i, (point_overrides, scenario) in enumerate(points):
-                cid = uuid.uuid4().hex[:12]
+                cid = new_record_id()
                 label = f"{name or 'study ' + sid} #{i}"[:100]
                 db.execute(
                     "INSERT INTO campaigns(id, name, preset, overrides, scenario, algorithms, tests, seed, mode, status, created_at,"
