@@ -253,7 +253,11 @@ _BLE_RADIO: dict[str, Any] = {
 }
 PRESETS["ble"] = dict(_BLE_RADIO)
 PRESETS["ble-dynamic"] = {**PRESETS["dynamic"], **_BLE_RADIO}
-PRESETS["ble-recorded"] = {"radio": "recorded", "antenna_model": "db-gain", "radio_channel": "cc0-tetam"}
+PRESETS["ble-recorded"] = {
+    # the shipped channel's pooled log-distance fit (its meta, ra2vipas radio import): what a model of it assumes
+    "radio": "recorded", "antenna_model": "db-gain", "radio_channel": "cc0-tetam", "path_loss_ref_dbm": -61.66,
+    "path_loss_exponent": 1.413, "rf_noise_db": 3.0,
+}
 """Named starting points: overrides applied on top of the field defaults (the paper's values)."""
 
 PRESET_DESCRIPTIONS: dict[str, str] = {
