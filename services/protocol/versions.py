@@ -49,7 +49,8 @@ from pydantic import BaseModel
 V1_0 = "1.0"
 V1_1 = "1.1"
 V1_2 = "1.2"
-PROTOCOL_VERSION = "1.3"
+V1_3 = "1.3"
+PROTOCOL_VERSION = V1_3
 """The newest version: what this code speaks."""
 VERSIONS: tuple[str, ...] = (V1_0, V1_1, V1_2, PROTOCOL_VERSION)
 BUILTIN_POLICIES: tuple[str, ...] = ("ra2vipas", "rapas", "ravipas", "sweep")
