@@ -113,15 +113,19 @@ def wire_exclude(message: BaseModel, version: str | None = None) -> dict[str, An
         elif value is None and optional_since(cls, name) is not None:
             out[name] = True  # a 1.0 field absent since it became optional: absent on the wire too
             continue
-        if isinstance(value, BaseModel):
-            inner = wire_exclude(value, version)
-            if inner:
-                out[name] = inner
-        elif isinstance(value, (tuple, list)) and value and isinstance(value[0], BaseModel):
-            inner_items = {i: e for i, item in enumerate(value) if (e := wire_exclude(item, version))}
-            if inner_items:
-                out[name] = inner_items
+        inner = _exclude_value(value, version)
+        if inner:
+            out[name] = inner
     return out
+
+
+def _exclude_value(value: Any, version: str | None) -> dict[Any, Any]:
+    """``wire_exclude`` of a field's value: a message, or a sequence (of sequences) of messages."""
+    if isinstance(value, BaseModel):
+        return wire_exclude(value, version)
+    if isinstance(value, (tuple, list)) and value and isinstance(value[0], (BaseModel, tuple, list)):
+        return {i: e for i, item in enumerate(value) if (e := _exclude_value(item, version))}
+    return {}
 
 
 # -- what a campaign needs ------------------------------------------------------------------
