@@ -188,3 +188,13 @@ def test_training_in_a_ble_world_yields_advertisements():
     expected = 300 * sc.rf_period_s * (1 - sc.packet_loss_iso) / (sc.adv_interval_s + sc.adv_delay_max_s / 2)
     assert abs(sum(counts) - expected) < 0.25 * expected
     TrainingStream.model_validate_json(dump(TrainingStream(job_id="j", samples=tuple(samples))))
+
+
+def test_a_campaign_on_advertisements_is_refused_in_one_line_until_the_controllers_read_them():
+    from ra2vipas.services.orchestrator.simulate import check_radio
+    from ra2vipas.services.protocol.scenario import ScenarioError
+
+    check_radio(build_scenario("paper"))
+    for preset in ("ble", "ble-dynamic", "ble-recorded"):
+        with pytest.raises(ScenarioError, match=r"the built-in controllers do not read BLE advertisements yet"):
+            check_radio(build_scenario(preset))
