@@ -117,7 +117,7 @@ def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: Train
             np.array([o.hits for o in runs]), np.array([o.in_fov for o in runs]), scenario.rf_period_s, confidences,
             [o.decided_step for o in runs] if stop_confidence > 0.0 else None,
         )
-    resolved = scenario.resolved()
+    resolved = scenario.model_dump(mode="json")
     out = {
         "id": None,  # the campaign's id where one names it (the API's results); None in this process
         "preset": preset,
@@ -161,7 +161,7 @@ def overrides_of(preset: str, scenario: dict[str, Any]) -> dict[str, Any]:
     differs from the preset's, with the scenario's types, in the scenario's order; the
     ``--set NAME=VALUE`` options that rebuild it from the preset. Empty for an unknown preset."""
     try:
-        base = build_scenario(preset, {}).resolved()
+        base = build_scenario(preset, {}).model_dump(mode="json")
     except ScenarioError:
         return {}
     return {name: value for name, value in scenario.items() if base.get(name) != value}

@@ -162,7 +162,7 @@ def expand(preset: str, overrides: Mapping[str, Any], vary: Mapping[str, Sequenc
             message = str(err)
             culprit = next((n for n in names if re.search(rf"\b{n}\b", message)), None)
             raise StudyError(f"vary: {', '.join(f'{n}={v!r}' for n, v in values.items())}: {message}", name=culprit) from None
-        resolved = scenario.resolved()
+        resolved = scenario.model_dump(mode="json")
         points.append(({n: resolved[n] for n in names}, scenario))
     return points
 

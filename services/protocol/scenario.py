@@ -189,15 +189,6 @@ class Scenario(BaseModel):
             )
         return self
 
-    def resolved(self) -> dict[str, Any]:
-        """The scenario as JSON data the way results and stored campaigns show it: every
-        parameter, but those added after protocol 1.0 only when set away from their default
-        (the wire form, ``messages.dump``), so a campaign's recorded scenario does not change
-        when a version adds a parameter it does not use."""
-        from ra2vipas.services.protocol.versions import wire_exclude
-
-        return self.model_dump(mode="json", exclude=wire_exclude(self) or None)
-
     # -- derived quantities ------------------------------------------------------------------
     @property
     def n_walkers(self) -> int:

@@ -126,6 +126,6 @@ def read_results_csv(text: str) -> dict[str, Any]:
     return {
         "campaign_id": first["campaign_id"] or None, "name": first["name"] or None, "preset": first["preset"],
         "seed": int(first["seed"]), "tests": int(first["tests"]), "overrides": overrides,
-        "scenario": build_scenario(first["preset"], overrides).resolved(),
+        "scenario": build_scenario(first["preset"], overrides).model_dump(mode="json"),
         "algorithms": list(curves), "curves": curves,
     }

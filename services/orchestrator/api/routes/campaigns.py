@@ -64,7 +64,7 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
     algorithms = list(dict.fromkeys(body.algorithms))
     check_policies(algorithms, {name: served for name, served in scheduler.served().items()
                                 if name in live and _targets(name, body.rigs, body.rig_kind, descriptors)})
-    resolved = scenario.resolved()
+    resolved = scenario.model_dump(mode="json")
     taken = list((targeting or {}).get("rig_values", {}))  # the rigs' values count as overrides of the preset
     overrides = {name: resolved[name] for name in [*body.overrides, *taken]}  # stored with the scenario's types (3 -> 3.0)
     cid = store.create_campaign(

@@ -73,9 +73,9 @@ def create_study(body: StudyCreate, response: Response, store: StoreDep, schedul
     except TargetingError as err:
         raise RequestValidationError([{"loc": ("body", *where.split(".")), "msg": msg, "type": "value_error"}
                                       for where, msg in err.errors]) from None
-    base = grid[0][1].resolved()
+    base = grid[0][1].model_dump(mode="json")
     overrides = {name: base[name] for name in body.overrides}  # stored with the scenario's types (3 -> 3.0)
-    points = [({**overrides, **values}, scenario.resolved()) for values, scenario in grid]
+    points = [({**overrides, **values}, scenario.model_dump(mode="json")) for values, scenario in grid]
     vary = {n: list(dict.fromkeys(values[n] for values, _ in grid)) for n in body.vary}
     sid, cids = _studies(store).create(preset=body.preset, overrides=overrides, vary=vary, points=points, algorithms=algorithms,
                                        tests=body.tests, seed=body.seed, mode=body.mode, name=body.name,
