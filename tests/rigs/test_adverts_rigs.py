@@ -104,3 +104,18 @@ def test_the_simulated_sensors_node_sends_the_worlds_adverts():
     with_adverts = [m for m in messages if m.get("adverts")]
     assert with_adverts and len(with_adverts) < 40  # a packet every 0.45 s: most 0.1 s steps carry none
     assert all(isinstance(a["rssi_dbm"], float) and a["rssi_dbm"] == round(a["rssi_dbm"]) for m in with_adverts for a in m["adverts"])
+
+
+def test_a_recording_keeps_each_steps_adverts_and_empty_steps(tmp_path):
+    from ra2vipas.services.rigs.recording import _Entry, read_mcap, write_mcap
+
+    eid = "c1.0.ra2vipas.1"
+    steps = [Measurement(episode_id=eid, step=0, pan_rad=0.0, frames=(),
+                         adverts=(Advertisement(receiver="iso", rssi_dbm=-61, channel=38, offset_s=0.03),)),
+             Measurement(episode_id=eid, step=1, pan_rad=0.2, frames=())]
+    entries = [_Entry(keys.measurement("rig-1"), dump(m), 1_000 + t) for t, m in enumerate(steps)]
+    path = tmp_path / "ble.mcap"
+    assert write_mcap(path, entries, campaign={"id": "c1"}, results=None, source="live") == 2
+    recorded = read_mcap(path).episodes[eid].measurements
+    assert recorded[0].rssi_dbm("iso") == (-61,) and recorded[0].adverts[0].channel == 38
+    assert recorded[1].advertisements() == () and recorded[1].rf is None  # a step with nothing stays nothing
