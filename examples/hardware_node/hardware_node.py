@@ -143,7 +143,7 @@ class HardwareNode:
         self.publish_truth = publish_truth
         self.descriptor = dict(DESCRIPTOR, rig=rig, episode_truth=publish_truth)
         if hasattr(driver, "read_adverts"):  # a BLE receiver (ble_receiver.py): adverts need protocol 1.3
-            self.descriptor["protocol"] = "1.3"
+            self.descriptor.update(protocol="1.3", radio="adverts")
         self.nu = int(self.descriptor["frames_per_rf"])
         self.period = float(self.descriptor["rf_period_s"])
         self.lock = threading.RLock()  # one driver, one episode table

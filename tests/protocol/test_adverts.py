@@ -112,3 +112,18 @@ def test_a_paper_scenario_keeps_its_training_job_id():
     defaults leave the paper presets' ids as they were (value computed before 1.3)."""
     assert training_job_id(build_scenario("paper"), 1) == "pod-0fba6f1a5c47f8c4"
     assert training_job_id(build_scenario("ble"), 1) != training_job_id(build_scenario("paper"), 1)
+
+
+def test_a_rig_says_what_its_measurements_carry_and_a_campaign_that_contradicts_it_is_a_conflict():
+    from ra2vipas.services.protocol.rig import RigDescriptor, apply_rig_values, conflicts
+
+    base = {"rig": "cam-1", "kind": "hardware", "frames_per_rf": 10, "rf_period_s": 0.1, "fov_half_angle_deg": 22.5,
+            "box_bearing_noise_deg": 0.25, "rx_dir": {"model": "db-gain"}}
+    old = RigDescriptor.model_validate(base)  # a 1.1 descriptor: the pair, no heights
+    assert old.radio is None and old.box_heights is None and b"radio" not in dump(old)
+    ble = RigDescriptor.model_validate({**base, "radio": "adverts", "box_heights": True, "protocol": "1.3"})
+    found = {c.field: (c.campaign, c.rig) for c in conflicts(ble, build_scenario("paper", {"antenna_model": "db-gain"}))}
+    assert found == {"radio": ("pair", "adverts"), "box_heights": (False, True)}
+    applied = apply_rig_values(ble, build_scenario("paper"))
+    assert applied.radio.value == "adverts" and applied.box_heights is True
+    assert not conflicts(ble, applied)
