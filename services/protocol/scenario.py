@@ -124,12 +124,12 @@ class Scenario(BaseModel):
     radio: RadioMode = Field(RadioMode.pair, json_schema_extra=SINCE_1_3, description="what the receivers deliver per step: pair (the paper's one RSSI pair per T_RF)|adverts (simulated BLE advertisements, 0..n per step)|recorded (advertisements drawn from a recorded channel)")
     adv_interval_s: float = Field(0.45, ge=0.02, le=10.24, json_schema_extra=SINCE_1_3, description="T_adv, the beacon's advertising interval, before advDelay (BLE: 20 ms to 10.24 s) [s]")
     adv_delay_max_s: float = Field(0.01, ge=0.0, le=0.1, json_schema_extra=SINCE_1_3, description="advDelay, uniform in [0, this] added to every advertising interval (BLE: 0-10 ms) [s]")
-    scan_interval_s: float = Field(1.0, gt=0.0, le=100.0, json_schema_extra=SINCE_1_3, description="each receiver listens on one advertising channel (37, 38, 39 in turn) for this long, from a random phase [s]")
+    scan_interval_s: float = Field(1.2, gt=0.0, le=100.0, json_schema_extra=SINCE_1_3, description="each receiver listens on one advertising channel (37, 38, 39 in turn) for this long, from a random phase [s]")
     packet_loss_iso: float = Field(0.1, ge=0.0, lt=1.0, json_schema_extra=SINCE_1_3, description="probability that Rx(iso) misses an advertisement sent on the channel it listens to")
     packet_loss_dir: float = Field(0.1, ge=0.0, lt=1.0, json_schema_extra=SINCE_1_3, description="probability that Rx(dir) misses an advertisement sent on the channel it listens to")
     rx_sensitivity_dbm: float = Field(-65.0, ge=-200.0, le=50.0, json_schema_extra=SINCE_1_3, description="receiver sensitivity: a packet whose RSSI would be below this is lost [dBm]")
     rssi_step_db: float = Field(1.0, ge=0.0, le=10.0, json_schema_extra=SINCE_1_3, description="RSSI quantisation step: reported RSSI = step * round(RSSI / step) (1: whole dBm; 0: none) [dB]")
-    channel_offset_db: float = Field(2.0, ge=0.0, le=30.0, json_schema_extra=SINCE_1_3, description="sigma_ch, std of the per-receiver, per-advertising-channel RSSI offsets (frequency-selective fading), drawn once per test [dB]; rf_noise_db is then the per-packet spread")
+    channel_offset_db: float = Field(3.0, ge=0.0, le=30.0, json_schema_extra=SINCE_1_3, description="sigma_ch, std of the per-receiver, per-advertising-channel RSSI offsets (frequency-selective fading), drawn once per test [dB]; rf_noise_db is then the per-packet spread")
     radio_channel: str = Field("cc0-tetam", pattern=CHANNEL_NAME_PATTERN, json_schema_extra=SINCE_1_3, description="radio recorded: the recorded channel file, by name (a shipped one, or one in $RA2VIPAS_CHANNELS; ra2vipas radio import)")
     # -- boxes with a size (protocol 1.3) ---------------------------------------------------
     box_heights: bool = Field(False, json_schema_extra=SINCE_1_3, description="every box carries its angular height: from the target's height and range (clutter: a plausible person's), with noise")
@@ -237,8 +237,8 @@ _BLE_RADIO: dict[str, Any] = {
     # docs/radio.md: every value and where it comes from (the CC0 BLE dataset, Danis et al. 2022)
     "radio": "adverts",
     "antenna_model": "db-gain",
-    "rf_noise_db": 2.2,
-    "channel_offset_db": 2.0,
+    "rf_noise_db": 1.6,
+    "channel_offset_db": 3.0,
     "shadowing_db": 3.8,
     "shadowing_corr_m": 1.5,
 }
@@ -257,7 +257,7 @@ PRESET_DESCRIPTIONS: dict[str, str] = {
     "dynamic": "a cluttered, dynamic world: paper placement at t=0, half the targets walk (1 m/s), 0.5 m bodies occlude,"
                " 0.3 false boxes per frame, 4 dB shadowing (2 m), RSSI noise correlated over 0.5 s, 1 deg box noise",
     "ble": "the paper's targets heard by BLE receivers with the statistics of a real building (CC0 dataset, docs/radio.md):"
-           " an advertisement every 0.45-0.46 s, 10 % loss, whole-dBm RSSI, 2 dB per-channel offsets, 2.2 dB per-packet spread,"
+           " an advertisement every 0.45-0.46 s, 10 % loss, whole-dBm RSSI, 3 dB per-channel offsets, 1.6 dB per-packet spread,"
            " 3.8 dB shadowing (1.5 m), db-gain antenna, at the paper's kappa",
     "ble-dynamic": "the dynamic world (walkers, occlusion, clutter) heard by the ble preset's radio",
     "ble-recorded": "the paper's targets; each receiver's packets (which arrive, when, at what whole-dBm RSSI) drawn from"

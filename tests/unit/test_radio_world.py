@@ -198,3 +198,28 @@ def test_a_campaign_on_advertisements_is_refused_in_one_line_until_the_controlle
     for preset in ("ble", "ble-dynamic", "ble-recorded"):
         with pytest.raises(ScenarioError, match=r"the built-in controllers do not read BLE advertisements yet"):
             check_radio(build_scenario(preset))
+
+
+def test_the_ble_preset_has_the_datasets_packet_statistics():
+    """docs/radio.md's table, at one point (no shadowing change, every packet above the
+    sensitivity): rate, median gap, spread and the lag-correlation pattern of the CC0 dataset."""
+    sc = build_scenario("ble", {"n_targets": 2, "steps": 3000, "rx_sensitivity_dbm": -200.0})
+    lags = {1: [], 2: [], 3: [], 6: []}
+    spreads, gaps, count = [], [], 0
+    for e in range(20):
+        w = SimulatedPlatform(sc, 11, e, layout=ONE_TX)
+        packets = _iso([w.sense(t, 0.0) for t in range(sc.steps)])
+        v = np.array([p[1] for p in packets])
+        v = v - v.mean()
+        spreads.append(v.std())
+        gaps += np.diff([p[0] for p in packets]).tolist()
+        count += len(packets)
+        for k in lags:
+            lags[k].append(float((v[:-k] * v[k:]).mean() / v.var()))
+    rate = count / (20 * sc.steps * sc.rf_period_s)
+    assert abs(rate - 1.96) < 0.1 and abs(float(np.median(gaps)) - 0.455) < 0.01  # 1.96 /s, median gap 0.455 s
+    assert 2.6 < float(np.median(spreads)) < 3.3  # measured median 2.9-3.2 dB
+    measured = {1: 0.19, 2: -0.26, 3: -0.29, 6: 0.13}
+    got = {k: float(np.mean(x)) for k, x in lags.items()}
+    assert all(np.sign(got[k]) == np.sign(measured[k]) for k in measured), got
+    assert all(abs(got[k] - measured[k]) < 0.15 for k in measured), got
