@@ -63,6 +63,7 @@ class LearnerSettings:
     restarts: int = 2
     min_rf_noise_db: float = 0.1
     min_fading: float = 0.1  # phi below which the receiver noise is taken as white
+    channel_offsets: bool = True  # packets with channels: fit each channel's offset with the walk
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,7 @@ class LearnedPOD:
     train_seconds: float
     diffusion: tuple[float, float, float]  # (a, b, R) of the latent RSSI walk
     fading: float = 0.0  # phi of the receiver noise's AR(1) (0: white)
+    channel_offsets: dict[int, float] | None = None  # packets with channels: each channel's estimated offset [dB], centred
 
 
 def detection_counts(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndarray, int]:
@@ -102,13 +104,17 @@ def detection_counts(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndar
     return z, k, nu
 
 
-def packet_statistics(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndarray]:
+def packet_statistics(samples: list[TrainingSample], channel_offsets: dict[int, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(zbar_j, n_j): the mean iso RSSI of the n_j advertisements of each sample (NaN when it has
     none) and their number. Under Gaussian packet noise of variance R, sample j's packets weigh
     on its latent RSSI r_j exactly as one value zbar_j of variance R / n_j would (the sufficient
-    statistic: nothing is averaged away), and a sample with none carries no RF evidence."""
+    statistic: nothing is averaged away), and a sample with none carries no RF evidence. Each
+    packet first loses its advertising channel's offset (``channel_offsets``; 0 for a packet
+    whose channel is not reported)."""
+    off = channel_offsets or {}
     n = np.fromiter((len(s.rssi_dbm("iso")) for s in samples), dtype=float, count=len(samples))
-    sums = np.fromiter((sum(s.rssi_dbm("iso")) for s in samples), dtype=float, count=len(samples))
+    sums = np.fromiter((sum(a.rssi_dbm - off.get(a.channel, 0.0) for a in s.advertisements_of("iso")) for s in samples),
+                       dtype=float, count=len(samples))
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(n > 0, sums / np.maximum(n, 1.0), np.nan), n
 
@@ -481,6 +487,59 @@ def _gp_on_cells(u: np.ndarray, successes: np.ndarray, trials: np.ndarray, theta
     return m0 + mean, std
 
 
+def _channel_sums(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Per sample and advertising channel, the number and the sum of its iso packets: (n_jc, s_jc,
+    channels); the packets without a channel in a column of their own (never offset)."""
+    channels = sorted({a.channel for s in samples for a in s.advertisements_of("iso") if a.channel is not None})
+    col = {c: i for i, c in enumerate(channels)}
+    n = np.zeros((len(samples), len(channels) + 1))
+    total = np.zeros_like(n)
+    for j, s in enumerate(samples):
+        for ad in s.advertisements_of("iso"):
+            i = col.get(ad.channel, len(channels))
+            n[j, i] += 1.0
+            total[j, i] += ad.rssi_dbm
+    return n, total, channels
+
+
+def _packet_evidence(samples: list[TrainingSample], cfg: LearnerSettings, min_var: float):
+    """The walk (a, b, R, r_c), the RSSI grid, each sample's log-evidence on it from its packets,
+    and the channels' offsets. Where the packets say their advertising channel, each channel's
+    offset (frequency-selective fading: a receiver reads one channel a few dB apart from another)
+    is a parameter of the walk's likelihood, fitted with it (centred: the overall level belongs to
+    the walk), and every packet loses its channel's offset before it weighs on its sample."""
+    n_jc, s_jc, channels = _channel_sums(samples)
+    counts = n_jc.sum(axis=1)
+    if counts.sum() < 10:
+        raise ValueError(f"need at least 10 advertisements in training, got {int(counts.sum())}")
+    values = np.asarray([v for s in samples for v in s.rssi_dbm("iso")], dtype=float)
+    grid = np.linspace(values.min() - cfg.grid_margin_db, values.max() + cfg.grid_margin_db, cfg.grid_points)
+    seen = counts > 0
+
+    def zbar_of(free: np.ndarray) -> np.ndarray:
+        off = np.zeros(n_jc.shape[1])
+        if len(channels) > 1:
+            off[:len(channels)] = np.append(free, -free.sum())  # centred offsets
+        return np.where(seen, (s_jc.sum(axis=1) - n_jc @ off) / np.maximum(counts, 1.0), 0.0)
+
+    a, b, R, rc = fit_diffusion_packets(np.where(seen, s_jc.sum(axis=1) / np.maximum(counts, 1.0), np.nan), counts, min_var)
+    free = np.zeros(max(len(channels) - 1, 0))
+    if cfg.channel_offsets and len(channels) > 1:
+        def nll(th: np.ndarray) -> float:
+            return -_kalman_loglik_packets(zbar_of(th[3:]), counts, th[0], float(np.clip(th[1], -1.0, 1.0)),
+                                           max(math.exp(th[2]), min_var), rc)
+
+        x0 = np.concatenate([[a, b, math.log(R)], free])
+        simplex = np.vstack([x0] + [x0 + step for step in np.diag(np.concatenate([[1.0, 0.15, 0.5], np.full(free.size, 2.0)]))])
+        res = minimize(nll, x0, method="Nelder-Mead", options={"xatol": 1e-2, "fatol": 1e-2, "maxiter": 1500, "initial_simplex": simplex})
+        a, b, R, free = float(res.x[0]), float(np.clip(res.x[1], -1.0, 1.0)), max(math.exp(res.x[2]), min_var), res.x[3:]
+    zbar = zbar_of(free)
+    log_rssi = np.where(counts[:, None] > 0, -0.5 * counts[:, None] * (zbar[:, None] - grid[None, :]) ** 2 / R, 0.0)
+    fitted = cfg.channel_offsets and len(channels) > 1
+    offsets = {c: float(o) for c, o in zip(channels, np.append(free, -free.sum()))} if fitted else {}
+    return a, b, R, rc, grid, log_rssi, offsets
+
+
 def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = None) -> LearnedPOD:
     """Fit p_hat_D(r) from the training stream (see module docstring).
 
@@ -508,15 +567,9 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
     min_var = cfg.min_rf_noise_db**2
     packets = any(s.iso_rssi_dbm is None for s in samples)
     phi = 0.0
+    offsets = None
     if packets:  # protocol 1.3: 0..n advertisements per sample (docs/radio.md)
-        zbar, counts = packet_statistics(samples)
-        if counts.sum() < 10:
-            raise ValueError(f"need at least 10 advertisements in training, got {int(counts.sum())}")
-        a, b, R, rc = fit_diffusion_packets(zbar, counts, min_var)
-        values = np.asarray([v for s in samples for v in s.rssi_dbm("iso")], dtype=float)
-        grid = np.linspace(values.min() - cfg.grid_margin_db, values.max() + cfg.grid_margin_db, cfg.grid_points)
-        # each packet is an observation of its sample's latent RSSI; a sample without one, none
-        log_rssi = np.where(counts[:, None] > 0, -0.5 * counts[:, None] * (np.nan_to_num(zbar)[:, None] - grid[None, :]) ** 2 / R, 0.0)
+        a, b, R, rc, grid, log_rssi, offsets = _packet_evidence(samples, cfg, min_var)
     else:
         a, b, R, rc = fit_diffusion(z, min_var)
         if z.size >= 50:
@@ -564,7 +617,8 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
         n_train=int(z.size),
         frames_per_rf=int(nu),
     )
-    return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R), fading=phi)
+    return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R), fading=phi,
+                      channel_offsets=offsets or None)
 
 
 def r2_score(truth: np.ndarray, prediction: np.ndarray) -> float:

@@ -158,6 +158,13 @@ class TrainingSample(_Measurement):
             raise ValueError("give iso_rssi_dbm (1.0) or adverts (1.3), not both")
         return self
 
+    def advertisements_of(self, receiver: Receiver = "iso") -> tuple[Advertisement, ...]:
+        """The advertisements ``receiver`` heard during this sample; a 1.0 value reads as one."""
+        if self.iso_rssi_dbm is not None:
+            return (Advertisement.model_construct(receiver="iso", rssi_dbm=self.iso_rssi_dbm, channel=None, offset_s=0.0),) \
+                if receiver == "iso" else ()
+        return tuple(a for a in self.adverts if a.receiver == receiver)
+
     def rssi_dbm(self, receiver: Receiver = "iso") -> tuple[float, ...]:
         """The RSSI values ``receiver`` reported during this sample (maybe none)."""
         if self.iso_rssi_dbm is not None:

@@ -90,6 +90,7 @@ class PacketSchedule:
         k = self.times_s.size
         phases = rng.uniform(0.0, 3.0 * sc.scan_interval_s, size=receivers)
         offsets = rng.normal(0.0, sc.channel_offset_db, size=(receivers, 3))
+        self.channel_offsets_db = offsets  # truth: receiver r's offset on channel 37 + c
         loss = np.array([sc.packet_loss_iso, sc.packet_loss_dir][:receivers])
         self.heard = rng.random((receivers, k)) >= loss[:, None]
         spread = rng.normal(0.0, sc.rf_noise_db, size=(receivers, k))

@@ -85,3 +85,22 @@ def test_the_score_reports_rmse_beside_r2_and_the_oracles_rmse_under_shadowing()
     assert score.r2 == pytest.approx(r2_score(truth.pod, predict(learned.model, truth.rssi_dbm)))
     assert score.rmse == pytest.approx(float(np.sqrt(np.mean((predict(learned.model, truth.rssi_dbm) - truth.pod) ** 2))))
     assert 0.01 < score.oracle_rmse < 0.3  # the POD is not a function of the RSSI: even the oracle misses p*
+
+
+def test_channel_offsets_are_estimated_and_removed_where_packets_say_their_channel():
+    from ra2vipas.services.learner.pod import LearnerSettings
+
+    sc = build_scenario("ble", {"shadowing_db": 0.0, "adv_interval_s": 0.1, "channel_offset_db": 4.0, "rf_noise_db": 1.0,
+                                "rssi_step_db": 0.0})
+    episode = TrainingEpisode(sc, 1)
+    samples = list(episode.samples())
+    assert {a.channel for s in samples for a in s.adverts} == {37, 38, 39}
+    truth = episode._packets.channel_offsets_db[0]
+    truth = truth - truth.mean()
+    learned = fit_pod(samples)
+    estimated = np.array([learned.channel_offsets[c] for c in (37, 38, 39)])
+    assert np.max(np.abs(estimated - truth)) < 1.0, (estimated, truth)  # drawn with sigma 4 dB
+    assert fit_pod(samples, LearnerSettings(channel_offsets=False)).channel_offsets is None
+    blind = [TrainingSample(index=s.index, frames=s.frames, adverts=tuple(a.model_copy(update={"channel": None}) for a in s.adverts))
+             for s in samples]
+    assert fit_pod(blind).channel_offsets is None  # no channels: nothing to estimate
