@@ -6,6 +6,7 @@ world's adverts on the wire; a 1.2 node that sends adverts fails the rf-evidence
 from __future__ import annotations
 
 import json
+import time
 
 import pytest
 
@@ -95,7 +96,9 @@ def test_the_simulated_sensors_node_sends_the_worlds_adverts():
         assert bus.wait_idle()
         for t in range(40):
             bus.publish(keys.command("sim-ble"), dump(Command(episode_id=start.episode_id, step=t, pan_rad=0.1 * t)))
-            assert bus.wait_idle()
+            deadline = time.monotonic() + 60.0  # the node answers on its own thread: wait for step t's measurement
+            while sum(1 for p in got if b'"step"' in p) <= t and time.monotonic() < deadline:
+                time.sleep(0.01)
     finally:
         node.close()
         bus.close()
