@@ -157,6 +157,45 @@ def _inprocess_steps_per_second(preset: str, tests: int, algorithms: list[str]) 
     return run.steps_per_second or 0.0, {a: b["dr_final"] for a, b in run.results[0]["algorithms"].items()}
 
 
+@app.command("learner")
+def bench_learner(
+    preset: Annotated[str, typer.Option(help="Scenario preset (paper, dynamic, ble, ...).")] = "dynamic",
+    seeds: Annotated[str, typer.Option(help="Campaign seeds, e.g. 1-5 or 1,3,7.")] = "1-5",
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
+) -> None:
+    """Score the POD learner on each seed's training episode: R², the RMSE against the POD the
+    RSSI predicts p*(r), and the oracle fit's RMSE (issue 20). Target on dynamic: RMSE <= 1.3 x
+    the oracle's on every seed."""
+    from ra2vipas.services.learner.pod import fit_pod, score_pod
+    from ra2vipas.services.protocol.scenario import PRESETS, build_scenario
+    from ra2vipas.services.sensors.world import TrainingEpisode
+
+    if preset not in PRESETS:
+        fail(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}", EXIT_USAGE)
+    try:
+        chosen = sorted({n for part in seeds.split(",") for n in (range(int(part.split("-")[0]), int(part.split("-")[1]) + 1)
+                                                                  if "-" in part else [int(part)])})
+    except ValueError:
+        fail(f"--seeds: expected e.g. 1-5 or 1,3,7, got {seeds!r}", EXIT_USAGE)
+    scenario = build_scenario(preset)
+    rows = []
+    for seed in chosen:
+        episode = TrainingEpisode(scenario, seed)
+        learned = fit_pod(list(episode.samples()))
+        truth = episode.truth
+        score = score_pod(learned.model, truth.rssi_dbm, truth.pod, truth.pod_at_range)
+        rows.append({"seed": seed, "r2": round(score.r2, 4), "rmse": round(score.rmse, 4), "oracle_rmse": round(score.oracle_rmse, 4),
+                     "ratio": round(score.rmse / max(score.oracle_rmse, 1e-9), 3), "train_seconds": round(learned.train_seconds, 3)})
+    out = {"benchmark": "learner", "preset": preset, "seeds": rows,
+           "within_1_3x_oracle": all(r["rmse"] <= 1.3 * r["oracle_rmse"] for r in rows)}
+    if as_json:
+        print_json(out)
+        return
+    for r in rows:
+        stdout.print(f"seed {r['seed']}: R² {r['r2']:.3f}  RMSE vs p*(r) {r['rmse']:.3f}  oracle {r['oracle_rmse']:.3f}  "
+                     f"({r['ratio']:.2f}x)  {r['train_seconds']:.2f} s")
+
+
 @app.command("mesh")
 def bench_mesh(
     rigs: Annotated[int, typer.Option("--rig-count", min=0, max=16, help="Sensor+controller pairs for fast mode (0: one per CPU core).")] = 0,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from ra2vipas.cli import bench, campaign, presets, protocol, rigs, security, services, study, survey
+from ra2vipas.cli import bench, campaign, presets, protocol, radio, rigs, security, services, study, survey
 from ra2vipas.cli.policies import policies
 from ra2vipas.cli.record import record, replay
 from ra2vipas.cli.rig import rig
@@ -44,6 +44,7 @@ app.add_typer(bench.app, name="bench")
 app.add_typer(protocol.app, name="protocol")
 app.add_typer(security.app, name="security")
 app.add_typer(survey.app, name="survey")
+app.add_typer(radio.app, name="radio")
 for _name in ("sensors", "controller", "learner", "orchestrator", "router"):
     app.command(_name)(getattr(services, _name))
 app.command("rig")(rig)

@@ -142,6 +142,8 @@ class HardwareNode:
         self.session, self.rig, self.driver = session, rig, driver
         self.publish_truth = publish_truth
         self.descriptor = dict(DESCRIPTOR, rig=rig, episode_truth=publish_truth)
+        if hasattr(driver, "read_adverts"):  # a BLE receiver (ble_receiver.py): adverts need protocol 1.3
+            self.descriptor.update(protocol="1.3", radio="adverts")
         self.nu = int(self.descriptor["frames_per_rf"])
         self.period = float(self.descriptor["rf_period_s"])
         self.lock = threading.RLock()  # one driver, one episode table
@@ -180,10 +182,15 @@ class HardwareNode:
     def measure(self, ep: Episode, step: int, pan: float) -> bytes:
         reached = self.driver.move_to(pan)
         frames = self.driver.capture(self.nu)
-        iso, direct = self.driver.read_rssi()
-        return json.dumps({"episode_id": ep.id, "step": step, "pan_rad": reached,
-                           "rf": {"iso_rssi_dbm": iso, "dir_rssi_dbm": direct},
-                           "frames": [{"box_bearings_rad": f} for f in frames]}).encode()
+        message = {"episode_id": ep.id, "step": step, "pan_rad": reached, "frames": [{"box_bearings_rad": f} for f in frames]}
+        if hasattr(self.driver, "read_adverts"):  # protocol 1.3: what each receiver heard since the last step, maybe nothing
+            adverts = self.driver.read_adverts()
+            if adverts:
+                message["adverts"] = adverts
+        else:
+            iso, direct = self.driver.read_rssi()
+            message["rf"] = {"iso_rssi_dbm": iso, "dir_rssi_dbm": direct}
+        return json.dumps(message).encode()
 
     # -- control -------------------------------------------------------------------------------
     def on_control(self, sample) -> None:
@@ -206,6 +213,8 @@ class HardwareNode:
                 return
             self.episodes[ep.id] = ep
             self.finished.pop(ep.id, None)
+            if hasattr(self.driver, "reset_adverts"):
+                self.driver.reset_adverts()  # the first step's adverts are those heard from now on
             if self.publish_truth:
                 d = self.driver
                 self.pub_truth.put(json.dumps({"episode_id": ep.id, "bearings_rad": [round(float(b), 6) for b in d.bearings],
@@ -336,6 +345,10 @@ def main(node_class: type = HardwareNode, driver_class: type = FakeDriver) -> No
     parser.add_argument("--password-file", help="file holding the Zenoh password")
     parser.add_argument("--seed", type=int, default=0, help="the fake driver's layout")
     parser.add_argument("--publish-truth", action="store_true", help="publish EpisodeTruth (the fake driver knows its layout)")
+    parser.add_argument("--ble-tag", metavar="ADDRESS", help="real BLE receivers (bleak): the Tx tag's address; the fake driver "
+                                                            "keeps the pan unit and the camera (ble_receiver.py, README)")
+    parser.add_argument("--iso-adapter", default="hci0", help="the BlueZ adapter of Rx(iso) (with --ble-tag)")
+    parser.add_argument("--dir-adapter", default="hci1", help="the BlueZ adapter of Rx(dir), the directional one (with --ble-tag)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     conf = zenoh.Config()
@@ -352,12 +365,23 @@ def main(node_class: type = HardwareNode, driver_class: type = FakeDriver) -> No
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    with zenoh.open(conf) as session:
-        node = node_class(session, args.rig, driver_class(args.seed, fov_half_angle_deg=DESCRIPTOR["fov_half_angle_deg"],
-                                                          box_noise_deg=DESCRIPTOR["box_bearing_noise_deg"]), args.publish_truth)
-        log.info("hardware node %s up", args.rig)
-        stop.wait()
-        node.close()
+    driver = driver_class(args.seed, fov_half_angle_deg=DESCRIPTOR["fov_half_angle_deg"], box_noise_deg=DESCRIPTOR["box_bearing_noise_deg"])
+    receivers = None
+    if args.ble_tag:
+        from ble_receiver import BleReceivers, with_ble
+
+        receivers = BleReceivers(args.ble_tag, {"iso": args.iso_adapter, "dir": args.dir_adapter})
+        receivers.start()
+        driver = with_ble(driver, receivers)
+    try:
+        with zenoh.open(conf) as session:
+            node = node_class(session, args.rig, driver, args.publish_truth)
+            log.info("hardware node %s up", args.rig)
+            stop.wait()
+            node.close()
+    finally:
+        if receivers is not None:
+            receivers.stop()
     log.info("hardware node %s stopped", args.rig)
 
 

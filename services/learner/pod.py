@@ -63,6 +63,7 @@ class LearnerSettings:
     restarts: int = 2
     min_rf_noise_db: float = 0.1
     min_fading: float = 0.1  # phi below which the receiver noise is taken as white
+    channel_offsets: bool = True  # packets with channels: fit each channel's offset with the walk
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,7 @@ class LearnedPOD:
     train_seconds: float
     diffusion: tuple[float, float, float]  # (a, b, R) of the latent RSSI walk
     fading: float = 0.0  # phi of the receiver noise's AR(1) (0: white)
+    channel_offsets: dict[int, float] | None = None  # packets with channels: each channel's estimated offset [dB], centred
 
 
 def detection_counts(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndarray, int]:
@@ -89,7 +91,10 @@ def detection_counts(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndar
     nu = len(samples[0].frames)
     if nu == 0 or any(len(s.frames) != nu for s in samples):
         raise ValueError("every training sample must carry the same, non-zero number of frames")
-    z = np.fromiter((s.iso_rssi_dbm for s in samples), dtype=float, count=len(samples))
+    if any(s.iso_rssi_dbm is None for s in samples):  # protocol 1.3 packets: z_j is the mean of sample j's (NaN: none)
+        z = packet_statistics(samples)[0]
+    else:
+        z = np.fromiter((s.iso_rssi_dbm for s in samples), dtype=float, count=len(samples))
     gate, _ = training_clutter(samples)
     if gate is None:
         k = np.fromiter((sum(1 for f in s.frames if f.box_bearings_rad) for s in samples), dtype=float, count=len(samples))
@@ -97,6 +102,21 @@ def detection_counts(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndar
         k = np.fromiter((sum(1 for f in s.frames if any(abs(b) <= gate for b in f.box_bearings_rad)) for s in samples),
                         dtype=float, count=len(samples))
     return z, k, nu
+
+
+def packet_statistics(samples: list[TrainingSample], channel_offsets: dict[int, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(zbar_j, n_j): the mean iso RSSI of the n_j advertisements of each sample (NaN when it has
+    none) and their number. Under Gaussian packet noise of variance R, sample j's packets weigh
+    on its latent RSSI r_j exactly as one value zbar_j of variance R / n_j would (the sufficient
+    statistic: nothing is averaged away), and a sample with none carries no RF evidence. Each
+    packet first loses its advertising channel's offset (``channel_offsets``; 0 for a packet
+    whose channel is not reported)."""
+    off = channel_offsets or {}
+    n = np.fromiter((len(s.rssi_dbm("iso")) for s in samples), dtype=float, count=len(samples))
+    sums = np.fromiter((sum(a.rssi_dbm - off.get(a.channel, 0.0) for a in s.advertisements_of("iso")) for s in samples),
+                       dtype=float, count=len(samples))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, sums / np.maximum(n, 1.0), np.nan), n
 
 
 def training_clutter(samples: list[TrainingSample]) -> tuple[float | None, float]:
@@ -148,6 +168,49 @@ def _kalman_loglik(z: np.ndarray, a: float, b: float, R: float, rc: float) -> fl
         x += K * e
         p = (1.0 - K) * p + math.exp(min(a + b * (x - rc), 50.0))
     return ll
+
+
+@njit(cache=True)
+def _kalman_loglik_packets(zbar, n, a, b, R, rc):
+    """``_kalman_loglik`` over samples that carry 0..n packets: sample j observes r_j through
+    ``zbar[j]`` with variance R / n_j, and a sample with none only diffuses the state."""
+    x = 0.0
+    p = -1.0  # no observation yet
+    ll = 0.0
+    for t in range(zbar.size):
+        if p >= 0.0:
+            p += math.exp(min(a + b * (x - rc), 50.0))
+        if n[t] <= 0:
+            continue
+        r = R / n[t]
+        if p < 0.0:  # the first packet starts the state, as z_0 does in the plain filter
+            x = zbar[t]
+            p = R * 10.0
+        S = p + r
+        e = zbar[t] - x
+        ll -= 0.5 * (math.log(2.0 * math.pi * S) + e * e / S)
+        K = p / S
+        x += K * e
+        p = (1.0 - K) * p
+    return ll
+
+
+def fit_diffusion_packets(zbar: np.ndarray, n: np.ndarray, min_noise_var: float) -> tuple[float, float, float, float]:
+    """``fit_diffusion`` for samples of 0..n packets (``packet_statistics``): maximum-likelihood
+    (a, b, R) of the walk, R now the variance of one packet, and r_c."""
+    seen = n > 0
+    rc = float(np.sum(zbar[seen] * n[seen]) / np.sum(n[seen]))
+    zs = zbar[seen]
+    x0 = np.array([math.log(0.5), 0.1, math.log(max(float(np.var(np.diff(zs))) / 2.0 if zs.size > 2 else 1.0, min_noise_var))])
+    simplex = np.array([x0, x0 + [1.0, 0, 0], x0 + [0, 0.15, 0], x0 + [0, 0, 0.5]])
+    z0 = np.where(seen, zbar, 0.0)
+
+    def nll(th: np.ndarray) -> float:
+        return -_kalman_loglik_packets(z0, n, th[0], float(np.clip(th[1], -1.0, 1.0)), max(math.exp(th[2]), min_noise_var), rc)
+
+    res = minimize(nll, x0, method="Nelder-Mead", options={"xatol": 1e-2, "fatol": 1e-2, "maxiter": 300, "initial_simplex": simplex})
+    a, b, lr = res.x
+    return float(a), float(np.clip(b, -1.0, 1.0)), max(math.exp(lr), min_noise_var), rc
 
 
 def fit_diffusion(z: np.ndarray, min_noise_var: float) -> tuple[float, float, float, float]:
@@ -424,6 +487,59 @@ def _gp_on_cells(u: np.ndarray, successes: np.ndarray, trials: np.ndarray, theta
     return m0 + mean, std
 
 
+def _channel_sums(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Per sample and advertising channel, the number and the sum of its iso packets: (n_jc, s_jc,
+    channels); the packets without a channel in a column of their own (never offset)."""
+    channels = sorted({a.channel for s in samples for a in s.advertisements_of("iso") if a.channel is not None})
+    col = {c: i for i, c in enumerate(channels)}
+    n = np.zeros((len(samples), len(channels) + 1))
+    total = np.zeros_like(n)
+    for j, s in enumerate(samples):
+        for ad in s.advertisements_of("iso"):
+            i = col.get(ad.channel, len(channels))
+            n[j, i] += 1.0
+            total[j, i] += ad.rssi_dbm
+    return n, total, channels
+
+
+def _packet_evidence(samples: list[TrainingSample], cfg: LearnerSettings, min_var: float):
+    """The walk (a, b, R, r_c), the RSSI grid, each sample's log-evidence on it from its packets,
+    and the channels' offsets. Where the packets say their advertising channel, each channel's
+    offset (frequency-selective fading: a receiver reads one channel a few dB apart from another)
+    is a parameter of the walk's likelihood, fitted with it (centred: the overall level belongs to
+    the walk), and every packet loses its channel's offset before it weighs on its sample."""
+    n_jc, s_jc, channels = _channel_sums(samples)
+    counts = n_jc.sum(axis=1)
+    if counts.sum() < 10:
+        raise ValueError(f"need at least 10 advertisements in training, got {int(counts.sum())}")
+    values = np.asarray([v for s in samples for v in s.rssi_dbm("iso")], dtype=float)
+    grid = np.linspace(values.min() - cfg.grid_margin_db, values.max() + cfg.grid_margin_db, cfg.grid_points)
+    seen = counts > 0
+
+    def zbar_of(free: np.ndarray) -> np.ndarray:
+        off = np.zeros(n_jc.shape[1])
+        if len(channels) > 1:
+            off[:len(channels)] = np.append(free, -free.sum())  # centred offsets
+        return np.where(seen, (s_jc.sum(axis=1) - n_jc @ off) / np.maximum(counts, 1.0), 0.0)
+
+    a, b, R, rc = fit_diffusion_packets(np.where(seen, s_jc.sum(axis=1) / np.maximum(counts, 1.0), np.nan), counts, min_var)
+    free = np.zeros(max(len(channels) - 1, 0))
+    if cfg.channel_offsets and len(channels) > 1:
+        def nll(th: np.ndarray) -> float:
+            return -_kalman_loglik_packets(zbar_of(th[3:]), counts, th[0], float(np.clip(th[1], -1.0, 1.0)),
+                                           max(math.exp(th[2]), min_var), rc)
+
+        x0 = np.concatenate([[a, b, math.log(R)], free])
+        simplex = np.vstack([x0] + [x0 + step for step in np.diag(np.concatenate([[1.0, 0.15, 0.5], np.full(free.size, 2.0)]))])
+        res = minimize(nll, x0, method="Nelder-Mead", options={"xatol": 1e-2, "fatol": 1e-2, "maxiter": 1500, "initial_simplex": simplex})
+        a, b, R, free = float(res.x[0]), float(np.clip(res.x[1], -1.0, 1.0)), max(math.exp(res.x[2]), min_var), res.x[3:]
+    zbar = zbar_of(free)
+    log_rssi = np.where(counts[:, None] > 0, -0.5 * counts[:, None] * (zbar[:, None] - grid[None, :]) ** 2 / R, 0.0)
+    fitted = cfg.channel_offsets and len(channels) > 1
+    offsets = {c: float(o) for c, o in zip(channels, np.append(free, -free.sum()))} if fitted else {}
+    return a, b, R, rc, grid, log_rssi, offsets
+
+
 def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = None) -> LearnedPOD:
     """Fit p_hat_D(r) from the training stream (see module docstring).
 
@@ -449,15 +565,20 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
     if z.size < 10:
         raise ValueError(f"need at least 10 training samples, got {z.size}")
     min_var = cfg.min_rf_noise_db**2
-    a, b, R, rc = fit_diffusion(z, min_var)
+    packets = any(s.iso_rssi_dbm is None for s in samples)
     phi = 0.0
-    if z.size >= 50:
-        fa, fb, fR, fphi, _ = fit_fading_walk(z, min_var)
-        if fphi >= cfg.min_fading:
-            a, b, R, phi = fa, fb, fR, fphi
-    grid = np.linspace(z.min() - cfg.grid_margin_db, z.max() + cfg.grid_margin_db, cfg.grid_points)
+    offsets = None
+    if packets:  # protocol 1.3: 0..n advertisements per sample (docs/radio.md)
+        a, b, R, rc, grid, log_rssi, offsets = _packet_evidence(samples, cfg, min_var)
+    else:
+        a, b, R, rc = fit_diffusion(z, min_var)
+        if z.size >= 50:
+            fa, fb, fR, fphi, _ = fit_fading_walk(z, min_var)
+            if fphi >= cfg.min_fading:
+                a, b, R, phi = fa, fb, fR, fphi
+        grid = np.linspace(z.min() - cfg.grid_margin_db, z.max() + cfg.grid_margin_db, cfg.grid_points)
+        log_rssi = -0.5 * (z[:, None] - grid[None, :]) ** 2 / R
     transition = _transition(grid, a, b, rc)
-    log_rssi = -0.5 * (z[:, None] - grid[None, :]) ** 2 / R
     if phi > 0.0:
         post = chain_posterior(z, grid, transition, R, phi, np.ones((z.size, grid.size)))
     else:
@@ -496,7 +617,8 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
         n_train=int(z.size),
         frames_per_rf=int(nu),
     )
-    return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R), fading=phi)
+    return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R), fading=phi,
+                      channel_offsets=offsets or None)
 
 
 def r2_score(truth: np.ndarray, prediction: np.ndarray) -> float:
@@ -511,3 +633,62 @@ def r2_score(truth: np.ndarray, prediction: np.ndarray) -> float:
 def predict(model: PODModel, rssi_dbm: np.ndarray | float) -> np.ndarray:
     """p_hat_D at ``rssi_dbm`` by linear interpolation of the model's grid (clamped at the ends)."""
     return np.interp(rssi_dbm, model.rssi_grid_dbm, model.mean)
+
+
+# -- scoring the learner honestly (issue 20) -----------------------------------------------------
+
+@dataclass(frozen=True)
+class PODScore:
+    """How well a learned POD matches the truth of its training episode.
+
+    ``r2``: paper eq. 23 against p*(r_j), the POD the noiseless RSSI predicts (``world.TrainingTruth``).
+    ``rmse``: the root mean square of p_hat_D(r_j) - p*(r_j). ``oracle_rmse``: the same for the
+    oracle fit (``oracle_fit``): what a learner that saw every sample's true POD and noiseless
+    RSSI reaches on this episode. Under shadowing the POD is not a function of the RSSI and R^2
+    can stay low for any learner; the RMSE beside the oracle's says how far from the best
+    possible a learner is.
+    """
+
+    r2: float
+    rmse: float
+    oracle_rmse: float
+
+
+def unimodal_fit(x: np.ndarray, y: np.ndarray, candidates: int = 40) -> np.ndarray:
+    """The least-squares fit of ``y`` on ``x`` that rises then falls (isotonic up to a peak, then
+    antitonic; p_D is unimodal in the range, so in the RSSI), at each ``x``: the peak is the best
+    of ``candidates`` quantiles of ``x``."""
+    from sklearn.isotonic import IsotonicRegression
+
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    best, best_sse = None, math.inf
+    for peak in np.unique(np.quantile(x, np.linspace(0.0, 1.0, candidates))):
+        left = x <= peak
+        fit = np.empty_like(y)
+        if left.any():
+            fit[left] = IsotonicRegression(increasing=True).fit_transform(x[left], y[left])
+        if (~left).any():
+            fit[~left] = IsotonicRegression(increasing=False).fit_transform(x[~left], y[~left])
+        sse = float(np.sum((fit - y) ** 2))
+        if sse < best_sse:
+            best, best_sse = fit, sse
+    return best
+
+
+def oracle_fit(rssi_dbm: np.ndarray, true_pod: np.ndarray) -> np.ndarray:
+    """The oracle's fit at each training sample: ``unimodal_fit`` of every sample's true POD
+    p_D(d_j) on its noiseless RSSI r_j (the episode's own data, no noise, no deconvolution)."""
+    return unimodal_fit(rssi_dbm, true_pod)
+
+
+def score_pod(model: PODModel, rssi_dbm: np.ndarray, pod: np.ndarray, pod_at_range: np.ndarray | None = None) -> PODScore:
+    """R^2, RMSE against p*(r_j) = ``pod`` and the oracle fit's RMSE (``PODScore``), from a training
+    episode's truth: noiseless RSSI ``rssi_dbm``, p*(r_j) ``pod`` and the true POD at each sample's
+    range ``pod_at_range`` (None: equal to ``pod``, no shadowing)."""
+    rssi = np.asarray(rssi_dbm, dtype=float)
+    target = np.asarray(pod, dtype=float)
+    prediction = predict(model, rssi)
+    oracle = oracle_fit(rssi, target if pod_at_range is None else np.asarray(pod_at_range, dtype=float))
+    return PODScore(r2=r2_score(target, prediction), rmse=float(np.sqrt(np.mean((prediction - target) ** 2))),
+                    oracle_rmse=float(np.sqrt(np.mean((oracle - target) ** 2))))

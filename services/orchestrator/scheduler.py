@@ -536,7 +536,7 @@ class Scheduler:
                 ok = False
         if ok:
             version = speaks(rig.descriptor)
-            missing = missing_features(version, campaign_features(run.stop_confidence, run.algorithms))
+            missing = missing_features(version, campaign_features(run.stop_confidence, run.algorithms, run.scenario))
             if missing:
                 log.warning("campaign %s does not run on rig %s: %s", run.id, rig_name,
                             "; ".join(describe_missing(rig_name, version, f, v) for f, v in missing))

@@ -15,7 +15,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
-from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
+from ra2vipas.services.protocol.measurements import Advertisement, CameraFrame, RFSample, StepMeasurement, TrainingSample
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.protocol.rig import RigDescriptor, RxDirResponse
 from ra2vipas.services.protocol.scenario import Scenario
@@ -93,8 +93,9 @@ class Command(_Message):
 
 class Measurement(StepMeasurement):
     """What the platform sensed at step t (sensors -> controller): the pan angle it was at,
-    Rx(iso) and Rx(dir) RSSI, and the nu frames of box bearings (relative to the optical axis,
-    sorted, no identities)."""
+    Rx(iso) and Rx(dir) RSSI (1.0: one ``rf`` pair; 1.3: the ``adverts`` each receiver heard
+    since the previous step, possibly none), and the nu frames of box bearings (relative to the
+    optical axis, sorted, no identities; since 1.3 optionally their angular heights and scores)."""
 
     episode_id: str = _ID
 
@@ -289,14 +290,17 @@ class TrainingTruth(_Message):
 WIRE_MESSAGES: tuple[type[BaseModel], ...] = (
     EpisodeStart, EpisodeStop, Command, Measurement, TrainingRequest, TrainingStream,
     PODRequest, PODResponse, ErrorReply, ControllerInfo, PolicyOffer, EpisodeResult, EpisodeTiming, EpisodeTruth, TrainingTruth,
-    RFSample, CameraFrame, TrainingSample, TargetTrajectory, PODModel, Scenario, RigDescriptor, RxDirResponse, ModelCheck,
+    RFSample, Advertisement, CameraFrame, TrainingSample, TargetTrajectory, PODModel, Scenario, RigDescriptor, RxDirResponse, ModelCheck,
     StepCosts,
 )
 
 
 def training_job_id(scenario: Scenario, seed: int) -> str:
-    """Deterministic id of the training episode of (scenario, seed): the POD cache key."""
-    canonical = json.dumps({"scenario": scenario.model_dump(mode="json"), "seed": seed}, sort_keys=True, separators=(",", ":"))
+    """Deterministic id of the training episode of (scenario, seed): the POD cache key. The
+    scenario is hashed as it goes on the wire (``dump``: parameters added after 1.0 count only
+    when set), so a scenario's id does not change when a version adds a parameter."""
+    wire = scenario.model_dump(mode="json", exclude=wire_exclude(scenario) or None)
+    canonical = json.dumps({"scenario": wire, "seed": seed}, sort_keys=True, separators=(",", ":"))
     return "pod-" + hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
 

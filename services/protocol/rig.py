@@ -21,11 +21,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import Enum
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from ra2vipas.services.protocol.scenario import AntennaModel, Scenario
+from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.protocol.versions import V1_0, VERSION_PATTERN
 
 RigKind = Literal["simulated", "hardware", "survey"]
@@ -76,6 +77,13 @@ class RigDescriptor(_Message):
     training: bool = Field(True, description="serves data/{rig}/training (a POD training episode on request)")
     episode_truth: bool = Field(False, description="publishes EpisodeTruth itself (a simulator or a survey knows the layout)")
     training_truth: bool = Field(False, description="serves truth/{rig}/training (the true POD of its training episodes, for R^2)")
+    radio: Literal["pair", "adverts"] | None = Field(None, json_schema_extra={"since": "1.3"}, description=(
+        "what the node's Measurements carry: pair (the 1.0 rf pair every step) | adverts (1.3: the BLE advertisements each "
+        "receiver heard since the previous step, possibly none); null: follows the campaign's scenario (a simulator), or "
+        "the pair (a node of 1.2 or older)"))
+    box_heights: bool | None = Field(None, json_schema_extra={"since": "1.3"}, description=(
+        "whether every box carries its angular height (CameraFrame.box_heights_rad, 1.3: a range cue); null: follows the "
+        "campaign's scenario (a simulator), or no heights (a node of 1.2 or older)"))
     protocol: str = Field("1.1", pattern=VERSION_PATTERN, description=(
         "the protocol version the node speaks: the newest whose fields it accepts in what it receives (absent: 1.1, "
         "the version that introduced the descriptor; a node that serves no descriptor speaks 1.0)"))
@@ -130,6 +138,10 @@ def rig_values(descriptor: RigDescriptor) -> dict[str, Any]:
             out["antenna_curvature"] = rx.curvature
         if rx.floor_db is not None and rx.model == "db-gain":
             out["antenna_floor_db"] = rx.floor_db
+    if descriptor.radio is not None:
+        out["radio"] = descriptor.radio
+    if descriptor.box_heights is not None:
+        out["box_heights"] = descriptor.box_heights
     return out
 
 
@@ -145,7 +157,7 @@ def conflicts(descriptor: RigDescriptor, scenario: Scenario, mode: str = "fast")
     out: list[Conflict] = []
     for name, value in rig_values(descriptor).items():
         current = getattr(scenario, name)
-        current = current.value if isinstance(current, AntennaModel) else current
+        current = current.value if isinstance(current, Enum) else current
         if not _same(current, value):
             out.append(Conflict(name, current, value))
     if mode not in descriptor.modes:

@@ -49,6 +49,27 @@ class AntennaModel(str, Enum):
     db_gain = "db-gain"
 
 
+class RadioMode(str, Enum):
+    """What the receivers deliver each control step (protocol 1.3; docs/radio.md).
+
+    ``pair``: the paper's radio, one real-valued (iso, dir) RSSI pair every T_RF (eq. 8).
+    ``adverts``: BLE advertisements: the beacon advertises every ``adv_interval_s`` plus BLE's
+    random advDelay, each receiver hears some of them (loss, sensitivity, the scan channel),
+    each packet with its own RSSI (per-channel offset, per-packet spread, quantised); a step
+    carries 0..n of them per receiver. ``recorded``: the same packets, but which arrive, when
+    and at what RSSI are drawn from a recorded channel file (``radio_channel``).
+    """
+
+    pair = "pair"
+    adverts = "adverts"
+    recorded = "recorded"
+
+
+SINCE_1_3 = {"since": "1.3"}
+"""Schema mark of a scenario parameter added in protocol 1.3: omitted on the wire at its default."""
+CHANNEL_NAME_PATTERN = r"^[a-z0-9][a-z0-9_.-]{0,63}$"
+
+
 class Scenario(BaseModel):
     """One simulated world and its sensors (paper, Table I).
 
@@ -99,6 +120,23 @@ class Scenario(BaseModel):
     shadowing_db: float = Field(0.0, ge=0.0, le=30.0, description="sigma_S, std of the log-normal shadowing of the Tx's signal, common to both receivers (0 = none) [dB]")
     shadowing_corr_m: float = Field(2.0, gt=0.0, le=1000.0, description="d_corr, shadowing decorrelation distance: correlation exp(-Delta/d_corr) between Tx positions Delta apart (Gudmundson) [m]")
     fading_corr_s: float = Field(0.0, ge=0.0, le=1000.0, description="tau, correlation time of the RSSI noise: AR(1) with lag-1 correlation exp(-T_RF/tau) on each receiver (0 = white) [s]")
+    # -- real radios: BLE advertisements (protocol 1.3, issue 20; docs/radio.md; used when radio != pair) --
+    radio: RadioMode = Field(RadioMode.pair, json_schema_extra=SINCE_1_3, description="what the receivers deliver per step: pair (the paper's one RSSI pair per T_RF)|adverts (simulated BLE advertisements, 0..n per step)|recorded (advertisements drawn from a recorded channel)")
+    adv_interval_s: float = Field(0.45, ge=0.02, le=10.24, json_schema_extra=SINCE_1_3, description="T_adv, the beacon's advertising interval, before advDelay (BLE: 20 ms to 10.24 s) [s]")
+    adv_delay_max_s: float = Field(0.01, ge=0.0, le=0.1, json_schema_extra=SINCE_1_3, description="advDelay, uniform in [0, this] added to every advertising interval (BLE: 0-10 ms) [s]")
+    scan_interval_s: float = Field(1.2, gt=0.0, le=100.0, json_schema_extra=SINCE_1_3, description="each receiver listens on one advertising channel (37, 38, 39 in turn) for this long, from a random phase [s]")
+    packet_loss_iso: float = Field(0.1, ge=0.0, lt=1.0, json_schema_extra=SINCE_1_3, description="probability that Rx(iso) misses an advertisement sent on the channel it listens to")
+    packet_loss_dir: float = Field(0.1, ge=0.0, lt=1.0, json_schema_extra=SINCE_1_3, description="probability that Rx(dir) misses an advertisement sent on the channel it listens to")
+    rx_sensitivity_dbm: float = Field(-65.0, ge=-200.0, le=50.0, json_schema_extra=SINCE_1_3, description="receiver sensitivity: a packet whose RSSI would be below this is lost [dBm]")
+    rssi_step_db: float = Field(1.0, ge=0.0, le=10.0, json_schema_extra=SINCE_1_3, description="RSSI quantisation step: reported RSSI = step * round(RSSI / step) (1: whole dBm; 0: none) [dB]")
+    channel_offset_db: float = Field(3.0, ge=0.0, le=30.0, json_schema_extra=SINCE_1_3, description="sigma_ch, std of the per-receiver, per-advertising-channel RSSI offsets (frequency-selective fading), drawn once per test [dB]; rf_noise_db is then the per-packet spread")
+    radio_channel: str = Field("cc0-tetam", pattern=CHANNEL_NAME_PATTERN, json_schema_extra=SINCE_1_3, description="radio recorded: the recorded channel file, by name (a shipped one, or one in $RA2VIPAS_CHANNELS; ra2vipas radio import)")
+    # -- boxes with a size (protocol 1.3) ---------------------------------------------------
+    box_heights: bool = Field(False, json_schema_extra=SINCE_1_3, description="every box carries its angular height: from the target's height and range (clutter: a plausible person's), with noise")
+    target_height_min_m: float = Field(1.5, gt=0.0, le=10.0, json_schema_extra=SINCE_1_3, description="each target's height is uniform in [min, max] (people: 1.5-1.9 m) [m]")
+    target_height_max_m: float = Field(1.9, gt=0.0, le=10.0, json_schema_extra=SINCE_1_3, description="upper end of the targets' heights [m]")
+    camera_height_m: float = Field(1.0, ge=0.0, le=10.0, json_schema_extra=SINCE_1_3, description="height of the camera's axis above the floor: a box spans atan((H - h_c)/d) + atan(h_c/d) [m]")
+    box_height_noise: float = Field(0.05, ge=0.0, le=1.0, json_schema_extra=SINCE_1_3, description="relative std of a box's angular height (multiplicative Gaussian noise)")
 
     @model_validator(mode="before")
     @classmethod
@@ -140,6 +178,8 @@ class Scenario(BaseModel):
             raise ValueError(
                 f"tx_max_range_m ({self.tx_max_range_m}) must exceed min_target_range_m ({self.min_target_range_m})"
             )
+        if self.target_height_min_m > self.target_height_max_m:
+            raise ValueError(f"target_height_min_m ({self.target_height_min_m}) must not exceed target_height_max_m ({self.target_height_max_m})")
         walker_steps = self.n_walkers * self.steps
         if walker_steps > MAX_TRUTH_WALKER_STEPS:
             raise ValueError(
@@ -193,6 +233,22 @@ PRESETS: dict[str, dict[str, Any]] = {
         "box_bearing_noise_deg": 1.0,
     },
 }
+_BLE_RADIO: dict[str, Any] = {
+    # docs/radio.md: every value and where it comes from (the CC0 BLE dataset, Danis et al. 2022)
+    "radio": "adverts",
+    "antenna_model": "db-gain",
+    "rf_noise_db": 1.6,
+    "channel_offset_db": 3.0,
+    "shadowing_db": 3.8,
+    "shadowing_corr_m": 1.5,
+}
+PRESETS["ble"] = dict(_BLE_RADIO)
+PRESETS["ble-dynamic"] = {**PRESETS["dynamic"], **_BLE_RADIO}
+PRESETS["ble-recorded"] = {
+    # the shipped channel's pooled log-distance fit (its meta, ra2vipas radio import): what a model of it assumes
+    "radio": "recorded", "antenna_model": "db-gain", "radio_channel": "cc0-tetam", "path_loss_ref_dbm": -61.66,
+    "path_loss_exponent": 1.413, "rf_noise_db": 3.0,
+}
 """Named starting points: overrides applied on top of the field defaults (the paper's values)."""
 
 PRESET_DESCRIPTIONS: dict[str, str] = {
@@ -200,6 +256,12 @@ PRESET_DESCRIPTIONS: dict[str, str] = {
     "paper-uniform": "Table I of the paper with targets uniform in the square, no range constraint",
     "dynamic": "a cluttered, dynamic world: paper placement at t=0, half the targets walk (1 m/s), 0.5 m bodies occlude,"
                " 0.3 false boxes per frame, 4 dB shadowing (2 m), RSSI noise correlated over 0.5 s, 1 deg box noise",
+    "ble": "the paper's targets heard by BLE receivers with the statistics of a real building (CC0 dataset, docs/radio.md):"
+           " an advertisement every 0.45-0.46 s, 10 % loss, whole-dBm RSSI, 3 dB per-channel offsets, 1.6 dB per-packet spread,"
+           " 3.8 dB shadowing (1.5 m), db-gain antenna, at the paper's kappa",
+    "ble-dynamic": "the dynamic world (walkers, occlusion, clutter) heard by the ble preset's radio",
+    "ble-recorded": "the paper's targets; each receiver's packets (which arrive, when, at what whole-dBm RSSI) drawn from"
+                    " recordings of a real building (the shipped CC0 subset, docs/radio.md), with its spatial shadowing",
 }
 
 
@@ -213,6 +275,11 @@ def field_range(name: str) -> str:
     annotation = info.annotation
     if isinstance(annotation, type) and issubclass(annotation, Enum):
         return "one of " + "|".join(m.value for m in annotation)
+    if annotation is bool:
+        return "one of true|false"
+    if annotation is str:
+        pattern = next((getattr(m, "pattern", None) for m in info.metadata if getattr(m, "pattern", None)), None)
+        return f"a name in {pattern}" if pattern else "a text"
     lo = hi = None
     lo_open = hi_open = False
     for meta in info.metadata:
@@ -286,6 +353,10 @@ def parse_value(name: str, text: str) -> Any:
     if info is None:
         raise ScenarioError(f"unknown scenario parameter {name!r}{suggest_parameter(name)}; known: {', '.join(Scenario.model_fields)}")
     text = text.strip()
+    if info.annotation is bool:
+        if text.lower() not in ("true", "false", "1", "0", "yes", "no", "on", "off"):
+            raise ScenarioError(f"{name}: expected {field_range(name)}, got {text!r}")
+        return text.lower() in ("true", "1", "yes", "on")
     try:
         if info.annotation is int:
             return int(text)

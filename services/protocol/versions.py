@@ -14,6 +14,13 @@ adding only optional fields (docs/protocol.md, "Compatibility"):
   policies it serves (``ControllerInfo``, queryable ``rig/{rig}/policies``); one that serves no
   such queryable (1.0, 1.1) serves the four built-ins, and the orchestrator hands a rig only
   episodes of the policies its controller serves.
+* ``1.3``: real radios (issue 20). ``Measurement.adverts``: every BLE advertisement each
+  receiver heard since the previous step (receiver, RSSI, channel, time offset), possibly none,
+  in place of the 1.0 ``rf`` pair, which becomes optional (``optional_since``); the same for
+  ``TrainingSample.adverts`` and ``iso_rssi_dbm``. ``CameraFrame.box_heights_rad`` and
+  ``box_scores``. The scenario's radio and box-height parameters (``Scenario``: all off by
+  default). A campaign whose scenario turns them on needs rigs that speak 1.3
+  (``campaign_features``).
 
 Every field added after 1.0 carries the version that added it in its schema (``"since"``).
 A sender omits such a field while it holds its default (``messages.dump``), so a message that
@@ -41,9 +48,11 @@ from pydantic import BaseModel
 
 V1_0 = "1.0"
 V1_1 = "1.1"
-PROTOCOL_VERSION = "1.2"
+V1_2 = "1.2"
+V1_3 = "1.3"
+PROTOCOL_VERSION = V1_3
 """The newest version: what this code speaks."""
-VERSIONS: tuple[str, ...] = (V1_0, V1_1, PROTOCOL_VERSION)
+VERSIONS: tuple[str, ...] = (V1_0, V1_1, V1_2, PROTOCOL_VERSION)
 BUILTIN_POLICIES: tuple[str, ...] = ("ra2vipas", "rapas", "ravipas", "sweep")
 """The policy names every version knows (1.0 and 1.1: the only ones)."""
 VERSION_PATTERN = r"^1\.[0-9]{1,3}$"
@@ -65,6 +74,12 @@ def since(model: type[BaseModel], name: str) -> str:
     return extra.get("since", V1_0) if isinstance(extra, dict) else V1_0
 
 
+def optional_since(model: type[BaseModel], name: str) -> str | None:
+    """The version that made 1.0 field ``name`` of ``model`` optional (None: it never was)."""
+    extra = model.model_fields[name].json_schema_extra
+    return extra.get("optional_since") if isinstance(extra, dict) else None
+
+
 def _models_in(annotation: Any) -> list[type[BaseModel]]:
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return [annotation]
@@ -74,7 +89,7 @@ def _models_in(annotation: Any) -> list[type[BaseModel]]:
 @cache
 def has_newer_fields(model: type[BaseModel]) -> bool:
     """Whether ``model`` or a message nested in it has a field added after 1.0."""
-    return any(since(model, name) != V1_0 or any(has_newer_fields(m) for m in _models_in(info.annotation))
+    return any(since(model, name) != V1_0 or optional_since(model, name) is not None or any(has_newer_fields(m) for m in _models_in(info.annotation))
                for name, info in model.model_fields.items())
 
 
@@ -95,26 +110,42 @@ def wire_exclude(message: BaseModel, version: str | None = None) -> dict[str, An
             if (version is not None and newer(added, version)) or value == default:
                 out[name] = True
                 continue
-        if isinstance(value, BaseModel):
-            inner = wire_exclude(value, version)
-            if inner:
-                out[name] = inner
-        elif isinstance(value, (tuple, list)) and value and isinstance(value[0], BaseModel):
-            inner_items = {i: e for i, item in enumerate(value) if (e := wire_exclude(item, version))}
-            if inner_items:
-                out[name] = inner_items
+        elif value is None and optional_since(cls, name) is not None:
+            out[name] = True  # a 1.0 field absent since it became optional: absent on the wire too
+            continue
+        inner = _exclude_value(value, version)
+        if inner:
+            out[name] = inner
     return out
+
+
+def _exclude_value(value: Any, version: str | None) -> dict[Any, Any]:
+    """``wire_exclude`` of a field's value: a message, or a sequence (of sequences) of messages."""
+    if isinstance(value, BaseModel):
+        return wire_exclude(value, version)
+    if isinstance(value, (tuple, list)) and value and isinstance(value[0], (BaseModel, tuple, list)):
+        return {i: e for i, item in enumerate(value) if (e := _exclude_value(item, version))}
+    return {}
 
 
 # -- what a campaign needs ------------------------------------------------------------------
 
-def campaign_features(stop_confidence: float = 0.0, algorithms: tuple[str, ...] | list[str] = ()) -> list[tuple[str, str]]:
+def campaign_features(stop_confidence: float = 0.0, algorithms: tuple[str, ...] | list[str] = (),
+                      scenario: BaseModel | None = None) -> list[tuple[str, str]]:
     """The newer-than-1.0 features a campaign uses, as ``(feature, version)``: what a rig must
-    speak to run it (its sensors and controller both receive its ``EpisodeStart``)."""
+    speak to run it (its sensors and controller both receive its ``EpisodeStart``). A
+    ``scenario`` that sets a parameter added after 1.0 away from its default (e.g. the 1.3
+    radio) needs the version that added it."""
     out = []
     if stop_confidence:
         out.append(("stop_confidence", V1_1))
-    out += [(f"policy {name!r}", "1.2") for name in algorithms if name not in BUILTIN_POLICIES]
+    out += [(f"policy {name!r}", V1_2) for name in algorithms if name not in BUILTIN_POLICIES]
+    if scenario is not None:
+        cls = type(scenario)
+        for name, info in cls.model_fields.items():
+            added = since(cls, name)
+            if added != V1_0 and getattr(scenario, name) != info.get_default(call_default_factory=True):
+                out.append((f"scenario parameter {name!r}", added))
     return out
 
 

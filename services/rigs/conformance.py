@@ -34,8 +34,9 @@ from ra2vipas.services.protocol.messages import (
     TrainingStream,
     dump,
 )
-from ra2vipas.services.protocol.rig import RigDescriptor, apply_rig_values
+from ra2vipas.services.protocol.rig import RigDescriptor, apply_rig_values, speaks
 from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.protocol.versions import V1_3, newer
 from ra2vipas.services.transport.bus import Bus
 
 RULES: dict[str, str] = {
@@ -44,6 +45,8 @@ RULES: dict[str, str] = {
     "descriptor": "rig/{rig}/info answers a valid RigDescriptor naming the rig",
     "fast-lockstep": "fast mode: each Command(t) is answered by one Measurement(t) with the same episode_id, valid against its schema",
     "frames": "every Measurement carries nu frames whose box bearings are sorted ascending",
+    "rf-evidence": "every Measurement's RF evidence is the 1.0 rf pair or, from a node that speaks 1.3, the adverts heard since the "
+                   "previous step in arrival order (maybe none: then no rf either), never both",
     "pan-wrapped": "Measurement.pan_rad is the commanded pan, wrapped to [-pi, pi)",
     "command-before-start": "a Command(0) that arrives before its EpisodeStart is answered once the start arrives",
     "duplicate-command": "a repeated Command(t) does not advance the episode (at most the same sample again)",
@@ -167,6 +170,8 @@ class ConformanceKit:
         the node's liveliness token [s] (default: ``timeout``); a node started while the kit
         waits is probed the moment its token appears, which checks that it declares it last."""
         descriptor = self._liveliness_and_descriptor(self.timeout if wait is None else wait)
+        self._speaks = speaks(descriptor)
+        self._rf_seen = {"pair": 0, "adverts": 0, "empty": 0, "packets": 0}
         base = Scenario(steps=steps, n_train=25, n_targets=6)
         scenario = apply_rig_values(descriptor, base) if descriptor is not None else base
         nu = scenario.frames_per_rf
@@ -267,6 +272,7 @@ class ConformanceKit:
             self._result("frames", False, f"step {parsed['step']}: box bearings not sorted ascending")
         else:
             self._result("frames", True)
+        self._check_rf(parsed)
         reported = float(parsed["pan_rad"])
         expected = (pan + math.pi) % (2.0 * math.pi) - math.pi
         if not -math.pi <= reported < math.pi:
@@ -275,6 +281,27 @@ class ConformanceKit:
             self._result("pan-wrapped", False, f"step {parsed['step']}: pan_rad {reported:.4f}, commanded {pan:.4f}")
         else:
             self._result("pan-wrapped", True)
+
+    def _check_rf(self, parsed: dict) -> None:
+        """The rf-evidence rule on one (schema-valid) Measurement."""
+        step, adverts = parsed.get("step"), parsed.get("adverts") or []
+        if "rf" in parsed and parsed["rf"] is not None:
+            self._rf_seen["pair"] += 1
+        else:
+            if newer(V1_3, self._speaks):
+                what = "adverts" if adverts else "no RF evidence (neither rf nor adverts)"
+                self._result("rf-evidence", False, f"step {step}: {what}, but the node speaks protocol {self._speaks} "
+                                                   "(adverts and empty steps need 1.3: say so in the descriptor)")
+                return
+            offsets = [a.get("offset_s", 0.0) for a in adverts]
+            if offsets != sorted(offsets):
+                self._result("rf-evidence", False, f"step {step}: adverts not in arrival order (offsets {offsets})")
+                return
+            self._rf_seen["adverts" if adverts else "empty"] += 1
+            self._rf_seen["packets"] += len(adverts)
+        seen = self._rf_seen
+        self._result("rf-evidence", True, f"{seen['pair']} steps with an rf pair, {seen['adverts']} with adverts "
+                                          f"({seen['packets']} advertisements), {seen['empty']} with none")
 
     def _fast(self, scenario: Scenario, nu: int, steps: int) -> None:
         eid = self._id("fast")

@@ -26,7 +26,14 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ra2vipas.services.protocol import keys
-from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, TrainingSample
+from ra2vipas.services.protocol.measurements import (
+    OPTIONAL_SINCE_1_3,
+    SINCE_1_3,
+    Advertisement,
+    CameraFrame,
+    RFSample,
+    TrainingSample,
+)
 from ra2vipas.services.protocol.messages import (
     Command,
     EpisodeStart,
@@ -52,10 +59,18 @@ class _Model(BaseModel):
 
 
 class SurveySample(_Model):
-    """What the platform measured at one pan in one pass."""
+    """What the platform measured at one pan in one pass: the 1.0 RSSI pair ``rf``, or (protocol
+    1.3) the ``adverts`` heard during the sample, possibly none; never both."""
 
-    rf: RFSample
+    rf: RFSample | None = Field(None, json_schema_extra=OPTIONAL_SINCE_1_3)
     frames: tuple[CameraFrame, ...] = Field(min_length=1, max_length=1000)
+    adverts: tuple[Advertisement, ...] = Field(default=(), max_length=10_000, json_schema_extra=SINCE_1_3)
+
+    @model_validator(mode="after")
+    def _one_form(self) -> "SurveySample":
+        if self.rf is not None and self.adverts:
+            raise ValueError("a survey sample holds rf (1.0) or adverts (1.3), not both")
+        return self
 
 
 class Layout(_Model):
@@ -210,7 +225,8 @@ def record_survey(bus: Bus, rig: str, pans: int = 180, passes: int = 3, n_train:
         if t.trajectories:
             raise RuntimeError("the scene moved during the survey (walking targets): a survey needs a static scene")
         layout = Layout(bearings_rad=t.bearings_rad, ranges_m=t.ranges_m, tx_index=t.tx_index)
-    passes_out = tuple(tuple(SurveySample(rf=measured[p * pans + j].rf, frames=measured[p * pans + j].frames) for j in range(pans))
+    passes_out = tuple(tuple(SurveySample(rf=measured[p * pans + j].rf, frames=measured[p * pans + j].frames,
+                                              adverts=measured[p * pans + j].adverts) for j in range(pans))
                        for p in range(passes))
     return Survey(rig=RigDescriptor.model_validate(hardware), pans_rad=tuple(angles), passes=passes_out, layout=layout,
                   training=training, notes=f"recorded from rig {rig}: {passes} passes of {pans} pans")
@@ -298,7 +314,8 @@ class SurveyNode:
             return
         j = self.nearest(float(cmd.pan_rad))
         sample = self._draw(ep, j)
-        m = Measurement(episode_id=cmd.episode_id, step=cmd.step, pan_rad=float(self.pans[j]), rf=sample.rf, frames=sample.frames)
+        m = Measurement(episode_id=cmd.episode_id, step=cmd.step, pan_rad=float(self.pans[j]), rf=sample.rf, frames=sample.frames,
+                        adverts=sample.adverts)
         ep["last"] = m
         self.bus.publish(keys.measurement(self.rig), dump(m))
         if cmd.step == ep["start"].scenario.steps - 1:
@@ -326,7 +343,11 @@ class SurveyNode:
 
 
 def save(survey: Survey, path: str | Path) -> None:
-    Path(path).write_text(survey.model_dump_json())
+    """Write ``survey`` as the wire writes messages (``messages.dump``): fields added since 1.0
+    only when used, so a survey of a 1.0 rig is what it always was."""
+    from ra2vipas.services.protocol.messages import dump
+
+    Path(path).write_bytes(dump(survey))
 
 
 def schema() -> dict:

@@ -171,7 +171,8 @@ class SensorsNode:
         if not -math.pi <= pan < math.pi:  # the pan unit reaches the commanded angle, reported wrapped (docs/protocol.md)
             pan = float(wrap(pan))
         m = ep.platform.sense(step, pan)
-        return Measurement.model_construct(episode_id=ep.start.episode_id, step=m.step, pan_rad=m.pan_rad, rf=m.rf, frames=m.frames)
+        return Measurement.model_construct(episode_id=ep.start.episode_id, step=m.step, pan_rad=m.pan_rad, rf=m.rf, frames=m.frames,
+                                           adverts=m.adverts)
 
     # -- realtime pacing --------------------------------------------------------------------
     def _realtime_command(self, ep: _Episode, cmd: Command) -> None:

@@ -24,8 +24,8 @@ import numpy as np
 
 from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
 from ra2vipas.services.protocol.messages import EpisodeTruth, TargetTrajectory
-from ra2vipas.services.protocol.scenario import Placement, Scenario, ScenarioError
-from ra2vipas.services.sensors import physics
+from ra2vipas.services.protocol.scenario import Placement, RadioMode, Scenario, ScenarioError
+from ra2vipas.services.sensors import physics, radio
 
 _TEST_STREAM = 0
 _TRAINING_STREAM = 1
@@ -53,10 +53,12 @@ class Streams:
     walk: np.random.Generator  # which targets walk, their speeds and headings
     clutter: np.random.Generator  # false boxes
     shadowing: np.random.Generator  # the shadowing field
+    radio: np.random.Generator  # protocol 1.3: advertising events, scan phases, channel offsets, losses, per-packet spread
+    heights: np.random.Generator  # protocol 1.3: the targets' heights, the boxes' height noise, clutter heights
 
 
 def _streams(seed: int, key: tuple[int, ...]) -> Streams:
-    children = np.random.SeedSequence(entropy=seed, spawn_key=key).spawn(6)
+    children = np.random.SeedSequence(entropy=seed, spawn_key=key).spawn(8)
     return Streams(*(np.random.default_rng(c) for c in children))
 
 
@@ -225,6 +227,7 @@ def _clutter(sc: Scenario, rng: np.random.Generator) -> list[list[float]] | None
 
 
 _EMPTY_FRAME = CameraFrame.model_construct(box_bearings_rad=())
+_NO_HEIGHTS_FRAME = CameraFrame.model_construct(box_bearings_rad=(), box_heights_rad=())
 
 
 def _frame(boxes: list[float]) -> CameraFrame:
@@ -250,6 +253,36 @@ def _frames(sc: Scenario, rng: np.random.Generator, rel_bearings: np.ndarray, p_
     if clutter is None:
         return tuple(_frame([b for b, h in zip(row, hit) if h]) for row, hit in zip(boxes, hits))
     return tuple(_frame([b for b, h in zip(row, hit) if h] + extra) for row, hit, extra in zip(boxes, hits, clutter))
+
+
+def _frames_with_heights(sc: Scenario, rng: np.random.Generator, heights_rng: np.random.Generator, rel_bearings: np.ndarray,
+                         p_detect: np.ndarray, true_heights: np.ndarray, clutter: list[list[float]] | None) -> tuple[CameraFrame, ...]:
+    """``_frames`` with every box's angular height (protocol 1.3): the camera's draws are exactly
+    ``_frames``'s (same generator, same order), the heights' noise and the false boxes' heights
+    come from ``heights_rng``. Boxes are sorted by bearing, their heights following them."""
+    nu = sc.frames_per_rf
+    n = rel_bearings.size
+    if n:
+        hits = (rng.random((nu, n)) < p_detect).tolist()
+        boxes = (rel_bearings + rng.normal(0.0, sc.box_bearing_noise_rad, size=(nu, n))).tolist()
+        heights = radio.noisy_heights(sc, heights_rng, np.broadcast_to(true_heights, (nu, n))).tolist()
+    else:
+        hits = boxes = heights = [[]] * nu
+    extra_count = sum(len(c) for c in clutter) if clutter is not None else 0
+    extra_heights = radio.clutter_heights(sc, heights_rng, extra_count).tolist() if extra_count else []
+    out, lo = [], 0
+    for f in range(nu):
+        pairs = [(b, h) for b, h, hit in zip(boxes[f], heights[f], hits[f]) if hit]
+        if clutter is not None:
+            c = clutter[f]
+            pairs += list(zip(c, extra_heights[lo:lo + len(c)]))
+            lo += len(c)
+        if not pairs:
+            out.append(_NO_HEIGHTS_FRAME)
+            continue
+        pairs.sort()
+        out.append(CameraFrame.model_construct(box_bearings_rad=tuple(b for b, _ in pairs), box_heights_rad=tuple(h for _, h in pairs)))
+    return tuple(out)
 
 
 class SimulatedPlatform:
@@ -314,6 +347,23 @@ class SimulatedPlatform:
                 self._tx_bearings = np.arctan2(tx_path[:, 1], tx_path[:, 0]).tolist()
             else:
                 self._iso_mean = float(means[0])
+        # protocol 1.3: BLE advertisements (0..n per step and receiver) instead of one pair, from the radio stream
+        self._packets = None
+        if sc.radio is RadioMode.adverts:
+            self._packets = radio.PacketSchedule(sc, streams.radio, steps)
+        elif sc.radio is RadioMode.recorded:
+            from ra2vipas.services.sensors import recorded
+
+            tx_path = truth.tx_positions_m(steps)
+            self._packets = recorded.RecordedSchedule(sc, streams.radio, tx_path)
+        # protocol 1.3: boxes with heights (each target's height drawn once, from the heights stream)
+        self._heights_rng = self._target_heights = None
+        if sc.box_heights:
+            self._heights_rng = streams.heights
+            self._target_heights = streams.heights.uniform(sc.target_height_min_m, sc.target_height_max_m, size=self._bearings.size)
+            self._ranges = truth.ranges_m
+            if self._walkers is not None:
+                self._walk_ranges = np.hypot(wp[..., 0], wp[..., 1])
         # RSSI noise: white (phi = 0) or AR(1) on each receiver
         self._phi = physics.fading_coefficient(sc)
         self._innovation = math.sqrt(1.0 - self._phi * self._phi)
@@ -338,6 +388,8 @@ class SimulatedPlatform:
         else:
             t = min(step, len(self._iso_means) - 1)
             iso_mean, tx_bearing = self._iso_means[t], self._tx_bearings[t]
+        if self._packets is not None:
+            return self._sense_packets(step, pan_rad, iso_mean, tx_bearing)
         dir_mean = physics.directional_rssi_scalar(sc, iso_mean, pan_rad - tx_bearing)
         if self._phi == 0.0:
             iso = iso_mean + self._rf.normal(0.0, sigma)
@@ -351,6 +403,15 @@ class SimulatedPlatform:
                 n_dir = self._phi * self._noise[1] + self._innovation * e_dir
             self._noise = (n_iso, n_dir)
             iso, dir_ = iso_mean + n_iso, dir_mean + n_dir
+        return StepMeasurement.model_construct(
+            step=step,
+            pan_rad=float(pan_rad),
+            rf=RFSample.model_construct(iso_rssi_dbm=float(iso), dir_rssi_dbm=float(dir_)),
+            frames=self._frames_at(step, pan_rad),
+        )
+
+    def _frames_at(self, step: int, pan_rad: float) -> tuple[CameraFrame, ...]:
+        sc = self.scenario
         bearings, p_detect = self._bearings, self._pod
         if self._walkers is not None:
             t = min(step, self._walk_bearings.shape[0] - 1)
@@ -362,13 +423,21 @@ class SimulatedPlatform:
             p_detect = np.where(visible, p_detect, 0.0)
         rel = (bearings - pan_rad + np.pi) % (2.0 * np.pi) - np.pi
         in_view = np.abs(rel) <= self._fov
-        frames = _frames(sc, self._camera, rel[in_view], p_detect[in_view], _clutter(sc, self._clutter_rng))
-        return StepMeasurement.model_construct(
-            step=step,
-            pan_rad=float(pan_rad),
-            rf=RFSample.model_construct(iso_rssi_dbm=float(iso), dir_rssi_dbm=float(dir_)),
-            frames=frames,
-        )
+        if self._target_heights is None:
+            return _frames(sc, self._camera, rel[in_view], p_detect[in_view], _clutter(sc, self._clutter_rng))
+        ranges = self._ranges
+        if self._walkers is not None:
+            ranges = ranges.copy()
+            ranges[self._walkers] = self._walk_ranges[min(step, self._walk_ranges.shape[0] - 1)]
+        true_heights = radio.angular_height(sc, self._target_heights[in_view], ranges[in_view])
+        return _frames_with_heights(sc, self._camera, self._heights_rng, rel[in_view], p_detect[in_view], true_heights,
+                                    _clutter(sc, self._clutter_rng))
+
+    def _sense_packets(self, step: int, pan_rad: float, iso_mean: float, tx_bearing: float) -> StepMeasurement:
+        """Protocol 1.3: the advertisements each receiver heard during step ``step`` (maybe none)."""
+        adverts = self._packets.packets(step, radio.step_levels(self.scenario, iso_mean, pan_rad, tx_bearing))
+        return StepMeasurement.model_construct(step=step, pan_rad=float(pan_rad), rf=None, frames=self._frames_at(step, pan_rad),
+                                               adverts=adverts)
 
 
 @dataclass(frozen=True)
@@ -454,6 +523,19 @@ class TrainingEpisode:
         self._camera = streams.camera
         self._clutter_rng = streams.clutter
         self._pod = pod  # the camera detects at p_D(d_j)
+        # protocol 1.3: the advertisements Rx(iso) hears during each sample, from the radio stream
+        self._packets = None
+        if sc.radio is RadioMode.adverts:
+            self._packets = radio.PacketSchedule(sc, streams.radio, n, receivers=1)
+        elif sc.radio is RadioMode.recorded:
+            from ra2vipas.services.sensors import recorded
+
+            path = self.truth.positions_m if self.truth.positions_m is not None else np.column_stack([d, np.zeros(n)])
+            self._packets = recorded.RecordedSchedule(sc, streams.radio, path, receivers=1)
+        self._true_heights = None
+        if sc.box_heights:
+            self._heights_rng = streams.heights
+            self._true_heights = radio.angular_height(sc, streams.heights.uniform(sc.target_height_min_m, sc.target_height_max_m), d)
 
     def __len__(self) -> int:
         return self.scenario.n_train
@@ -463,5 +545,13 @@ class TrainingEpisode:
         sc = self.scenario
         zero = np.zeros(1)
         for j in range(sc.n_train):
-            frames = _frames(sc, self._camera, zero, self._pod[j : j + 1], _clutter(sc, self._clutter_rng))
-            yield TrainingSample.model_construct(index=j, iso_rssi_dbm=float(self._iso[j]), frames=frames)
+            if self._true_heights is None:
+                frames = _frames(sc, self._camera, zero, self._pod[j : j + 1], _clutter(sc, self._clutter_rng))
+            else:
+                frames = _frames_with_heights(sc, self._camera, self._heights_rng, zero, self._pod[j : j + 1],
+                                              self._true_heights[j : j + 1], _clutter(sc, self._clutter_rng))
+            if self._packets is None:
+                yield TrainingSample.model_construct(index=j, iso_rssi_dbm=float(self._iso[j]), frames=frames)
+            else:
+                adverts = self._packets.packets(j, (float(self.truth.rssi_dbm[j]),))
+                yield TrainingSample.model_construct(index=j, iso_rssi_dbm=None, frames=frames, adverts=adverts)

@@ -123,3 +123,10 @@ def test_importing_ra2vipas_pins_blas_to_one_thread_even_after_numpy():
     env = {k: v for k, v in __import__("os").environ.items() if not k.endswith("_NUM_THREADS")}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout.split()
     assert out[1] == "1", out
+
+
+def test_the_wheel_ships_the_recorded_channel_with_its_licence(wheel):
+    """``ble-recorded`` runs from an installed package with no download (docs/radio.md)."""
+    names = set(zipfile.ZipFile(wheel).namelist())
+    for name in ("cc0-tetam.npz", "LICENSE-cc0-tetam.txt", "README.md"):
+        assert f"ra2vipas/services/sensors/data/{name}" in names, name

@@ -41,7 +41,8 @@ def _episode_digest(preset: str, seed: int, k: int, steps: int = 40, **overrides
     sc = build_scenario(preset, {"steps": steps, **overrides})
     p = SimulatedPlatform(sc, seed, k)
     parts = [{"positions": p.truth.positions_m.tolist(), "tx": p.truth.tx_index}]
-    parts += [p.sense(t, pan).model_dump(mode="json") for t, pan in enumerate(_pans(steps))]
+    # each measurement as the wire carries it (``dump``: fields newer than 1.0 only when used, e.g. 1.3's adverts)
+    parts += [json.loads(dump(p.sense(t, pan))) for t, pan in enumerate(_pans(steps))]
     return draw_digest(parts)
 
 
@@ -49,7 +50,7 @@ def _training_digest(preset: str, seed: int, n_train: int = 300, **overrides) ->
     sc = build_scenario(preset, {"n_train": n_train, **overrides})
     ep = TrainingEpisode(sc, seed)
     parts = [{"d": ep.truth.ranges_m.tolist(), "r": ep.truth.rssi_dbm.tolist(), "p": ep.truth.pod.tolist()}]
-    parts += [s.model_dump(mode="json") for s in ep.samples()]
+    parts += [json.loads(dump(s)) for s in ep.samples()]
     return draw_digest(parts)
 
 

@@ -56,7 +56,7 @@ def create_campaign(body: CampaignCreate, response: Response, store: StoreDep, s
     descriptors = {name: d for name, d in scheduler.descriptors().items() if name in live}
     try:
         scenario, targeting = resolve_targeting(scenario, body.mode, body.rigs, body.rig_kind, body.use_rig_values, descriptors,
-                                                features=campaign_features(body.stop_confidence, body.algorithms),
+                                                features=campaign_features(body.stop_confidence, body.algorithms, scenario),
                                                 protocols={name: v for name, v in scheduler.protocols().items() if name in live})
     except TargetingError as err:
         raise RequestValidationError([{"loc": ("body", *where.split(".")), "msg": msg, "type": "value_error"}

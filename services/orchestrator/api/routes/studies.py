@@ -68,7 +68,7 @@ def create_study(body: StudyCreate, response: Response, store: StoreDep, schedul
         raise _invalid(err) from None
     live = set(scheduler.live_rigs())
     try:  # a study runs on the live rigs that speak what it needs (docs/protocol.md, "Compatibility")
-        resolve_targeting(grid[0][1], body.mode, None, None, False, dict.fromkeys(live), features=campaign_features(body.stop_confidence, body.algorithms),
+        resolve_targeting(grid[0][1], body.mode, None, None, False, dict.fromkeys(live), features=campaign_features(body.stop_confidence, body.algorithms, grid[0][1]),
                           protocols={name: v for name, v in scheduler.protocols().items() if name in live})
     except TargetingError as err:
         raise RequestValidationError([{"loc": ("body", *where.split(".")), "msg": msg, "type": "value_error"}

@@ -1,0 +1,204 @@
+#!/usr/bin/env python3
+"""A BLE receiver driver for the hardware node (protocol 1.3, docs/protocol.md "Measurement"):
+two scanners, Rx(iso) and Rx(dir), listen for one tag's advertisements, and each control step
+the node takes *every advertisement heard since the previous step*, possibly none.
+
+Built on bleak (https://bleak.readthedocs.io; ``pip install bleak``, an optional dependency):
+``BleakScanner(detection_callback, adapter=...)`` calls back with ``(BLEDevice, AdvertisementData)``
+for every advertisement; ``device.address`` names the sender, ``advertisement_data.rssi`` is the
+RSSI in whole dBm. Imports nothing from ra2vipas, and nothing from bleak until a real scanner is
+started: the tests run it on ``FakeScanner`` (no BLE adapter needed).
+
+How the callback stream becomes per-step lists (``AdvertCollector``):
+
+* only the tag's address counts (case-insensitive); every other device is ignored;
+* each advertisement is stamped on arrival with the node's clock and belongs to the step whose
+  window (the previous ``take`` to this one) it arrived in, ``offset_s`` after that window opened;
+* **duplicates**: a second report from the same receiver within ``duplicate_window_s`` (5 ms, less
+  than BLE's shortest advertising interval, 20 ms) of the previous one is the same advertising
+  event heard twice (another channel, or the stack reporting it again) and is dropped;
+* **late**: a report stamped before the current window opened (a callback the event loop ran
+  after the step was cut) is carried by the current step at offset 0, never dropped or moved back;
+* **lost**: nothing arrives, and the step's list is empty: no RSSI is made up.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from typing import Any, Callable
+
+log = logging.getLogger("ble-receiver")
+
+DUPLICATE_WINDOW_S = 0.005
+
+
+class AdvertCollector:
+    """Thread-safe: ``add`` from the scanners' callbacks, ``take`` once per control step."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic, duplicate_window_s: float = DUPLICATE_WINDOW_S) -> None:
+        self.clock = clock
+        self.duplicate_window_s = duplicate_window_s
+        self.lock = threading.Lock()
+        self.pending: list[tuple[float, str, int, int | None]] = []
+        self.last: dict[str, float] = {}
+        self.window_start = clock()
+        self.duplicates = 0
+        self.late = 0
+
+    def reset(self) -> None:
+        """Start a new episode: forget what was heard; the first step's window opens now."""
+        with self.lock:
+            self.pending.clear()
+            self.last.clear()
+            self.window_start = self.clock()
+
+    def add(self, receiver: str, rssi_dbm: int, at: float | None = None, channel: int | None = None) -> None:
+        """One advertisement of the tag heard by ``receiver`` (``iso``|``dir``), stamped ``at`` (now if None)."""
+        stamp = self.clock() if at is None else at
+        with self.lock:
+            previous = self.last.get(receiver)
+            if previous is not None and abs(stamp - previous) < self.duplicate_window_s:
+                self.duplicates += 1
+                return
+            self.last[receiver] = stamp
+            self.pending.append((stamp, receiver, int(rssi_dbm), channel))
+
+    def take(self, now: float | None = None) -> list[dict[str, Any]]:
+        """The advertisements heard since the previous ``take`` (the step's ``adverts``, in arrival
+        order, maybe none); the next step's window opens at ``now``."""
+        cut = self.clock() if now is None else now
+        with self.lock:
+            start = self.window_start
+            mine = [p for p in self.pending if p[0] < cut]
+            self.pending = [p for p in self.pending if p[0] >= cut]
+            self.window_start = cut
+        out = []
+        for stamp, receiver, rssi, channel in sorted(mine, key=lambda p: p[0]):
+            if stamp < start:
+                self.late += 1
+            advert: dict[str, Any] = {"receiver": receiver, "rssi_dbm": rssi, "offset_s": round(max(0.0, stamp - start), 6)}
+            if channel in (37, 38, 39):
+                advert["channel"] = channel
+            out.append(advert)
+        return out
+
+
+def bleak_scanner(detection_callback, adapter: str | None):
+    """A real scanner: bleak's ``BleakScanner`` on BlueZ adapter ``adapter`` (e.g. ``hci0``)."""
+    from bleak import BleakScanner  # optional: only a real receiver needs it
+
+    kwargs: dict[str, Any] = {"detection_callback": detection_callback}
+    if adapter:
+        kwargs["adapter"] = adapter
+    return BleakScanner(**kwargs)
+
+
+class BleReceivers:
+    """Rx(iso) and Rx(dir) as two scanners (two adapters) listening for ``tag_address``.
+
+    ``scanner_factory(detection_callback, adapter)`` builds a scanner with ``async start()`` and
+    ``async stop()`` (bleak's ``BleakScanner`` by default; ``FakeScanner`` in tests). The scanners
+    run on an asyncio loop in a thread of their own; ``read_adverts()`` is the node's per-step call.
+    """
+
+    def __init__(self, tag_address: str, adapters: dict[str, str | None] | None = None,
+                 scanner_factory: Callable = bleak_scanner, clock: Callable[[], float] = time.monotonic) -> None:
+        self.tag = tag_address.strip().lower()
+        self.adapters = adapters or {"iso": "hci0", "dir": "hci1"}
+        self.factory = scanner_factory
+        self.collector = AdvertCollector(clock)
+        self.scanners: dict[str, Any] = {}
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.thread: threading.Thread | None = None
+
+    def callback_for(self, receiver: str):
+        def detected(device, advertisement_data) -> None:
+            if str(getattr(device, "address", "")).lower() != self.tag:
+                return
+            rssi = getattr(advertisement_data, "rssi", None)
+            if rssi is None:
+                return
+            self.collector.add(receiver, int(rssi))
+        return detected
+
+    def start(self, timeout: float = 10.0) -> None:
+        """Start both scanners on a background event loop; raise if one cannot start."""
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="ble-scanners", daemon=True)
+        self.thread.start()
+        for receiver, adapter in self.adapters.items():
+            scanner = self.factory(self.callback_for(receiver), adapter)
+            asyncio.run_coroutine_threadsafe(scanner.start(), self.loop).result(timeout)
+            self.scanners[receiver] = scanner
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop the scanners and their loop."""
+        if self.loop is None:
+            return
+        for scanner in self.scanners.values():
+            try:
+                asyncio.run_coroutine_threadsafe(scanner.stop(), self.loop).result(timeout)
+            except Exception as err:  # a scanner that fails to stop must not keep the node from exiting
+                log.warning("stopping a scanner failed: %s", err)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        if self.thread is not None:
+            self.thread.join(timeout)
+        self.loop.close()
+        self.loop = None
+
+    def reset(self) -> None:
+        self.collector.reset()
+
+    def read_adverts(self) -> list[dict[str, Any]]:
+        """Every advertisement of the tag heard since the previous call: the step's ``adverts``."""
+        return self.collector.take()
+
+
+class _WithBle:
+    """A driver whose RF comes from BLE receivers: ``read_adverts``/``reset_adverts`` instead of ``read_rssi``."""
+
+    def __init__(self, driver, receivers: BleReceivers) -> None:
+        self._driver, self._receivers = driver, receivers
+
+    def __getattr__(self, name: str):
+        if name == "read_rssi":
+            raise AttributeError(name)
+        return getattr(self._driver, name)
+
+    def read_adverts(self) -> list[dict[str, Any]]:
+        return self._receivers.read_adverts()
+
+    def reset_adverts(self) -> None:
+        self._receivers.reset()
+
+
+def with_ble(driver, receivers: BleReceivers):
+    """``driver`` (pan unit, camera) with its RF read from ``receivers``."""
+    return _WithBle(driver, receivers)
+
+
+class FakeScanner:
+    """bleak's scanner interface without a radio: ``emit`` plays an advertisement into the callback."""
+
+    instances: list["FakeScanner"] = []
+
+    def __init__(self, detection_callback, adapter: str | None = None) -> None:
+        self.callback = detection_callback
+        self.adapter = adapter
+        self.running = False
+        FakeScanner.instances.append(self)
+
+    async def start(self) -> None:
+        self.running = True
+
+    async def stop(self) -> None:
+        self.running = False
+
+    def emit(self, address: str, rssi: int) -> None:
+        if self.running:
+            device = type("BLEDevice", (), {"address": address})()
+            data = type("AdvertisementData", (), {"rssi": rssi})()
+            self.callback(device, data)

@@ -1,0 +1,70 @@
+"""The reference hardware node of examples/hardware_node with BLE receivers (protocol 1.3
+adverts) on the fake scanner backend: a fake tag advertises every 0.45 s plus advDelay and each
+receiver hears ~90 % of the packets, whole-dBm RSSI from the fake driver's model. The node is
+the example's own ``main`` with ``--ble-tag``; only the scanner factory is the fake one.
+
+    python ble_node.py --rig ble-1 --connect tcp/ROUTER:7447
+"""
+
+import importlib.util
+import math
+import random
+import sys
+import threading
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parents[2] / "examples" / "hardware_node"
+sys.path.insert(0, str(HERE))
+import ble_receiver  # noqa: E402  (the example's module, found beside hardware_node.py)
+
+spec = importlib.util.spec_from_file_location("hardware_node", HERE / "hardware_node.py")
+example = importlib.util.module_from_spec(spec)
+sys.modules["hardware_node"] = example
+spec.loader.exec_module(example)
+
+TAG = "e7:8f:13:56:24:ce"
+
+
+class FakeTag:
+    """Plays the tag's advertisements into the fake scanners, RSSI from the driver's geometry."""
+
+    def __init__(self, driver) -> None:
+        self.driver = driver
+        self.rng = random.Random(7)
+        self.stop = threading.Event()
+        threading.Thread(target=self.run, daemon=True).start()
+
+    def run(self) -> None:
+        while not self.stop.wait(0.45 + self.rng.uniform(0.0, 0.01)):
+            d = self.driver
+            g = -30.0 - 20.0 * math.log10(d.ranges[d.tx])
+            delta = example.wrap(d.pan - d.bearings[d.tx])
+            gain = 10.0 * math.log10(max(1.0 - 0.5 * delta * delta, 0.01))
+            for scanner, level in zip(list(ble_receiver.FakeScanner.instances), (g, g + gain)):
+                if self.rng.random() > 0.1:
+                    scanner.emit(TAG, round(level + self.rng.gauss(0.0, 3.0)))
+
+
+original = ble_receiver.BleReceivers.__init__
+
+
+def fake_backend(self, tag, adapters=None, scanner_factory=None, clock=time.monotonic):
+    original(self, tag, adapters, scanner_factory=ble_receiver.FakeScanner, clock=clock)
+
+
+ble_receiver.BleReceivers.__init__ = fake_backend
+real_with_ble = ble_receiver.with_ble
+
+
+def with_ble_and_tag(driver, receivers):
+    FakeTag(driver)
+    return real_with_ble(driver, receivers)
+
+
+ble_receiver.with_ble = with_ble_and_tag
+
+if __name__ == "__main__":
+    if "--ble-tag" not in sys.argv:
+        sys.argv += ["--ble-tag", TAG]
+    example.main()
