@@ -68,12 +68,16 @@ def _leaf_fields(model: type[pydantic.BaseModel], prefix: str = "") -> set[str]:
 
 def test_step_measurement_carries_only_sensor_readings():
     assert _leaf_fields(StepMeasurement) == {
-        "step", "pan_rad", "rf.iso_rssi_dbm", "rf.dir_rssi_dbm", "frames[].box_bearings_rad",
+        "step", "pan_rad", "rf[].iso_rssi_dbm", "rf[].dir_rssi_dbm", "frames[].box_bearings_rad",
+        "frames[].box_heights_rad", "frames[].box_scores",  # since 1.3: what a detector says of each box
+        "adverts[].receiver", "adverts[].rssi_dbm", "adverts[].channel", "adverts[].offset_s",  # since 1.3: the packets heard
     }
 
 
 def test_training_sample_carries_only_sensor_readings():
-    assert _leaf_fields(TrainingSample) == {"index", "iso_rssi_dbm", "frames[].box_bearings_rad"}
+    assert _leaf_fields(TrainingSample) == {"index", "iso_rssi_dbm", "frames[].box_bearings_rad", "frames[].box_heights_rad",
+                                            "frames[].box_scores", "adverts[].receiver", "adverts[].rssi_dbm",
+                                            "adverts[].channel", "adverts[].offset_s"}
 
 
 def test_measurements_reject_extra_fields():
