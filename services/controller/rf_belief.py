@@ -16,7 +16,8 @@ Three implementations share one interface (``RFBelief``), so a policy swaps one 
 level predicts the Tx's POD, Sec. III-A; its lag-1 correlation tempers the RF evidence).
 
 Every ``update`` accepts a step without an RF sample (``rf=None``: a real BLE receiver often
-hears no packet in a step): the belief is then left as it was.
+hears no packet in a step): the belief over the bearing is then left as it was (only the set of
+camera tracks it scores follows the camera's).
 """
 
 from __future__ import annotations
@@ -192,7 +193,9 @@ class LobeBelief(RFBelief):
         self.fit: tuple[int, float, float] | None = None  # the best standing lobe: centre index, amplitude A, offset c
 
     def update(self, pan_rad, rf, iso, tracks=None) -> None:
-        if rf is None:
+        if rf is None:  # l_RF and P(walks) unchanged; the tracks it follows are the camera's now
+            if tracks is not None and self.samples:
+                self.recent.follow_tracks(tracks.ids.tolist(), tracks.bearing.tolist())
             return
         self.samples += 1
         if self.ar1:  # in steps of 0.05: each change refits the samples so far
@@ -307,7 +310,10 @@ class RFFilterBelief(RFBelief):
         self._dir_samples: list[tuple[float, float]] = []
 
     def update(self, pan_rad, rf, iso, tracks=None) -> None:
-        if rf is None:
+        if rf is None:  # the posterior unchanged; the tracks it follows are the camera's now
+            if tracks is not None:
+                means, _, weights = tracks.components()
+                self.rff.follow_tracks(tracks.ids.tolist(), means, weights)
             return
         self.samples += 1
         self._dir_samples.append((pan_rad, rf.dir_rssi_dbm))  # for the lobe's model check, fitted once asked
