@@ -26,6 +26,7 @@ from ra2vipas.services.controller.fusion import Fusion
 from ra2vipas.services.controller.rf_belief import IsoLevel, RFBelief
 from ra2vipas.services.controller.vision_belief import VisionBelief
 from ra2vipas.services.protocol.angles import wrap
+from ra2vipas.services.protocol.measurements import StepMeasurement
 
 
 @dataclass(frozen=True)
@@ -99,7 +100,7 @@ class Composition:
         """The vision belief's ``BearingTracker`` (None without a camera)."""
         return self.parts.vision.tracks
 
-    def step(self, m) -> Decision:
+    def step(self, m: StepMeasurement) -> Decision:
         """Take the measurement of step t (``StepMeasurement``; ``m.rf`` None: no RF sample this
         step, the RF belief is left as it was); return s_{t+1} and gamma_hat_t."""
         p = self.parts
