@@ -184,3 +184,27 @@ def test_settings_still_reach_the_parts(small_pod):
     sensors = sensor_config_from_scenario(small_scenario())
     p = builtins.compose("ra2vipas", sensors, small_pod.model, ControllerSettings(beta=9.0, probe_every=3, warmup_steps=5))
     assert p.acquisition.steps == 5 and p.acquisition.then.every == 3 and p.acquisition.then.then.beta == 9.0
+
+
+def test_the_composition_example_of_docs_policies_runs(small_pod):
+    """docs/policies.md's composed policy (Ra²ViPAS's beliefs, plain GP-UCB) runs through the
+    policy contract: no warm-up sweep, no probe, an estimate every step."""
+    import pathlib
+    import re
+
+    from ra2vipas.services.controller.contract import episode_context
+
+    text = (pathlib.Path(__file__).resolve().parents[2] / "docs" / "policies.md").read_text()
+    code = next(block for block in re.findall(r"```python\n(.*?)```", text, re.S) if "class PlainUCB" in block)
+    namespace: dict = {}
+    exec(compile(code, "docs/policies.md", "exec"), namespace)
+    scenario = small_scenario()
+    sensors = sensor_config_from_scenario(scenario)
+    policy = namespace["PlainUCB"](episode_context(sensors, small_pod.model, scenario, 3, 0))
+    platform = SimulatedPlatform(scenario, 3, 0)
+    pan = policy.first_pan()
+    for t in range(10):
+        d = policy.step(platform.sense(t, pan))
+        assert not d.probe and math.isfinite(d.estimate_rad) and 0.0 <= d.confidence <= 1.0
+        pan = d.next_pan_rad
+    assert isinstance(policy.run.parts.acquisition, GPUCB)
