@@ -64,9 +64,11 @@ class Algorithm(str, Enum):
 
 ALGORITHMS: tuple[str, ...] = tuple(a.value for a in Algorithm)
 
+
 @dataclass(frozen=True)
 class ControllerSettings:
-    """Tuning of the controller. Defaults are what the benchmarks use.
+    """Tuning of the controller. Defaults are what the benchmarks use; ``builtins.py`` hands each
+    field to the part it tunes (``radio``, ``camera``, ``active_search``, ``Fusion``, ``Confidence``).
 
     ``beta`` is the UCB exploration weight (eq. 25); ``probe_every`` = 0 and
     ``warmup_steps`` = 0 give the paper's plain GP-UCB.
@@ -136,7 +138,6 @@ class SensorConfig:
     rx_dir: str = "paper"  # the Rx(dir) response assumed: paper | db-gain | unknown
     rx_dir_curvature: float | None = None  # a in rho = 1 - a Delta^2 (None: not known)
     rx_dir_floor_db: float = -20.0  # db-gain: the lowest gain
-
 
 
 class Controller(Composition):

@@ -52,8 +52,9 @@ class BearingTracker:
     a box that a clutter-prone detector reports once does not become a target.
 
     Why not a tracking library (e.g. Stone Soup)? A control step must cost well under a
-    millisecond with dozens of tracks and hundreds of boxes; the whole step here is one
-    compiled function (``ra2vipas.services.controller._tracker``), with standard, cited algorithms.
+    millisecond with dozens of tracks and hundreds of boxes; the step here is compiled
+    (``ra2vipas.services.controller._tracker``: one track table, a kernel per stage), with
+    standard, cited algorithms.
 
     Parameters
     ----------
