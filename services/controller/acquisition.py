@@ -28,7 +28,7 @@ from ra2vipas.services.controller.vision_belief import VisionBelief
 from ra2vipas.services.protocol.angles import wrap
 
 
-@dataclass
+@dataclass(slots=True)
 class Beliefs:
     """What an acquisition reads at step t: the beliefs after the step, the tracks' unnormalised
     log-posteriors ``l_tracks`` and posterior probabilities ``post`` (the fusion's)."""

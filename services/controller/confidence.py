@@ -65,7 +65,7 @@ class ConfidenceMap:
         return float(1.0 / (1.0 + math.exp(-min(max(z, -50.0), 50.0))))
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Covariates:
     """What the confidence map conditions on, all measured by the policy itself (see
     ``Confidence``)."""
