@@ -64,3 +64,23 @@ def test_a_bad_setting_is_one_error_line_and_exit_2(started, name, args, words):
     assert p.wait(60) == 2
     out = p.stdout.read().strip().splitlines()
     assert out and words in out[-1] and out[-1].startswith("error: ") and "Traceback" not in "\n".join(out)
+
+
+def test_the_orchestrator_entry_serves_the_api_and_stops_on_sigterm(started, tmp_path):
+    import time
+
+    import httpx
+
+    port = free_port()
+    p = started("orchestrator", "--port", str(port), "--db", str(tmp_path / "o.db"), "--expect-rigs", "0",
+                "--listen", f"tcp/127.0.0.1:{free_port()}", env={"RA2VIPAS_ZENOH_MODE": "peer"})
+    deadline, health = time.monotonic() + 120, None
+    while health is None and time.monotonic() < deadline and p.poll() is None:
+        try:
+            health = httpx.get(f"http://127.0.0.1:{port}/health", timeout=2)
+        except httpx.HTTPError:
+            time.sleep(0.3)
+    assert health is not None, p.stdout.read() if p.poll() is not None else "no answer"
+    assert "status" in health.json()  # the API answers (503 while it has no learner: degraded, but serving)
+    p.send_signal(signal.SIGTERM)
+    assert p.wait(30) == 0
