@@ -7,6 +7,7 @@ from __future__ import annotations
 import pytest
 
 from ra2vipas.services.controller.registry import BUILTINS
+from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from tests.api.live import SMALL, LiveAPI
 from tests.nodes.test_policy_mesh import SPIN
 
@@ -32,7 +33,7 @@ def test_rigs_show_the_policies_their_controllers_serve(server):
         rigs = {r["name"]: r for r in http.get("/rigs").json()["rigs"]}
         page = http.get("/ui/rigs").text
     assert '<td class="policies">spin</td>' in page  # the dashboard's rigs page too
-    assert rigs["spin-1"]["announced"] == "announced" and rigs["spin-1"]["controller_protocol"] == "1.2"
+    assert rigs["spin-1"]["announced"] == "announced" and rigs["spin-1"]["controller_protocol"] == PROTOCOL_VERSION
     assert [p["name"] for p in rigs["spin-1"]["policies"]] == ["spin"]
     assert [p["name"] for p in rigs["all-1"]["policies"]][:4] == list(BUILTINS)
     assert rigs["all-1"]["policies"][0]["package"] == "ra2vipas"

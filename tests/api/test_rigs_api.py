@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import pytest
 
+from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from ra2vipas.services.sensors.node import simulated_descriptor
 from tests.api.live import SMALL, LiveAPI
 
@@ -44,7 +45,7 @@ def test_rigs_show_their_descriptors_and_v1_nodes_are_undescribed(rigs):
     assert by_name["sim-1"]["described"] == "described" and by_name["sim-1"]["descriptor"]["kind"] == "simulated"
     assert by_name["sim-1"]["descriptor"]["rx_dir"] is None  # configurable: simulates the campaign's antenna
     assert by_name["db-1"]["descriptor"]["rx_dir"]["model"] == "db-gain"
-    assert by_name["sim-1"]["protocol"] == "1.3"  # our simulated sensors speak the newest version
+    assert by_name["sim-1"]["protocol"] == PROTOCOL_VERSION  # our simulated sensors speak the newest version
     for v1 in ("old-1", "hidden-1"):
         assert by_name[v1]["described"] == "undescribed" and by_name[v1]["descriptor"] is None and by_name[v1]["live"]
         assert by_name[v1]["protocol"] == "1.0"

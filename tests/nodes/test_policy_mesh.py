@@ -19,6 +19,7 @@ from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import ControllerInfo, EpisodeResult, EpisodeStart, dump
 from ra2vipas.services.protocol.scenario import build_scenario
+from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
 from tests.nodes.test_mesh_in_memory import settle
@@ -113,7 +114,7 @@ def test_an_episode_goes_only_to_a_rig_whose_controller_serves_its_policy(mesh):
     rigs = scheduler.status()["rigs"]
     assert [p["name"] for p in rigs["rig-a"]["policies"]] == ["spin", "rapas"] and rigs["rig-a"]["announced"] == "announced"
     assert "spin" not in [p["name"] for p in rigs["rig-b"]["policies"]]
-    assert rigs["rig-a"]["controller_protocol"] == "1.2"
+    assert rigs["rig-a"]["controller_protocol"] == PROTOCOL_VERSION
     # the orchestrator has no spin installed: the results name where rig-a's controller said it came from
     assert c["results"]["policies"] == {"spin": {"package": rigs["rig-a"]["policies"][0]["package"], "version": "?"}}
     assert c["results"]["policies"]["spin"]["package"] not in ("", "?")
@@ -159,7 +160,7 @@ def test_the_controller_answers_what_it_serves_and_fails_an_episode_of_another_n
         while not replies and time.monotonic() < deadline:
             time.sleep(0.01)
         info = ControllerInfo.model_validate_json(replies[0][0].payload)
-        assert info.rig == "rig-x" and [p.name for p in info.policies] == ["rapas", "spin"] and info.protocol == "1.2"
+        assert info.rig == "rig-x" and [p.name for p in info.policies] == ["rapas", "spin"] and info.protocol == PROTOCOL_VERSION
         assert info.policies[0].package == "ra2vipas"
 
         results = []
