@@ -14,7 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import zenoh
 
-from ra2vipas.services.transport.bus import AliveCallback, Callback, QueryError, QueryHandler, RepliesCallback, Reply
+from ra2vipas.services.transport.bus import AliveCallback, Callback, FeedClosed, QueryError, QueryHandler, RepliesCallback, Reply
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
 log = logging.getLogger(__name__)
@@ -25,6 +25,61 @@ MAX_MESSAGE_BYTES = 1 << 20
 """Largest publication or query payload a node accepts (1 MiB; the largest legitimate message,
 an EpisodeStart or a Measurement, is a few kB). Query replies, such as a training stream, are
 not limited."""
+
+
+FEED_CAPACITY = 1 << 16
+"""Messages a feed holds before Zenoh's receiving thread waits for its consumer (a node's
+per-step traffic is a few messages per episode in flight; a stuck consumer stalls the session's
+delivery only after this many)."""
+
+WAKE = b"ra2vipas-wake"
+"""The attachment of a feed's wake-up: an empty sample put on the feed's own key, delivered to
+this session only (``Locality.SESSION_LOCAL``: it never reaches the network)."""
+
+
+class _ZenohFeed:
+    """``ZenohBus.feed``: a subscriber with a FIFO channel that the consumer's thread reads
+    (``recv`` waits without holding the GIL), so a sample goes from Zenoh's receiving thread
+    to the node's worker with no Python callback thread in between."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self._session = session
+        self._wake_key = key.replace("**", "_wake").replace("*", "_wake")  # a key the subscription matches
+        self._sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(FEED_CAPACITY))
+
+    def _take(self, sample: "zenoh.Sample | None"):
+        if sample is None:
+            return None
+        attachment = sample.attachment
+        if attachment is not None and len(sample.payload) == 0 and attachment.to_bytes() == WAKE:
+            return None
+        payload = sample.payload
+        if len(payload) > MAX_MESSAGE_BYTES:
+            log.warning("dropping a %d-byte message on %s (limit %d)", len(payload), sample.key_expr, MAX_MESSAGE_BYTES)
+            return None
+        return str(sample.key_expr), payload.to_bytes()
+
+    def recv(self):
+        try:
+            sample = self._sub.recv()
+        except zenoh.ZError as err:  # undeclared: the channel is empty and closed
+            raise FeedClosed(str(err)) from None
+        return self._take(sample)
+
+    def try_recv(self):
+        try:
+            return self._take(self._sub.try_recv())
+        except zenoh.ZError as err:
+            raise FeedClosed(str(err)) from None
+
+    def wake(self) -> None:
+        try:
+            self._session.put(self._wake_key, b"", attachment=WAKE, allowed_destination=zenoh.Locality.SESSION_LOCAL)
+        except Exception:  # the session is closing: nothing is waiting any more
+            pass
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
 
 
 class ZenohBus:
@@ -65,6 +120,12 @@ class ZenohBus:
         sub = self.session.declare_subscriber(key, on_sample)
         self._declared.append(sub)
         return sub
+
+    def feed(self, key: str) -> _ZenohFeed:
+        """Samples on keys matching ``key`` for the caller's thread to take (``bus.Feed``)."""
+        f = _ZenohFeed(self.session, key)
+        self._declared.append(f)
+        return f
 
     # -- query/reply -------------------------------------------------------------------------
     def serve(self, key: str, handler: QueryHandler):
