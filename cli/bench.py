@@ -223,7 +223,10 @@ def bench_mesh(
     loop, decoding and validating, computing, encoding and publishing, as the services measured
     it, and the transport between them (services/transport/costs.py). The fast campaign is
     also run in-process on one worker: ``mesh_over_inprocess`` is mesh steps/s over that
-    (``--no-inprocess`` skips it). Memory (with --memory-tests): one campaign of each size (MEMORY_STEPS steps,
+    (``--no-inprocess`` skips it). ``cpu_ms_per_step`` is the CPU one control step of the fast
+    campaign cost each service (summed over rigs; from the first episode on), and
+    ``cpu_efficiency`` the in-process step's CPU over the mesh's: what a mesh core does of what
+    an in-process core does, a ratio the machine's other load hardly moves. Memory (with --memory-tests): one campaign of each size (MEMORY_STEPS steps,
     MEMORY_ALGORITHM) on RIG_COUNT rigs, each on a fresh stack; reports the orchestrator
     process's peak resident memory (VmHWM) and its resident memory before and after (VmRSS).
     Every stack is stopped afterwards.
