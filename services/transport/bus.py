@@ -227,7 +227,8 @@ class MemoryBus:
         return _MemoryHandle(self._subs, item)
 
     def feed(self, key: str) -> Feed:
-        """Messages on keys matching ``key``, taken by the consumer (``Feed``)."""
+        """Messages on keys matching ``key``, taken by the consumer (``Feed``; a bus may
+        return None instead when it cannot offer one: the caller subscribes then)."""
         return _MemoryFeed(self, key)
 
     def serve(self, key: str, handler: QueryHandler) -> Handle:

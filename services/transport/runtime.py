@@ -71,9 +71,9 @@ class EventLoop:
         ``bus.subscribe`` and ``post`` like any other subscription. One feed per loop. The
         returned handle's ``undeclare`` ends it."""
         make = getattr(bus, "feed", None)
-        if make is None or self._feed is not None:
+        feed = make(key) if make is not None and self._feed is None else None
+        if feed is None:
             return bus.subscribe(key, lambda _k, p: self.post(handler, p))
-        feed = make(key)
         self._feed = (feed, handler)
         self._queue.put((_nothing, (), time.perf_counter_ns()))  # the worker may be blocked on the queue: now it pulls
         return feed

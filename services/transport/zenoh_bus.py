@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 
 import zenoh
@@ -46,12 +48,30 @@ class _ZenohFeed:
         self._session = session
         self._wake_key = key.replace("**", "_wake").replace("*", "_wake")  # a key the subscription matches
         self._sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(FEED_CAPACITY))
+        self._early: deque = deque()  # messages that arrived while ``wakes`` checked the wake-up
+
+    @staticmethod
+    def _is_wake(sample: zenoh.Sample) -> bool:
+        attachment = sample.attachment
+        return attachment is not None and len(sample.payload) == 0 and attachment.to_bytes() == WAKE
+
+    def wakes(self) -> bool:
+        """Whether a wake-up reaches this feed (a session-local put is delivered before ``put``
+        returns; a client configuration whose own access control forbade the put would leave
+        the worker asleep, so the bus then subscribes the usual way instead)."""
+        self.wake()
+        for _ in range(3):
+            sample = self._sub.try_recv()
+            while sample is not None:
+                if self._is_wake(sample):
+                    return True
+                self._early.append(sample)
+                sample = self._sub.try_recv()
+            time.sleep(0.01)
+        return False
 
     def _take(self, sample: "zenoh.Sample | None"):
-        if sample is None:
-            return None
-        attachment = sample.attachment
-        if attachment is not None and len(sample.payload) == 0 and attachment.to_bytes() == WAKE:
+        if sample is None or self._is_wake(sample):
             return None
         payload = sample.payload
         if len(payload) > MAX_MESSAGE_BYTES:
@@ -60,6 +80,8 @@ class _ZenohFeed:
         return str(sample.key_expr), payload.to_bytes()
 
     def recv(self):
+        if self._early:
+            return self._take(self._early.popleft())
         try:
             sample = self._sub.recv()
         except zenoh.ZError as err:  # undeclared: the channel is empty and closed
@@ -67,6 +89,8 @@ class _ZenohFeed:
         return self._take(sample)
 
     def try_recv(self):
+        if self._early:
+            return self._take(self._early.popleft())
         try:
             return self._take(self._sub.try_recv())
         except zenoh.ZError as err:
@@ -121,9 +145,14 @@ class ZenohBus:
         self._declared.append(sub)
         return sub
 
-    def feed(self, key: str) -> _ZenohFeed:
-        """Samples on keys matching ``key`` for the caller's thread to take (``bus.Feed``)."""
+    def feed(self, key: str) -> "_ZenohFeed | None":
+        """Samples on keys matching ``key`` for the caller's thread to take (``bus.Feed``);
+        None if this session cannot wake its consumer (``_ZenohFeed.wakes``): subscribe then."""
         f = _ZenohFeed(self.session, key)
+        if not f.wakes():
+            log.warning("no wake-up reaches a feed on %s (the session's own access control?): subscribing instead", key)
+            f.undeclare()
+            return None
         self._declared.append(f)
         return f
 

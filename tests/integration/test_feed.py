@@ -148,3 +148,34 @@ def test_zenoh_feed_over_the_network_and_its_wake_up_stays_in_the_session():
         loop.stop()
         receiver.close()
         publisher.close()
+
+
+def test_a_zenoh_feed_whose_wake_up_cannot_arrive_falls_back_to_a_subscription(monkeypatch):
+    """If a session-local put cannot reach the feed (say the client's own configuration denies
+    it), a worker blocked in ``recv`` would never see its posted events: the bus checks the
+    wake-up when it declares the feed, and the node subscribes the usual way instead."""
+    from ra2vipas.services.transport import zenoh_bus
+
+    port = _free_port()
+    base = {"multicast_scouting": False}
+    publisher = ZenohBus(ZenohSettings(mode="peer", listen=(f"tcp/127.0.0.1:{port}",), **base))
+    receiver = ZenohBus(ZenohSettings(mode="peer", connect=(f"tcp/127.0.0.1:{port}",), **base))
+    loop = EventLoop("no-wake")
+    got: list[bytes] = []
+    try:
+        monkeypatch.setattr(zenoh_bus._ZenohFeed, "wake", lambda self: None)
+        assert receiver.feed("data/rig-1/command") is None
+        loop.feed(receiver, "data/rig-1/command", got.append)
+        assert loop._feed is None  # subscribed instead
+        deadline = time.monotonic() + 10
+        while not got and time.monotonic() < deadline:
+            publisher.publish("data/rig-1/command", b"probe")
+            time.sleep(0.05)
+        assert got and loop.wait_idle(5)
+        ran = threading.Event()
+        loop.post(ran.set)
+        assert ran.wait(5)
+    finally:
+        loop.stop()
+        receiver.close()
+        publisher.close()
