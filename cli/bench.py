@@ -95,8 +95,11 @@ def _run_campaign(api: str, body: dict, timeout: float, poll: float = 0.1) -> tu
     return results, wall
 
 
-def _run_campaign_id(api: str, body: dict, timeout: float, poll: float = 0.1) -> tuple[dict, float, str]:
-    """Start a campaign, wait until it is done; its results, wall time and id."""
+def _run_campaign_id(api: str, body: dict, timeout: float, poll: float = 0.1, on_running=None,
+                     on_done=None) -> tuple[dict, float, str]:
+    """Start a campaign, wait until it is done; its results, wall time and id. ``on_running()``
+    is called when the poll first sees it running (its model trained, episodes handed out),
+    ``on_done()`` when it sees it finished."""
     import httpx
 
     started = time.perf_counter()
@@ -107,6 +110,11 @@ def _run_campaign_id(api: str, body: dict, timeout: float, poll: float = 0.1) ->
             raise TimeoutError(f"campaign {c['id']} did not finish within {timeout:.0f} s")
         time.sleep(poll)
         c = httpx.get(f"{api}/campaigns/{c['id']}", timeout=30).json()
+        if on_running is not None and c["status"] == "running":
+            on_running()
+            on_running = None
+    if on_done is not None:
+        on_done()
     wall = time.perf_counter() - started
     if c["status"] != "done":
         raise RuntimeError(f"campaign {c['id']} {c['status']}: {c.get('error')}")
@@ -148,13 +156,46 @@ class _CostListener:
         self.bus.close()
 
 
-def _inprocess_steps_per_second(preset: str, tests: int, algorithms: list[str]) -> tuple[float, dict]:
-    """The same campaign in-process on one worker (``simulate``): steps/s and DR_final per algorithm."""
+class _StackCPU:
+    """CPU seconds (user + system) a stack's processes use between ``start`` and ``stop``, by
+    role: what a campaign costs the machine's cores, whatever else runs on them (a shared
+    machine slows every process down, it does not make one use more CPU per step)."""
+
+    ROLES = ("controller", "sensors", "router", "orchestrator", "learner")
+
+    def __init__(self, stack) -> None:
+        self.pids = {c.name: c.proc.pid for c in stack.children if c.proc is not None}
+        self.at: dict[str, float] = {}
+        self.used: dict[str, float] = {}
+
+    def start(self) -> None:
+        self.at = {name: _cpu_of(pid) for name, pid in self.pids.items()}
+
+    def stop(self) -> None:
+        self.used = {name: _cpu_of(pid) - self.at.get(name, 0.0) for name, pid in self.pids.items()} if self.at else {}
+
+    def per_step_ms(self, steps: int) -> dict | None:
+        """Per control step [ms of CPU], by role (summed over rigs) and in total."""
+        if not self.used or not steps:
+            return None
+        out = {role: round(1e3 * sum(v for name, v in self.used.items() if name.split("-")[0] == role) / steps, 4)
+               for role in self.ROLES}
+        out["total"] = round(sum(out.values()), 4)
+        return out
+
+
+def _inprocess_steps_per_second(preset: str, tests: int, algorithms: list[str]) -> tuple[float, dict, float | None]:
+    """The same campaign in-process on one worker (``simulate``): steps/s, DR_final per
+    algorithm, and the CPU each control step cost this process [ms] (from its first episode on,
+    like the steps/s: training excluded)."""
     from ra2vipas.services.orchestrator.engine import Point, run_points
     from ra2vipas.services.protocol.scenario import build_scenario
 
-    run = run_points([Point(preset, build_scenario(preset), tests, 1, tuple(algorithms))], workers=1)
-    return run.steps_per_second or 0.0, {a: b["dr_final"] for a, b in run.results[0]["algorithms"].items()}
+    cpu_at: list[float] = []
+    run = run_points([Point(preset, build_scenario(preset), tests, 1, tuple(algorithms))], workers=1,
+                     on_trained=lambda _i, _pod: cpu_at.append(time.process_time()))
+    cpu_ms = 1e3 * (time.process_time() - cpu_at[0]) / run.steps if cpu_at and run.steps else None
+    return run.steps_per_second or 0.0, {a: b["dr_final"] for a, b in run.results[0]["algorithms"].items()}, cpu_ms
 
 
 @app.command("learner")
@@ -221,7 +262,10 @@ def bench_mesh(
     loop, decoding and validating, computing, encoding and publishing, as the services measured
     it, and the transport between them (services/transport/costs.py). The fast campaign is
     also run in-process on one worker: ``mesh_over_inprocess`` is mesh steps/s over that
-    (``--no-inprocess`` skips it). Memory (with --memory-tests): one campaign of each size (MEMORY_STEPS steps,
+    (``--no-inprocess`` skips it). ``cpu_ms_per_step`` is the CPU one control step of the fast
+    campaign cost each service (summed over rigs; from the first episode on), and
+    ``cpu_efficiency`` the in-process step's CPU over the mesh's: what a mesh core does of what
+    an in-process core does, a ratio the machine's other load hardly moves. Memory (with --memory-tests): one campaign of each size (MEMORY_STEPS steps,
     MEMORY_ALGORITHM) on RIG_COUNT rigs, each on a fresh stack; reports the orchestrator
     process's peak resident memory (VmHWM) and its resident memory before and after (VmRSS).
     Every stack is stopped afterwards.
@@ -261,9 +305,10 @@ def bench_mesh(
             try:
                 stack.start()
                 listener = _CostListener(stack)
+                cpu = _StackCPU(stack)
                 body = {"preset": preset, "tests": tests, "seed": 1, "algorithms": algorithms}
                 try:
-                    fast, fast_wall = _run_campaign(stack.api_url, body, 1800)
+                    fast, fast_wall, _ = _run_campaign_id(stack.api_url, body, 1800, on_running=cpu.start, on_done=cpu.stop)
                     time.sleep(0.2)
                     breakdown = listener.breakdown()
                 finally:
@@ -273,6 +318,7 @@ def bench_mesh(
                     "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
                     "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
                     "step_breakdown": breakdown,
+                    "cpu_ms_per_step": cpu.per_step_ms(tests * len(algorithms) * fast["scenario"]["steps"]),
                 }
                 report["steps_per_second"] = fast["steps_per_second"]
             except (StackError, TimeoutError, RuntimeError) as err:
@@ -280,9 +326,14 @@ def bench_mesh(
             finally:
                 stack.stop()
             if inprocess:
-                sps1, dr1 = _inprocess_steps_per_second(preset, tests, algorithms)
+                sps1, dr1, cpu1 = _inprocess_steps_per_second(preset, tests, algorithms)
                 report["inprocess_steps_per_second_1"] = round(sps1, 1)
                 report["mesh_over_inprocess"] = round(report["steps_per_second"] / sps1, 3) if sps1 else None
+                # per-core efficiency, independent of what else the machine runs: the CPU a control step costs
+                # in process over what it costs the whole mesh (1.0: a mesh core does what an in-process core does)
+                report["inprocess_cpu_ms_per_step"] = None if cpu1 is None else round(cpu1, 4)
+                mesh_cpu = report["fast"]["cpu_ms_per_step"]
+                report["cpu_efficiency"] = round(cpu1 / mesh_cpu["total"], 3) if cpu1 and mesh_cpu and mesh_cpu["total"] else None
                 report["fast"]["dr_final_equals_inprocess"] = dr1 == report["fast"]["dr_final"]
         report["latency_ms"] = None
         if realtime_tests:

@@ -169,7 +169,7 @@ class ControllerNode:
         warm_up()
         self._handles = [
             bus.subscribe(keys.episode_control(rig), lambda _k, p: self.loop.post(self._on_control, p)),
-            bus.subscribe(keys.measurement(rig), lambda _k, p: self.loop.post(self._on_measurement, p)),
+            self.loop.feed(bus, keys.measurement(rig), self._on_measurement),  # the worker takes them itself
             bus.serve(keys.rig_policies(rig), lambda _k, _p: info_payload),
             bus.announce(keys.alive("controller", rig)),  # last: whoever sees it may query the policies
         ]

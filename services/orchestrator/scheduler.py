@@ -191,6 +191,7 @@ class Scheduler:
         self.rejected: Counter = Counter({reason: 0 for reason in REJECTIONS})
         self._order: deque[str] = deque()  # campaigns in FIFO order
         self._deferred: list[tuple[str, Callable[[], None]]] = []  # writes to retry once the database takes them
+        self._finished: list[tuple[str, EpisodeKey, dict[str, Any], _Run, bool]] = []  # complete, to record together
         self._heal_backoff = heal_backoff_s
         self._heal_wait = heal_backoff_s[0]
         self._heal_at: float | None = None
@@ -495,20 +496,26 @@ class Scheduler:
             rig = self.rigs[rig_name]
             if not rig.ready:
                 continue
-            while len(rig.in_flight) < self.window:
-                if any(self._is_realtime(eid) for eid in rig.in_flight):
-                    break
-                item = self._next_episode(allow_realtime=not rig.in_flight, rig=rig_name)
+            if any(self._is_realtime(eid) for eid in rig.in_flight):
+                continue
+            picked: list[tuple[_Run, EpisodeKey]] = []
+            while len(rig.in_flight) + len(picked) < self.window:
+                item = self._next_episode(allow_realtime=not rig.in_flight and not picked, rig=rig_name)
                 if item is None:
                     break
-                run, key = item
-                try:
-                    attempt = self.store.attempt_of(key) + 1
-                    self.store.mark_running(key, rig_name, attempt)
-                except StorageFault as err:
+                picked.append(item)
+                if item[0].mode is Mode.realtime:
+                    break
+            if not picked:
+                continue
+            try:
+                attempts = self.store.mark_running_many([key for _, key in picked], rig_name)  # one transaction
+            except StorageFault as err:
+                for run, key in reversed(picked):
                     run.pending.appendleft(key)
-                    self._defer("handing out episodes", self.store.probe_write, err)
-                    return
+                self._defer("handing out episodes", self.store.probe_write, err)
+                return
+            for (run, key), attempt in zip(picked, attempts):
                 eid = episode_id(key, attempt)
                 self.flights[eid] = _Flight(key=key, rig=rig_name, attempt=attempt, started=time.time())
                 rig.in_flight.add(eid)
@@ -708,15 +715,30 @@ class Scheduler:
             model_check=None if res.model_check is None else res.model_check.model_dump(mode="json"),
         )
 
+        flight.saving = True  # a duplicate result must not record it twice meanwhile
+        self._finished.append((eid, flight.key, record, run, decided is not None))
+        if len(self._finished) == 1:  # after what arrived meanwhile: the whole burst is recorded in one transaction
+            self.loop.post(self._save_finished)
+
+    def _save_finished(self) -> None:
+        """Record the episodes completed since the last call in one transaction, then forget
+        their flights and hand out what they freed (a failed write is retried whole, later)."""
+        batch, self._finished = self._finished, []
+        if not batch:
+            return
+
         def save() -> None:
-            self.store.finish_episode(flight.key, **record)  # records nothing if the test is already recorded
-            self._drop_flight(eid, stop_reason="decided early" if decided is not None else None)  # the sensors forget it
-            if run.id in self.runs:
+            self.store.finish_episodes([(key, record) for _, key, record, _, _ in batch])  # nothing twice
+            runs: dict[str, _Run] = {}
+            for eid, _, _, run, decided in batch:
+                self._drop_flight(eid, stop_reason="decided early" if decided else None)  # the sensors forget it
+                runs[run.id] = run
+            if any(cid in self.runs for cid in runs):
                 self._dispatch()
+            for run in runs.values():
                 self._maybe_finish(run)
 
-        flight.saving = True  # a duplicate result must not record it twice meanwhile
-        self._attempt(f"recording episode {eid}", save)
+        self._attempt(f"recording episode {batch[0][0]}" + (f" and {len(batch) - 1} more" if len(batch) > 1 else ""), save)
 
     def _maybe_finish(self, run: _Run) -> None:
         if run.id not in self.runs or run.pending or any(f.key.campaign_id == run.id for f in self.flights.values()):

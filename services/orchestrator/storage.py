@@ -27,7 +27,9 @@ import time
 import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
+
+from pydantic_core import to_json
 
 SCHEMA_VERSION = 6
 
@@ -504,6 +506,26 @@ class Store:
         with self.transaction() as db:
             return db.execute("UPDATE episodes SET status='pending', rig=NULL WHERE campaign_id=? AND status='running'", (cid,)).rowcount
 
+    def mark_running_many(self, keys: Sequence[EpisodeKey], rig: str) -> list[int]:
+        """Mark episodes running on ``rig`` in one transaction, each with its next attempt
+        number (``attempt_of`` + 1, what ``mark_running`` is given); their attempt numbers.
+
+        Raises
+        ------
+        StorageFault
+            The database could not be written (nothing is marked).
+        """
+        attempts: list[int] = []
+        with self.transaction() as db:
+            for key in keys:
+                row = db.execute("SELECT attempt FROM episodes WHERE campaign_id=? AND test_index=? AND algorithm=?",
+                                 (key.campaign_id, key.test_index, key.algorithm)).fetchone()
+                attempt = (int(row[0]) if row and row[0] is not None else 0) + 1
+                db.execute("UPDATE episodes SET status='running', rig=?, attempt=? WHERE campaign_id=? AND test_index=? AND algorithm=? AND status!='done'",
+                           (rig, attempt, key.campaign_id, key.test_index, key.algorithm))
+                attempts.append(attempt)
+        return attempts
+
     def mark_running(self, key: EpisodeKey, rig: str, attempt: int) -> None:
         with self.transaction() as db:
             db.execute("UPDATE episodes SET status='running', rig=?, attempt=? WHERE campaign_id=? AND test_index=? AND algorithm=? AND status!='done'",
@@ -530,19 +552,24 @@ class Store:
         step 0; ``trajectories`` the walking ones' per-step truth, if any; ``confidences`` the
         controller's per step (None from a v1 controller); ``decided_step`` an early decision;
         ``model_check`` how the controller modelled the rig (None from a v1 controller)."""
+        return self.finish_episodes([(key, dict(
+            hits=hits, in_fov=in_fov, estimates=estimates, pans=pans, rewards=rewards, chosen=chosen, tx_index=tx_index,
+            bearings=bearings, ranges=ranges, latencies=latencies, trajectories=trajectories, confidences=confidences,
+            decided_step=decided_step, model_check=model_check))])[0]
+
+    def finish_episodes(self, finished: Sequence[tuple[EpisodeKey, dict[str, Any]]]) -> list[bool]:
+        """Record finished tests in one transaction (the orchestrator saves a burst of them at
+        once: one commit instead of one each); each ``(key, fields)`` as ``finish_episode``'s
+        keyword arguments. Per test, False if it was already recorded or its campaign cancelled.
+
+        Raises
+        ------
+        StorageFault
+            The database could not be written (none of them is recorded).
+        """
+        now = time.time()
         with self.transaction() as db:
-            cur = db.execute(
-                "UPDATE episodes SET status='done', hits=?, in_fov=?, estimates=?, pans=?, rewards=?, chosen=?, tx_index=?,"
-                " bearings=?, ranges=?, latencies=?, trajectories=?, confidences=?, decided_step=?, model_check=?, finished_at=?"
-                " WHERE campaign_id=? AND test_index=? AND algorithm=? AND status IN ('pending', 'running')",
-                (json.dumps([int(h) for h in hits]), json.dumps([int(f) for f in in_fov]), json.dumps(estimates), json.dumps(pans),
-                 json.dumps(rewards), json.dumps(chosen), tx_index, json.dumps(bearings), json.dumps(ranges),
-                 None if latencies is None else json.dumps(latencies),
-                 None if trajectories is None else json.dumps(trajectories, separators=(",", ":")),
-                 None if confidences is None else json.dumps(confidences), decided_step,
-                 None if model_check is None else json.dumps(model_check), time.time(),
-                 key.campaign_id, key.test_index, key.algorithm))
-            return cur.rowcount == 1
+            return [db.execute(_FINISH_SQL, _finished_row(key, now, **fields)).rowcount == 1 for key, fields in finished]
 
     def episode_rows(self, cid: str, status: str | None = "done") -> list[dict[str, Any]]:
         with self._reading() as db:
@@ -667,6 +694,34 @@ def _campaign_dict(row: sqlite3.Row, counts: dict[str, int]) -> dict[str, Any]:
     total = sum(counts.values())
     d["progress"] = {"done": counts.get("done", 0), "running": counts.get("running", 0), "pending": counts.get("pending", 0), "total": total}
     return d
+
+
+_FINISH_SQL = ("UPDATE episodes SET status='done', hits=?, in_fov=?, estimates=?, pans=?, rewards=?, chosen=?, tx_index=?,"
+               " bearings=?, ranges=?, latencies=?, trajectories=?, confidences=?, decided_step=?, model_check=?, finished_at=?"
+               " WHERE campaign_id=? AND test_index=? AND algorithm=? AND status IN ('pending', 'running')")
+
+
+def _json_text(value: Any) -> str:
+    """Compact JSON text of a stored list or object, encoded in Rust (``pydantic_core``; several
+    times ``json.dumps``'s speed on float lists): floats in their shortest round-trip form, so
+    ``json.loads`` reads back exactly the values ``json.dumps`` would have written; NaN and
+    infinities as ``json.dumps`` writes them."""
+    return to_json(value, inf_nan_mode="constants").decode()
+
+
+def _finished_row(key: EpisodeKey, finished_at: float, *, hits: list[bool], in_fov: list[bool], estimates: list[float],
+                  pans: list[float], rewards: list[float], chosen: list[int], tx_index: int, bearings: list[float],
+                  ranges: list[float], latencies: list[float] | None, trajectories: list[dict] | None = None,
+                  confidences: list[float] | None = None, decided_step: int | None = None,
+                  model_check: dict | None = None) -> tuple:
+    """The parameters of ``_FINISH_SQL`` for one finished test."""
+    return (_json_text([int(h) for h in hits]), _json_text([int(f) for f in in_fov]), _json_text(estimates), _json_text(pans),
+            _json_text(rewards), _json_text(chosen), tx_index, _json_text(bearings), _json_text(ranges),
+            None if latencies is None else _json_text(latencies),
+            None if trajectories is None else _json_text(trajectories),
+            None if confidences is None else _json_text(confidences), decided_step,
+            None if model_check is None else _json_text(model_check), finished_at,
+            key.campaign_id, key.test_index, key.algorithm)
 
 
 def _episode_dict(row: sqlite3.Row) -> dict[str, Any]:

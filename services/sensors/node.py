@@ -95,7 +95,7 @@ class SensorsNode:
         self._measurement_key = keys.measurement(rig)
         self._handles = [
             bus.subscribe(keys.episode_control(rig), lambda _k, p: self.loop.post(self._on_control, p)),
-            bus.subscribe(keys.command(rig), lambda _k, p: self.loop.post(self._on_command, p)),
+            self.loop.feed(bus, keys.command(rig), self._on_command),  # the worker takes them itself
             bus.serve(keys.training(rig), self._on_training),
             bus.serve(keys.training_truth(rig), self._on_training_truth),
         ]

@@ -6,7 +6,9 @@ sends queries, and announces or watches liveliness through a ``Bus``. ``ZenohBus
 process so node logic is tested without a network (the dora-rs "fake node" idea).
 
 Callbacks may be called from any thread; nodes hand events to their own single worker thread
-(``ra2vipas.services.transport.runtime.EventLoop``) so their state needs no locks.
+(``ra2vipas.services.transport.runtime.EventLoop``) so their state needs no locks. A bus may
+also offer ``feed(key)``: a subscription whose messages that worker thread takes itself
+(``Feed``), with no callback thread in between, for a node's per-step traffic.
 """
 
 from __future__ import annotations
@@ -31,6 +33,29 @@ class Reply:
 
 
 class Handle(Protocol):
+    def undeclare(self) -> None: ...
+
+
+class FeedClosed(Exception):
+    """Raised by ``Feed.recv`` once the feed is undeclared (or its bus closed)."""
+
+
+class Feed(Protocol):
+    """A subscription read by its consumer's own thread (``Bus.feed``): messages queue in the
+    bus, in arrival order, until taken; nothing runs on the bus's threads."""
+
+    def recv(self) -> "tuple[str, bytes] | None":
+        """The next ``(key, payload)``, blocking until one arrives; None when woken by ``wake``
+        instead. Raises ``FeedClosed`` once undeclared."""
+
+    def try_recv(self) -> "tuple[str, bytes] | None":
+        """The next ``(key, payload)`` if one is waiting (a pending wake-up is consumed and
+        reported as None too), without blocking."""
+
+    def wake(self) -> None:
+        """Make a ``recv`` blocked now (or the next one) return None: the consumer has other
+        work (any thread may call it)."""
+
     def undeclare(self) -> None: ...
 
 
@@ -95,6 +120,42 @@ def key_matches(pattern: str, key: str) -> bool:
         return False
 
     return match(0, 0)
+
+
+class _MemoryFeed:
+    """``MemoryBus.feed``: a subscription whose callback queues what the consumer takes."""
+
+    _WAKE = object()
+    _CLOSED = object()
+
+    def __init__(self, bus: "MemoryBus", key: str) -> None:
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._closed = False
+        self._handle = bus.subscribe(key, lambda k, p: self._queue.put((k, p)))
+
+    def _take(self, item):
+        if item is self._CLOSED:
+            self._queue.put(item)  # every later call sees it too
+            raise FeedClosed("feed undeclared")
+        return None if item is self._WAKE else item
+
+    def recv(self):
+        return self._take(self._queue.get())
+
+    def try_recv(self):
+        try:
+            return self._take(self._queue.get_nowait())
+        except queue.Empty:
+            return None
+
+    def wake(self) -> None:
+        self._queue.put(self._WAKE)
+
+    def undeclare(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._handle.undeclare()
+            self._queue.put(self._CLOSED)
 
 
 class _MemoryHandle:
@@ -164,6 +225,11 @@ class MemoryBus:
         with self._lock:
             self._subs.append(item)
         return _MemoryHandle(self._subs, item)
+
+    def feed(self, key: str) -> Feed:
+        """Messages on keys matching ``key``, taken by the consumer (``Feed``; a bus may
+        return None instead when it cannot offer one: the caller subscribes then)."""
+        return _MemoryFeed(self, key)
 
     def serve(self, key: str, handler: QueryHandler) -> Handle:
         item = (key, handler)

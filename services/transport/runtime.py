@@ -27,8 +27,18 @@ class EventLoop:
     delivery (the zenoh-python docs: callbacks must not block). One FIFO queue per node keeps
     the order in which messages arrived, and node state needs no other locking.
 
+    A node's per-step traffic (the controller's measurements, the sensors' commands) comes
+    through ``feed`` instead when the bus offers it (``Bus.feed``): the worker takes those
+    messages from the bus itself, so a step's message reaches its handler with one thread
+    hop (Zenoh's receiving thread to the worker) instead of two, no other thread takes the GIL
+    for it, and a backlog of them is drained without a thread switch each. Posted events and
+    fed messages take turns when both are waiting; each source keeps its own order.
+
     While a handler runs, ``posted_ns`` and ``started_ns`` (``time.perf_counter_ns``) say when
     it was posted and when the worker took it: its time queued (``services/transport/costs.py``).
+    For a fed message ``posted_ns`` is when the worker started waiting for it, or, if it was
+    already waiting in the bus, when the worker looked: the time it spent queued in the bus
+    behind other messages is not seen (it counts as the time outside the node).
     """
 
     def __init__(self, name: str) -> None:
@@ -36,6 +46,9 @@ class EventLoop:
         self.posted_ns = 0
         self.started_ns = 0
         self._stopped = threading.Event()
+        self._feed = None  # (Feed, handler) once ``feed`` found a bus that offers one
+        self._waiting = False  # the worker may be blocked in the feed's recv: a post must wake it
+        self._fed_last = False  # the last item came from the feed: posted events go first next
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -43,6 +56,65 @@ class EventLoop:
         """Queue ``fn(*args)`` to run on the worker thread (dropped once the loop is stopped)."""
         if not self._stopped.is_set():
             self._queue.put((fn, args, time.perf_counter_ns()))
+            self._wake()
+
+    def _wake(self) -> None:
+        # the worker sets ``_waiting`` before it last looks at the queue and then blocks: a post
+        # that reads False was queued before that look (the GIL orders the two), so it is seen
+        feed = self._feed
+        if feed is not None and self._waiting:
+            feed[0].wake()
+
+    def feed(self, bus, key: str, handler: Callable[[bytes], None]):
+        """Run ``handler(payload)`` on the worker thread for every message on ``key``, taken
+        from ``bus.feed(key)`` by the worker itself; on a bus without feeds, through
+        ``bus.subscribe`` and ``post`` like any other subscription. One feed per loop. The
+        returned handle's ``undeclare`` ends it."""
+        make = getattr(bus, "feed", None)
+        feed = make(key) if make is not None and self._feed is None else None
+        if feed is None:
+            return bus.subscribe(key, lambda _k, p: self.post(handler, p))
+        self._feed = (feed, handler)
+        self._queue.put((_nothing, (), time.perf_counter_ns()))  # the worker may be blocked on the queue: now it pulls
+        return feed
+
+    def _next(self):
+        """The next ``(fn, args, posted_ns)`` to run, None to stop."""
+        while True:
+            feed = self._feed
+            if feed is None:
+                return self._queue.get()
+            source, handler = feed
+            self._waiting = True
+            if self._fed_last or self._stopped.is_set():
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    pass
+                else:
+                    self._waiting = self._fed_last = False
+                    return item
+            looked = time.perf_counter_ns()
+            try:
+                got = source.try_recv()
+                if got is None:
+                    try:
+                        item = self._queue.get_nowait()
+                    except queue.Empty:
+                        got = source.recv()  # blocks without the GIL until a message or a wake-up
+                        looked = time.perf_counter_ns()
+                    else:
+                        self._waiting = self._fed_last = False
+                        return item
+            except Exception:  # FeedClosed (undeclared, bus closed): back to the queue alone
+                self._feed = None
+                continue
+            self._waiting = False
+            if got is None:  # a wake-up: a posted event is waiting
+                self._fed_last = True
+                continue
+            self._fed_last = True
+            return handler, (got[1],), looked
 
     def backlog(self) -> int:
         """Handlers queued and not yet run (approximate)."""
@@ -58,7 +130,7 @@ class EventLoop:
 
     def _run(self) -> None:
         while True:
-            item = self._queue.get()
+            item = self._next()
             if item is None:
                 return
             fn, args, self.posted_ns = item
@@ -71,8 +143,15 @@ class EventLoop:
     def stop(self, timeout: float = 5.0) -> None:
         self._stopped.set()
         self._queue.put(None)
+        feed = self._feed
+        if feed is not None:
+            feed[0].wake()
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout)
+
+
+def _nothing() -> None:
+    """A no-op event: wakes a worker blocked on its queue (``EventLoop.feed``)."""
 
 
 def decode_or_drop(schema, payload: bytes, what: str, logger: logging.Logger):

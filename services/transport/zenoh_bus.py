@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 
 import zenoh
 
-from ra2vipas.services.transport.bus import AliveCallback, Callback, QueryError, QueryHandler, RepliesCallback, Reply
+from ra2vipas.services.transport.bus import AliveCallback, Callback, FeedClosed, QueryError, QueryHandler, RepliesCallback, Reply
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
 log = logging.getLogger(__name__)
@@ -25,6 +27,83 @@ MAX_MESSAGE_BYTES = 1 << 20
 """Largest publication or query payload a node accepts (1 MiB; the largest legitimate message,
 an EpisodeStart or a Measurement, is a few kB). Query replies, such as a training stream, are
 not limited."""
+
+
+FEED_CAPACITY = 1 << 16
+"""Messages a feed holds before Zenoh's receiving thread waits for its consumer (a node's
+per-step traffic is a few messages per episode in flight; a stuck consumer stalls the session's
+delivery only after this many)."""
+
+WAKE = b"ra2vipas-wake"
+"""The attachment of a feed's wake-up: an empty sample put on the feed's own key, delivered to
+this session only (``Locality.SESSION_LOCAL``: it never reaches the network)."""
+
+
+class _ZenohFeed:
+    """``ZenohBus.feed``: a subscriber with a FIFO channel that the consumer's thread reads
+    (``recv`` waits without holding the GIL), so a sample goes from Zenoh's receiving thread
+    to the node's worker with no Python callback thread in between."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self._session = session
+        self._wake_key = key.replace("**", "_wake").replace("*", "_wake")  # a key the subscription matches
+        self._sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(FEED_CAPACITY))
+        self._early: deque = deque()  # messages that arrived while ``wakes`` checked the wake-up
+
+    @staticmethod
+    def _is_wake(sample: zenoh.Sample) -> bool:
+        attachment = sample.attachment
+        return attachment is not None and len(sample.payload) == 0 and attachment.to_bytes() == WAKE
+
+    def wakes(self) -> bool:
+        """Whether a wake-up reaches this feed (a session-local put is delivered before ``put``
+        returns; a client configuration whose own access control forbade the put would leave
+        the worker asleep, so the bus then subscribes the usual way instead)."""
+        self.wake()
+        for _ in range(3):
+            sample = self._sub.try_recv()
+            while sample is not None:
+                if self._is_wake(sample):
+                    return True
+                self._early.append(sample)
+                sample = self._sub.try_recv()
+            time.sleep(0.01)
+        return False
+
+    def _take(self, sample: "zenoh.Sample | None"):
+        if sample is None or self._is_wake(sample):
+            return None
+        payload = sample.payload
+        if len(payload) > MAX_MESSAGE_BYTES:
+            log.warning("dropping a %d-byte message on %s (limit %d)", len(payload), sample.key_expr, MAX_MESSAGE_BYTES)
+            return None
+        return str(sample.key_expr), payload.to_bytes()
+
+    def recv(self):
+        if self._early:
+            return self._take(self._early.popleft())
+        try:
+            sample = self._sub.recv()
+        except zenoh.ZError as err:  # undeclared: the channel is empty and closed
+            raise FeedClosed(str(err)) from None
+        return self._take(sample)
+
+    def try_recv(self):
+        if self._early:
+            return self._take(self._early.popleft())
+        try:
+            return self._take(self._sub.try_recv())
+        except zenoh.ZError as err:
+            raise FeedClosed(str(err)) from None
+
+    def wake(self) -> None:
+        try:
+            self._session.put(self._wake_key, b"", attachment=WAKE, allowed_destination=zenoh.Locality.SESSION_LOCAL)
+        except Exception:  # the session is closing: nothing is waiting any more
+            pass
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
 
 
 class ZenohBus:
@@ -65,6 +144,17 @@ class ZenohBus:
         sub = self.session.declare_subscriber(key, on_sample)
         self._declared.append(sub)
         return sub
+
+    def feed(self, key: str) -> "_ZenohFeed | None":
+        """Samples on keys matching ``key`` for the caller's thread to take (``bus.Feed``);
+        None if this session cannot wake its consumer (``_ZenohFeed.wakes``): subscribe then."""
+        f = _ZenohFeed(self.session, key)
+        if not f.wakes():
+            log.warning("no wake-up reaches a feed on %s (the session's own access control?): subscribing instead", key)
+            f.undeclare()
+            return None
+        self._declared.append(f)
+        return f
 
     # -- query/reply -------------------------------------------------------------------------
     def serve(self, key: str, handler: QueryHandler):

@@ -116,6 +116,48 @@ def test_a_test_is_recorded_once(store):
     assert row["status"] == "done" and row["hits"] == [0, 1] and row["chosen"] == [1, 0]
 
 
+def test_a_burst_of_tests_is_recorded_in_one_transaction_each_once_with_its_floats_exact(store, monkeypatch):
+    """``finish_episodes`` (the orchestrator's batched save): every test of the burst recorded,
+    one already recorded refused, the stored floats read back exactly as given (the lists are
+    encoded by pydantic_core, not json.dumps), and a failure records none of them."""
+    import json
+    import random
+
+    cid = new_campaign(store, tests=3)
+    keys = [EpisodeKey(cid, i, "rapas") for i in range(3)]
+    assert store.mark_running_many(keys[:2], "rig-1") == [1, 1]
+    assert store.mark_running_many(keys[:1], "rig-2") == [2]  # handed out again: the next attempt
+    assert store.attempt_of(keys[0]) == 2 and store.episode(cid, 0, "rapas")["rig"] == "rig-2"
+    assert finish(store, keys[0]) is True
+    rng = random.Random(5)
+    estimates = [rng.uniform(-3.2, 3.2) * 10 ** rng.randint(-9, 3) for _ in range(120)] + [1e-7, 1 / 3, -0.0]
+    fields = dict(hits=[True], in_fov=[False], estimates=estimates, pans=[0.25], rewards=[float("nan")], chosen=[3], tx_index=1,
+                  bearings=[0.5], ranges=[1.5], latencies=[0.75], confidences=[0.5], decided_step=None,
+                  model_check={"sensor_model": "scenario"})
+    writes: list[str] = []
+    real = store.transaction
+
+    def counted():
+        writes.append("transaction")
+        return real()
+
+    monkeypatch.setattr(store, "transaction", counted)
+    assert store.finish_episodes([(keys[0], fields), (keys[1], fields), (keys[2], fields)]) == [False, True, True]
+    assert writes == ["transaction"]
+    row = store.episode(cid, 2, "rapas")
+    assert row["estimates"] == estimates and row["estimates"] == json.loads(json.dumps(estimates))
+    assert row["hits"] == [1] and row["in_fov"] == [0] and row["rewards"][0] != row["rewards"][0]  # NaN kept
+    assert row["model_check"] == {"sensor_model": "scenario"} and row["confidences"] == [0.5]
+    assert store.episode(cid, 0, "rapas")["estimates"] == [0.1, 0.2]  # recorded once: the burst did not overwrite it
+
+    cid2 = new_campaign(store, tests=2)
+    keys2 = [EpisodeKey(cid2, i, "rapas") for i in range(2)]
+    bad = dict(fields, tx_index=object())  # not storable: the transaction fails after the first row
+    with pytest.raises(Exception):
+        store.finish_episodes([(keys2[0], fields), (keys2[1], bad)])
+    assert {r["status"] for r in store.episode_rows(cid2, status=None)} == {"pending"}
+
+
 def test_a_finished_campaign_never_changes_status(store):
     cid = new_campaign(store)
     assert store.set_campaign(cid, status="running") is True

@@ -158,6 +158,12 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
     assert report["fast"]["dr_final"] == {a: s["dr_final"] for a, s in expected["algorithms"].items()}
     assert report["fast"]["dr_final_equals_inprocess"] is True and report["inprocess_steps_per_second_1"] > 0
     assert report["mesh_over_inprocess"] == round(report["steps_per_second"] / report["inprocess_steps_per_second_1"], 3)
+    cpu = report["fast"]["cpu_ms_per_step"]  # what a step cost the stack's processes, by service (issue 22)
+    assert set(cpu) == {"controller", "sensors", "router", "orchestrator", "learner", "total"}
+    assert cpu["controller"] > 0 and cpu["sensors"] > 0 and all(v >= 0 for v in cpu.values())
+    assert cpu["total"] == pytest.approx(sum(v for k, v in cpu.items() if k != "total"), abs=1e-3)
+    assert report["inprocess_cpu_ms_per_step"] > 0
+    assert report["cpu_efficiency"] == round(report["inprocess_cpu_ms_per_step"] / cpu["total"], 3)
     _check_breakdown(report["fast"]["step_breakdown"], episodes=6, steps=2 * 3 * 120)
     rt = report["realtime"]["step_breakdown"]
     assert rt["controller"]["steps"] == rt["sensors"]["steps"] == 120
