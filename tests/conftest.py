@@ -119,3 +119,18 @@ def small_pod() -> TrainedPOD:
 @pytest.fixture
 def platform_factory():
     return make_platform
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """The cross-machine checks on other CPU kernels (tests/docs/test_other_cpus.py) start now,
+    in a child process, when this session runs them: they run beside the rest of the suite."""
+    if not session.config.option.collectonly:
+        from tests.docs.test_other_cpus import start_early
+
+        start_early([item.nodeid for item in session.items])
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    from tests.docs.test_other_cpus import stop_early_start
+
+    stop_early_start()
