@@ -10,8 +10,8 @@ float's last bits as another CPU does, so the tolerances of
 
 That child pytest is the suite's longest test (the checks again, on kernels numba compiles anew):
 it starts when the session's collection ends (``tests/conftest.py``), so it runs beside the rest
-of the suite, on the core that the tests waiting on their own child processes leave idle, and
-the test waits for its end. Nothing it runs uses a port, a network namespace or a file outside
+of the suite, at a lower CPU priority (nice 10) on what the tests waiting on their own child
+processes leave idle, and the test waits for its end. Nothing it runs uses a port, a network namespace or a file outside
 its own temporary folder; it is killed if the session ends first."""
 
 from __future__ import annotations
@@ -76,7 +76,8 @@ class CrossMachineRun:
         self._proc = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                                        "--basetemp", os.path.join(self._folder, "tmp"), *CROSS_MACHINE_CHECKS],
                                       cwd=ROOT, env={**os.environ, **reduced_cpu_environment()}, stdout=self._log,
-                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
+                                      preexec_fn=lambda: os.nice(10))
         atexit.register(self.stop)
 
     def result(self, timeout: float) -> tuple[int, str]:
