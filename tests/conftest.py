@@ -122,15 +122,21 @@ def platform_factory():
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
-    """The cross-machine checks on other CPU kernels (tests/docs/test_other_cpus.py) start now,
-    in a child process, when this session runs them: they run beside the rest of the suite."""
+    """The cross-machine checks on other CPU kernels (tests/docs/test_other_cpus.py) run in a
+    child process beside tests/deploy when this session runs both (``pytest_runtest_logstart``)."""
     if not session.config.option.collectonly:
-        from tests.docs.test_other_cpus import start_early
+        from tests.docs.test_other_cpus import plan
 
-        start_early([item.nodeid for item in session.items])
+        plan([item.nodeid for item in session.items])
+
+
+def pytest_runtest_logstart(nodeid: str, location) -> None:
+    from tests.docs.test_other_cpus import start_beside
+
+    start_beside(nodeid)
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
-    from tests.docs.test_other_cpus import stop_early_start
+    from tests.docs.test_other_cpus import stop_started
 
-    stop_early_start()
+    stop_started()

@@ -9,9 +9,10 @@ float's last bits as another CPU does, so the tolerances of
 ``services/orchestrator/reproducibility.py`` are exercised wherever the suite runs.
 
 That child pytest is the suite's longest test (the checks again, on kernels numba compiles anew):
-it starts when the session's collection ends (``tests/conftest.py``), so it runs beside the rest
-of the suite, at a lower CPU priority (nice 10) on what the tests waiting on their own child
-processes leave idle, and the test waits for its end. Nothing it runs uses a port, a network namespace or a file outside
+in a session that also runs tests/deploy, it starts with the first of those (``tests/conftest.py``),
+whose tests mostly wait on network namespaces, Zenoh leases and retry timers, so it runs beside
+them at a lower CPU priority (nice 10) on the CPU they leave idle, and this test, next in the
+suite's order, waits for its end (run without them, it starts with this test). Nothing it runs uses a port, a network namespace or a file outside
 its own temporary folder; it is killed if the session ends first."""
 
 from __future__ import annotations
@@ -99,17 +100,25 @@ class CrossMachineRun:
 
 
 CROSS_MACHINE_TEST = "tests/docs/test_other_cpus.py::test_the_cross_machine_checks_pass_on_other_kernels"
+START_BESIDE = "tests/deploy/"  # tests that mostly wait: the run starts with the first of them
+_wanted: list[bool] = [False]
 _started: list[CrossMachineRun] = []
 
 
-def start_early(nodeids: list[str]) -> None:
-    """Start the cross-machine run now if this session will run the test that waits for it
-    (called by ``tests/conftest.py`` once collection is done)."""
-    if CROSS_MACHINE_TEST in nodeids and not _started:
+def plan(nodeids: list[str]) -> None:
+    """Note whether this session runs the test that waits for the cross-machine run (called by
+    ``tests/conftest.py`` once collection is done)."""
+    _wanted[0] = CROSS_MACHINE_TEST in nodeids
+
+
+def start_beside(nodeid: str) -> None:
+    """Start the cross-machine run if the test about to run is the first of ``START_BESIDE`` in
+    a session that runs the test waiting for it (called by ``tests/conftest.py`` before each test)."""
+    if _wanted[0] and not _started and nodeid.startswith(START_BESIDE):
         _started.append(CrossMachineRun())
 
 
-def stop_early_start() -> None:
+def stop_started() -> None:
     for run in _started:
         run.stop()
 
@@ -127,7 +136,7 @@ def test_the_reduced_environment_really_changes_the_kernels():
 
 
 def test_the_cross_machine_checks_pass_on_other_kernels():
-    if not _started:  # run alone, or selected by a name that hid it from start_early
+    if not _started:  # no tests/deploy in this session
         _started.append(CrossMachineRun())
     code, tail = _started[0].result(timeout=900)
     assert code == 0, tail
