@@ -119,3 +119,24 @@ def small_pod() -> TrainedPOD:
 @pytest.fixture
 def platform_factory():
     return make_platform
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """The cross-machine checks on other CPU kernels (tests/docs/test_other_cpus.py) run in a
+    child process beside tests/deploy when this session runs both (``pytest_runtest_logstart``)."""
+    if not session.config.option.collectonly:
+        from tests.docs.test_other_cpus import plan
+
+        plan([item.nodeid for item in session.items])
+
+
+def pytest_runtest_logstart(nodeid: str, location) -> None:
+    from tests.docs.test_other_cpus import start_beside
+
+    start_beside(nodeid)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    from tests.docs.test_other_cpus import stop_started
+
+    stop_started()

@@ -177,3 +177,18 @@ def test_tests_can_be_filtered_by_hit_and_campaigns_by_name(http, done_campaign)
     named = http.get("/campaigns", params={"name": "fixture"}).json()
     assert named["total"] >= 1 and all(c["name"] == "fixture" for c in named["items"])
     assert http.get("/campaigns", params={"name": "no such name"}).json()["total"] == 0
+
+
+@pytest.mark.parametrize("state", ["queued", "training", "running"])
+def test_a_campaign_that_has_not_finished_has_no_results_yet(state):
+    """409 for a campaign on its way (training its POD model included: a loaded machine caught
+    `campaign results` saying a training campaign had "no results", as of one that ended)."""
+    from fastapi import HTTPException
+
+    from ra2vipas.services.orchestrator.api.routes.results import finished_results
+
+    campaign = {"id": "c0ffee", "status": state, "results": None, "progress": {"done": 0, "total": 50}}
+    with pytest.raises(HTTPException) as refused:
+        finished_results(campaign)
+    assert refused.value.status_code == 409
+    assert refused.value.detail == f"campaign c0ffee is {state} (0/50 episodes done): no results yet"

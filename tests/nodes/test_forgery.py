@@ -9,18 +9,14 @@ from __future__ import annotations
 import re
 import threading
 
-from ra2vipas.services.controller.node import ControllerNode
-from ra2vipas.services.learner.node import LearnerNode
-from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.simulate import run_campaign
-from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import EpisodeResult, EpisodeStart, EpisodeTruth, dump
 from ra2vipas.services.protocol.scenario import build_scenario
-from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
 from tests.conftest import untimed
-from tests.nodes.test_mesh_in_memory import SMALL, _run, settle
+from tests.nodes.conftest import run_to_end, settle
+from tests.nodes.test_mesh_in_memory import SMALL
 
 
 class Forger:
@@ -55,15 +51,12 @@ class Forger:
         self._handle.undeclare()
 
 
-def test_forged_results_and_truth_change_nothing_and_are_counted(tmp_path):
-    bus = MemoryBus()
-    store = Store(str(tmp_path / "forged.db"))
-    nodes = [SensorsNode(bus, "rig-1"), ControllerNode(bus, "rig-1"), LearnerNode(bus)]
+def test_forged_results_and_truth_change_nothing_and_are_counted(mesh):
+    bus, store, scheduler = mesh()
     forger = Forger(bus)
-    scheduler = Scheduler(bus, store, window=3)
     try:
         algorithms = ["ra2vipas", "rapas"]
-        c = _run(store, scheduler, "paper", SMALL, 4, 5, algorithms)
+        c = run_to_end(store, scheduler, "paper", SMALL, 4, 5, algorithms)
         assert c["status"] == "done", c["error"]
         assert untimed(c["results"]) == untimed(run_campaign("paper", build_scenario("paper", SMALL), 4, 5, algorithms))
         settle(bus, scheduler.loop)
@@ -76,20 +69,12 @@ def test_forged_results_and_truth_change_nothing_and_are_counted(tmp_path):
         assert len({s.episode_id.rsplit(".", 1)[1] for s in starts}) == len(starts)  # a fresh nonce every time
     finally:
         forger.close()
-        scheduler.close()
-        for n in nodes:
-            n.close()
-        bus.close()
-        store.close()
 
 
-def test_the_same_forgery_on_the_assigned_rigs_own_keys_would_succeed(tmp_path):
+def test_the_same_forgery_on_the_assigned_rigs_own_keys_would_succeed(mesh):
     """The check can fail: what the orchestrator refuses above is exactly what it would take
     from the assigned rig itself (so the defence, not luck, kept the results right)."""
-    bus = MemoryBus()
-    store = Store(str(tmp_path / "own.db"))
-    nodes = [SensorsNode(bus, "rig-1"), ControllerNode(bus, "rig-1"), LearnerNode(bus)]
-    scheduler = Scheduler(bus, store, window=3)
+    bus, store, scheduler = mesh()
 
     def forge(_key: str, payload: bytes) -> None:
         if b'"start"' in payload:
@@ -103,13 +88,8 @@ def test_the_same_forgery_on_the_assigned_rigs_own_keys_would_succeed(tmp_path):
 
     handle = bus.subscribe(keys.episode_control("rig-1"), forge)
     try:
-        c = _run(store, scheduler, "paper", SMALL, 3, 5, ["rapas"])
+        c = run_to_end(store, scheduler, "paper", SMALL, 3, 5, ["rapas"])
         assert c["status"] == "done"
         assert c["results"]["algorithms"]["rapas"]["dr_final"] == 0.0  # every forged estimate points at the wrong target
     finally:
         handle.undeclare()
-        scheduler.close()
-        for n in nodes:
-            n.close()
-        bus.close()
-        store.close()

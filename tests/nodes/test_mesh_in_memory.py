@@ -3,68 +3,25 @@
 from __future__ import annotations
 
 import json
-import time
 
 import pytest
 
-from ra2vipas.services.controller.node import ControllerNode
-from ra2vipas.services.learner.node import LearnerNode
-from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.simulate import run_campaign
-from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import Command, EpisodeStart, EpisodeStop, Measurement, dump
 from ra2vipas.services.protocol.scenario import build_scenario
 from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
 from tests.conftest import untimed
+from tests.nodes.conftest import run_to_end, settle
 
 SMALL = {"steps": 25, "n_train": 200, "n_targets": 8}
 
 
-@pytest.fixture()
-def mesh(tmp_path):
-    bus = MemoryBus()
-    store = Store(str(tmp_path / "mesh.db"))
-    nodes = [SensorsNode(bus, "rig-1"), ControllerNode(bus, "rig-1"), LearnerNode(bus)]
-    scheduler = Scheduler(bus, store, window=3)
-    yield bus, store, scheduler
-    scheduler.close()
-    for n in nodes:
-        n.close()
-    bus.close()
-    store.close()
-
-
-def _run(store, scheduler, preset, overrides, tests, seed, algorithms, mode="fast", timeout=120.0, stop_confidence=0.0):
-    scenario = build_scenario(preset, overrides)
-    cid = store.create_campaign(preset=preset, overrides=overrides, scenario=scenario.model_dump(mode="json"),
-                                algorithms=algorithms, tests=tests, seed=seed, mode=mode, stop_confidence=stop_confidence)
-    scheduler.submit(cid)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        c = store.campaign(cid)
-        if c["status"] in ("done", "failed"):
-            return c
-        time.sleep(0.05)
-    raise AssertionError(f"campaign did not finish: {store.campaign(cid)}")
-
-
-def settle(bus, *loops, rounds: int = 3) -> None:
-    """Wait until the bus and the nodes' event loops have handled everything so far (a
-    handler may publish, whose delivery may post to a loop again)."""
-    for _ in range(rounds):
-        bus.wait_idle()
-        for loop in loops:
-            assert loop.wait_idle()
-
-
-
-
 def test_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
-    _, store, scheduler = mesh
+    _, store, scheduler = mesh()
     algorithms = ["ra2vipas", "rapas", "ravipas", "sweep"]
-    c = _run(store, scheduler, "paper", SMALL, 4, 11, algorithms)
+    c = run_to_end(store, scheduler, "paper", SMALL, 4, 11, algorithms)
     assert c["status"] == "done", c["error"]
     expected = run_campaign("paper", build_scenario("paper", SMALL), 4, 11, algorithms)
     assert untimed(c["results"]) == untimed(expected)
@@ -72,8 +29,8 @@ def test_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
 
 
 def test_every_test_is_recorded_once_with_its_trace(mesh):
-    _, store, scheduler = mesh
-    c = _run(store, scheduler, "paper", SMALL, 3, 2, ["ra2vipas"])
+    _, store, scheduler = mesh()
+    c = run_to_end(store, scheduler, "paper", SMALL, 3, 2, ["ra2vipas"])
     rows = store.episode_rows(c["id"])
     assert sorted(r["test_index"] for r in rows) == [0, 1, 2]
     for r in rows:
@@ -84,8 +41,8 @@ def test_every_test_is_recorded_once_with_its_trace(mesh):
 def test_only_measurements_reach_the_controller(mesh):
     """The controller subscribes to control and data keys of its rig; nothing it listens to is
     on the truth plane, and every measurement on the wire validates as a Measurement."""
-    bus, store, scheduler = mesh
-    _run(store, scheduler, "paper", SMALL, 1, 3, ["ra2vipas"])
+    bus, store, scheduler = mesh()
+    run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["ra2vipas"])
     controller_keys = [k for k, _ in bus.published if k in (keys.measurement("rig-1"), keys.episode_control("rig-1"))]
     assert controller_keys and all("/truth/" not in k for k in controller_keys)
     for key, payload in bus.published:
@@ -115,25 +72,18 @@ def test_a_command_that_overtakes_its_episode_start_is_kept():
 @pytest.mark.parametrize("payload", [b"", b"not json", b"{}", b'{"episode_id": "x", "step": -1, "pan_rad": 0}',
                                      b'{"episode_id": "x", "step": 0, "pan_rad": NaN}', b"[" * 10000, b'{"kind": "start"}'])
 def test_malformed_messages_are_dropped_and_the_mesh_still_works(mesh, payload):
-    bus, store, scheduler = mesh
+    bus, store, scheduler = mesh()
     for key in (keys.command("rig-1"), keys.measurement("rig-1"), keys.episode_control("rig-1"),
                 keys.episode_result("rig-1"), keys.episode_truth("rig-1")):
         bus.publish(key, payload)
     bus.wait_idle()
-    c = _run(store, scheduler, "paper", SMALL, 1, 4, ["rapas"])
+    c = run_to_end(store, scheduler, "paper", SMALL, 1, 4, ["rapas"])
     assert c["status"] == "done"
 
 
 # -- the dynamic world (issue 9): walkers, occlusion, clutter, shadowing, fading -------------------------
 
 DYNAMIC_SMALL = {"steps": 30, "n_train": 200, "n_targets": 8}
-
-
-def _results_without_timing(results: dict) -> dict:
-    out = json.loads(json.dumps(results))
-    out.pop("steps_per_second", None)
-    out["pod"].pop("train_seconds", None)
-    return out
 
 
 def test_dynamic_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
@@ -143,13 +93,13 @@ def test_dynamic_campaign_over_the_bus_equals_the_in_process_simulation(mesh):
     from ra2vipas.services.orchestrator.simulate import run_test, train_pod
     from ra2vipas.services.sensors.world import SimulatedPlatform
 
-    _, store, scheduler = mesh
+    _, store, scheduler = mesh()
     algorithms = ["ra2vipas", "rapas", "ravipas", "sweep"]
     scenario = build_scenario("dynamic", DYNAMIC_SMALL)
-    c = _run(store, scheduler, "dynamic", DYNAMIC_SMALL, 3, 5, algorithms)
+    c = run_to_end(store, scheduler, "dynamic", DYNAMIC_SMALL, 3, 5, algorithms)
     assert c["status"] == "done", c["error"]
     expected = run_campaign("dynamic", scenario, 3, 5, algorithms)
-    assert _results_without_timing(c["results"]) == _results_without_timing(expected)
+    assert untimed(c["results"]) == untimed(expected)
     pod = train_pod(scenario, 5).model
     walked = 0
     for row in store.episode_rows(c["id"]):
@@ -175,8 +125,8 @@ def test_no_truth_reaches_the_controller_or_the_learner_in_the_dynamic_world(mes
 
     from ra2vipas.services.protocol.messages import TrainingRequest, training_job_id
 
-    bus, store, scheduler = mesh
-    _run(store, scheduler, "dynamic", DYNAMIC_SMALL, 1, 3, ["ra2vipas"])
+    bus, store, scheduler = mesh()
+    run_to_end(store, scheduler, "dynamic", DYNAMIC_SMALL, 1, 3, ["ra2vipas"])
     seen = 0
     for key, payload in bus.published:
         if key == keys.measurement("rig-1"):
@@ -202,9 +152,9 @@ def test_early_decisions_over_the_bus_equal_the_in_process_simulation(mesh):
     """With stop_confidence, a controller ends an episode at its first confident step; the
     orchestrator scores the held answer, tells the rig to drop the episode, and the results
     (DR, calibration, decision) equal the in-process campaign's value for value."""
-    bus, store, scheduler = mesh
+    bus, store, scheduler = mesh()
     algorithms = ["ra2vipas", "rapas"]
-    c = _run(store, scheduler, "paper", SMALL, 4, 11, algorithms, stop_confidence=0.9)
+    c = run_to_end(store, scheduler, "paper", SMALL, 4, 11, algorithms, stop_confidence=0.9)
     assert c["status"] == "done", c["error"]
     expected = run_campaign("paper", build_scenario("paper", SMALL), 4, 11, algorithms, stop_confidence=0.9)
     assert untimed(c["results"]) == untimed(expected)
@@ -230,8 +180,8 @@ def test_the_step_costs_the_nodes_report_add_up(mesh):
     from ra2vipas.services.protocol.messages import EpisodeResult, EpisodeTiming
     from ra2vipas.services.transport.costs import step_breakdown
 
-    bus, store, scheduler = mesh
-    c = _run(store, scheduler, "paper", SMALL, 2, 3, ["ra2vipas", "rapas"])
+    bus, store, scheduler = mesh()
+    c = run_to_end(store, scheduler, "paper", SMALL, 2, 3, ["ra2vipas", "rapas"])
     assert c["status"] == "done", c["error"]
     results = [EpisodeResult.model_validate_json(p) for k, p in bus.published if k == keys.episode_result("rig-1")]
     timings = {t.episode_id: t for k, p in bus.published if k == keys.episode_timing("rig-1")

@@ -13,16 +13,12 @@ import pytest
 from ra2vipas import Policy, PolicyDecision
 from ra2vipas.services.controller.node import ControllerNode
 from ra2vipas.services.controller.registry import BUILTINS, UnknownPolicy
-from ra2vipas.services.learner.node import LearnerNode
-from ra2vipas.services.orchestrator.scheduler import Scheduler
-from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import ControllerInfo, EpisodeResult, EpisodeStart, dump
 from ra2vipas.services.protocol.scenario import build_scenario
 from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
-from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
-from tests.nodes.test_mesh_in_memory import settle
+from tests.nodes.conftest import run_to_end, settle
 
 SMALL = {"steps": 12, "n_train": 150, "n_targets": 6}
 SPIN = f"{__name__}:Spin"
@@ -56,44 +52,8 @@ class Silent:
         return getattr(self.bus, name)
 
 
-@pytest.fixture()
-def mesh(tmp_path):
-    """``build({rig: controller kwargs or "silent"})``: sensors and a controller per rig, a
-    learner, and the scheduler, on one in-memory bus."""
-    made = []
-
-    def build(rigs: dict):
-        bus = MemoryBus()
-        store = Store(str(tmp_path / f"policies-{len(made)}.db"))
-        nodes = [LearnerNode(bus)]
-        for rig, kwargs in rigs.items():
-            nodes.append(SensorsNode(bus, rig))
-            nodes.append(ControllerNode(Silent(bus), rig) if kwargs == "silent" else ControllerNode(bus, rig, **kwargs))
-        scheduler = Scheduler(bus, store, window=2)
-        made.append((bus, store, scheduler, nodes))
-        return bus, store, scheduler
-
-    yield build
-    for bus, store, scheduler, nodes in made:
-        scheduler.close()
-        for n in nodes:
-            n.close()
-        bus.close()
-        store.close()
-
-
-def _run(store, scheduler, algorithms, tests=4, seed=3, timeout=120.0):
-    scenario = build_scenario("paper", SMALL)
-    cid = store.create_campaign(preset="paper", overrides=SMALL, scenario=scenario.model_dump(mode="json"),
-                                algorithms=algorithms, tests=tests, seed=seed, mode="fast")
-    scheduler.submit(cid)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        c = store.campaign(cid)
-        if c["status"] in ("done", "failed"):
-            return c
-        time.sleep(0.05)
-    raise AssertionError(f"campaign did not finish: {store.campaign(cid)}")
+def _run(store, scheduler, algorithms, tests=4, seed=3) -> dict:
+    return run_to_end(store, scheduler, "paper", SMALL, tests, seed, algorithms)
 
 
 def _rigs_by_policy(store, cid) -> dict[str, set[str]]:
@@ -106,7 +66,7 @@ def _rigs_by_policy(store, cid) -> dict[str, set[str]]:
 def test_an_episode_goes_only_to_a_rig_whose_controller_serves_its_policy(mesh):
     """rig-a serves spin and rapas, rig-b every installed policy (not spin): every spin episode
     lands on rig-a at its first attempt (none is sent to rig-b and failed there)."""
-    _, store, scheduler = mesh({"rig-a": {"policies": [SPIN, "rapas"]}, "rig-b": {}})
+    _, store, scheduler = mesh({"rig-a": {"controller": {"policies": [SPIN, "rapas"]}}, "rig-b": {}}, window=2)
     c = _run(store, scheduler, ["spin", "rapas"], tests=6)
     assert c["status"] == "done", c["error"]
     assert _rigs_by_policy(store, c["id"])["spin"] == {"rig-a"}
@@ -124,7 +84,7 @@ def test_a_controller_that_announces_nothing_still_gets_the_builtins_episodes(me
     """old-1's controller serves no rig/{rig}/policies (a 1.1 controller): it serves the four
     built-ins. new-1 serves only spin, so every ra2vipas episode runs on old-1 and every spin
     episode on new-1."""
-    _, store, scheduler = mesh({"old-1": "silent", "new-1": {"policies": [SPIN]}})
+    _, store, scheduler = mesh({"old-1": {"controller_bus": Silent}, "new-1": {"controller": {"policies": [SPIN]}}}, window=2)
     c = _run(store, scheduler, ["ra2vipas", "spin"], tests=3)
     assert c["status"] == "done", c["error"]
     assert _rigs_by_policy(store, c["id"]) == {"ra2vipas": {"old-1"}, "spin": {"new-1"}}
@@ -135,7 +95,7 @@ def test_a_controller_that_announces_nothing_still_gets_the_builtins_episodes(me
 
 def test_an_episode_no_live_controller_serves_waits_for_one(mesh):
     """Only spin is served: the rapas episodes are not handed out (nothing fails); the spin ones run."""
-    bus, store, scheduler = mesh({"rig-a": {"policies": [SPIN]}})
+    bus, store, scheduler = mesh({"rig-a": {"controller": {"policies": [SPIN]}}}, window=2)
     scenario = build_scenario("paper", SMALL)
     cid = store.create_campaign(preset="paper", overrides=SMALL, scenario=scenario.model_dump(mode="json"),
                                 algorithms=["spin", "rapas"], tests=2, seed=1, mode="fast")

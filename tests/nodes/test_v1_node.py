@@ -13,58 +13,19 @@ from __future__ import annotations
 import json
 import time
 
-import pytest
-
-from ra2vipas.services.controller.node import ControllerNode
-from ra2vipas.services.learner.node import LearnerNode
-from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.simulate import run_campaign
-from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.scenario import build_scenario
-from ra2vipas.services.sensors.node import SensorsNode
-from ra2vipas.services.transport.bus import MemoryBus
 from tests.conftest import untimed
+from tests.nodes.conftest import run_to_end
 from tests.nodes.v1_bus import StrictV1Bus, v1_errors, v1_schema_of
 
 SMALL = {"steps": 25, "n_train": 200, "n_targets": 8}
 RIG = "rig-1"
 
 
-def _run(store, scheduler, tests, seed, algorithms, timeout, stop_confidence=0.0, preset="paper", overrides=SMALL):
-    scenario = build_scenario(preset, overrides)
-    cid = store.create_campaign(preset=preset, overrides=overrides, scenario=scenario.model_dump(mode="json"), algorithms=algorithms,
-                                tests=tests, seed=seed, mode="fast", stop_confidence=stop_confidence)
-    scheduler.submit(cid)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        c = store.campaign(cid)
-        if c["status"] in ("done", "failed"):
-            return c
-        time.sleep(0.05)
-    raise AssertionError(f"campaign not finished after {timeout:.0f} s: {store.campaign(cid)}")
-
-
-@pytest.fixture()
-def mesh(tmp_path):
-    made = []
-
-    def build(sensors_bus=None, controller_bus=None, describe=False):
-        bus = MemoryBus()
-        store = Store(str(tmp_path / f"v1-{len(made)}.db"))
-        nodes = [SensorsNode((sensors_bus or (lambda b: b))(bus), RIG, describe=describe),
-                 ControllerNode((controller_bus or (lambda b: b))(bus), RIG), LearnerNode(bus)]
-        scheduler = Scheduler(bus, store, window=3)
-        made.append((bus, store, scheduler, nodes))
-        return bus, store, scheduler
-
-    yield build
-    for bus, store, scheduler, nodes in made:
-        scheduler.close()
-        for n in nodes:
-            n.close()
-        bus.close()
-        store.close()
+def _run(store, scheduler, tests, seed, algorithms, timeout) -> dict:
+    return run_to_end(store, scheduler, "paper", SMALL, tests, seed, algorithms, timeout=timeout)
 
 
 def _wire_errors(published: list[tuple[str, bytes]]) -> list[str]:
@@ -83,7 +44,7 @@ def _wire_errors(published: list[tuple[str, bytes]]) -> list[str]:
 
 def test_a_strict_1_0_sensors_node_runs_a_campaign_to_the_end(mesh):
     strict: list[StrictV1Bus] = []
-    bus, store, scheduler = mesh(sensors_bus=lambda b: strict.append(StrictV1Bus(b)) or strict[0])
+    bus, store, scheduler = mesh({RIG: {"sensors_bus": lambda b: strict.append(StrictV1Bus(b)) or strict[0], "sensors": {"describe": False}}})
     algorithms = ["ra2vipas", "rapas", "ravipas", "sweep"]
     c = _run(store, scheduler, 3, 11, algorithms, timeout=50.0)  # the old failure: a 60 s timeout per attempt
     node = strict[0]
@@ -116,7 +77,8 @@ def test_a_1_0_controller_gets_only_1_0_messages(mesh):
         return dump(PODRequest.model_validate_json(payload), version="1.0") if key == keys.pod_model() else payload
 
     strict: list[StrictV1Bus] = []
-    bus, store, scheduler = mesh(controller_bus=lambda b: strict.append(StrictV1Bus(b, check_sent=False, as_v1_request=as_v1)) or strict[0])
+    bus, store, scheduler = mesh({RIG: {"controller_bus": lambda b: strict.append(StrictV1Bus(b, check_sent=False, as_v1_request=as_v1)) or strict[0],
+                                           "sensors": {"describe": False}}})
     c = _run(store, scheduler, 2, 5, ["ra2vipas", "rapas"], timeout=50.0)
     assert strict[0].rejected == [], strict[0].rejected[:3]
     assert c["status"] == "done", c["error"]
@@ -145,7 +107,7 @@ def test_an_episode_a_node_keeps_rejecting_fails_fast_with_the_reason(mesh):
         def __getattr__(self, name):
             return getattr(self.bus, name)
 
-    bus, store, scheduler = mesh(sensors_bus=NewerOrchestrator, describe=True)
+    bus, store, scheduler = mesh({RIG: {"sensors_bus": NewerOrchestrator}})
     started = time.monotonic()
     c = _run(store, scheduler, 1, 3, ["rapas"], timeout=30.0)
     assert time.monotonic() - started < 30.0

@@ -36,7 +36,7 @@ def finished_results(campaign: dict[str, Any], store: Any = None) -> dict[str, A
             return _with_id(campaign, {**_with_overrides(results), "partial": True, "tests_recorded": tests})
     raise HTTPException(status.HTTP_409_CONFLICT,
                         f"campaign {campaign['id']} is {campaign['status']} ({p['done']}/{p['total']} episodes done): no results"
-                        + (" yet" if campaign["status"] in ("queued", "running") else ""))
+                        + (" yet" if campaign["status"] in ("queued", "training", "running") else ""))
 
 
 def _with_id(campaign: dict[str, Any], results: dict[str, Any]) -> dict[str, Any]:
