@@ -15,6 +15,7 @@ import httpx
 import pytest
 
 from ra2vipas.cli.stack import free_port
+from ra2vipas.services.orchestrator.presets import PRESETS
 from tests.cli.conftest import ROOT, ra2vipas
 from tests.conftest import restore_ctrl_c
 
@@ -48,7 +49,8 @@ def test_completion_offers_commands_and_option_values():
 def test_presets_list_and_show_need_no_server():
     listed = ra2vipas("presets", "list", "--json")
     assert listed.returncode == 0
-    assert [p["name"] for p in json.loads(listed.stdout.strip().splitlines()[-1])] == ["paper", "paper-uniform", "dynamic"]
+    names = [p["name"] for p in json.loads(listed.stdout.strip().splitlines()[-1])]
+    assert names[:3] == ["paper", "paper-uniform", "dynamic"] and names == list(PRESETS)  # the paper's first, then every preset
     table = ra2vipas("presets", "show", "paper-uniform")
     assert table.returncode == 0 and "placement" in table.stdout and "one of reference|uniform" in table.stdout
 

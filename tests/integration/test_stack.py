@@ -13,6 +13,7 @@ import httpx
 import pytest
 
 from ra2vipas.cli.stack import free_port
+from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from tests.conftest import untimed
 from tests.integration.conftest import ROOT, Procs, alive, children_of, wait_for_line
 
@@ -50,8 +51,8 @@ def test_up_starts_router_orchestrator_learner_and_two_rigs(stack):
     assert [(r["name"], r["described"], r["descriptor"]["kind"]) for r in rigs] == [("rig-1", "described", "simulated"),
                                                                                    ("rig-2", "described", "simulated")]
     # and each controller's policies (rig/{rig}/policies), through the same access control
-    assert [(r["name"], r["announced"], r["controller_protocol"]) for r in rigs] == [("rig-1", "announced", "1.2"),
-                                                                                    ("rig-2", "announced", "1.2")]
+    assert [(r["name"], r["announced"], r["controller_protocol"]) for r in rigs] == [("rig-1", "announced", PROTOCOL_VERSION),
+                                                                                    ("rig-2", "announced", PROTOCOL_VERSION)]
     assert all([p["name"] for p in r["policies"]][:4] == ["ra2vipas", "rapas", "ravipas", "sweep"] for r in rigs)
 
 
