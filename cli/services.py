@@ -10,22 +10,16 @@ session and exit 0.
 
 from __future__ import annotations
 
-import gc
 import logging
-import os
-import re
-import socket
-import sys
-import threading
-import time
-from pathlib import Path
 from typing import Annotated, Callable, Optional
 
 import typer
 
 from ra2vipas.cli.output import EXIT_USAGE, fail
 from ra2vipas.cli.polish import deprecated, prefer
-from ra2vipas.services.transport.zenoh_config import ZenohSettings, ZenohSettingsError
+from ra2vipas.services.transport import service
+from ra2vipas.services.transport.service import ServiceError, open_error, warn_if_unreachable, warn_while_alone  # noqa: F401  (cli.rig)
+from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
 log = logging.getLogger("ra2vipas")
 
@@ -58,104 +52,18 @@ def zenoh_settings(mode, connect, listen, config, old_mode: str | None = None) -
     the deprecated ``--mode`` spelling of ``--zenoh-mode``."""
     mode = prefer(mode, old_mode, "--mode", "--zenoh-mode")
     try:
-        return ZenohSettings.from_sources(mode=mode, connect=connect, listen=listen, config_file=config)
-    except ZenohSettingsError as err:
-        fail(str(err), EXIT_USAGE)
-
-
-_RUST_WHERE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
-
-
-def endpoint_answers(endpoint: str, timeout_s: float = 2.0) -> bool | None:
-    """Whether something accepts TCP connections at a ``tcp/`` or ``tls/`` Zenoh endpoint
-    (None for other protocols)."""
-    proto, _, address = endpoint.partition("/")
-    if proto not in ("tcp", "tls"):
-        return None
-    host, _, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
-    try:
-        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
-            return True
-    except (OSError, ValueError):
-        return False
-
-
-def not_joined(zenoh: ZenohSettings) -> str:
-    """One line: why this node is not connected to any of its ``--connect`` endpoints."""
-    eps = list(zenoh.connect)
-    answering = [ep for ep in eps if endpoint_answers(ep)]
-    if answering:
-        creds = ("its user/password (RA2VIPAS_ZENOH_USER, RA2VIPAS_ZENOH_PASSWORD or _PASSWORD_FILE)" if zenoh.user
-                 else "whether it requires a user/password (RA2VIPAS_ZENOH_USER, RA2VIPAS_ZENOH_PASSWORD), which this node did not give")
-        return (f"{answering[0]} accepts connections but did not let this node's Zenoh session in: check {creds} "
-                "and its TLS settings")
-    return (f"nothing answers at {', '.join(eps)}: check --connect (RA2VIPAS_ZENOH_CONNECT) and that the router there is "
-            "running")
-
-
-def open_error(err: Exception, zenoh: ZenohSettings) -> str:
-    """The one-line error for a Zenoh session that did not open (no Rust source path)."""
-    text = _RUST_WHERE.sub("", " ".join(str(err).split())).strip()
-    if zenoh.connect and ("Unable to connect" in text or "Timeout" in text):
-        return f"cannot join the Zenoh network: {not_joined(zenoh)}"
-    return f"cannot open the Zenoh session: {text}"
-
-
-def warn_while_alone(session, zenoh: ZenohSettings, after_s: float = 10.0) -> None:
-    """A peer whose ``--connect`` endpoints are unreachable still opens (Zenoh keeps trying in
-    the background): log one error line if it has joined nobody after ``after_s``."""
-    if zenoh.mode != "peer" or not zenoh.connect:
-        return
-
-    def check() -> None:
-        deadline = time.monotonic() + after_s
-        while time.monotonic() < deadline:
-            try:
-                info = session.info
-                if info.routers_zid() or info.peers_zid():
-                    return
-            except Exception:  # the session closed meanwhile
-                return
-            time.sleep(0.5)
-        log.error("not connected to any Zenoh node after %.0f s (still trying): %s", after_s, not_joined(zenoh))
-
-    threading.Thread(target=check, name="zenoh-join-check", daemon=True).start()
-
-
-def warn_if_unreachable(zenoh: ZenohSettings) -> None:
-    """Log at start-up why a peer will hear nobody on other hosts (``ZenohSettings.reach_warning``)."""
-    try:
-        warning = zenoh.reach_warning()
-    except Exception:  # the session opened with this configuration: nothing to add if it cannot be rebuilt
-        return
-    if warning:
-        log.warning("%s", warning)
+        return service.zenoh_settings(mode, connect, listen, config)
+    except ServiceError as err:
+        fail(str(err), err.exit_code)
 
 
 def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
-    """Open the Zenoh session, build the node on it, serve until SIGINT/SIGTERM, close both."""
-    from ra2vipas.services.transport.runtime import wait_for_shutdown_signal
-    from ra2vipas.services.transport.zenoh_bus import ZenohBus
-
+    """``service.run_node`` (open the session, build the node, serve until SIGINT/SIGTERM), its
+    errors one stderr line."""
     try:
-        bus = ZenohBus(zenoh)
-    except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, unreachable routers, ...
-        fail(open_error(err, zenoh))
-    warn_while_alone(bus.session, zenoh)
-    warn_if_unreachable(zenoh)
-    node = None
-    try:
-        node = build(bus)
-        gc.collect()
-        gc.freeze()  # start-up objects never need scanning again: shorter GC pauses on the hot path
-        sys.setswitchinterval(0.0005)  # a Zenoh thread waiting for the GIL gets it within 0.5 ms
-        log.info("%s up (zenoh %s, connect %s, listen %s)", name, zenoh.mode, list(zenoh.connect), list(zenoh.listen))
-        signum = wait_for_shutdown_signal()
-        log.info("%s: signal %d, shutting down", name, signum)
-    finally:
-        if node is not None:
-            node.close()
-        bus.close()
+        service.run_node(name, zenoh, build)
+    except ServiceError as err:
+        fail(str(err), err.exit_code)
 
 
 def sensors(rig: RigOpt = "rig-1",
@@ -231,16 +139,10 @@ def orchestrator(
     zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO",
 ) -> None:
     """Run the orchestrator: schedules campaigns over the rigs, stores results, serves the REST API."""
-    import uvicorn
-
-    from ra2vipas.services.orchestrator.api.app import create_app
     from ra2vipas.services.orchestrator.settings import OrchestratorSettings
     from ra2vipas.services.transport.runtime import configure_logging
 
     configure_logging(log_level)
-    # not niced like the learner and router: the API's latency matters (issue 14: at nice 5, any
-    # nice-0 process on a busy 2-core machine pushed the read p99 past 1 s); figures are drawn by
-    # its renderer processes at nice 19 instead
     from ra2vipas.services.orchestrator.settings import SettingsError
 
     try:
@@ -248,45 +150,12 @@ def orchestrator(
                                                      token=token, zenoh=zenoh_settings(mode, connect, listen, zenoh_config, old_mode))
     except SettingsError as err:
         fail(str(err), EXIT_USAGE)
-    from ra2vipas.services.orchestrator.dblock import DatabaseInUse, DatabaseLock
+    from ra2vipas.services.orchestrator.server import serve
 
-    folder = Path(settings.db_path).expanduser().resolve().parent
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        if not folder.is_dir():
-            fail(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
-                 "create it, or give --db a path you can write")
-    db_lock = DatabaseLock(settings.db_path)
-    try:
-        db_lock.acquire()  # held until this process exits
-    except DatabaseInUse as err:
-        fail(str(err))
-    except OSError as err:  # e.g. a read-only folder: start degraded (503 naming the cause) and take it when it can be
-        log.error("cannot lock the database %s: %s; the API answers 503 until it can (retrying)", settings.db_path,
-                  (err.strerror or str(err)).lower())
-    warn_if_unreachable(settings.zenoh)
-    from ra2vipas.services.orchestrator.api.guard import ConnectionGuard, GuardLimits, raise_fd_limit, rate_limit_logs
-
-    # what one client can hold (issue 18: slow clients once exhausted the descriptors): a deadline
-    # for each request's head, a cap on connections overall and per client, under the fd limit
-    limits = GuardLimits(settings.max_connections, settings.max_connections_per_client, settings.header_timeout_s)
-    limits = limits.within_fd_limit(raise_fd_limit())
-    guard = ConnectionGuard(limits)
-    server = uvicorn.Server(uvicorn.Config(create_app(settings, db_lock=db_lock), host=settings.host, port=settings.port, log_level=log_level.lower(),
-                                           access_log=log_level.upper() == "DEBUG", timeout_graceful_shutdown=5,
-                                           http=guard.protocol_class(), backlog=limits.backlog))
-    rate_limit_logs()  # after uvicorn set up its loggers: a flood of one line is logged 5 times per 10 s, then counted
-    import signal
-
-    # uvicorn shuts down gracefully on SIGINT/SIGTERM, then re-raises the signal to the handler
-    # that was there before it; with this no-op one the process exits 0 like the other services.
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: None)
-    try:
-        server.run()
-    finally:
-        db_lock.release()
+        serve(settings, log_level)
+    except ServiceError as err:
+        fail(str(err), err.exit_code)
 
 
 def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
@@ -321,27 +190,12 @@ def router(listen: ListenOpt = None, connect: ConnectOpt = None, zenoh_config: C
         session.close()
 
 
-def _claim_cpu() -> None:
-    """Sensors and controllers close the control loop, and a router carries their messages when
-    they are its clients: where allowed (root, CAP_SYS_NICE) they run at a higher priority so
-    a busy machine delays their replies less."""
-    try:
-        os.nice(-5)
-    except OSError:
-        pass
-
-
-def _yield_cpu(increment: int = 5) -> None:
-    """Bookkeeping services (learner, router) run at a lower priority so that on a
-    small machine the sensors and controllers, whose latency matters, get the cores first."""
-    try:
-        os.nice(increment)
-    except OSError:
-        pass
+_claim_cpu = service.claim_cpu
+_yield_cpu = service.yield_cpu
 
 
 def _check_rig(name: str, check, what: str = "rig") -> None:
     try:
-        check(name, what)
-    except ValueError as err:
-        fail(str(err), EXIT_USAGE)
+        service.check_name(name, check, what)
+    except ServiceError as err:
+        fail(str(err), err.exit_code)

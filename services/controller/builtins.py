@@ -7,16 +7,108 @@
 * ``ravipas``: the camera and Rx(iso) only (the paper's RaViPAS baseline);
 * ``sweep``: fuses both but pans evenly round the circle (what active sensing buys).
 
-Each runs the ``Controller`` of ``policy.py`` with its own tuning (``TUNING``).
+Each is a composition of parts (``composed.Parts``: an RF belief, a vision belief, the fusion, an
+acquisition and the confidence map), built below by ``compose`` with the algorithm's tuning
+(``policy.TUNING``); a user's policy composes the same parts its own way (docs/policies.md).
 """
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar
 
+from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, ProbeSchedule, WarmUpSweep
+from ra2vipas.services.controller.acquisition import Sweep as EvenSweep
+from ra2vipas.services.controller.circle_gp import RecentLobe
+from ra2vipas.services.controller.composed import Parts
+from ra2vipas.services.controller.confidence import Confidence
 from ra2vipas.services.controller.contract import EpisodeContext, Policy
-from ra2vipas.services.controller.policy import Controller, ControllerSettings, Decision
+from ra2vipas.services.controller.fusion import Fusion
+from ra2vipas.services.controller.grid import CircleGrid
+from ra2vipas.services.controller.policy import Controller, ControllerSettings, Decision, SensorConfig
+from ra2vipas.services.controller.rf_belief import IsoLevel, LobeBelief, RFBelief, RFFilterBelief, lobe_gp
+from ra2vipas.services.controller.rf_filter import RFBearingFilter, RxDirModel
+from ra2vipas.services.controller.vision_belief import CameraBelief, PODLookup, VisionBelief
 from ra2vipas.services.protocol.measurements import StepMeasurement
+from ra2vipas.services.protocol.pod import PODModel
+
+
+# -- the parts, as the built-ins tune them ------------------------------------------------------------
+def radio(circle: CircleGrid, sensors: SensorConfig, pod: PODLookup, cfg: ControllerSettings) -> RFBelief:
+    """The RF belief of a policy that hears Rx(dir): the filter when the rig says how Rx(dir)
+    responds (and ``cfg.rf_filter``), else the generic lobe (its orientation learned when the
+    response is unknown)."""
+    lobe_sign = -1 if sensors.rssi_grows_with_alignment is False else 1
+    gp = lobe_gp(circle, sensors.steps, pod.rf_noise_db, pod.rf_noise_correlation, lobe_sign, cfg.lobe_width_rad,
+                 cfg.residual_length_scale_rad, cfg.residual_std_db)
+    if cfg.rf_filter and sensors.rx_dir in ("paper", "db-gain") and sensors.rx_dir_curvature is not None:
+        response = RxDirModel(sensors.rx_dir, sensors.rx_dir_curvature, sensors.rx_dir_floor_db)
+        rff = RFBearingFilter(circle, response, noise_db=max(pod.rf_noise_db, 0.1), rf_period_s=sensors.rf_period_s,
+                              walk_std_rad=math.radians(cfg.walk_std_deg), level_memory_s=cfg.level_memory_s,
+                              walk_prior=cfg.tx_walk_prior, tail_dof=cfg.rf_tail_dof or None)
+        return RFFilterBelief(rff, gp, walk_prior_from_tracks=cfg.walk_prior_from_tracks, walk_prior=cfg.tx_walk_prior)
+    recent = RecentLobe(circle, noise_var=gp.noise_var, lobe_width=cfg.lobe_width_rad, lobe_sign=lobe_sign,
+                        memory_s=cfg.rf_memory_s, rf_period_s=sensors.rf_period_s)
+    return LobeBelief(gp, recent, learn_lobe=sensors.rssi_grows_with_alignment is None, ar1=cfg.ar1_lobe,
+                      walk_prior=cfg.tx_walk_prior, walk_penalty=cfg.walk_penalty)
+
+
+def camera(circle: CircleGrid, sensors: SensorConfig, pod: PODLookup, cfg: ControllerSettings) -> CameraBelief:
+    """The vision belief: the bearing tracker and the POD evidence."""
+    return CameraBelief(circle, sensors.fov_half_angle_rad, sensors.box_bearing_noise_rad, sensors.rf_period_s,
+                        sensors.frames_per_rf, pod, recent_memory_s=cfg.rf_memory_s, pod_floor_std=cfg.pod_floor_std,
+                        null_pod_prior=cfg.null_pod_prior, pod_outlier=cfg.pod_outlier,
+                        occlusion_halfwidth_rad=cfg.occlusion_halfwidth_rad, occluded_probability=cfg.occluded_probability)
+
+
+def active_search(circle: CircleGrid, sensors: SensorConfig, cfg: ControllerSettings) -> Acquisition:
+    """A warm-up sweep of ceil(pi / half-FoV) pans, then GP-UCB with a probe every
+    ``probe_every``-th step."""
+    warmup = cfg.warmup_steps if cfg.warmup_steps is not None else math.ceil(math.pi / sensors.fov_half_angle_rad)
+    ucb = GPUCB(circle, sensors.frames_per_rf, beta=cfg.beta, use_mass=cfg.mass_in_acquisition)
+    probes = ProbeSchedule(circle, ucb, every=cfg.probe_every, start=warmup, lobe_width_rad=cfg.lobe_width_rad,
+                           informative=cfg.informative_probe, rf_peaks=cfg.probe_rf_peaks)
+    return WarmUpSweep(sensors.initial_pan_rad, warmup, then=probes)
+
+
+def _parts(circle, sensors, pod, cfg, rf: RFBelief, vision: VisionBelief, acquisition: Acquisition) -> Parts:
+    return Parts(iso=IsoLevel(pod.rf_noise_db), rf=rf, vision=vision,
+                 fusion=Fusion(circle, rf_weight=cfg.rf_weight, missed_prior_per_rad=cfg.missed_prior_per_rad,
+                               answer_window_rad=cfg.answer_window_rad, walker_answer_from_rf=cfg.walker_answer_from_rf),
+                 acquisition=acquisition, confidence=Confidence(cfg.confidence_calibration, walk_prior=cfg.tx_walk_prior))
+
+
+# -- the four compositions ----------------------------------------------------------------------------
+def ra2vipas(circle, sensors, pod, cfg) -> Parts:
+    """Rx(dir) + Rx(iso) + camera fused, active search."""
+    return _parts(circle, sensors, pod, cfg, radio(circle, sensors, pod, cfg), camera(circle, sensors, pod, cfg),
+                  active_search(circle, sensors, cfg))
+
+
+def rapas(circle, sensors, pod, cfg) -> Parts:
+    """Rx(dir) only (no camera), active search."""
+    return _parts(circle, sensors, pod, cfg, radio(circle, sensors, pod, cfg), VisionBelief(), active_search(circle, sensors, cfg))
+
+
+def ravipas(circle, sensors, pod, cfg) -> Parts:
+    """The camera and Rx(iso) only (no RF belief), active search (without probes: nothing to probe)."""
+    return _parts(circle, sensors, pod, cfg, RFBelief(circle), camera(circle, sensors, pod, cfg), active_search(circle, sensors, cfg))
+
+
+def sweep(circle, sensors, pod, cfg) -> Parts:
+    """Both cues fused, an even sweep."""
+    return _parts(circle, sensors, pod, cfg, radio(circle, sensors, pod, cfg), camera(circle, sensors, pod, cfg),
+                  EvenSweep(sensors.initial_pan_rad, sensors.steps))
+
+
+COMPOSITIONS = {"ra2vipas": ra2vipas, "rapas": rapas, "ravipas": ravipas, "sweep": sweep}
+
+
+def compose(algorithm: str, sensors: SensorConfig, pod_model: PODModel, settings: ControllerSettings) -> Parts:
+    """The parts of a built-in ``algorithm`` for one episode, with ``settings`` (already tuned:
+    ``policy.tuned_settings``)."""
+    circle = CircleGrid(settings.grid_points)
+    return COMPOSITIONS[algorithm](circle, sensors, PODLookup(pod_model, settings.min_pod_std), settings)
 
 
 class BuiltinPolicy(Policy):

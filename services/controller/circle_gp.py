@@ -254,12 +254,24 @@ class RecentLobe:
         stats = np.empty((len(ids), 3))
         old = rows >= 0
         stats[old] = lam * self._stats[rows[old]] + np.stack([h[old] * h[old], h[old], h[old] * z], axis=1)
-        new = np.flatnonzero(~old)
+        self._backfill(ids, g, rows, stats)
+
+    def follow_tracks(self, ids, bearings) -> None:
+        """``follow`` for a step without a sample: the tracks followed so far keep their
+        statistics, a new one is backfilled over the recent samples, the others are forgotten."""
+        rows = np.fromiter((self._rows.get(tid, -1) for tid in ids), dtype=np.int64, count=len(ids))
+        stats = np.empty((len(ids), 3))
+        old = rows >= 0
+        stats[old] = self._stats[rows[old]]
+        self._backfill(ids, np.asarray(bearings, dtype=float), rows, stats)
+
+    def _backfill(self, ids, g: np.ndarray, rows: np.ndarray, stats: np.ndarray) -> None:
+        new = np.flatnonzero(rows < 0)
         if new.size:  # backfill over the recent samples, newest first
-            past = np.asarray(self._recent, dtype=float)[::-1]  # (R, 2): pan, z
-            w = lam ** np.arange(past.shape[0])
+            past = np.asarray(self._recent, dtype=float).reshape(-1, 2)[::-1]  # (R, 2): pan, z
+            w = self.forget ** np.arange(past.shape[0])
             ah = np.sin(0.5 * (past[:, 0][:, None] - g[new][None, :]))
-            hh = np.exp(-2.0 * ah * ah * inv_w2)  # (R, len(new))
+            hh = np.exp(-2.0 * ah * ah * (1.0 / (self.lobe_width * self.lobe_width)))  # (R, len(new))
             stats[new] = np.stack([w @ (hh * hh), w @ hh, (w * past[:, 1]) @ hh], axis=1)
         self._stats = stats
         self._rows = {tid: j for j, tid in enumerate(ids)}

@@ -204,12 +204,24 @@ class RFBearingFilter:
         for i, tid in enumerate(ids):
             if tid in self._evidence:
                 evidence[tid] = self._evidence[tid] + float(step[i])
-            else:  # its past is unknown: it stood where it is (the standing filter), or walked here (the walking filter)
-                stood = float(circle.interp(self._static, np.array([means[i, 0]]))[0])
-                walked = float(circle.interp(self._walk, np.array([means[i, 1]]))[0]) + self._log_m
-                w0 = min(max(float(weights[i, 0]), 1e-6), 1.0 - 1e-6)
-                evidence[tid] = _logsumexp_list([math.log(w0) + stood, math.log(1.0 - w0) + walked])
+            else:
+                evidence[tid] = self._first_evidence(means[i], weights[i])
         self._evidence = evidence
+
+    def follow_tracks(self, ids, means: np.ndarray, weights: np.ndarray) -> None:
+        """``follow`` for a step without a sample: the tracks followed so far keep their
+        evidence, a new one gets its first (``follow``), the others are forgotten."""
+        self._evidence = {tid: self._evidence[tid] if tid in self._evidence else self._first_evidence(means[i], weights[i])
+                          for i, tid in enumerate(ids)}
+
+    def _first_evidence(self, means: np.ndarray, weights: np.ndarray) -> float:
+        """A track met for the first time: its past is unknown, it stood where it is (the standing
+        filter) or walked here (the walking filter), by its IMM weights."""
+        circle = self.circle
+        stood = float(circle.interp(self._static, np.array([means[0]]))[0])
+        walked = float(circle.interp(self._walk, np.array([means[1]]))[0]) + self._log_m
+        w0 = min(max(float(weights[0]), 1e-6), 1.0 - 1e-6)
+        return _logsumexp_list([math.log(w0) + stood, math.log(1.0 - w0) + walked])
 
     # -- reading --------------------------------------------------------------------------------
     @property

@@ -52,8 +52,9 @@ class BearingTracker:
     a box that a clutter-prone detector reports once does not become a target.
 
     Why not a tracking library (e.g. Stone Soup)? A control step must cost well under a
-    millisecond with dozens of tracks and hundreds of boxes; the whole step here is one
-    compiled function (``ra2vipas.services.controller._tracker``), with standard, cited algorithms.
+    millisecond with dozens of tracks and hundreds of boxes; the step here is compiled
+    (``ra2vipas.services.controller._tracker``: one track table, a kernel per stage), with
+    standard, cited algorithms.
 
     Parameters
     ----------
@@ -88,24 +89,16 @@ class BearingTracker:
         prm[_tracker.OMEGA0] = cfg.omega0
         prm[_tracker.MAX_SD] = cfg.max_sd_rad
         prm[_tracker.F_WALK] = 0.5
-        self._x = np.zeros((C, 2, 2))
-        self._P = np.zeros((C, 2, 2, 2))
-        self._mu = np.zeros((C, 2))
-        self._bearing = np.zeros(C)
-        self._var = np.zeros(C)
-        self._omega = np.zeros(C)
-        self._k = np.zeros(C)
-        self._n_frames = np.zeros(C)
-        self._nbox = np.zeros(C)
-        self._det_steps = np.zeros(C)
-        self._born = np.zeros(C, dtype=np.int64)
-        self._confirmed = np.zeros(C, dtype=np.bool_)
-        self._misses = np.zeros(C)
-        self._ids = np.zeros(C, dtype=np.int64)
+        self._tab = np.zeros(C, dtype=_tracker.TRACK)  # the track table: its first _n rows are the live tracks
+        tab = self._tab
+        # views of its columns
+        self._x, self._P, self._mu, self._bearing, self._var = tab["x"], tab["P"], tab["mu"], tab["bearing"], tab["var"]
+        self._k, self._n_frames, self._nbox, self._det_steps = tab["k"], tab["n_frames"], tab["n_boxes"], tab["det_steps"]
+        self._confirmed, self._ids = tab["confirmed"], tab["id"]
+        self._together = np.zeros((C, C))  # frames in which two tracks were both detected
         self._next_id = np.zeros(1, dtype=np.int64)
         self._own_views = np.zeros(360)
         self._cells = -np.pi + 2.0 * np.pi * np.arange(360) / 360
-        self._together = np.zeros((C, C))
         self._clutter = np.zeros(2)
         self._pans = np.zeros(max_pans)
         self._frames_per_pan = np.zeros(max_pans)
@@ -125,14 +118,6 @@ class BearingTracker:
     def ids(self) -> np.ndarray:
         """A stable id per track (kept while the track lives, never reused)."""
         return self._ids[self._view]
-
-    @property
-    def bearing_sd(self) -> np.ndarray:
-        return np.sqrt(self._var[self._view])
-
-    @property
-    def angular_velocity(self) -> np.ndarray:
-        return self._omega[self._view]
 
     def components(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each track's bearing as its IMM mixture: means, standard deviations and weights of the
@@ -163,10 +148,6 @@ class BearingTracker:
         the camera looked at again and did not see, over every frame taken."""
         return float(self._clutter[0] / max(self._clutter[1], 1e-9) / (2.0 * max(self.count_limit, 1e-3)))
 
-    def gate_width(self) -> np.ndarray:
-        """Width [rad] of each track's association window (for the chance that clutter falls in it)."""
-        return 2.0 * math.sqrt(self._prm[_tracker.GATE2]) * np.sqrt(self._var[self._view] + self._prm[_tracker.SIGMA_B] ** 2)
-
     def in_view(self, pan: float, bearings: np.ndarray | None = None) -> np.ndarray:
         """Mask of the tracks (or given bearings) well inside the field of view at ``pan``."""
         b = self.bearing if bearings is None else bearings
@@ -188,10 +169,8 @@ class BearingTracker:
         total = int(counts.sum())
         boxes = np.fromiter((b for f in frames for b in f.box_bearings_rad), dtype=float, count=total)
         self._n = _tracker.tracker_step(
-            float(pan), boxes, counts, self._n_pans - 1, self._n, self._prm, self._x, self._P, self._mu, self._bearing, self._var,
-            self._omega, self._k, self._n_frames, self._nbox, self._det_steps, self._born, self._confirmed, self._misses, self._together,
-            self._pans[: self._n_pans], self._frames_per_pan[: self._n_pans], self._clutter,
-            self._own_views if view_grid is None else view_grid, self._ids, self._next_id,
+            float(pan), boxes, counts, self._n, self._prm, self._tab, self._together, self._pans[: self._n_pans],
+            self._frames_per_pan[: self._n_pans], self._clutter, self._own_views if view_grid is None else view_grid, self._next_id,
         )
         if view_grid is None:
             cells = np.abs((self._cells - pan + np.pi) % (2.0 * np.pi) - np.pi) <= self.count_limit

@@ -242,8 +242,12 @@ def test_the_confidence_map_fit_recovers_a_known_map_and_the_controller_applies_
     """bench calibrate's logistic fit finds the map that generated the hits, and a controller
     given that map reports sigmoid((A + G walks) logit(raw) + B + C walks + D rho + E clutter + F crowding),
     crowding exp(-d / 1 deg) for the gap d from its answer to the nearest other track."""
-    from ra2vipas.services.controller.policy import Controller, ControllerSettings
+    from types import SimpleNamespace
+
+    from ra2vipas.services.controller.confidence import Confidence, ConfidenceMap
+    from ra2vipas.services.controller.rf_belief import IsoLevel
     from ra2vipas.services.controller.tracks import BearingTracker
+    from ra2vipas.services.controller.vision_belief import CameraBelief, VisionBelief
     from ra2vipas.services.orchestrator.calibration import fit_platt, platt
 
     rng = np.random.default_rng(5)
@@ -254,26 +258,25 @@ def test_the_confidence_map_fit_recovers_a_known_map_and_the_controller_applies_
     fitted = fit_platt(raw, cov, hit)
     np.testing.assert_allclose(fitted, truth, atol=0.12)
     assert expected_calibration_error(platt(raw, cov, *fitted), hit) < 0.02
-    controller = Controller.__new__(Controller)
-    controller.settings = ControllerSettings(confidence_calibration=truth)
-    controller.tx_walks, controller._n = 0.5, 0
-    controller.uses_camera, controller.uses_radio = False, True
-    got = controller._calibrated(0.7, 0.0)
+    confidence = Confidence(ConfidenceMap.from_vector(truth))
+    rf = SimpleNamespace(listens=True, tx_walks=0.5)
+    iso = IsoLevel(3.0)
+    got = confidence(0.7, confidence.covariates(0.0, rf, VisionBelief(), iso))
     want = float(platt(np.array([0.7]), np.array([[0.5, 0.0, 0.0, 0.0]]), *truth)[0])
     assert got == pytest.approx(want)
     # with tracks: the answer at 0.0 names the track there; the nearest other is 0.5 deg away
-    controller.uses_camera = True
-    controller.tracks = BearingTracker.__new__(BearingTracker)
-    controller.tracks._bearing = np.array([0.0, math.radians(0.5), math.radians(30.0)])
-    controller.tracks._view = np.arange(3)
-    controller.tracks._clutter = np.array([0.0, 1.0])
-    controller.tracks.count_limit = 0.3
-    got = controller._calibrated(0.7, 0.0)
+    camera = CameraBelief.__new__(CameraBelief)
+    camera.tracks = BearingTracker.__new__(BearingTracker)
+    camera.tracks._bearing = np.array([0.0, math.radians(0.5), math.radians(30.0)])
+    camera.tracks._view = np.arange(3)
+    camera.tracks._clutter = np.array([0.0, 1.0])
+    camera.tracks.count_limit = 0.3
+    got = confidence(0.7, confidence.covariates(0.0, rf, camera, iso))
     want = float(platt(np.array([0.7]), np.array([[0.5, 0.0, 0.0, math.exp(-0.5)]]), *truth)[0])
     assert got == pytest.approx(want)
     # the camera alone cannot hear the Tx walk: its covariate is the share of tracks seen walking
-    controller.uses_radio = False
-    controller.tracks.walking_share = lambda prior=0.3, strength=2.0: 0.8
-    got = controller._calibrated(0.7, 0.0)
+    rf.listens = False
+    camera.tracks.walking_share = lambda prior=0.3, strength=2.0: 0.8
+    got = confidence(0.7, confidence.covariates(0.0, rf, camera, iso))
     want = float(platt(np.array([0.7]), np.array([[0.8, 0.0, 0.0, math.exp(-0.5)]]), *truth)[0])
     assert got == pytest.approx(want) and got != pytest.approx(float(platt(np.array([0.7]), np.array([[0.5, 0.0, 0.0, math.exp(-0.5)]]), *truth)[0]))

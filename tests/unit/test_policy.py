@@ -121,12 +121,6 @@ def _imports(path: pathlib.Path) -> set[str]:
     return names
 
 
-# The services layer imports nothing of the command line (the CLI builds on the services, never the
-# other way round). Left to move: the `python -m ra2vipas.services.NAME` entries still run the CLI's
-# command of the same name (cli/services.py with cli/polish.py and cli/output.py would have to move).
-SERVICES_IMPORTING_THE_CLI_FOR_NOW = {"controller/__main__.py", "learner/__main__.py", "orchestrator/__main__.py",
-                                      "sensors/__main__.py"}
-
 
 @pytest.mark.parametrize("package, allowed", [
     ("controller", ("ra2vipas.services.protocol", "ra2vipas.services.controller")),
@@ -140,8 +134,6 @@ def test_controller_and_learner_never_import_the_simulator(package, allowed):
     adapters = {"node.py", "__main__.py"}
     for path in files:
         ok = allowed + (("ra2vipas.services.transport",) if path.name in adapters else ())
-        if f"{package}/{path.name}" in SERVICES_IMPORTING_THE_CLI_FOR_NOW:
-            ok += ("ra2vipas.cli.polish", "ra2vipas.cli.services")
         for name in _imports(path):
             assert not name.startswith("ra2vipas.services.sensors"), f"{path.name} imports {name}"
             assert not name.startswith("ra2vipas.services.orchestrator"), f"{path.name} imports {name}"
@@ -152,12 +144,12 @@ def test_controller_and_learner_never_import_the_simulator(package, allowed):
 
 
 def test_the_services_never_import_the_cli():
+    """The services layer imports nothing of the command line (the CLI builds on the services,
+    never the other way round): the `python -m ra2vipas.services.NAME` entries included."""
     files = sorted(SERVICES.rglob("*.py"))
     assert files
     for path in files:
         rel = path.relative_to(SERVICES).as_posix()
-        if rel in SERVICES_IMPORTING_THE_CLI_FOR_NOW:
-            continue
         for name in _imports(path):
             assert not name.startswith("ra2vipas.cli"), f"{rel} imports {name}"
 

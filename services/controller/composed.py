@@ -1,0 +1,129 @@
+"""A policy as a composition of parts (issue 19): the loop that runs them, step by step.
+
+``Composition(first_pan_rad, parts)`` runs one episode. Each ``step`` takes what the platform
+sensed at pan s_t (a ``StepMeasurement``: the RSSI pair and the nu frames of anonymous box
+bearings; ``rf`` may be None when no packet came) and:
+
+1. ``iso.add``: the Rx(iso) statistics take the step's level (``rf_belief.IsoLevel``);
+2. ``vision.update``: the vision belief takes the frames (``vision_belief``);
+3. ``rf.update``: the RF belief takes the RSSI pair (``rf_belief``; unchanged without one);
+4. ``fusion.beliefs`` / ``fusion.answer``: the posterior over the hypotheses and gamma_hat_t
+   (``fusion``);
+5. ``acquisition.next_pan``: s_{t+1} (``acquisition``);
+6. ``confidence``: the raw posterior of the answer through the confidence map (``confidence``).
+
+It never sees ranges, identities or the true POD. The four built-ins are four such compositions
+(``builtins.py``); a user's policy can hold one and swap any part.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ra2vipas.services.controller.acquisition import Acquisition, Beliefs
+from ra2vipas.services.controller.confidence import Confidence
+from ra2vipas.services.controller.fusion import Fusion
+from ra2vipas.services.controller.rf_belief import IsoLevel, RFBelief
+from ra2vipas.services.controller.vision_belief import VisionBelief
+from ra2vipas.services.protocol.angles import wrap
+from ra2vipas.services.protocol.measurements import StepMeasurement
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The controller's answer to one step."""
+
+    step: int
+    next_pan_rad: float
+    estimate_rad: float  # gamma_hat_t
+    reward: float  # fused objective at the pan the sample was taken at
+    probe: bool  # whether next_pan is a discrimination probe
+    confidence: float = 0.0  # posterior probability that the target named by estimate_rad is the Tx
+    raw_confidence: float = 0.0  # the same under the controller's own model, before calibration
+    tx_walks: float = 0.0  # how likely the Tx walks, from Rx(dir) (a walking Tx may have left the answer)
+    noise_correlation: float = 0.0  # rho of the RSSI noise, from Rx(iso) (fading: fewer independent samples)
+    clutter_density: float = 0.0  # false boxes per frame per radian, from the tracker
+    crowding: float = 0.0  # exp(-d / 1 deg), d the bearing gap from the answer to the nearest other track
+
+
+@dataclass
+class Parts:
+    """The parts of a composed policy, one job each.
+
+    Attributes
+    ----------
+    iso : IsoLevel
+        Rx(iso)'s running statistics (read by the RF and vision beliefs and the confidence).
+    rf : RFBelief
+        The belief over the Tx bearing from the radio (``RFFilterBelief``, ``LobeBelief``, or
+        ``RFBelief`` for none).
+    vision : VisionBelief
+        The camera's tracks and POD evidence (``CameraBelief``, or ``VisionBelief`` for none).
+    fusion : Fusion
+        Hypotheses' posterior and the answer.
+    acquisition : Acquisition
+        Where to look next.
+    confidence : Confidence
+        The reported confidence.
+    """
+
+    iso: IsoLevel
+    rf: RFBelief
+    vision: VisionBelief
+    fusion: Fusion
+    acquisition: Acquisition
+    confidence: Confidence
+
+
+class Composition:
+    """One episode of a composed policy: create it, call ``first_pan()``, then ``step`` for every
+    sample.
+
+    Parameters
+    ----------
+    first_pan_rad : float
+        s_0, where the camera points at the start.
+    parts : Parts
+        What it believes, fuses, and how it chooses.
+    """
+
+    def __init__(self, first_pan_rad: float, parts: Parts) -> None:
+        self.parts = parts
+        self._first_pan = float(wrap(first_pan_rad))
+
+    def first_pan(self) -> float:
+        """s_0, the pan angle of the first sample."""
+        return self._first_pan
+
+    @property
+    def tracks(self):
+        """The vision belief's ``BearingTracker`` (None without a camera)."""
+        return self.parts.vision.tracks
+
+    def step(self, m: StepMeasurement) -> Decision:
+        """Take the measurement of step t (``StepMeasurement``; ``m.rf`` None: no RF sample this
+        step, the RF belief is left as it was); return s_{t+1} and gamma_hat_t."""
+        p = self.parts
+        s, t, rf = float(m.pan_rad), int(m.step), m.rf
+        if rf is not None:
+            p.iso.add(rf.iso_rssi_dbm)
+        if p.vision.sees:
+            p.vision.update(s, m.frames)
+        p.rf.update(s, rf, p.iso, p.vision.tracks)
+        l_tracks, l_missed = p.fusion.beliefs(p.rf, p.vision, p.iso)
+        estimate, raw, post = p.fusion.answer(p.rf, l_tracks, l_missed, self._first_pan)
+        reward = p.vision.mass_at(s, post) * p.rf.gain_at(s)
+        next_pan, probe = p.acquisition.next_pan(Beliefs(t, p.rf, p.vision, l_tracks, post))
+        cov = p.confidence.covariates(estimate, p.rf, p.vision, p.iso)
+        return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe,
+                        confidence=round(p.confidence(raw, cov), 6), raw_confidence=float(raw), tx_walks=cov.tx_walks,
+                        noise_correlation=cov.noise_correlation, clutter_density=cov.clutter_density, crowding=cov.crowding)
+
+    def lobe_evidence(self) -> float | None:
+        """The RF belief's model check (``RFBelief.lobe_evidence``)."""
+        return self.parts.rf.lobe_evidence()
+
+    @property
+    def lobe(self) -> str | None:
+        """``peak`` or ``dip``: the lobe orientation in use (None without Rx(dir))."""
+        return self.parts.rf.lobe

@@ -1,0 +1,197 @@
+"""What a policy believes from the camera: the vision belief parts (issue 19).
+
+``CameraBelief`` follows the targets the detector's anonymous boxes show (``BearingTracker``),
+keeps where the camera has looked (frames per grid bearing), and holds the POD evidence: every
+detected target i has an empirical POD p~_i = k_i/n_i (eq. 9); the Tx's POD is predicted from
+the mean Rx(iso) RSSI, p_hat = p_hat_D(z_iso) (Sec. III-A), as a Beta distribution; a track's
+detections are scored by the beta-binomial Bayes factor against an ordinary target's POD, and
+a bearing where nothing was detected by the probability that the Tx was missed there. These
+are largest when the PODs match (the paper's -|p_hat - p~| is never positive, and its product
+with y_RF prefers misalignment).
+
+``VisionBelief`` itself is "no camera" (RaPAS): no tracks, every pan equally worth a look.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.special import gammaln
+
+from ra2vipas.services.controller import _kernels
+from ra2vipas.services.controller.grid import CircleGrid
+from ra2vipas.services.controller.rf_belief import IsoLevel
+from ra2vipas.services.controller.tracks import BearingTracker
+from ra2vipas.services.protocol.angles import wrap
+from ra2vipas.services.protocol.pod import PODModel
+
+
+class PODLookup:
+    """p_hat_D(r), its standard deviation and slope, interpolated from a ``PODModel``."""
+
+    def __init__(self, model: PODModel, min_std: float) -> None:
+        self.r = np.asarray(model.rssi_grid_dbm, dtype=float)
+        self.mean = np.asarray(model.mean, dtype=float)
+        self.std = np.maximum(np.asarray(model.std, dtype=float), min_std)
+        self.slope = np.gradient(self.mean, self.r)
+        self.rf_noise_db = float(model.rf_noise_db)
+        self.rf_noise_correlation = float(model.rf_noise_correlation)
+        self._rows = list(zip(self.r.tolist(), self.mean.tolist(), self.std.tolist(), self.slope.tolist()))
+        self._last: tuple[float, tuple[float, float, float]] | None = None
+
+    def __call__(self, rssi: float) -> tuple[float, float, float]:
+        """(mean, std, slope) at ``rssi`` by linear interpolation, clamped at the grid's ends."""
+        if self._last is not None and self._last[0] == rssi:
+            return self._last[1]
+        rows = self._rows
+        if rssi <= rows[0][0]:
+            out = rows[0][1:]
+        elif rssi >= rows[-1][0]:
+            out = rows[-1][1:]
+        else:
+            i = int(np.searchsorted(self.r, rssi)) - 1
+            r0, m0, s0, g0 = rows[i]
+            r1, m1, s1, g1 = rows[i + 1]
+            w = (rssi - r0) / (r1 - r0)
+            out = (m0 + w * (m1 - m0), s0 + w * (s1 - s0), g0 + w * (g1 - g0))
+        self._last = (rssi, out)
+        return out
+
+
+def beta_of(mean: float, var: float) -> tuple[float, float]:
+    """Beta(alpha, beta) with this mean and variance (moment matching; kept proper and not
+    sharper than the variance allows)."""
+    m = min(max(mean, 1e-3), 1.0 - 1e-3)
+    kappa = max(m * (1.0 - m) / max(var, 1e-6) - 1.0, 0.5)
+    return m * kappa, (1.0 - m) * kappa
+
+
+class VisionBelief:
+    """The vision belief interface, and its "no camera" implementation.
+
+    Attributes
+    ----------
+    sees : bool
+        Whether it uses the camera at all.
+    tracks : BearingTracker or None
+        The confirmed targets in bearing.
+    """
+
+    sees = False
+    tracks: BearingTracker | None = None
+
+    def update(self, pan_rad: float, frames) -> None:
+        """Take step t's camera frames (``CameraFrame``: anonymous box bearings), taken at pan
+        ``pan_rad``."""
+
+    def mass_at(self, pan_rad: float, post: np.ndarray) -> float:
+        """U_D(s): the posterior mass of the tracks in view at s, 1 where the camera has not looked
+        yet (1 everywhere without a camera)."""
+        return 1.0
+
+    def clutter_density(self) -> float:
+        """False boxes per frame per radian (the tracker's estimate; 0 without a camera)."""
+        return 0.0
+
+    def crowding(self, estimate_rad: float, scale_rad: float) -> float:
+        """exp(-d / scale), d the bearing gap from the answer to the nearest other track."""
+        return 0.0
+
+
+class CameraBelief(VisionBelief):
+    """The bearing tracker, where the camera looked, and the POD evidence.
+
+    Parameters
+    ----------
+    circle : CircleGrid
+        The pan grid.
+    fov_half_angle_rad, box_bearing_noise_rad, rf_period_s : float
+        The rig's camera and T_RF.
+    frames_per_rf : int
+        nu, frames per step (a bearing seen in fewer than 2 nu frames counts as unseen).
+    pod : PODLookup
+        p_hat_D(r), the learned POD model.
+    recent_memory_s : float
+        Memory of the recent view counts (the frames a walking Tx could have been missed in).
+    pod_floor_std : float
+        Misspecification of the POD model, added to its predictive std.
+    null_pod_prior : (float, float)
+        Beta prior of a non-Tx target's POD.
+    pod_outlier : float
+        Probability that the POD model says nothing about the Tx (hidden, shadowed, misfit).
+    occlusion_halfwidth_rad : float
+        An undetected target this close to a track's bearing may stand behind it ...
+    occluded_probability : float
+        ... and is then hidden with this probability (its misses say nothing).
+    """
+
+    sees = True
+
+    def __init__(self, circle: CircleGrid, fov_half_angle_rad: float, box_bearing_noise_rad: float, rf_period_s: float,
+                 frames_per_rf: int, pod: PODLookup, recent_memory_s: float = 0.8, pod_floor_std: float = 0.08,
+                 null_pod_prior: tuple[float, float] = (1.0, 1.0), pod_outlier: float = 0.2,
+                 occlusion_halfwidth_rad: float = math.radians(5.0), occluded_probability: float = 0.9) -> None:
+        self.circle, self.pod, self.frames_per_rf = circle, pod, frames_per_rf
+        self.pod_floor_std, self.null_pod_prior, self.pod_outlier = pod_floor_std, null_pod_prior, pod_outlier
+        self.occlusion_halfwidth_rad, self.occluded_probability = occlusion_halfwidth_rad, occluded_probability
+        self.tracks = BearingTracker(fov_half_angle_rad, box_bearing_noise_rad, rf_period_s)
+        self.forget = math.exp(-rf_period_s / recent_memory_s)
+        self.view_frames = np.zeros(circle.size)  # frames in which each grid bearing was in view
+        self.view_recent = np.zeros(circle.size)  # the same, discounted over the recent memory
+        self._outlier = np.empty(circle.size)
+
+    def update(self, pan_rad, frames) -> None:
+        self.tracks.update(pan_rad, frames, self.view_frames)
+        window = self.circle.window(pan_rad, self.tracks.count_limit)
+        self.view_frames[window] += len(frames)
+        self.view_recent *= self.forget
+        self.view_recent[window] += len(frames)
+
+    def tx_pod(self, iso: IsoLevel) -> tuple[float, float]:
+        """Beta(alpha, beta) of the Tx's POD: mean p_hat_D(z_iso), variance std(p_hat)^2 +
+        (slope sigma_z)^2 / t + pod_floor_std^2. Without an Rx(iso) sample yet, an ordinary
+        target's (``null_pod_prior``: the POD then tells the Tx from no one)."""
+        if not iso.n:
+            return self.null_pod_prior
+        z_iso, sigma = iso.mean_and_std()
+        p_hat, p_std, slope = self.pod(z_iso)
+        var = p_std**2 + (slope * sigma) ** 2 / iso.n + self.pod_floor_std**2
+        return beta_of(p_hat, var)
+
+    def miss_loglik(self, alpha: float, beta: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per grid bearing, log P(no detection in the frames that looked there | POD ~
+        Beta(alpha, beta)) = log B(alpha, n + beta) - log B(alpha, beta): over every frame (a
+        standing Tx) and over the recent ones (a walking Tx)."""
+        base = gammaln(alpha + beta) - gammaln(beta)
+        stand = gammaln(self.view_frames + beta) - gammaln(self.view_frames + alpha + beta) + base
+        walk = gammaln(self.view_recent + beta) - gammaln(self.view_recent + alpha + beta) + base
+        return stand, walk
+
+    def miss_outlier(self) -> np.ndarray:
+        """Per grid bearing, the probability that an undetected Tx there was never visible:
+        ``pod_outlier`` everywhere, ``occluded_probability`` within ``occlusion_halfwidth_rad``
+        of a confirmed track (in a crowd the target the camera cannot see is most often right
+        behind one it sees)."""
+        out = self._outlier
+        out.fill(self.pod_outlier)
+        if self.occluded_probability > self.pod_outlier and len(self.tracks):
+            circle = self.circle
+            h = int(math.floor((self.occlusion_halfwidth_rad + 1e-12) / circle.step))
+            centres = np.rint((wrap(self.tracks.bearing) + math.pi) / circle.step).astype(np.int64) % circle.size
+            out[(centres[:, None] + np.arange(-h, h + 1)[None, :]) % circle.size] = self.occluded_probability
+        return out
+
+    def mass_at(self, pan_rad, post) -> float:
+        mass = _kernels.mass_at(self.tracks.bearing, post, pan_rad, self.tracks.count_limit) if post.size else 0.0
+        unseen = self.view_frames[self.circle.nearest(pan_rad)] < 2 * self.frames_per_rf
+        return max(mass, 1.0) if unseen else mass
+
+    def clutter_density(self) -> float:
+        return self.tracks.clutter_density
+
+    def crowding(self, estimate_rad, scale_rad) -> float:
+        if len(self.tracks) < 2:
+            return 0.0
+        gaps = np.sort(np.abs(wrap(self.tracks.bearing - estimate_rad)))
+        return math.exp(-float(gaps[1]) / scale_rad)  # gaps[0]: the track named
