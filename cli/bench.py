@@ -827,7 +827,7 @@ def bench_robustness(
         return f"{d['difference']:+.3f} [{lo:+.3f}, {hi:+.3f}]{versus}" + ("" if d["not_worse"] else " ✗")
 
     for name, s in report["scenarios"].items():
-        table.add_row(name, *(f"{s['dr'][a]:.3f}" for a in (*columns, "oracle")), difference(s, f" vs {s['best_single_cue']}"),
+        table.add_row(name, *(f"{s['dr'][a]:.3f}" if a in s["dr"] else "—" for a in (*columns, "oracle")), difference(s, f" vs {s['best_single_cue']}"),
                       *(difference(s["versus_ra2vipas"][a]) for a in others),
                       "—" if s["ra2vipas_over_oracle"] is None else f"{s['ra2vipas_over_oracle']:.3f}")
     stdout.print(table)
