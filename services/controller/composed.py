@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from ra2vipas.services.controller.acquisition import Acquisition, Beliefs
 from ra2vipas.services.controller.confidence import Confidence
 from ra2vipas.services.controller.fusion import Fusion
-from ra2vipas.services.controller.rf_belief import IsoLevel, Packets, RFBelief
+from ra2vipas.services.controller.rf_belief import IsoLevel, PacketClock, Packets, RFBelief
 from ra2vipas.services.controller.vision_belief import VisionBelief
 from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
@@ -95,6 +95,7 @@ class Composition:
     def __init__(self, first_pan_rad: float, parts: Parts, rf_period_s: float = 0.1) -> None:
         self.parts = parts
         self.rf_period_s = float(rf_period_s)
+        self.clock = PacketClock(rf_period_s)  # when the next BLE advertisement is due (packets only)
         self._first_pan = float(wrap(first_pan_rad))
 
     def first_pan(self) -> float:
@@ -116,6 +117,7 @@ class Composition:
             p.iso.add(rf.iso_rssi_dbm)
         elif m.adverts:  # protocol 1.3: 0..n packets per receiver (none at all: no RF evidence, as rf=None)
             packets = Packets.of(m, self.rf_period_s)
+            self.clock.take(packets)
             for _, z, _ in packets.iso:
                 p.iso.add(z)
         if p.vision.sees:
@@ -127,7 +129,8 @@ class Composition:
         l_tracks, l_missed = p.fusion.beliefs(p.rf, p.vision, p.iso)
         estimate, raw, post = p.fusion.answer(p.rf, l_tracks, l_missed, self._first_pan)
         reward = p.vision.mass_at(s, post) * p.rf.gain_at(s)
-        next_pan, probe = p.acquisition.next_pan(Beliefs(t, p.rf, p.vision, l_tracks, post))
+        due = self.clock.due(t + 1) if self.clock.last is not None else None
+        next_pan, probe = p.acquisition.next_pan(Beliefs(t, p.rf, p.vision, l_tracks, post, due))
         cov = p.confidence.covariates(estimate, p.rf, p.vision, p.iso)
         return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe,
                         confidence=round(p.confidence(raw, cov), 6), raw_confidence=float(raw), tx_walks=cov.tx_walks,

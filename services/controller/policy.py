@@ -112,6 +112,8 @@ class ControllerSettings:
     # -- BLE advertisements (protocol 1.3; rf_filter.PacketBearingFilter): the pair path ignores these
     channel_offset_db: float = 3.0  # prior spread of a receiver's per-advertising-channel offset (the CC0 dataset's, docs/radio.md)
     rssi_step_db: float = 1.0  # the receivers' RSSI step (whole dBm): its rounding adds step^2 / 12 to a packet's variance
+    due_probe_every: int = 1  # probe in every n-th step an advertisement is due (the beacon's interval, rf_belief.PacketClock)
+    receiver_offset_db: float = 8.0  # prior spread of Rx(dir)'s offset when packets carry no channel (two receivers' difference)
 
     def __post_init__(self) -> None:
         if self.confidence_calibration is not None and not isinstance(self.confidence_calibration, ConfidenceMap):

@@ -72,6 +72,53 @@ class Packets:
         return cls(iso, dir_)
 
 
+class PacketClock:
+    """When the next advertisement is due: a BLE beacon advertises every interval I plus a
+    random 0-10 ms advDelay, and both receivers hear the same events (each may lose one). I is
+    the median of the gaps between events (packets of either receiver within 5 ms are one
+    event) no longer than 1.3 times the shortest; events then come at last + k I.
+
+    Parameters
+    ----------
+    rf_period_s : float
+        T_RF, the step's length.
+    slack_s : float
+        advDelay's range: an event may come this late.
+    """
+
+    def __init__(self, rf_period_s: float, slack_s: float = 0.01) -> None:
+        self.period, self.slack = float(rf_period_s), float(slack_s)
+        self.last: float | None = None
+        self.gaps: list[float] = []
+
+    def take(self, packets: "Packets") -> None:
+        """Take a step's packets (their times)."""
+        for time_s in sorted(p[0] for p in (*packets.iso, *packets.dir)):
+            if self.last is not None:
+                gap = time_s - self.last
+                if gap <= 0.005:
+                    continue
+                self.gaps.append(gap)
+            self.last = time_s
+
+    def interval(self) -> float | None:
+        """I, once three gaps are known (None before)."""
+        if len(self.gaps) < 3:
+            return None
+        shortest = min(self.gaps)
+        return float(np.median([g for g in self.gaps if g <= 1.3 * shortest]))
+
+    def due(self, step: int) -> bool | None:
+        """Whether an event is due in step ``step`` ([step T_RF, (step + 1) T_RF)); None before
+        the interval is known."""
+        interval = self.interval()
+        if interval is None or self.last is None:
+            return None
+        start = step * self.period
+        k = max(math.ceil((start - self.slack - self.last) / interval), 1)
+        return self.last + k * interval < start + self.period
+
+
 class IsoLevel:
     """Running statistics of Rx(iso)'s RSSI: its mean, standard deviation and the lag-1
     correlation of its noise.

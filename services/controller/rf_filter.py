@@ -310,7 +310,8 @@ class PacketBearingFilter(RFBearingFilter):
       walking model's exponential average over *time* (weight exp(-dt / level memory), dt the time
       since the previous Rx(iso) packet), each packet less its channel's estimated offset.
     * **Channel offsets** are random effects, marginalised: Rx(dir)'s packets on advertising channel
-      c share an unknown offset b_c ~ N(0, sigma_ch^2) (null channel: one group per receiver). Per
+      c share an unknown offset b_c ~ N(0, sigma_ch^2) (null channel: one group, prior
+      ``receiver_offset_db``). Per
       grid cell the offset's posterior given the channel's earlier residuals is Gaussian, so packet
       k's predictive residual is z_k - E z_dir(gamma) - E[b_c | earlier] with variance sigma_e^2 +
       Var[b_c | earlier] + (dE z / dL)^2 Var L: the exact sequential marginal of a Gaussian random
@@ -331,6 +332,10 @@ class PacketBearingFilter(RFBearingFilter):
     ----------
     channel_offset_db : float
         sigma_ch, the prior spread of a receiver's per-channel offset [dB].
+    receiver_offset_db : float
+        The same for packets that do not say their channel: one offset for all of Rx(dir)'s, the
+        difference between two receivers' readings at one range (a recorded channel hears Rx(dir)
+        through another receiver) [dB].
     rssi_step_db : float
         q, the receivers' RSSI step [dB] (1: whole dBm).
     prior_dof : float
@@ -341,11 +346,12 @@ class PacketBearingFilter(RFBearingFilter):
     def __init__(self, circle: CircleGrid, response: RxDirModel, noise_db: float, rf_period_s: float,
                  walk_std_rad: float = math.radians(2.0), level_memory_s: float = 0.5, walk_prior: float = 0.3,
                  tail_dof: float | None = 4.0, channel_offset_db: float = 3.0, rssi_step_db: float = 1.0,
-                 prior_dof: float = 5.0) -> None:
+                 prior_dof: float = 5.0, receiver_offset_db: float = 8.0) -> None:
         super().__init__(circle, response, noise_db, rf_period_s, walk_std_rad, level_memory_s, walk_prior, tail_dof)
         self.rf_period_s = float(rf_period_s)
         self.level_memory_s = float(level_memory_s)
         self.offset_var = float(channel_offset_db) ** 2
+        self.receiver_offset_var = float(receiver_offset_db) ** 2
         self.quant_var = float(rssi_step_db) ** 2 / 12.0
         self.prior_dof = float(prior_dof)
         self.tau_s = 0.0  # fading correlation time, from Rx(iso)
@@ -441,8 +447,9 @@ class PacketBearingFilter(RFBearingFilter):
             if group is None:
                 group = self._dir_groups[channel] = [0, np.zeros(self.circle.size), np.zeros(self.circle.size)]
             n_c = group[0]
-            if self.offset_var > 0.0:
-                shrink = self.offset_var / (white + n_c * self.offset_var)
+            prior_var = self.offset_var if channel is not None else self.receiver_offset_var
+            if prior_var > 0.0:
+                shrink = prior_var / (white + n_c * prior_var)
                 offset_var = white * shrink
             else:
                 shrink = offset_var = 0.0
