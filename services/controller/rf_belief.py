@@ -73,10 +73,11 @@ class Packets:
 
 
 class PacketClock:
-    """When the next advertisement is due: a BLE beacon advertises every interval I plus a
-    random 0-10 ms advDelay, and both receivers hear the same events (each may lose one). I is
-    the median of the gaps between events (packets of either receiver within 5 ms are one
-    event) no longer than 1.3 times the shortest; events then come at last + k I.
+    """When Rx(dir)'s next advertisement is due: a BLE beacon advertises every interval I plus a
+    random 0-10 ms advDelay (a receiver may lose some). I is the median of the gaps between
+    Rx(dir)'s packets (within 5 ms: one event) no longer than 1.3 times the shortest; events then
+    come at last + k I. Rx(iso)'s packets are not used: two receivers need not hear the same
+    events (a recorded channel's are two recordings).
 
     Parameters
     ----------
@@ -93,7 +94,7 @@ class PacketClock:
 
     def take(self, packets: "Packets") -> None:
         """Take a step's packets (their times)."""
-        for time_s in sorted(p[0] for p in (*packets.iso, *packets.dir)):
+        for time_s in sorted(p[0] for p in packets.dir):
             if self.last is not None:
                 gap = time_s - self.last
                 if gap <= 0.005:

@@ -194,15 +194,15 @@ def test_packets_of_a_measurement_carry_their_times_since_the_episode_start():
 
 
 def test_the_packet_clock_says_which_step_the_next_advertisement_is_due_in():
-    """A beacon every 0.45 s (+ up to 10 ms advDelay), one event lost: after three gaps the
-    clock knows the interval and names the steps whose window holds the next events."""
+    """A beacon every 0.45 s (+ up to 10 ms advDelay), one event lost, one heard twice: after
+    three gaps of Rx(dir)'s packets the clock knows the interval and names the steps whose window holds the next events."""
     from ra2vipas.services.controller.rf_belief import PacketClock
 
     clock = PacketClock(0.1)
     times = [0.013, 0.468, 0.921, 1.829, 2.283]  # the event near 1.375 s was lost by both receivers
     for k, t in enumerate(times):
         assert clock.due(int(t / 0.1) + 1) is None or k >= 4
-        clock.take(Packets([(t, -50.0, 37)], [(t + 0.0005, -55.0, 37)]))  # both receivers: one event
+        clock.take(Packets([(t + 0.2, -50.0, 37)], [(t, -55.0, 37), (t + 0.0005, -56.0, 38)]))  # Rx(iso)'s: ignored
     assert clock.interval() == pytest.approx(0.454, abs=0.002)
     due = [s for s in range(23, 40) if clock.due(s)]
     # events at 2.737, 3.191, 3.645 s; the second may slip by its advDelay (10 ms) into step 32
