@@ -139,13 +139,15 @@ class RFBearingFilter:
         self._prev = (gain, dir_dbm)
         self._absorb(ll_stand, ll_walk)
 
-    def _absorb(self, ll_stand: np.ndarray, ll_walk: np.ndarray) -> None:
-        """One step of the walking filter (predict: diffuse; update with ``ll_walk``, the step's
-        log-likelihood over the grid), its normaliser the baseline of this step's relative
-        log-likelihoods, and the standing model's evidence accumulated."""
+    def _absorb(self, ll_stand: np.ndarray, ll_walk: np.ndarray, steps: int = 1) -> None:
+        """One update of the walking filter (predict: diffuse over ``steps`` steps of T_RF since
+        the last update; update with ``ll_walk``, the log-likelihood over the grid), its
+        normaliser the baseline of this update's relative log-likelihoods, and the standing
+        model's evidence accumulated."""
         # the walking filter: predict (diffuse), update; its normaliser is the baseline
         prior = np.exp(self._walk - self._walk.max())
-        predicted = np.maximum(np.fft.irfft(np.fft.rfft(prior) * self._kernel_fft, n=prior.size), 0.0)
+        kernel = self._kernel_fft if steps == 1 else self._kernel_fft**steps  # k steps: k times the variance
+        predicted = np.maximum(np.fft.irfft(np.fft.rfft(prior) * kernel, n=prior.size), 0.0)
         predicted /= predicted.sum()
         top = ll_walk.max()
         joint = predicted * np.exp(ll_walk - top)
@@ -327,6 +329,8 @@ class PacketBearingFilter(RFBearingFilter):
       Rx(dir) packet: the share of independent information it brings.
     * sigma_e, the white per-packet spread, is the pooled within-channel spread of Rx(iso),
       shrunk to the learner's estimate with ``prior_dof`` pseudo-samples.
+    * **A walking Tx between packets.** The walking model diffuses for every step of T_RF since
+      its last update (k steps: the kernel's k-th power, k times the variance), not one.
 
     Parameters
     ----------
@@ -364,6 +368,7 @@ class PacketBearingFilter(RFBearingFilter):
         self._walk_time: float | None = None
         self._dir_groups: dict[object, list] = {}  # channel -> [n, residual sums (standing), (walking)]
         self._dir_last: float | None = None
+        self._update_time: float | None = None  # when the bearing was last updated (its packets' mean time)
 
     # -- Rx(iso) ----------------------------------------------------------------------------------
     def white_var(self) -> float:
@@ -460,7 +465,10 @@ class PacketBearingFilter(RFBearingFilter):
                 total[j] += weight * self._packet_loglik(pred, var)
                 group[1 + j] += resid
             group[0] = n_c + 1
-        self._absorb(total[0], total[1])
+        now = sum(p[0] for p in dir_) / len(dir_)
+        steps = 1 if self._update_time is None else max(int(round((now - self._update_time) / self.rf_period_s)), 1)
+        self._update_time = now
+        self._absorb(total[0], total[1], steps)  # the walker moved for every step since the last update
         return True
 
     def _packet_loglik(self, resid: np.ndarray, var: np.ndarray) -> np.ndarray:

@@ -23,7 +23,12 @@ def test_a_campaign_on_advertisements_over_the_bus_equals_simulate(mesh, preset)
     c = _run(store, scheduler, preset, BLE_SMALL, 2, 7, algorithms, timeout=240.0)
     assert c["status"] == "done", c["error"]
     expected = run_campaign(preset, build_scenario(preset, BLE_SMALL), 2, 7, algorithms)
-    assert _results_without_timing(c["results"]) == _results_without_timing(expected)
+    got = _results_without_timing(c["results"])
+    # the rig check's notes are the mesh's own (simulate runs no rig); on packets its lobe evidence
+    # can misfire (docs/radio.md, "What is not done yet"): everything else is equal value for value
+    notes = got.pop("warnings", [])
+    assert all("contradicts the assumed Rx(dir) response" in n for n in notes)
+    assert got == _results_without_timing(expected)
     # what crossed the wire: packets, never a made-up pair, and steps without any
     counts = []
     for key, payload in bus.published:
