@@ -113,6 +113,7 @@ class ControllerSettings:
     channel_offset_db: float = 3.0  # prior spread of a receiver's per-advertising-channel offset (the CC0 dataset's, docs/radio.md)
     rssi_step_db: float = 1.0  # the receivers' RSSI step (whole dBm): its rounding adds step^2 / 12 to a packet's variance
     due_probe_every: int = 1  # probe in every n-th step an advertisement is due (the beacon's interval, rf_belief.PacketClock)
+    packet_fading_tempering: bool = False  # temper each packet's term by its AR(1) correlation with the previous (rf_filter)
     receiver_offset_db: float = 8.0  # prior spread of Rx(dir)'s offset when packets carry no channel (two receivers' difference)
 
     def __post_init__(self) -> None:
