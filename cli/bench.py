@@ -789,7 +789,7 @@ def bench_robustness(
 
     Per scenario: final DR of each algorithm with its Wilson 95 % interval, the paired
     difference Ra²ViPAS - best single cue with its 95 % interval (requirement: upper bound >= 0),
-    and Ra²ViPAS / oracle. Takes minutes: ~17 scenarios x 200 tests x 4 algorithms. Each
+    and Ra²ViPAS / oracle. Takes minutes: ~20 scenarios x 200 tests x 4 algorithms. Each
     --algorithm adds that policy's column and Ra²ViPAS - it, paired the same way (with
     McNemar's exact p in --json); the other columns do not change.
 
