@@ -840,7 +840,7 @@ def bench_robustness(
 
     Per scenario: final DR of each algorithm with its Wilson 95 % interval, the paired
     difference Ra²ViPAS - best single cue with its 95 % interval (requirement: upper bound >= 0),
-    and Ra²ViPAS / oracle. Takes minutes: ~17 scenarios x 200 tests x 4 algorithms. Each
+    and Ra²ViPAS / oracle. Takes minutes: ~20 scenarios x 200 tests x 4 algorithms. Each
     --algorithm adds that policy's column and Ra²ViPAS - it, paired the same way (with
     McNemar's exact p in --json); the other columns do not change.
 
@@ -878,7 +878,7 @@ def bench_robustness(
         return f"{d['difference']:+.3f} [{lo:+.3f}, {hi:+.3f}]{versus}" + ("" if d["not_worse"] else " ✗")
 
     for name, s in report["scenarios"].items():
-        table.add_row(name, *(f"{s['dr'][a]:.3f}" for a in (*columns, "oracle")), difference(s, f" vs {s['best_single_cue']}"),
+        table.add_row(name, *(f"{s['dr'][a]:.3f}" if a in s["dr"] else "—" for a in (*columns, "oracle")), difference(s, f" vs {s['best_single_cue']}"),
                       *(difference(s["versus_ra2vipas"][a]) for a in others),
                       "—" if s["ra2vipas_over_oracle"] is None else f"{s['ra2vipas_over_oracle']:.3f}")
     stdout.print(table)

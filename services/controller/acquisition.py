@@ -38,6 +38,7 @@ class Beliefs:
     vision: VisionBelief
     l_tracks: np.ndarray
     post: np.ndarray
+    packet_due: bool | None = None  # BLE advertisements: whether one is due in step t + 1 (None: not known, e.g. the 1.0 pair)
 
 
 class Acquisition:
@@ -72,7 +73,9 @@ class WarmUpSweep(Acquisition):
 
 class ProbeSchedule(Acquisition):
     """A discrimination probe every ``every``-th step counted from ``start`` (0: never), else
-    ``then``'s pan. Only a policy that hears Rx(dir) probes.
+    ``then``'s pan. Only a policy that hears Rx(dir) probes. On BLE advertisements, once the
+    beacon's interval is known (``Beliefs.packet_due``), a probe in every ``due_every``-th step a
+    packet is due and ``then``'s pan in the others (where no Rx(dir) reading will come, the camera's choice).
 
     Parameters
     ----------
@@ -86,19 +89,34 @@ class ProbeSchedule(Acquisition):
         Use the RF belief's most informative pan when it has one.
     rf_peaks : bool
         Probe between the two best RF peaks, not the two best tracks (always when the Tx walks).
+    due_every : int
+        BLE: probe in every ``due_every``-th step a packet is due.
     """
 
     def __init__(self, circle: CircleGrid, then: Acquisition, every: int = 2, start: int = 0, lobe_width_rad: float = 1.0,
-                 informative: bool = True, rf_peaks: bool = False) -> None:
+                 informative: bool = True, rf_peaks: bool = False, due_every: int = 1) -> None:
         self.circle, self.then, self.every, self.start = circle, then, every, start
+        self.due_every = max(int(due_every), 1)
         self.lobe_width_rad, self.informative, self.rf_peaks = lobe_width_rad, informative, rf_peaks
         self._probes = 0
+        self._due = 0
 
     def next_pan(self, b: Beliefs) -> tuple[float, bool]:
+        if b.packet_due is not None and b.t + 1 >= self.start and self.every:
+            # BLE: a probe pays only in a step a packet will arrive in (the beacon's interval is regular)
+            if b.packet_due and b.rf.listens and self._due_probe():
+                pan = b.rf.informative_pan() if self.informative else None
+                return (self._between_leaders(b) if pan is None else pan), True
+            return self.then.next_pan(b)
         if b.rf.listens and self.every and (b.t + 1 - self.start) % self.every == 0:
             pan = b.rf.informative_pan() if self.informative else None
             return (self._between_leaders(b) if pan is None else pan), True
         return self.then.next_pan(b)
+
+    def _due_probe(self) -> bool:
+        """Whether this due packet's step is a probe: every ``every``-th of them."""
+        self._due += 1
+        return self._due % self.due_every == 0
 
     def _between_leaders(self, b: Beliefs) -> float:
         """The pan where the two leading hypotheses' lobes differ most, on alternating sides."""

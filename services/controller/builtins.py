@@ -27,7 +27,7 @@ from ra2vipas.services.controller.fusion import Fusion
 from ra2vipas.services.controller.grid import CircleGrid
 from ra2vipas.services.controller.policy import Controller, ControllerSettings, Decision, SensorConfig
 from ra2vipas.services.controller.rf_belief import IsoLevel, LobeBelief, RFBelief, RFFilterBelief, lobe_gp
-from ra2vipas.services.controller.rf_filter import RFBearingFilter, RxDirModel
+from ra2vipas.services.controller.rf_filter import PacketBearingFilter, RxDirModel
 from ra2vipas.services.controller.vision_belief import CameraBelief, PODLookup, VisionBelief
 from ra2vipas.services.protocol.measurements import StepMeasurement
 from ra2vipas.services.protocol.pod import PODModel
@@ -43,9 +43,11 @@ def radio(circle: CircleGrid, sensors: SensorConfig, pod: PODLookup, cfg: Contro
                  cfg.residual_length_scale_rad, cfg.residual_std_db)
     if cfg.rf_filter and sensors.rx_dir in ("paper", "db-gain") and sensors.rx_dir_curvature is not None:
         response = RxDirModel(sensors.rx_dir, sensors.rx_dir_curvature, sensors.rx_dir_floor_db)
-        rff = RFBearingFilter(circle, response, noise_db=max(pod.rf_noise_db, 0.1), rf_period_s=sensors.rf_period_s,
-                              walk_std_rad=math.radians(cfg.walk_std_deg), level_memory_s=cfg.level_memory_s,
-                              walk_prior=cfg.tx_walk_prior, tail_dof=cfg.rf_tail_dof or None)
+        rff = PacketBearingFilter(circle, response, noise_db=max(pod.rf_noise_db, 0.1), rf_period_s=sensors.rf_period_s,
+                                  walk_std_rad=math.radians(cfg.walk_std_deg), level_memory_s=cfg.level_memory_s,
+                                  walk_prior=cfg.tx_walk_prior, tail_dof=cfg.rf_tail_dof or None,
+                                  channel_offset_db=cfg.channel_offset_db, rssi_step_db=cfg.rssi_step_db,
+                                  receiver_offset_db=cfg.receiver_offset_db, temper_fading=cfg.packet_fading_tempering)
         return RFFilterBelief(rff, gp, walk_prior_from_tracks=cfg.walk_prior_from_tracks, walk_prior=cfg.tx_walk_prior)
     recent = RecentLobe(circle, noise_var=gp.noise_var, lobe_width=cfg.lobe_width_rad, lobe_sign=lobe_sign,
                         memory_s=cfg.rf_memory_s, rf_period_s=sensors.rf_period_s)
@@ -67,7 +69,7 @@ def active_search(circle: CircleGrid, sensors: SensorConfig, cfg: ControllerSett
     warmup = cfg.warmup_steps if cfg.warmup_steps is not None else math.ceil(math.pi / sensors.fov_half_angle_rad)
     ucb = GPUCB(circle, sensors.frames_per_rf, beta=cfg.beta, use_mass=cfg.mass_in_acquisition)
     probes = ProbeSchedule(circle, ucb, every=cfg.probe_every, start=warmup, lobe_width_rad=cfg.lobe_width_rad,
-                           informative=cfg.informative_probe, rf_peaks=cfg.probe_rf_peaks)
+                           informative=cfg.informative_probe, rf_peaks=cfg.probe_rf_peaks, due_every=cfg.due_probe_every)
     return WarmUpSweep(sensors.initial_pan_rad, warmup, then=probes)
 
 

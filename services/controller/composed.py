@@ -4,9 +4,12 @@
 sensed at pan s_t (a ``StepMeasurement``: the RSSI pair and the nu frames of anonymous box
 bearings; ``rf`` may be None when no packet came) and:
 
-1. ``iso.add``: the Rx(iso) statistics take the step's level (``rf_belief.IsoLevel``);
+1. ``iso.add``: the Rx(iso) statistics take the step's level (``rf_belief.IsoLevel``), or each of
+   its Rx(iso) advertisements (protocol 1.3);
 2. ``vision.update``: the vision belief takes the frames (``vision_belief``);
-3. ``rf.update``: the RF belief takes the RSSI pair (``rf_belief``; unchanged without one);
+3. ``rf.update``: the RF belief takes the RSSI pair (``rf_belief``; unchanged without one), or
+   ``rf.update_packets`` the step's advertisements (``rf_belief.Packets``: 0..n per receiver at
+   their times; a step with none is a step without RF evidence, as ``rf=None``);
 4. ``fusion.beliefs`` / ``fusion.answer``: the posterior over the hypotheses and gamma_hat_t
    (``fusion``);
 5. ``acquisition.next_pan``: s_{t+1} (``acquisition``);
@@ -23,7 +26,7 @@ from dataclasses import dataclass
 from ra2vipas.services.controller.acquisition import Acquisition, Beliefs
 from ra2vipas.services.controller.confidence import Confidence
 from ra2vipas.services.controller.fusion import Fusion
-from ra2vipas.services.controller.rf_belief import IsoLevel, RFBelief
+from ra2vipas.services.controller.rf_belief import IsoLevel, PacketClock, Packets, RFBelief
 from ra2vipas.services.controller.vision_belief import VisionBelief
 from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
@@ -85,10 +88,14 @@ class Composition:
         s_0, where the camera points at the start.
     parts : Parts
         What it believes, fuses, and how it chooses.
+    rf_period_s : float
+        T_RF: step t starts at t T_RF (an advertisement's time is that plus its offset).
     """
 
-    def __init__(self, first_pan_rad: float, parts: Parts) -> None:
+    def __init__(self, first_pan_rad: float, parts: Parts, rf_period_s: float = 0.1) -> None:
         self.parts = parts
+        self.rf_period_s = float(rf_period_s)
+        self.clock = PacketClock(rf_period_s)  # when the next BLE advertisement is due (packets only)
         self._first_pan = float(wrap(first_pan_rad))
 
     def first_pan(self) -> float:
@@ -105,15 +112,25 @@ class Composition:
         step, the RF belief is left as it was); return s_{t+1} and gamma_hat_t."""
         p = self.parts
         s, t, rf = float(m.pan_rad), int(m.step), m.rf
+        packets = None
         if rf is not None:
             p.iso.add(rf.iso_rssi_dbm)
+        elif m.adverts:  # protocol 1.3: 0..n packets per receiver (none at all: no RF evidence, as rf=None)
+            packets = Packets.of(m, self.rf_period_s)
+            self.clock.take(packets)
+            for _, z, _ in packets.iso:
+                p.iso.add(z)
         if p.vision.sees:
             p.vision.update(s, m.frames)
-        p.rf.update(s, rf, p.iso, p.vision.tracks)
+        if packets is None:
+            p.rf.update(s, rf, p.iso, p.vision.tracks)
+        else:
+            p.rf.update_packets(s, packets, p.iso, p.vision.tracks)
         l_tracks, l_missed = p.fusion.beliefs(p.rf, p.vision, p.iso)
         estimate, raw, post = p.fusion.answer(p.rf, l_tracks, l_missed, self._first_pan)
         reward = p.vision.mass_at(s, post) * p.rf.gain_at(s)
-        next_pan, probe = p.acquisition.next_pan(Beliefs(t, p.rf, p.vision, l_tracks, post))
+        due = self.clock.due(t + 1) if self.clock.last is not None else None
+        next_pan, probe = p.acquisition.next_pan(Beliefs(t, p.rf, p.vision, l_tracks, post, due))
         cov = p.confidence.covariates(estimate, p.rf, p.vision, p.iso)
         return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe,
                         confidence=round(p.confidence(raw, cov), 6), raw_confidence=float(raw), tx_walks=cov.tx_walks,

@@ -109,6 +109,12 @@ class ControllerSettings:
     walk_std_deg: float = 2.0  # a walking Tx's bearing change per step
     level_memory_s: float = 0.5  # memory of a walking Tx's level (range and shadowing change)
     rf_tail_dof: float = 2.0  # Student-t degrees of freedom of an RF sample's innovation (0: Gaussian)
+    # -- BLE advertisements (protocol 1.3; rf_filter.PacketBearingFilter): the pair path ignores these
+    channel_offset_db: float = 3.0  # prior spread of a receiver's per-advertising-channel offset (the CC0 dataset's, docs/radio.md)
+    rssi_step_db: float = 1.0  # the receivers' RSSI step (whole dBm): its rounding adds step^2 / 12 to a packet's variance
+    due_probe_every: int = 1  # probe in every n-th step an advertisement is due (the beacon's interval, rf_belief.PacketClock)
+    packet_fading_tempering: bool = False  # temper each packet's term by its AR(1) correlation with the previous (rf_filter)
+    receiver_offset_db: float = 8.0  # prior spread of Rx(dir)'s offset when packets carry no channel (two receivers' difference)
 
     def __post_init__(self) -> None:
         if self.confidence_calibration is not None and not isinstance(self.confidence_calibration, ConfidenceMap):
@@ -164,7 +170,8 @@ class Controller(Composition):
         self.algorithm = Algorithm(algorithm)
         self.sensors = sensors
         self.settings = tuned_settings(self.algorithm, settings)
-        super().__init__(sensors.initial_pan_rad, compose(self.algorithm.value, sensors, pod_model, self.settings))
+        super().__init__(sensors.initial_pan_rad, compose(self.algorithm.value, sensors, pod_model, self.settings),
+                         rf_period_s=sensors.rf_period_s)
 
 
 TUNING: dict[str, dict] = {

@@ -39,6 +39,87 @@ class RFSample(Protocol):
     dir_rssi_dbm: float
 
 
+Packet = tuple[float, float, "int | None"]
+"""One advertisement as the RF beliefs read it: (time [s] since the episode's start, RSSI [dBm],
+advertising channel or None)."""
+
+
+class Packets:
+    """One step's advertisements split by receiver, each with its time since the episode's start
+    (t T_RF + its offset in the step), in arrival order.
+
+    Attributes
+    ----------
+    iso, dir : list of Packet
+        Rx(iso)'s and Rx(dir)'s packets this step (either may be empty).
+    """
+
+    __slots__ = ("iso", "dir")
+
+    def __init__(self, iso: list[Packet], dir_: list[Packet]) -> None:
+        self.iso, self.dir = iso, dir_
+
+    @classmethod
+    def of(cls, measurement, rf_period_s: float) -> "Packets":
+        """The packets of a ``StepMeasurement`` (its ``adverts``) taken at step t."""
+        start = int(measurement.step) * float(rf_period_s)
+        iso: list[Packet] = []
+        dir_: list[Packet] = []
+        for a in measurement.adverts:
+            (iso if a.receiver == "iso" else dir_).append((start + float(a.offset_s), float(a.rssi_dbm), a.channel))
+        iso.sort(key=lambda p: p[0])
+        dir_.sort(key=lambda p: p[0])
+        return cls(iso, dir_)
+
+
+class PacketClock:
+    """When Rx(dir)'s next advertisement is due: a BLE beacon advertises every interval I plus a
+    random 0-10 ms advDelay (a receiver may lose some). I is the median of the gaps between
+    Rx(dir)'s packets (within 5 ms: one event) no longer than 1.3 times the shortest; events then
+    come at last + k I. Rx(iso)'s packets are not used: two receivers need not hear the same
+    events (a recorded channel's are two recordings).
+
+    Parameters
+    ----------
+    rf_period_s : float
+        T_RF, the step's length.
+    slack_s : float
+        advDelay's range: an event may come this late.
+    """
+
+    def __init__(self, rf_period_s: float, slack_s: float = 0.01) -> None:
+        self.period, self.slack = float(rf_period_s), float(slack_s)
+        self.last: float | None = None
+        self.gaps: list[float] = []
+
+    def take(self, packets: "Packets") -> None:
+        """Take a step's packets (their times)."""
+        for time_s in sorted(p[0] for p in packets.dir):
+            if self.last is not None:
+                gap = time_s - self.last
+                if gap <= 0.005:
+                    continue
+                self.gaps.append(gap)
+            self.last = time_s
+
+    def interval(self) -> float | None:
+        """I, once three gaps are known (None before)."""
+        if len(self.gaps) < 3:
+            return None
+        shortest = min(self.gaps)
+        return float(np.median([g for g in self.gaps if g <= 1.3 * shortest]))
+
+    def due(self, step: int) -> bool | None:
+        """Whether an event is due in step ``step`` ([step T_RF, (step + 1) T_RF)); None before
+        the interval is known."""
+        interval = self.interval()
+        if interval is None or self.last is None:
+            return None
+        start = step * self.period
+        k = max(math.ceil((start - self.slack - self.last) / interval), 1)
+        return self.last + k * interval < start + self.period
+
+
 class IsoLevel:
     """Running statistics of Rx(iso)'s RSSI: its mean, standard deviation and the lag-1
     correlation of its noise.
@@ -114,6 +195,12 @@ class RFBelief:
         """Take step t's RF sample, taken at pan ``pan_rad`` (None: no packet this step, the
         belief is unchanged); ``iso`` already holds its Rx(iso) reading, ``tracks`` is the
         camera's ``BearingTracker`` after this step (None without a camera)."""
+
+    def update_packets(self, pan_rad: float, packets: Packets, iso: IsoLevel, tracks=None) -> None:
+        """Take step t's BLE advertisements (protocol 1.3; ``Packets``: 0..n per receiver, at
+        their times), heard at pan ``pan_rad``; ``iso`` already holds its Rx(iso) packets. A
+        belief that cannot read packets takes them as no RF evidence (``update`` with None)."""
+        self.update(pan_rad, None, iso, tracks)
 
     def track_loglik(self, tracks) -> np.ndarray:
         """l_RF of each confirmed camera track, shape (n,)."""
@@ -197,11 +284,25 @@ class LobeBelief(RFBelief):
             if tracks is not None and self.samples:
                 self.recent.follow_tracks(tracks.ids.tolist(), tracks.bearing.tolist())
             return
+        self._take(pan_rad, (rf.dir_rssi_dbm,), iso, tracks)
+
+    def update_packets(self, pan_rad, packets, iso, tracks=None) -> None:
+        """Each Rx(dir) packet is one sample of the lobe at the step's pan (its channel offset and
+        spread are the lobe's white noise and residual); no Rx(dir) packet: as ``rf=None``."""
+        if not packets.dir:
+            self.update(pan_rad, None, iso, tracks)
+            return
+        self._take(pan_rad, tuple(z for _, z, _ in packets.dir), iso, tracks)
+
+    def _take(self, pan_rad: float, dir_dbm: tuple[float, ...], iso: IsoLevel, tracks) -> None:
         self.samples += 1
         if self.ar1:  # in steps of 0.05: each change refits the samples so far
             self.gp.set_noise_correlation(round(iso.noise_correlation() * 20.0) / 20.0)
-        self.gp.add(pan_rad, rf.dir_rssi_dbm)
-        self.recent.add(pan_rad, rf.dir_rssi_dbm)
+        if self.gp.n_ + len(dir_dbm) > self.gp.capacity:  # packets: more than one sample a step
+            self.gp.capacity = self.gp.n_ + len(dir_dbm) + self.gp.capacity
+        for z in dir_dbm:
+            self.gp.add(pan_rad, z)
+            self.recent.add(pan_rad, z)
         if self.learn_lobe:
             self._learn_lobe()
         if tracks is not None:
@@ -318,12 +419,28 @@ class RFFilterBelief(RFBelief):
         self.samples += 1
         self._dir_samples.append((pan_rad, rf.dir_rssi_dbm))  # for the lobe's model check, fitted once asked
         self.rff.add(pan_rad, rf.iso_rssi_dbm, rf.dir_rssi_dbm)
+        self._after_sample(tracks)
+
+    def _after_sample(self, tracks) -> None:
         if tracks is not None:
             if self.walk_prior_from_tracks:  # the Tx is one of the targets: it walks as often as they do
                 self.rff.walk_prior = min(max(tracks.walking_share(self.walk_prior), 0.01), 0.99)
             self.rff.follow(tracks.ids.tolist(), *tracks.components())
         self.log_likelihood = self.rff.log_posterior()
         self.tx_walks = self.rff.p_walk
+
+    def update_packets(self, pan_rad, packets, iso, tracks=None) -> None:
+        """The filter's packet likelihood (``PacketBearingFilter.add_packets``: one term per
+        Rx(dir) packet, channel offsets marginalised, irregular times); a step whose packets do
+        not move the bearing (no Rx(dir) packet) is as ``rf=None``."""
+        if not hasattr(self.rff, "add_packets"):
+            raise TypeError("this RF filter reads the 1.0 pair only; build it as a PacketBearingFilter to read adverts")
+        self._dir_samples.extend((pan_rad, z) for _, z, _ in packets.dir)
+        if not self.rff.add_packets(pan_rad, packets.iso, packets.dir):
+            self.update(pan_rad, None, iso, tracks)
+            return
+        self.samples += 1
+        self._after_sample(tracks)
 
     def track_loglik(self, tracks) -> np.ndarray:
         """Each track's trajectory evidence, on the footing of ``log_likelihood`` (the normalised

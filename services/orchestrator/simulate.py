@@ -167,22 +167,6 @@ def overrides_of(preset: str, scenario: dict[str, Any]) -> dict[str, Any]:
     return {name: value for name, value in scenario.items() if base.get(name) != value}
 
 
-def check_radio(scenario: Scenario) -> None:
-    """Refuse, in one line, a scenario whose receivers deliver BLE advertisements (protocol 1.3,
-    ``radio`` adverts|recorded): the built-in controllers still read the 1.0 RSSI pair (issue 20:
-    the sensors, the learner, the wire and the rigs take packets; the controllers do not yet).
-
-    Raises
-    ------
-    ScenarioError
-        ``radio`` is not ``pair``.
-    """
-    if scenario.radio.value != "pair":
-        raise ScenarioError(f"radio={scenario.radio.value}: the built-in controllers do not read BLE advertisements yet "
-                            "(protocol 1.3; docs/radio.md, 'What is not done yet'); use radio=pair, or run the sensors and "
-                            "the learner on it (ra2vipas bench learner --preset ...)")
-
-
 def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = registry.BUILTINS,
                  settings: ControllerSettings | None = None,
                  progress: Callable[[int, int], None] | None = None, stop_confidence: float = 0.0,
@@ -198,7 +182,6 @@ def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorit
     """
     from ra2vipas.services.orchestrator.engine import Point, run_points
 
-    check_radio(scenario)
     point = Point(preset=preset, scenario=scenario, tests=tests, seed=seed, algorithms=tuple(algorithms),
                   stop_confidence=stop_confidence)
     announce = None if on_trained is None else (lambda _i, pod: on_trained(pod))

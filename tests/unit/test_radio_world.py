@@ -190,16 +190,6 @@ def test_training_in_a_ble_world_yields_advertisements():
     TrainingStream.model_validate_json(dump(TrainingStream(job_id="j", samples=tuple(samples))))
 
 
-def test_a_campaign_on_advertisements_is_refused_in_one_line_until_the_controllers_read_them():
-    from ra2vipas.services.orchestrator.simulate import check_radio
-    from ra2vipas.services.protocol.scenario import ScenarioError
-
-    check_radio(build_scenario("paper"))
-    for preset in ("ble", "ble-dynamic", "ble-recorded"):
-        with pytest.raises(ScenarioError, match=r"the built-in controllers do not read BLE advertisements yet"):
-            check_radio(build_scenario(preset))
-
-
 def test_the_ble_preset_has_the_datasets_packet_statistics():
     """docs/radio.md's table, at one point (no shadowing change, every packet above the
     sensitivity): rate, median gap, spread and the lag-correlation pattern of the CC0 dataset."""
