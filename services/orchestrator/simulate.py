@@ -167,6 +167,21 @@ def overrides_of(preset: str, scenario: dict[str, Any]) -> dict[str, Any]:
     return {name: value for name, value in scenario.items() if base.get(name) != value}
 
 
+def check_tags(scenario: Scenario) -> None:
+    """Refuse, in one line, a scenario with several tags (protocol 1.4, ``n_tags`` > 1): the world
+    and the wire carry them (docs/tags.md), but the built-in controllers and the in-process
+    scoring still search for one tag (issue 21: the joint search lands next).
+
+    Raises
+    ------
+    ScenarioError
+        ``n_tags`` is not 1.
+    """
+    if scenario.n_tags != 1:
+        raise ScenarioError(f"n_tags={scenario.n_tags}: the built-in controllers do not search for several tags yet "
+                            "(protocol 1.4; docs/tags.md, 'What is not done yet'); use n_tags=1")
+
+
 def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = registry.BUILTINS,
                  settings: ControllerSettings | None = None,
                  progress: Callable[[int, int], None] | None = None, stop_confidence: float = 0.0,
@@ -182,6 +197,7 @@ def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorit
     """
     from ra2vipas.services.orchestrator.engine import Point, run_points
 
+    check_tags(scenario)
     point = Point(preset=preset, scenario=scenario, tests=tests, seed=seed, algorithms=tuple(algorithms),
                   stop_confidence=stop_confidence)
     announce = None if on_trained is None else (lambda _i, pod: on_trained(pod))

@@ -32,7 +32,15 @@ OPTIONAL_SINCE_1_3 = {"optional_since": "1.3"}
 (``versions.wire_exclude``); a 1.0 receiver needs it, so a 1.3 sender leaves it out only for a
 receiver that speaks 1.3."""
 
+SINCE_1_4 = {"since": "1.4"}
+"""Schema mark of a field added in protocol 1.4 (many tags, issue 21; docs/tags.md)."""
+
 Receiver = Literal["iso", "dir"]
+MAX_TAGS = 64
+ADDRESS_PATTERN = r"^[0-9A-F]{2}(:[0-9A-F]{2}){5}$"
+"""A tag's address as a BLE receiver reports it: six bytes, upper-case hex, colon-separated."""
+TagIndex = Field(0, ge=0, lt=MAX_TAGS, json_schema_extra=SINCE_1_4,
+                 description="k, which of the scene's tags sent it (0..K-1; absent: tag 0, the only tag before 1.4)")
 ADVERTISING_CHANNELS = (37, 38, 39)
 MAX_ADVERTS_PER_STEP = 10_000
 
@@ -46,6 +54,7 @@ class RFSample(_Measurement):
 
     iso_rssi_dbm: float = Field(description="z^(iso), RSSI at the omnidirectional receiver [dBm]")
     dir_rssi_dbm: float = Field(description="z^(dir), RSSI at the directional receiver [dBm]")
+    tag: int = TagIndex
 
 
 class Advertisement(_Measurement):
@@ -61,6 +70,10 @@ class Advertisement(_Measurement):
     rssi_dbm: float = Field(ge=-200.0, le=50.0, strict=True, description="RSSI as the receiver reported it [dBm] (integers allowed)")
     channel: Literal[37, 38, 39] | None = Field(None, description="BLE advertising channel (null: not reported)")
     offset_s: float = Field(0.0, ge=0.0, le=1000.0, description="arrival time after the start of the step [s]")
+    tag: int = TagIndex
+    address: str | None = Field(None, pattern=ADDRESS_PATTERN, json_schema_extra=SINCE_1_4,
+                                description="the advertiser's address as the receiver reported it, e.g. C3:5A:01:9E:44:B2 "
+                                            "(null: not reported)")
 
 
 class CameraFrame(_Measurement):
@@ -96,8 +109,8 @@ class CameraFrame(_Measurement):
 
 
 def _pair(rf: RFSample) -> tuple[Advertisement, ...]:
-    return (Advertisement.model_construct(receiver="iso", rssi_dbm=rf.iso_rssi_dbm, channel=None, offset_s=0.0),
-            Advertisement.model_construct(receiver="dir", rssi_dbm=rf.dir_rssi_dbm, channel=None, offset_s=0.0))
+    return (Advertisement.model_construct(receiver="iso", rssi_dbm=rf.iso_rssi_dbm, channel=None, offset_s=0.0, tag=rf.tag, address=None),
+            Advertisement.model_construct(receiver="dir", rssi_dbm=rf.dir_rssi_dbm, channel=None, offset_s=0.0, tag=rf.tag, address=None))
 
 
 class StepMeasurement(_Measurement):
@@ -106,6 +119,9 @@ class StepMeasurement(_Measurement):
 
     The RF evidence is either ``rf`` (a 1.0 node's pair) or ``adverts`` (1.3: 0..n per
     receiver), never both; ``advertisements`` reads either as a list of advertisements.
+    With several tags (1.4): every advertisement names its tag; with the paper's radio ``rf`` is
+    tag 0's pair and ``rf_tags`` the pairs of the other tags, one per tag. A reader that asks for
+    no tag reads tag 0, the only tag before 1.4 (``tag=None``: every tag).
     """
 
     step: int = Field(ge=0, description="t, index of the RF sample within the test")
@@ -117,24 +133,45 @@ class StepMeasurement(_Measurement):
     adverts: tuple[Advertisement, ...] = Field(default=(), max_length=MAX_ADVERTS_PER_STEP, json_schema_extra=SINCE_1_3,
                                                description="every advertisement each receiver heard since the previous step, "
                                                            "possibly none (then the step carries no RF evidence)")
+    rf_tags: tuple[RFSample, ...] = Field(default=(), max_length=MAX_TAGS - 1, json_schema_extra=SINCE_1_4,
+                                          description="the paper's radio with several tags: the (iso, dir) pair of every tag "
+                                                      "but tag 0 (whose pair is rf), each naming its tag")
 
     @model_validator(mode="after")
     def _one_form(self) -> "StepMeasurement":
         if self.rf is not None and self.adverts:
             raise ValueError("give rf (the 1.0 pair) or adverts (1.3), not both")
+        if self.rf_tags:
+            if self.rf is None:
+                raise ValueError("rf_tags needs rf, tag 0's pair")
+            tags = [self.rf.tag] + [p.tag for p in self.rf_tags]
+            if len(set(tags)) != len(tags):
+                raise ValueError(f"rf and rf_tags name a tag twice: {tags}")
         return self
 
-    def advertisements(self, receiver: Receiver | None = None) -> tuple[Advertisement, ...]:
-        """The step's advertisements (of ``receiver`` only, if given); a 1.0 pair reads as one
-        per receiver at offset 0. Empty: no RF evidence this step."""
-        ads = _pair(self.rf) if self.rf is not None else self.adverts
+    def pairs(self) -> tuple[RFSample, ...]:
+        """The paper radio's pairs of this step, one per tag (``rf`` then ``rf_tags``); none with adverts."""
+        return () if self.rf is None else (self.rf, *self.rf_tags)
+
+    def advertisements(self, receiver: Receiver | None = None, tag: int | None = 0) -> tuple[Advertisement, ...]:
+        """The step's advertisements of tag ``tag`` (None: of every tag), of ``receiver`` only if
+        given; a 1.0 pair reads as one per receiver at offset 0. Empty: no RF evidence this step."""
+        if self.rf is not None:
+            ads = tuple(a for p in self.pairs() if tag is None or p.tag == tag for a in _pair(p))
+        else:
+            ads = self.adverts if tag is None else tuple(a for a in self.adverts if a.tag == tag)
         return ads if receiver is None else tuple(a for a in ads if a.receiver == receiver)
 
-    def rssi_dbm(self, receiver: Receiver) -> tuple[float, ...]:
-        """The RSSI values ``receiver`` reported this step, in arrival order (maybe none)."""
+    def rssi_dbm(self, receiver: Receiver, tag: int | None = 0) -> tuple[float, ...]:
+        """The RSSI values ``receiver`` reported this step from tag ``tag`` (None: every tag), in
+        arrival order (maybe none)."""
         if self.rf is not None:
-            return (self.rf.iso_rssi_dbm if receiver == "iso" else self.rf.dir_rssi_dbm,)
-        return tuple(a.rssi_dbm for a in self.adverts if a.receiver == receiver)
+            return tuple(p.iso_rssi_dbm if receiver == "iso" else p.dir_rssi_dbm for p in self.pairs() if tag is None or p.tag == tag)
+        return tuple(a.rssi_dbm for a in self.adverts if a.receiver == receiver and (tag is None or a.tag == tag))
+
+    def tags(self) -> tuple[int, ...]:
+        """The tags this step carries RF evidence of, sorted."""
+        return tuple(sorted({p.tag for p in self.pairs()} | {a.tag for a in self.adverts}))
 
 
 class TrainingSample(_Measurement):

@@ -13,9 +13,16 @@ import json
 from enum import Enum
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
-from ra2vipas.services.protocol.measurements import Advertisement, CameraFrame, RFSample, StepMeasurement, TrainingSample
+from ra2vipas.services.protocol.measurements import (
+    ADDRESS_PATTERN,
+    Advertisement,
+    CameraFrame,
+    RFSample,
+    StepMeasurement,
+    TrainingSample,
+)
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.protocol.rig import RigDescriptor, RxDirResponse
 from ra2vipas.services.protocol.scenario import Scenario
@@ -210,6 +217,34 @@ class StepCosts(_Message):
     span_ms: float = _MS
 
 
+SINCE_1_4 = {"since": "1.4"}
+"""Schema mark of a field added in protocol 1.4 (many tags, issue 21; docs/tags.md)."""
+
+
+class TagResult(_Message):
+    """One tag's trace in an episode that searched for several (optional part of
+    ``EpisodeResult``, protocol 1.4): what the controller named for tag k after each sample.
+
+    ``estimates_rad[t]`` is the bearing it names for tag k after sample t (scored by the
+    association rule, eq. 11, against tag k's carrier), ``confidences[t]`` its posterior
+    probability that the target it names carries tag k, ``decided_step`` the step at which tag
+    k's confidence reached ``stop_confidence`` (its answer final from then on; null: never).
+    """
+
+    tag: int = Field(ge=0, le=63, description="k, the tag's index (Advertisement.tag, RFSample.tag)")
+    estimates_rad: tuple[float, ...] = Field(default=(), max_length=MAX_STEPS)
+    confidences: tuple[Annotated[float, Field(ge=0.0, le=1.0)], ...] = Field(default=(), max_length=MAX_STEPS)
+    decided_step: int | None = Field(default=None, ge=0, le=MAX_STEPS)
+
+    @model_validator(mode="after")
+    def _aligned(self) -> "TagResult":
+        if self.confidences and len(self.confidences) != len(self.estimates_rad):
+            raise ValueError(f"tag {self.tag}: {len(self.confidences)} confidences for {len(self.estimates_rad)} estimates")
+        if self.decided_step is not None and self.decided_step >= len(self.estimates_rad):
+            raise ValueError(f"tag {self.tag}: decided_step {self.decided_step} after its last estimate")
+        return self
+
+
 class EpisodeResult(_Message):
     """The controller's trace of one episode (controller -> orchestrator).
 
@@ -220,6 +255,10 @@ class EpisodeResult(_Message):
     confidence reached ``EpisodeStart.stop_confidence``: the lists then hold d + 1 values and the
     answer of step d is final. ``status`` is ``failed`` with an ``error`` if the controller
     could not run the episode.
+
+    A controller that searched for several tags (protocol 1.4) adds ``tags``, one ``TagResult``
+    per tag, each with as many estimates as ``pans_rad``; the top-level fields then describe tag 0
+    and ``decided_step`` the step at which every tag was decided. A single-tag controller sends none.
     """
 
     episode_id: str = _ID
@@ -236,6 +275,19 @@ class EpisodeResult(_Message):
                                            json_schema_extra=SINCE_1_1)
     costs: StepCosts | None = Field(default=None, json_schema_extra=SINCE_1_2,
                                     description="the controller's time per stage in this episode (optional; for benchmarks)")
+    tags: tuple[TagResult, ...] = Field(default=(), max_length=64, json_schema_extra=SINCE_1_4,
+                                        description="per tag, when the controller searched for several (optional)")
+
+    @model_validator(mode="after")
+    def _tags_aligned(self) -> "EpisodeResult":
+        if self.tags:
+            indices = [t.tag for t in self.tags]
+            if len(set(indices)) != len(indices):
+                raise ValueError(f"tags: a tag is listed twice: {indices}")
+            bad = [t.tag for t in self.tags if len(t.estimates_rad) != len(self.pans_rad)]
+            if bad:
+                raise ValueError(f"tags: tag {bad[0]} has not one estimate per pan ({len(self.pans_rad)})")
+        return self
 
 
 class EpisodeTiming(_Message):
@@ -268,6 +320,10 @@ class EpisodeTruth(_Message):
     ``trajectories`` (optional, added in v1.1): one entry per *walking* target with its
     bearing and range at every step; DR_t is then scored against the bearings at step t.
     A node that sends none describes a static world.
+    ``tx_indices`` (optional, 1.4): with K > 1 tags, the target that carries tag k, k = 0..K-1
+    (``tx_indices[0]`` is ``tx_index``; two tags may share a target unless the scenario says one
+    person carries at most one); ``tag_addresses`` the tags' addresses in the same order. A node
+    that sends none describes one tag, carried by ``tx_index``.
     """
 
     episode_id: str = _ID
@@ -275,6 +331,26 @@ class EpisodeTruth(_Message):
     ranges_m: tuple[float, ...] = Field(min_length=1, max_length=1000)
     tx_index: int = Field(ge=0)
     trajectories: tuple[TargetTrajectory, ...] = Field(default=(), max_length=1000)
+    tx_indices: tuple[Annotated[int, Field(ge=0)], ...] = Field(default=(), max_length=64, json_schema_extra=SINCE_1_4,
+                                                                description="the carrier of each tag k (K > 1)")
+    tag_addresses: tuple[Annotated[str, Field(pattern=ADDRESS_PATTERN)], ...] = Field(
+        default=(), max_length=64, json_schema_extra=SINCE_1_4, description="each tag's address, in the order of tx_indices")
+
+    @model_validator(mode="after")
+    def _carriers(self) -> "EpisodeTruth":
+        if self.tx_indices:
+            if self.tx_indices[0] != self.tx_index:
+                raise ValueError(f"tx_indices[0] ({self.tx_indices[0]}) must be tx_index ({self.tx_index})")
+            if max(self.tx_indices) >= len(self.bearings_rad):
+                raise ValueError(f"tx_indices names target {max(self.tx_indices)} of {len(self.bearings_rad)}")
+        if self.tag_addresses and len(self.tag_addresses) != max(1, len(self.tx_indices)):
+            raise ValueError(f"{len(self.tag_addresses)} tag_addresses for {max(1, len(self.tx_indices))} tags")
+        return self
+
+    @property
+    def carriers(self) -> tuple[int, ...]:
+        """The carrier of each tag (one tag: ``(tx_index,)``)."""
+        return self.tx_indices or (self.tx_index,)
 
 
 class TrainingTruth(_Message):
@@ -291,7 +367,7 @@ WIRE_MESSAGES: tuple[type[BaseModel], ...] = (
     EpisodeStart, EpisodeStop, Command, Measurement, TrainingRequest, TrainingStream,
     PODRequest, PODResponse, ErrorReply, ControllerInfo, PolicyOffer, EpisodeResult, EpisodeTiming, EpisodeTruth, TrainingTruth,
     RFSample, Advertisement, CameraFrame, TrainingSample, TargetTrajectory, PODModel, Scenario, RigDescriptor, RxDirResponse, ModelCheck,
-    StepCosts,
+    StepCosts, TagResult,
 )
 
 

@@ -67,6 +67,9 @@ class RadioMode(str, Enum):
 
 SINCE_1_3 = {"since": "1.3"}
 """Schema mark of a scenario parameter added in protocol 1.3: omitted on the wire at its default."""
+SINCE_1_4 = {"since": "1.4"}
+"""Schema mark of a scenario parameter added in protocol 1.4 (many tags, issue 21; docs/tags.md)."""
+MAX_TAGS = 64
 CHANNEL_NAME_PATTERN = r"^[a-z0-9][a-z0-9_.-]{0,63}$"
 
 
@@ -137,6 +140,9 @@ class Scenario(BaseModel):
     target_height_max_m: float = Field(1.9, gt=0.0, le=10.0, json_schema_extra=SINCE_1_3, description="upper end of the targets' heights [m]")
     camera_height_m: float = Field(1.0, ge=0.0, le=10.0, json_schema_extra=SINCE_1_3, description="height of the camera's axis above the floor: a box spans atan((H - h_c)/d) + atan(h_c/d) [m]")
     box_height_noise: float = Field(0.05, ge=0.0, le=1.0, json_schema_extra=SINCE_1_3, description="relative std of a box's angular height (multiplicative Gaussian noise)")
+    # -- many tags (protocol 1.4, issue 21; docs/tags.md) -------------------------------------
+    n_tags: int = Field(1, ge=1, le=MAX_TAGS, json_schema_extra=SINCE_1_4, description="K, transmitters (tags) in the scene, each with its own address and advertising schedule; tag 0 is the paper's Tx")
+    one_tag_per_person: bool = Field(True, json_schema_extra=SINCE_1_4, description="true: the K tags are carried by K distinct targets; false: each tag's carrier is drawn on its own (two tags may share a person)")
 
     @model_validator(mode="before")
     @classmethod
@@ -180,6 +186,9 @@ class Scenario(BaseModel):
             )
         if self.target_height_min_m > self.target_height_max_m:
             raise ValueError(f"target_height_min_m ({self.target_height_min_m}) must not exceed target_height_max_m ({self.target_height_max_m})")
+        if self.one_tag_per_person and self.n_tags > self.n_targets:
+            raise ValueError(f"n_tags ({self.n_tags}) exceeds n_targets ({self.n_targets}) while one_tag_per_person is true; "
+                             "lower n_tags or set one_tag_per_person=false")
         walker_steps = self.n_walkers * self.steps
         if walker_steps > MAX_TRUTH_WALKER_STEPS:
             raise ValueError(
@@ -249,6 +258,7 @@ PRESETS["ble-recorded"] = {
     "radio": "recorded", "antenna_model": "db-gain", "radio_channel": "cc0-tetam", "path_loss_ref_dbm": -61.66,
     "path_loss_exponent": 1.413, "rf_noise_db": 3.0,
 }
+PRESETS["ward"] = {**PRESETS["dynamic"], "n_tags": 3}
 """Named starting points: overrides applied on top of the field defaults (the paper's values)."""
 
 PRESET_DESCRIPTIONS: dict[str, str] = {
@@ -260,6 +270,7 @@ PRESET_DESCRIPTIONS: dict[str, str] = {
            " an advertisement every 0.45-0.46 s, 10 % loss, whole-dBm RSSI, 3 dB per-channel offsets, 1.6 dB per-packet spread,"
            " 3.8 dB shadowing (1.5 m), db-gain antenna, at the paper's kappa",
     "ble-dynamic": "the dynamic world (walkers, occlusion, clutter) heard by the ble preset's radio",
+    "ward": "the dynamic world with K = 3 tags, each carried by a different person (docs/tags.md)",
     "ble-recorded": "the paper's targets; each receiver's packets (which arrive, when, at what whole-dBm RSSI) drawn from"
                     " recordings of a real building (the shipped CC0 subset, docs/radio.md), with its spatial shadowing",
 }

@@ -21,6 +21,13 @@ adding only optional fields (docs/protocol.md, "Compatibility"):
   ``box_scores``. The scenario's radio and box-height parameters (``Scenario``: all off by
   default). A campaign whose scenario turns them on needs rigs that speak 1.3
   (``campaign_features``).
+* ``1.4``: many tags (issue 21; docs/tags.md). ``Advertisement.tag`` and ``address``,
+  ``RFSample.tag`` and ``Measurement.rf_tags`` (the paper radio's pair of every tag after tag 0):
+  each piece of RF evidence names the tag it came from (absent: tag 0, so 1.3 messages mean what
+  they meant). ``EpisodeTruth.tx_indices`` and ``tag_addresses`` (who carries which tag);
+  ``EpisodeResult.tags`` (per tag: estimates, confidences, decided step; a single-tag controller
+  sends none). The scenario's ``n_tags`` and ``one_tag_per_person``: a campaign with K > 1 needs
+  rigs that speak 1.4.
 
 Every field added after 1.0 carries the version that added it in its schema (``"since"``).
 A sender omits such a field while it holds its default (``messages.dump``), so a message that
@@ -50,9 +57,10 @@ V1_0 = "1.0"
 V1_1 = "1.1"
 V1_2 = "1.2"
 V1_3 = "1.3"
-PROTOCOL_VERSION = V1_3
+V1_4 = "1.4"
+PROTOCOL_VERSION = V1_4
 """The newest version: what this code speaks."""
-VERSIONS: tuple[str, ...] = (V1_0, V1_1, V1_2, PROTOCOL_VERSION)
+VERSIONS: tuple[str, ...] = (V1_0, V1_1, V1_2, V1_3, PROTOCOL_VERSION)
 BUILTIN_POLICIES: tuple[str, ...] = ("ra2vipas", "rapas", "ravipas", "sweep")
 """The policy names every version knows (1.0 and 1.1: the only ones)."""
 VERSION_PATTERN = r"^1\.[0-9]{1,3}$"

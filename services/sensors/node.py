@@ -172,7 +172,7 @@ class SensorsNode:
             pan = float(wrap(pan))
         m = ep.platform.sense(step, pan)
         return Measurement.model_construct(episode_id=ep.start.episode_id, step=m.step, pan_rad=m.pan_rad, rf=m.rf, frames=m.frames,
-                                           adverts=m.adverts)
+                                           adverts=m.adverts, rf_tags=m.rf_tags)
 
     # -- realtime pacing --------------------------------------------------------------------
     def _realtime_command(self, ep: _Episode, cmd: Command) -> None:

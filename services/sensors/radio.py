@@ -83,12 +83,18 @@ class PacketSchedule:
     before quantisation and sensitivity); ``first[t]`` the first event of step t.
     """
 
-    def __init__(self, sc: Scenario, rng: np.random.Generator, steps: int, receivers: int = 2) -> None:
+    tag = 0  # protocol 1.4: which tag's packets these are, and its address (None: not reported)
+    address: str | None = None
+
+    def __init__(self, sc: Scenario, rng: np.random.Generator, steps: int, receivers: int = 2,
+                 scan_phases_s: np.ndarray | None = None) -> None:
         self.scenario = sc
         period = sc.rf_period_s
         self.times_s = advertising_times(sc, rng, steps * period)
         k = self.times_s.size
-        phases = rng.uniform(0.0, 3.0 * sc.scan_interval_s, size=receivers)
+        # the receivers' scan phases are the rig's: another tag's schedule (protocol 1.4) shares tag 0's
+        phases = rng.uniform(0.0, 3.0 * sc.scan_interval_s, size=receivers) if scan_phases_s is None else np.asarray(scan_phases_s)
+        self.scan_phases_s = phases
         offsets = rng.normal(0.0, sc.channel_offset_db, size=(receivers, 3))
         self.channel_offsets_db = offsets  # truth: receiver r's offset on channel 37 + c
         loss = np.array([sc.packet_loss_iso, sc.packet_loss_dir][:receivers])
@@ -119,7 +125,8 @@ class PacketSchedule:
                     continue
                 out.append(Advertisement.model_construct(receiver=RECEIVERS[r], rssi_dbm=min(max(rssi, -200.0), 50.0),
                                                          channel=int(self.channel[r, k]),
-                                                         offset_s=max(0.0, float(self.times_s[k] - start))))
+                                                         offset_s=max(0.0, float(self.times_s[k] - start)),
+                                                         tag=self.tag, address=self.address))
         return tuple(out)
 
 

@@ -32,15 +32,20 @@ POSITION_WEIGHT = 0.25
 class RecordedSchedule:
     """One test's packets from a recorded channel (same interface as ``radio.PacketSchedule``)."""
 
-    def __init__(self, sc: Scenario, rng: np.random.Generator, tx_path_m: np.ndarray, receivers: int = 2) -> None:
+    tag = 0  # protocol 1.4: which tag's packets these are, and its address (None: not reported)
+    address: str | None = None
+
+    def __init__(self, sc: Scenario, rng: np.random.Generator, tx_path_m: np.ndarray, receivers: int = 2,
+                 rx: np.ndarray | None = None, turn_rad: float | None = None) -> None:
         self.scenario = sc
         self.channel = ch = channel_file.by_name(sc.radio_channel)
         path = np.asarray(tx_path_m, dtype=float).reshape(-1, 2)
         self.steps = path.shape[0]
         self.period = sc.rf_period_s
         n_rx = ch.rx_pos.shape[0]
-        self.rx = rng.choice(n_rx, size=receivers, replace=n_rx < receivers)
-        turn = rng.uniform(-math.pi, math.pi)
+        # the receivers and the scene's turn are the rig's: another tag (protocol 1.4) shares tag 0's
+        self.rx = rng.choice(n_rx, size=receivers, replace=n_rx < receivers) if rx is None else np.asarray(rx)
+        self.turn_rad = turn = rng.uniform(-math.pi, math.pi) if turn_rad is None else float(turn_rad)
         rot = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
         self.cursor = rng.uniform(0.0, 1.0, size=receivers)  # fraction of the first recording's length
         dist = ch.distances_m()
@@ -82,4 +87,5 @@ class RecordedSchedule:
                     out.append((times[k] + shift - lo, RECEIVERS[r], value))
         out.sort()
         return tuple(Advertisement.model_construct(receiver=rx, rssi_dbm=min(max(v, -200.0), 50.0), channel=None,
-                                                   offset_s=max(0.0, float(off))) for off, rx, v in out)
+                                                   offset_s=max(0.0, float(off)), tag=self.tag, address=self.address)
+                     for off, rx, v in out)

@@ -17,8 +17,9 @@ many camera draws a step consumes) depends on the pan.
 
 from __future__ import annotations
 
+import hashlib
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -55,11 +56,19 @@ class Streams:
     shadowing: np.random.Generator  # the shadowing field
     radio: np.random.Generator  # protocol 1.3: advertising events, scan phases, channel offsets, losses, per-packet spread
     heights: np.random.Generator  # protocol 1.3: the targets' heights, the boxes' height noise, clutter heights
+    tags: np.random.Generator  # protocol 1.4: the carriers of tags 1..K-1
+    tags_seed: np.random.SeedSequence | None = None  # protocol 1.4: tag k's own stream is its child k (``tag_stream``)
+
+    def tag_stream(self, k: int) -> np.random.Generator:
+        """Tag k's own generator (k >= 1; tag 0 draws from ``rf``/``radio`` as the only tag always
+        did): its RSSI noise, or its advertising events, channel offsets, losses and spread."""
+        seq = self.tags_seed
+        return np.random.default_rng(np.random.SeedSequence(entropy=seq.entropy, spawn_key=(*seq.spawn_key, k)))
 
 
 def _streams(seed: int, key: tuple[int, ...]) -> Streams:
-    children = np.random.SeedSequence(entropy=seed, spawn_key=key).spawn(8)
-    return Streams(*(np.random.default_rng(c) for c in children))
+    children = np.random.SeedSequence(entropy=seed, spawn_key=key).spawn(9)
+    return Streams(*(np.random.default_rng(c) for c in children), tags_seed=children[8])
 
 
 def episode_streams(seed: int, test_index: int) -> Streams:
@@ -89,6 +98,13 @@ class GroundTruth:
     tx_index: int  # i*
     walkers: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))  # (W,) sorted target indices
     walker_positions_m: np.ndarray | None = None  # (T, W, 2)
+    tx_indices: tuple[int, ...] = ()  # K > 1 tags: the carrier of tag k (tx_indices[0] == tx_index)
+    tag_addresses: tuple[str, ...] = ()  # K > 1 tags: each tag's address
+
+    @property
+    def carriers(self) -> tuple[int, ...]:
+        """The target that carries each tag k = 0..K-1 (one tag: ``(tx_index,)``)."""
+        return self.tx_indices or (self.tx_index,)
 
     @property
     def ranges_m(self) -> np.ndarray:
@@ -118,10 +134,17 @@ class GroundTruth:
 
     def tx_positions_m(self, steps: int) -> np.ndarray:
         """(steps, 2) the Tx's position at every step."""
-        if self.tx_walks:
-            k = int(np.flatnonzero(self.walkers == self.tx_index)[0])
+        return self.target_positions_m(self.tx_index, steps)
+
+    def walks(self, target: int) -> bool:
+        return not self.static and bool(np.any(self.walkers == target))
+
+    def target_positions_m(self, target: int, steps: int) -> np.ndarray:
+        """(steps, 2) where target ``target`` stands at every step (a tag's carrier: where the tag is)."""
+        if self.walks(target):
+            k = int(np.flatnonzero(self.walkers == target)[0])
             return self.walker_positions_m[:steps, k]
-        return np.repeat(self.positions_m[self.tx_index][None, :], steps, axis=0)
+        return np.repeat(self.positions_m[target][None, :], steps, axis=0)
 
     def walker_truth(self) -> tuple[np.ndarray, np.ndarray]:
         """The walkers' per-step bearings and ranges, (T, W) each, rounded as the truth
@@ -198,16 +221,43 @@ def add_walkers(sc: Scenario, rng: np.random.Generator, truth: GroundTruth) -> G
     return GroundTruth(positions_m=truth.positions_m, tx_index=truth.tx_index, walkers=walkers, walker_positions_m=paths)
 
 
+def tag_address(seed: int, tag: int) -> str:
+    """Tag ``tag``'s address in a campaign seeded with ``seed``: a BLE random static address (the
+    two top bits set) from a hash of both, the same in every test of the campaign (as a real
+    deployment's tags keep theirs), drawn from no random stream."""
+    raw = bytearray(hashlib.sha256(f"ra2vipas-tag:{seed}:{tag}".encode()).digest()[:6])
+    raw[0] |= 0xC0
+    return ":".join(f"{b:02X}" for b in raw)
+
+
+def draw_carriers(sc: Scenario, rng: np.random.Generator, n_targets: int, tx_index: int) -> tuple[int, ...]:
+    """The carriers of the K tags (empty for K = 1): tag 0 is carried by the Tx ``tx_index`` (the
+    placement's rule chose it); tags 1..K-1, from ``rng``: K - 1 distinct other targets when
+    ``one_tag_per_person``, else each uniform over all N targets (so two tags may share one)."""
+    k = sc.n_tags
+    if k == 1:
+        return ()
+    if sc.one_tag_per_person:
+        if k > n_targets:
+            raise ScenarioError(f"n_tags ({k}) exceeds the {n_targets} targets while one_tag_per_person is true")
+        rest = rng.choice(np.delete(np.arange(n_targets), tx_index), size=k - 1, replace=False)
+    else:
+        rest = rng.integers(n_targets, size=k - 1)
+    return (int(tx_index), *(int(i) for i in rest))
+
+
 def episode_truth(truth: GroundTruth, episode_id: str) -> EpisodeTruth:
     """The truth-plane message of an episode: every target's bearing and range at step 0,
-    the Tx index and, per walker, its rounded per-step bearings and ranges."""
+    the Tx index and, per walker, its rounded per-step bearings and ranges; with K > 1 tags
+    each tag's carrier and address."""
     bearings, ranges = truth.walker_truth()
     trajectories = tuple(
         TargetTrajectory.model_construct(index=int(i), bearings_rad=tuple(bearings[:, k].tolist()), ranges_m=tuple(ranges[:, k].tolist()))
         for k, i in enumerate(truth.walkers.tolist())
     ) if not truth.static else ()
     return EpisodeTruth(episode_id=episode_id, bearings_rad=tuple(float(b) for b in truth.bearings_rad),
-                        ranges_m=tuple(float(r) for r in truth.ranges_m), tx_index=truth.tx_index, trajectories=trajectories)
+                        ranges_m=tuple(float(r) for r in truth.ranges_m), tx_index=truth.tx_index, trajectories=trajectories,
+                        tx_indices=tuple(truth.tx_indices), tag_addresses=tuple(truth.tag_addresses))
 
 
 def _clutter(sc: Scenario, rng: np.random.Generator) -> list[list[float]] | None:
@@ -305,6 +355,11 @@ class SimulatedPlatform:
         truth = place_targets(sc, streams.placement) if layout is None else layout
         if truth.static:
             truth = add_walkers(sc, streams.walk, truth)
+        if sc.n_tags > 1:  # protocol 1.4: tags 1..K-1 and their carriers, from the tags stream (nothing else moves)
+            carriers = truth.tx_indices or draw_carriers(sc, streams.tags, truth.positions_m.shape[0], truth.tx_index)
+            if len(carriers) != sc.n_tags or carriers[0] != truth.tx_index:
+                raise ScenarioError(f"the layout names {len(carriers)} tag carriers for n_tags={sc.n_tags}")
+            truth = replace(truth, tx_indices=tuple(carriers), tag_addresses=tuple(tag_address(seed, k) for k in range(sc.n_tags)))
         self.truth = truth
         self._rf = streams.rf
         self._camera = streams.camera
@@ -356,6 +411,13 @@ class SimulatedPlatform:
 
             tx_path = truth.tx_positions_m(steps)
             self._packets = recorded.RecordedSchedule(sc, streams.radio, tx_path)
+        # protocol 1.4: tags 1..K-1, each on its own stream: its carrier's path, its packets or its RSSI noise
+        self._tags: list[_TagLink] = []
+        if sc.n_tags > 1:
+            if self._packets is not None:
+                self._packets.tag, self._packets.address = 0, truth.tag_addresses[0]
+            for k in range(1, sc.n_tags):
+                self._tags.append(_TagLink(sc, truth, k, streams.tag_stream(k), self.shadowing, self._packets))
         # protocol 1.3: boxes with heights (each target's height drawn once, from the heights stream)
         self._heights_rng = self._target_heights = None
         if sc.box_heights:
@@ -381,8 +443,6 @@ class SimulatedPlatform:
         return self._visible if self._visible.ndim == 1 else self._visible[min(step, self._visible.shape[0] - 1)]
 
     def sense(self, step: int, pan_rad: float) -> StepMeasurement:
-        sc = self.scenario
-        sigma = sc.rf_noise_db
         if self._iso_means is None:
             iso_mean, tx_bearing = self._iso_mean, self._tx_bearing
         else:
@@ -390,6 +450,16 @@ class SimulatedPlatform:
             iso_mean, tx_bearing = self._iso_means[t], self._tx_bearings[t]
         if self._packets is not None:
             return self._sense_packets(step, pan_rad, iso_mean, tx_bearing)
+        if self._tags:  # protocol 1.4: tag 0's pair drawn as always, then the others' from their own streams
+            m = self._sense_pair(step, pan_rad, iso_mean, tx_bearing)
+            rf_tags = tuple(tag.pair(step, pan_rad) for tag in self._tags)
+            return StepMeasurement.model_construct(step=m.step, pan_rad=m.pan_rad, rf=m.rf, frames=m.frames, rf_tags=rf_tags)
+        return self._sense_pair(step, pan_rad, iso_mean, tx_bearing)
+
+    def _sense_pair(self, step: int, pan_rad: float, iso_mean: float, tx_bearing: float) -> StepMeasurement:
+        """The paper's radio: tag 0's (iso, dir) RSSI pair of step ``step`` and the frames."""
+        sc = self.scenario
+        sigma = sc.rf_noise_db
         dir_mean = physics.directional_rssi_scalar(sc, iso_mean, pan_rad - tx_bearing)
         if self._phi == 0.0:
             iso = iso_mean + self._rf.normal(0.0, sigma)
@@ -436,8 +506,67 @@ class SimulatedPlatform:
     def _sense_packets(self, step: int, pan_rad: float, iso_mean: float, tx_bearing: float) -> StepMeasurement:
         """Protocol 1.3: the advertisements each receiver heard during step ``step`` (maybe none)."""
         adverts = self._packets.packets(step, radio.step_levels(self.scenario, iso_mean, pan_rad, tx_bearing))
+        if self._tags:  # protocol 1.4: every tag's packets, in arrival order (ties: by tag)
+            every = list(adverts)
+            for tag in self._tags:
+                every += tag.packets(step, pan_rad)
+            adverts = tuple(sorted(every, key=lambda a: (a.offset_s, a.tag)))
         return StepMeasurement.model_construct(step=step, pan_rad=float(pan_rad), rf=None, frames=self._frames_at(step, pan_rad),
                                                adverts=adverts)
+
+
+class _TagLink:
+    """The radio link of tag k >= 1 (protocol 1.4): where its carrier is, the noiseless iso level
+    there (path loss plus the test's shadowing field, the same building as tag 0's), and what
+    the receivers make of it, drawn from the tag's own stream ``rng``: with the paper's radio
+    its own (iso, dir) RSSI noise (AR(1) when fading is on), with BLE its own advertising
+    events, advDelay, channel offsets, losses and spread (the receivers' scan is the rig's,
+    shared with tag 0), with a recorded channel its own recordings and cursor."""
+
+    def __init__(self, sc: Scenario, truth: GroundTruth, k: int, rng: np.random.Generator,
+                 shadowing: physics.ShadowingField | None, tag0_packets) -> None:
+        self.scenario = sc
+        self.tag = k
+        steps = sc.steps
+        path = truth.target_positions_m(truth.tx_indices[k], steps)
+        means = physics.path_loss_dbm(sc, np.hypot(path[:, 0], path[:, 1]))
+        if shadowing is not None:
+            means = means + shadowing(path)
+        self.iso_means = means.tolist()
+        self.bearings = np.arctan2(path[:, 1], path[:, 0]).tolist()
+        self.rng = rng
+        self.phi = physics.fading_coefficient(sc)
+        self.innovation = math.sqrt(1.0 - self.phi * self.phi)
+        self.noise = None
+        self.schedule = None
+        if sc.radio is RadioMode.adverts:
+            self.schedule = radio.PacketSchedule(sc, rng, steps, scan_phases_s=tag0_packets.scan_phases_s)
+        elif sc.radio is RadioMode.recorded:
+            from ra2vipas.services.sensors import recorded
+
+            self.schedule = recorded.RecordedSchedule(sc, rng, path, rx=tag0_packets.rx, turn_rad=tag0_packets.turn_rad)
+        if self.schedule is not None:
+            self.schedule.tag, self.schedule.address = k, truth.tag_addresses[k]
+
+    def _level(self, step: int) -> tuple[float, float]:
+        t = min(step, len(self.iso_means) - 1)
+        return self.iso_means[t], self.bearings[t]
+
+    def pair(self, step: int, pan_rad: float) -> RFSample:
+        """The paper's radio: this tag's (iso, dir) RSSI pair at pan ``pan_rad``."""
+        sc = self.scenario
+        iso_mean, bearing = self._level(step)
+        dir_mean = physics.directional_rssi_scalar(sc, iso_mean, pan_rad - bearing)
+        e_iso, e_dir = self.rng.normal(0.0, sc.rf_noise_db), self.rng.normal(0.0, sc.rf_noise_db)
+        if self.phi != 0.0 and self.noise is not None:
+            e_iso = self.phi * self.noise[0] + self.innovation * e_iso
+            e_dir = self.phi * self.noise[1] + self.innovation * e_dir
+        self.noise = (e_iso, e_dir)
+        return RFSample.model_construct(iso_rssi_dbm=float(iso_mean + e_iso), dir_rssi_dbm=float(dir_mean + e_dir), tag=self.tag)
+
+    def packets(self, step: int, pan_rad: float):
+        iso_mean, bearing = self._level(step)
+        return self.schedule.packets(step, radio.step_levels(self.scenario, iso_mean, pan_rad, bearing))
 
 
 @dataclass(frozen=True)

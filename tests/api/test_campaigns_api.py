@@ -100,7 +100,7 @@ BAD_BODIES = [
     ({"seed": -1}, "seed: Input should be greater than or equal to 0"),
     ({"name": "x" * 101}, "name: String should have at most 100 characters"),
     ({"colour": "red"}, "colour: Extra inputs are not permitted"),
-    ({"preset": "moon"}, "preset: unknown preset 'moon'; choose one of paper, paper-uniform, dynamic, ble, ble-dynamic, ble-recorded"),
+    ({"preset": "moon"}, "preset: unknown preset 'moon'; choose one of paper, paper-uniform, dynamic, ble, ble-dynamic, ble-recorded, ward"),
     ({"overrides": {"n_targets": 0}}, "overrides: n_targets: expected an integer in [1, 500], got 0"),
     ({"overrides": {"placement": "circle"}}, "overrides: placement: expected one of reference|uniform"),
     ({"overrides": {"nope": 1}}, "overrides: unknown scenario parameter 'nope'"),

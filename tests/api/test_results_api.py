@@ -146,7 +146,7 @@ def test_the_pod_model_and_its_training_truth_are_kept_for_the_figure(live, done
 
 
 def test_presets_list_every_parameter_with_its_range(http):
-    assert [p["name"] for p in http.get("/presets").json()] == ["paper", "paper-uniform", "dynamic", "ble", "ble-dynamic", "ble-recorded"]
+    assert [p["name"] for p in http.get("/presets").json()] == ["paper", "paper-uniform", "dynamic", "ble", "ble-dynamic", "ble-recorded", "ward"]
     paper = http.get("/presets/paper").json()
     assert set(paper["parameters"]) == set(Scenario.model_fields)
     assert paper["parameters"]["n_targets"] == {"value": 20, "allowed": "an integer in [1, 500]",

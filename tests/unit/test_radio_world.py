@@ -146,7 +146,7 @@ def test_the_paper_radio_is_untouched():
     sc = build_scenario("paper")
     m = SimulatedPlatform(sc, 1, 0).sense(0, 0.0)
     assert m.rf is not None and m.adverts == () and all(not f.box_heights_rad for f in m.frames)
-    assert len(episode_streams(1, 0).__dict__) == 8
+    assert len(episode_streams(1, 0).__dict__) == 10  # 8 streams, and since protocol 1.4 the tags stream and its seed (docs/tags.md)
     # the first six streams are those the paper world always drew from
     old = [np.random.default_rng(c) for c in np.random.SeedSequence(entropy=1, spawn_key=(0, 0)).spawn(6)]
     new = episode_streams(1, 0)
