@@ -167,7 +167,9 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
     _check_breakdown(report["fast"]["step_breakdown"], episodes=6, steps=2 * 3 * 120)
     rt = report["realtime"]["step_breakdown"]
     assert rt["controller"]["steps"] == rt["sensors"]["steps"] == 120
-    assert rt["transport_ms"] >= -0.05 * rt["latency_ms"]  # the parts the services timed fit in the latency the sensors measured
+    # the parts the services timed fit in the latency the sensors measured, to the timers' overlap: the sensors'
+    # queue and decode times are means over every message they handle, not only the commands on the latency's path
+    assert rt["transport_ms"] >= -0.1 * rt["latency_ms"] - 0.05
     [memory] = report["memory"]
     assert {k: memory[k] for k in ("tests", "steps", "algorithm", "episodes")} == {
         "tests": 3, "steps": 5, "algorithm": "rapas", "episodes": 3}

@@ -71,13 +71,15 @@ def test_step_measurement_carries_only_sensor_readings():
         "step", "pan_rad", "rf[].iso_rssi_dbm", "rf[].dir_rssi_dbm", "frames[].box_bearings_rad",
         "frames[].box_heights_rad", "frames[].box_scores",  # since 1.3: what a detector says of each box
         "adverts[].receiver", "adverts[].rssi_dbm", "adverts[].channel", "adverts[].offset_s",  # since 1.3: the packets heard
+        "adverts[].tag", "adverts[].address", "rf[].tag", "rf_tags[].tag", "rf_tags[].iso_rssi_dbm", "rf_tags[].dir_rssi_dbm",
+        # since 1.4: which tag sent it (its advertiser address, which every packet carries), never who carries it
     }
 
 
 def test_training_sample_carries_only_sensor_readings():
     assert _leaf_fields(TrainingSample) == {"index", "iso_rssi_dbm", "frames[].box_bearings_rad", "frames[].box_heights_rad",
                                             "frames[].box_scores", "adverts[].receiver", "adverts[].rssi_dbm",
-                                            "adverts[].channel", "adverts[].offset_s"}
+                                            "adverts[].channel", "adverts[].offset_s", "adverts[].tag", "adverts[].address"}
 
 
 def test_measurements_reject_extra_fields():

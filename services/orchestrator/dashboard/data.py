@@ -58,6 +58,10 @@ def parameter_inputs(preset: str) -> list[dict[str, Any]]:
         annotation = info.annotation
         if isinstance(annotation, type) and issubclass(annotation, Enum):
             item.update(kind="enum", options=[m.value for m in annotation])
+        elif annotation is bool:  # a choice of the two JSON values, sent as a boolean
+            item.update(kind="bool", options=["true", "false"], value="true" if values[name] else "false")
+        elif annotation is str:  # a name (e.g. a channel file's): a text input, its pattern checked by the API
+            item["kind"] = "text"
         else:
             item["kind"] = "int" if annotation is int else "float"
             for meta in info.metadata:

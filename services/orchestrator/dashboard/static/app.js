@@ -533,8 +533,10 @@
       const stop = parseFloat(form.elements.stop_confidence.value);
       if (stop > 0) body.stop_confidence = stop;
       $$("[data-param]", form).forEach((el) => {
-        const value = el.tagName === "SELECT" ? el.value : numberOf(el);
-        const original = el.tagName === "SELECT" ? el.dataset.default : Number(el.dataset.default);
+        const kind = el.dataset.kind;
+        const asText = el.tagName === "SELECT" || kind === "text";
+        const value = kind === "bool" ? el.value === "true" : asText ? el.value : numberOf(el);
+        const original = kind === "bool" ? el.dataset.default === "true" : asText ? el.dataset.default : Number(el.dataset.default);
         if (value !== original) body.overrides[el.name] = value;
       });
       const button = $("#submit-campaign", form);
