@@ -115,7 +115,8 @@ class Composition:
         packets = None
         if rf is not None:
             p.iso.add(rf.iso_rssi_dbm)
-        elif m.adverts:  # protocol 1.3: 0..n packets per receiver (none at all: no RF evidence, as rf=None)
+        elif m.advertisements():  # protocol 1.3: 0..n packets per receiver (none at all: no RF evidence, as rf=None);
+            # tag 0's only: the built-ins search for one tag (1.4 steps may carry other tags' packets)
             packets = Packets.of(m, self.rf_period_s)
             self.clock.take(packets)
             for _, z, _ in packets.iso:

@@ -61,11 +61,11 @@ class Packets:
 
     @classmethod
     def of(cls, measurement, rf_period_s: float) -> "Packets":
-        """The packets of a ``StepMeasurement`` (its ``adverts``) taken at step t."""
+        """The packets of tag 0 in a ``StepMeasurement`` (its ``adverts``) taken at step t."""
         start = int(measurement.step) * float(rf_period_s)
         iso: list[Packet] = []
         dir_: list[Packet] = []
-        for a in measurement.adverts:
+        for a in measurement.advertisements():
             (iso if a.receiver == "iso" else dir_).append((start + float(a.offset_s), float(a.rssi_dbm), a.channel))
         iso.sort(key=lambda p: p[0])
         dir_.sort(key=lambda p: p[0])

@@ -207,3 +207,25 @@ def test_the_packet_clock_says_which_step_the_next_advertisement_is_due_in():
     due = [s for s in range(23, 40) if clock.due(s)]
     # events at 2.737, 3.191, 3.645 s; the second may slip by its advDelay (10 ms) into step 32
     assert due == [27, 31, 32, 36]
+
+
+def test_another_tags_packets_are_no_evidence_for_the_tag_searched(ble_pod):
+    """Since 1.4 a step may carry several tags' packets: the built-ins search for tag 0, so a step
+    with only tag 1's packets is a step with no RF evidence for it, and tag 1's packets beside tag
+    0's change nothing."""
+    scenario = small_scenario("ble")
+    platform = SimulatedPlatform(scenario, 3, 0)
+    plain = Controller("ra2vipas", sensor_config_from_scenario(scenario), ble_pod.model)
+    mixed = Controller("ra2vipas", sensor_config_from_scenario(scenario), ble_pod.model)
+    pan = plain.first_pan()
+    for t in range(scenario.steps):
+        m = platform.sense(t, pan)
+        other = tuple(a.model_copy(update={"tag": 1, "rssi_dbm": a.rssi_dbm + 20.0}) for a in m.adverts)
+        a, b = plain.step(m), mixed.step(m.model_copy(update={"adverts": m.adverts + other}))
+        assert (a.next_pan_rad, a.estimate_rad, a.confidence) == (b.next_pan_rad, b.estimate_rad, b.confidence)
+        pan = a.next_pan_rad
+    only_other = Controller("ra2vipas", sensor_config_from_scenario(scenario), ble_pod.model)
+    m = platform.sense(0, only_other.first_pan())
+    before = _rf_state(only_other)
+    only_other.step(m.model_copy(update={"adverts": tuple(a.model_copy(update={"tag": 1}) for a in m.adverts)}))
+    assert _same(_rf_state(only_other), before) and only_other.parts.iso.n == 0
