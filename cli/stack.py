@@ -270,15 +270,12 @@ def prepare_database(db_path: str) -> str | None:
     read-only file system, no permission) is no reason to refuse: the stack starts degraded
     (the API answers 503 naming the cause, and heals when the folder becomes writable); the
     returned line says so (None when the folder is writable)."""
-    from ra2vipas.services.orchestrator.dblock import holder
+    from ra2vipas.services.orchestrator.dblock import DatabaseFolderError, holder, make_folder
 
-    folder = Path(db_path).expanduser().resolve().parent
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        if not folder.is_dir():
-            raise StackError(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
-                             "create it, or give --db a path you can write") from None
+        folder = make_folder(db_path)
+    except DatabaseFolderError as err:
+        raise StackError(str(err)) from None
     pid = holder(db_path)
     if pid is not None:
         raise StackError(f"the database {db_path} is in use by another orchestrator{f' (pid {pid})' if pid else ''}: "

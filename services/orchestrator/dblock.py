@@ -16,6 +16,28 @@ class DatabaseInUse(RuntimeError):
     """Another process holds the database's lock; the message names the file and its pid."""
 
 
+class DatabaseFolderError(RuntimeError):
+    """The database's folder does not exist and cannot be created (the message says what to do)."""
+
+
+def make_folder(db_path: str | os.PathLike) -> Path:
+    """Create the folder of ``db_path`` if it is missing and return it.
+
+    Raises
+    ------
+    DatabaseFolderError
+        It cannot be created (one line naming the folder and the cause).
+    """
+    folder = Path(db_path).expanduser().resolve().parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        if not folder.is_dir():
+            raise DatabaseFolderError(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
+                                      "create it, or give --db a path you can write") from None
+    return folder
+
+
 def lock_path(db_path: str | os.PathLike) -> Path:
     return Path(f"{os.fspath(db_path)}.lock")
 

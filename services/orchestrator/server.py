@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import logging
 import signal
-from pathlib import Path
 
 from ra2vipas.services.orchestrator.settings import OrchestratorSettings
 from ra2vipas.services.transport.service import ServiceError, warn_if_unreachable
@@ -30,15 +29,12 @@ def serve(settings: OrchestratorSettings, log_level: str = "INFO") -> None:
 
     from ra2vipas.services.orchestrator.api.app import create_app
     from ra2vipas.services.orchestrator.api.guard import ConnectionGuard, GuardLimits, raise_fd_limit, rate_limit_logs
-    from ra2vipas.services.orchestrator.dblock import DatabaseInUse, DatabaseLock
+    from ra2vipas.services.orchestrator.dblock import DatabaseFolderError, DatabaseInUse, DatabaseLock, make_folder
 
-    folder = Path(settings.db_path).expanduser().resolve().parent
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        if not folder.is_dir():
-            raise ServiceError(f"cannot create the database folder {folder}: {(err.strerror or str(err)).lower()}; "
-                               "create it, or give --db a path you can write") from None
+        make_folder(settings.db_path)
+    except DatabaseFolderError as err:
+        raise ServiceError(str(err)) from None
     db_lock = DatabaseLock(settings.db_path)
     try:
         db_lock.acquire()  # held until this process exits
