@@ -22,6 +22,21 @@ from ra2vipas.services.sensors.world import GroundTruth, SimulatedPlatform
 SMALL = {"steps": 40, "n_train": 300}
 
 
+def kill_process_groups(procs) -> None:
+    """Kill every still-running process group a test started (``start_new_session=True``) and
+    reap it: nothing a test starts outlives it, whatever happened."""
+    import os
+    import signal
+
+    for p in procs:
+        if p.poll() is None:
+            try:
+                os.killpg(p.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            p.wait(10)
+
+
 def restore_ctrl_c() -> None:
     """``preexec_fn`` of a child a test will Ctrl-C: a runner started as a background job (``cmd &``
     in a script) ignores SIGINT, and its children inherit that, so a Python child would install

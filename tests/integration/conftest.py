@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import restore_ctrl_c
+from tests.conftest import kill_process_groups, restore_ctrl_c
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -60,13 +60,7 @@ class Procs:
         return p
 
     def cleanup(self) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                try:
-                    os.killpg(p.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                p.wait(10)
+        kill_process_groups(self.procs)
 
 
 @pytest.fixture()

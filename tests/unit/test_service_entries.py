@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from ra2vipas.cli.stack import free_port
-from tests.conftest import restore_ctrl_c
+from tests.conftest import kill_process_groups, restore_ctrl_c
 from tests.integration.conftest import ROOT, wait_for_line
 
 ENTRIES = {
@@ -33,13 +33,7 @@ def started():
         return p
 
     yield start
-    for p in procs:
-        if p.poll() is None:
-            try:
-                os.killpg(p.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            p.wait(10)
+    kill_process_groups(procs)
 
 
 @pytest.mark.parametrize("name", sorted(ENTRIES))
