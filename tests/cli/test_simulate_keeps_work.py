@@ -101,8 +101,13 @@ def test_ctrl_c_on_simulate_json_prints_partial_results(compiled):
 
 def test_simulate_dynamic_says_within_a_second_that_it_trains_the_pod_model():
     """The first seconds (a minute on a first run: the numerical kernels compile) are not a blank
-    terminal (issue 23, point 6): one line at once, another when the model is trained."""
+    terminal (issue 23, point 6): one line at once, another when the model is trained. "At once"
+    is within a second of what the command line itself takes to start (`ra2vipas --version`, timed
+    just before under the same load): on a busy machine the interpreter alone can take seconds."""
     env = _env()
+    started = time.monotonic()
+    subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "--version"], capture_output=True, cwd=ROOT, env=env, check=True)
+    start_up = time.monotonic() - started
     started = time.monotonic()
     proc = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", "simulate", "--preset", "dynamic", "--tests", "1", "-a", "rapas",
                              "--set", "steps=20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
@@ -116,7 +121,7 @@ def test_simulate_dynamic_says_within_a_second_that_it_trains_the_pod_model():
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     assert first.startswith("training the POD model on 900 self-supervised samples (dynamic, seed 1), then 1 episodes"), first
-    assert said_after < 1.0, f"the first line came after {said_after:.2f} s"
+    assert said_after < start_up + 1.0, f"the first line came after {said_after:.2f} s (the command line starts in {start_up:.2f} s)"
     assert proc.returncode == 0, rest
     assert "POD model trained (R² " in rest and "running 1 episodes" in rest
 
