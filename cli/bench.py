@@ -936,11 +936,11 @@ def bench_dashboard(
     target < 1 s), and in a headless Chromium first paint, load and page weight, cold and warm."""
     from pathlib import Path
 
-    from ra2vipas.services.orchestrator.dashboard import bench
+    from ra2vipas.services.benchmarks import dashboard
 
     if not no_browser and (not chromium or not Path(chromium).exists()):
         fail(f"no Chromium at {chromium!r} (install the Debian package chromium, set --chromium, or use --no-browser)", EXIT_USAGE)
-    report = bench.run(tests=tests, repeats=repeats, chromium=None if no_browser else chromium)
+    report = dashboard.run(tests=tests, repeats=repeats, chromium=None if no_browser else chromium)
     if as_json:
         print_json(report)
         return
