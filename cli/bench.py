@@ -13,7 +13,7 @@ import typer
 
 from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stdout
 from ra2vipas.cli.polish import deprecated, prefer
-from ra2vipas.services.benchmarks import BenchmarkError, plots
+from ra2vipas.services.benchmarks import BenchmarkError
 from ra2vipas.services.benchmarks.plots import READ_PAUSE_S
 from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
 
@@ -251,10 +251,12 @@ def bench_plots(
     plot load slows the campaign: median control steps/s without over with, minus 1 (target
     <= 10 %). Every process is stopped afterwards.
     """
+    from ra2vipas.services.benchmarks.plots import plots
+
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count") or max(1, min(os.cpu_count() or 1, 16))
     try:
-        report = plots.plots(_local_stack, clients=clients, readers=readers, tests=tests, seed=seed, repeats=repeats,
-                             fixtures=fixtures, fixture_tests=fixture_tests, rigs=rigs, retry_cap=retry_cap, client_nice=client_nice)
+        report = plots(_local_stack, clients=clients, readers=readers, tests=tests, seed=seed, repeats=repeats,
+                       fixtures=fixtures, fixture_tests=fixture_tests, rigs=rigs, retry_cap=retry_cap, client_nice=client_nice)
     except BenchmarkError as err:
         fail(str(err))
     if as_json:
