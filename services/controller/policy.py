@@ -82,7 +82,7 @@ class ControllerSettings:
     probe_every: int = 2
     warmup_steps: int | None = None  # None: ceil(pi / fov_half_angle)
     min_pod_std: float = 0.05
-    # -- fusion and confidence (fitted on simulated campaigns: services/controller/calibration.py)
+    # -- fusion and confidence (fitted on simulated campaigns: services/orchestrator/calibration.py)
     rf_weight: float = 1.0  # tempering of the RF profile log-likelihood l_RF
     pod_floor_std: float = 0.08  # misspecification of the POD model, added to its predictive std
     null_pod_prior: tuple[float, float] = (1.0, 1.0)  # Beta prior of a non-Tx target's POD

@@ -9,7 +9,7 @@ Design, and why it gives the same numbers on any number of workers:
   POD model of a point depends only on (scenario, seed): an episode gives the same outcome in
   whatever process runs it, after whatever ran before.
 * **Work.** The POD model of each point is trained once, in a worker (a study's points train in
-  parallel), and sent with every chunk of that point (a ``PODModel`` is ~2.5 kB). A chunk is a
+  parallel), and sent with every chunk of that point (a ``PODModel`` is small). A chunk is a
   few consecutive tests of one point, all its algorithms. Chunks are handed out round robin
   over the points, test by test (chunk 0 of every point, then chunk 1, ...), so a study's
   points progress together.

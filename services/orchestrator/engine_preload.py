@@ -1,9 +1,9 @@
 """What the engine's fork server imports before it forks any worker (``engine._context``): the
 engine, and one tiny episode of every algorithm, so every worker starts warm.
 
-A fresh process pays ~0.5 s on its first episode (lazy imports, caches filled on first use);
+A fresh process is slow on its first episode (lazy imports, caches filled on first use);
 done once here, in the fork server, every worker inherits it (copy on write) instead of paying
-it each. Importing this module anywhere else only costs that half second. The warm-up's
+it each. Importing this module anywhere else only costs that one warm-up. The warm-up's
 scenario, seed and outcome are thrown away: they cannot touch any campaign's draws, which
 come from (seed, test index) alone.
 """

@@ -17,8 +17,8 @@ def serve(settings: OrchestratorSettings, log_level: str = "INFO") -> None:
     """Take the database lock, serve the API until SIGINT/SIGTERM, release the lock.
 
     Not niced like the learner and router: the API's latency matters (issue 14: at nice 5, any
-    nice-0 process on a busy 2-core machine pushed the read p99 past 1 s); figures are drawn by
-    its renderer processes at nice 19 instead.
+    nice-0 process on a busy machine delays every read); figures are drawn by its renderer
+    processes at nice 19 instead.
 
     Raises
     ------

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ra2vipas.services.benchmarks.dashboard import seed_campaign
 from ra2vipas.services.controller import registry
 from ra2vipas.services.controller.registry import BUILTINS
 from ra2vipas.services.orchestrator import names, plots, robustness
 from ra2vipas.services.orchestrator.dashboard import data
-from ra2vipas.services.orchestrator.dashboard.bench import seed_campaign
 from ra2vipas.services.orchestrator.storage import Store
 from tests.api.live import LiveAPI
 from tests.policies.test_example_policy import PROVENANCE, ROOT, SMALL, _run, installed  # noqa: F401  (a fixture)

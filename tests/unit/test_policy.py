@@ -149,15 +149,26 @@ def test_controller_and_learner_never_import_the_simulator(package, allowed):
                 assert name.startswith(ok), f"{path.name} imports {name}"
 
 
+def _named_modules(path: pathlib.Path) -> set[str]:
+    """Modules a file names in a string: code it runs in a child process (``python -c``) or
+    imports by name (``importlib.import_module``)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    return {node.value for node in ast.walk(tree) if isinstance(node, ast.Constant) and isinstance(node.value, str)}
+
+
 def test_the_services_never_import_the_cli():
     """The services layer imports nothing of the command line (the CLI builds on the services,
-    never the other way round): the `python -m ra2vipas.services.NAME` entries included."""
+    never the other way round): the `python -m ra2vipas.services.NAME` entries and the
+    benchmarks (services/benchmarks/, which the CLI hands a stack launcher instead) included,
+    and neither in a child process's code nor by a module name in a string."""
     files = sorted(SERVICES.rglob("*.py"))
-    assert files
+    assert any(path.parent.name == "benchmarks" for path in files)
     for path in files:
         rel = path.relative_to(SERVICES).as_posix()
         for name in _imports(path):
             assert not name.startswith("ra2vipas.cli"), f"{rel} imports {name}"
+        for text in _named_modules(path):
+            assert "ra2vipas.cli" not in text, f"{rel} names the CLI in {text!r}"
 
 
 def test_controller_and_learner_load_without_the_simulator():

@@ -59,7 +59,7 @@ from ra2vipas.services.orchestrator import plots
 from ra2vipas.services.orchestrator.api.errors import responses
 from ra2vipas.services.orchestrator.api.negotiate import IMAGE_CONTENT
 
-CACHE_BYTES = 64 * 1024 * 1024  # rendered figures kept in memory (a PNG is ~50-150 kB, an SVG up to ~1 MB)
+CACHE_BYTES = 64 * 1024 * 1024  # rendered figures (PNG and SVG) kept in memory
 NICENESS = 19  # renderer processes: the lowest priority, so a campaign's services get the cores first
 RETRY_AFTER_MAX_S = 30
 PARENT_POLL_S = 1.0

@@ -114,8 +114,8 @@ def _has_studies(request: Request) -> bool:
 
 
 def _html(request: Request, text: str) -> HTMLResponse:
-    """An HTML response, gzip-compressed when the client takes it (a campaign page is ~80 kB of
-    HTML, ~10 kB compressed). Only the dashboard's pages: the REST API's responses are unchanged."""
+    """An HTML response, gzip-compressed when the client takes it (a campaign page's long tables
+    compress well). Only the dashboard's pages: the REST API's responses are unchanged."""
     body = text.encode()
     if len(body) >= 1024 and "gzip" in request.headers.get("accept-encoding", ""):
         return HTMLResponse(gzip.compress(body, compresslevel=6), headers={"Content-Encoding": "gzip", "Vary": "Accept-Encoding"})
