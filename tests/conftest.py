@@ -136,13 +136,38 @@ def platform_factory():
     return make_platform
 
 
+# Tests that share something of the machine run in one pytest-xdist worker, one after another
+# (``make test`` runs the suite on two workers, ``-n 2 --dist loadgroup``): tests/deploy's network
+# namespaces and the host-side addresses of their links, and the cross-machine run that starts beside
+# them (tests/docs/test_other_cpus.py, see ``pytest_runtest_logstart``). Every other test file is a
+# group of its own, so a module's fixtures (a stack, a trained model) are built once, in one worker.
+SHARED_MACHINE_GROUP = ("tests/deploy/", "tests/docs/test_other_cpus.py")
+
+
+def xdist_group(nodeid: str) -> str:
+    """The pytest-xdist group of a test: ``machine`` for those in ``SHARED_MACHINE_GROUP``, else its file."""
+    if nodeid.startswith(SHARED_MACHINE_GROUP):
+        return "machine"
+    return nodeid.split("::", 1)[0]
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group(xdist_group(item.nodeid)))
+
+
 def pytest_collection_finish(session: pytest.Session) -> None:
     """The cross-machine checks on other CPU kernels (tests/docs/test_other_cpus.py) run in a
     child process beside tests/deploy when this session runs both (``pytest_runtest_logstart``)."""
-    if not session.config.option.collectonly:
+    if not session.config.option.collectonly and not _xdist_controller(session.config):
         from tests.docs.test_other_cpus import plan
 
         plan([item.nodeid for item in session.items])
+
+
+def _xdist_controller(config: pytest.Config) -> bool:
+    """This process hands tests to pytest-xdist workers and runs none itself."""
+    return bool(getattr(config.option, "numprocesses", None)) and not hasattr(config, "workerinput")
 
 
 def pytest_runtest_logstart(nodeid: str, location) -> None:

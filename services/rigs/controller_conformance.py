@@ -27,6 +27,7 @@ from typing import Any, Callable
 from pydantic import ValidationError
 
 from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import CameraFrame, RFSample
 from ra2vipas.services.protocol.messages import (
     Command,
@@ -83,7 +84,7 @@ class _Seen:
 
 
 def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+    return float(wrap(angle))
 
 
 def measurement(eid: str, step: int, pan: float, scenario: Scenario) -> Measurement:
