@@ -17,8 +17,9 @@ from tests.cli.conftest import one_error_line
 SMALL = ["--set", "steps=20", "--set", "n_train=200", "--set", "n_targets=8"]
 
 
-def ra2vipas(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", *args], capture_output=True, text=True, timeout=timeout)
+def ra2vipas(*args: str, timeout: float = 300, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", *args], capture_output=True, text=True, timeout=timeout,
+                          env=env)
 
 
 def test_simulate_json_is_the_last_stdout_line_with_the_documented_shape():
@@ -145,9 +146,9 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
     """A small `bench mesh`: its three parts run on their own stacks, the report carries the
     measured figures (and the DR the mesh reached, equal to the in-process campaign's): fast
     steps/s, realtime latency, and the orchestrator's peak memory over a campaign (VmHWM)."""
-    before = _ra2vipas_processes()
+    mark, env = _marked_env()
     proc = ra2vipas("bench", "mesh", "--rigs", "1", "--tests", "2", "--realtime-tests", "1", "--memory-tests", "3",
-                    "--memory-steps", "5", "--json", timeout=300)
+                    "--memory-steps", "5", "--json", timeout=300, env=env)
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["benchmark"] == "mesh" and report["rigs"] == 1
@@ -175,23 +176,24 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
         "tests": 3, "steps": 5, "algorithm": "rapas", "episodes": 3}
     assert 0 < memory["orchestrator_rss_before_mb"] <= memory["orchestrator_peak_rss_mb"]
     assert 0 < memory["orchestrator_rss_after_mb"] <= memory["orchestrator_peak_rss_mb"]
-    assert memory["orchestrator_pid"] not in before and memory["seconds"] > 0
+    assert memory["orchestrator_pid"] > 0 and memory["seconds"] > 0
     small = run_campaign("paper", build_scenario("paper", {"steps": 5}), 3, 1, ["rapas"])
     assert memory["dr_final"] == small["algorithms"]["rapas"]["dr_final"]
-    assert _ra2vipas_processes() == before, "the benchmark's stacks left processes behind"
+    assert not _marked_processes(mark), "the benchmark's stacks left processes behind"
+    assert not Path(f"/proc/{memory['orchestrator_pid']}").exists(), "the measured orchestrator outlived its benchmark"
 
 
 def test_bench_orchestrator_scores_episodes_of_instant_rigs_and_leaves_nothing_behind():
     """`bench orchestrator` (issue 22): a stack without rigs, fake rigs at the wire level in the
     benchmark's process answering every episode at once; every episode is answered once, the
     campaign finishes, and the orchestrator's rate and CPU use are reported."""
-    before = _ra2vipas_processes()
-    proc = ra2vipas("bench", "orchestrator", "--tests", "20", "--rig-count", "2", "--window", "16", "--json", timeout=300)
+    mark, env = _marked_env()
+    proc = ra2vipas("bench", "orchestrator", "--tests", "20", "--rig-count", "2", "--window", "16", "--json", timeout=300, env=env)
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["benchmark"] == "orchestrator" and report["episodes"] == 60 and report["answered"] == 60
     assert report["episodes_per_second"] > 0 and report["orchestrator_cpu"] >= 0 and report["target_episodes_per_second"] == 1000
-    assert _ra2vipas_processes() == before, "the benchmark's stack left processes behind"
+    assert not _marked_processes(mark), "the benchmark's stack left processes behind"
 
 
 def _check_breakdown(b: dict, episodes: int, steps: int) -> None:
@@ -224,17 +226,28 @@ def test_bench_mesh_memory_usage_errors_are_one_line(args, words):
     assert proc.returncode == 2 and words in one_error_line(proc)
 
 
-def _ra2vipas_processes() -> set[int]:
-    """ra2vipas processes started from this checkout (other checkouts on the machine may be
-    running their own stacks)."""
-    out = subprocess.run(["pgrep", "-f", "ra2vipas.cli.main|ra2vipas (up|router|sensors|controller|learner|orchestrator|rig)"],
-                         capture_output=True, text=True).stdout
-    here = Path(__file__).resolve().parents[2]
-    mine = set()
-    for pid in (int(p) for p in out.split()):
-        try:
-            if Path(os.readlink(f"/proc/{pid}/cwd")).resolve() == here:
-                mine.add(pid)
-        except OSError:
-            pass
-    return mine
+MARK = "R2V_TEST_MARK"  # not RA2VIPAS_*: the stack passes on only the user settings of that family
+
+
+def _marked_env() -> tuple[str, dict[str, str]]:
+    """A mark, and the environment that carries it to a command and every process it starts."""
+    import uuid
+
+    mark = uuid.uuid4().hex
+    return mark, {**os.environ, MARK: mark}
+
+
+def _marked_processes(mark: str) -> set[int]:
+    """The processes whose environment carries ``mark``: what one command started, alive still
+    even when it was orphaned, and nothing that another test (another pytest-xdist worker) or
+    another checkout runs at the same time."""
+    wanted = f"{MARK}={mark}".encode()
+    found = set()
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if wanted in (entry / "environ").read_bytes().split(b"\0"):
+                    found.add(int(entry.name))
+            except OSError:
+                pass
+    return found
