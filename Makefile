@@ -37,7 +37,7 @@ $(CHROMIUM):
 
 test: setup browser
 	$(BIN)/ruff check .
-	$(BIN)/pytest -q -n 2 --dist loadgroup
+	$(BIN)/pytest -q -n 2 --dist loadfile
 
 # The README's result tables and figure from what the code prints (minutes): reruns the documented
 # campaigns and benchmarks, writes docs/results.json, renders the README blocks from it.

@@ -136,24 +136,35 @@ def platform_factory():
     return make_platform
 
 
-# Tests that share something of the machine run in one pytest-xdist worker, one after another
-# (``make test`` runs the suite on two workers, ``-n 2 --dist loadgroup``): tests/deploy's network
-# namespaces and the host-side addresses of their links, and the cross-machine run that starts beside
-# them (tests/docs/test_other_cpus.py, see ``pytest_runtest_logstart``). Every other test file is a
-# group of its own, so a module's fixtures (a stack, a trained model) are built once, in one worker.
-SHARED_MACHINE_GROUP = ("tests/deploy/", "tests/docs/test_other_cpus.py")
+# ``make test`` runs the suite on two pytest-xdist workers (``-n 2 --dist loadfile``), each test file
+# whole in one worker, so a module's fixtures (a stack, a trained model) are built once. Tests that
+# share something of the machine form one unit, run one after another in one worker: tests/deploy's
+# network namespaces and the host-side addresses of their links, and the cross-machine run that
+# starts beside them (tests/docs/test_other_cpus.py, see ``pytest_runtest_logstart``).
+# (xdist's own ``--dist loadgroup`` would say this with marks, but it does not group on pytest 9.2:
+# it renames node ids, which pytest no longer lets a plugin do — pytest-xdist issue 1386.)
+SHARED_MACHINE_UNIT = ("tests/deploy/", "tests/docs/test_other_cpus.py")
 
 
-def xdist_group(nodeid: str) -> str:
-    """The pytest-xdist group of a test: ``machine`` for those in ``SHARED_MACHINE_GROUP``, else its file."""
-    if nodeid.startswith(SHARED_MACHINE_GROUP):
+def xdist_unit(nodeid: str) -> str:
+    """The unit of work a test belongs to: ``machine`` for those of ``SHARED_MACHINE_UNIT``, else its file."""
+    if nodeid.startswith(SHARED_MACHINE_UNIT):
         return "machine"
     return nodeid.split("::", 1)[0]
 
 
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    for item in items:
-        item.add_marker(pytest.mark.xdist_group(xdist_group(item.nodeid)))
+@pytest.hookimpl(optionalhook=True, tryfirst=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """``--dist loadfile`` with the machine's shared tests as one unit (``xdist_unit``)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class FilesAndTheMachine(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_unit(nodeid)
+
+    return FilesAndTheMachine(config, log)
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
