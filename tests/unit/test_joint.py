@@ -182,3 +182,13 @@ def test_the_pan_rule_is_a_setting_checked_when_made():
     with pytest.raises(ValueError, match="tag_pan_rule"):
         ControllerSettings(tag_pan_rule="loudest")
     assert math.isfinite(ControllerSettings().beta)
+
+
+def test_bench_step_times_the_joint_search_on_a_preset_with_several_tags(monkeypatch):
+    from ra2vipas.services.benchmarks.step import controller_step
+    from ra2vipas.services.protocol import scenario as scenarios
+
+    real = scenarios.build_scenario
+    monkeypatch.setattr(scenarios, "build_scenario", lambda preset, overrides=None: real(preset, {"steps": 12, "n_train": 200}))
+    report = controller_step("ra2vipas", 1, 1, "ward")
+    assert report["n_tags"] == 3 and report["steps"] == 12 and report["median_ms"] > 0
