@@ -177,6 +177,32 @@ class AlgorithmResults(BaseModel):
     in_fov_final: float = Field(description="rate of tests with the Tx inside the FoV at the final estimate (secondary)")
     calibration: Optional[Calibration] = Field(None, description="how honest the confidences were (absent without confidences)")
     decision: Optional[Decision] = Field(None, description="early decision (campaigns with stop_confidence > 0)")
+    tags: Optional["TagsResults"] = Field(None, description="a search for several tags (n_tags > 1): per tag and all found; "
+                                                            "the fields above then describe tag 0")
+
+
+class AllFound(BaseModel):
+    dr: list[float] = Field(description="at every step, the share of tests in which every tag's named target carries it")
+    dr_final: float
+    ci95: list[float] = Field(min_length=2, max_length=2, description="Wilson 95 % interval of the final rate")
+    dr_ci95: list[list[float]] = Field(description="Wilson 95 % interval [lo, hi] at every step")
+    time_to_dr90_s: Optional[float] = Field(description="time after which the rate stays >= 0.9; null if it ends below")
+
+
+class AllDecided(BaseModel):
+    median_s: Optional[float] = Field(description="median time until every tag was decided, over the tests where all were")
+    p90_s: Optional[float] = Field(description="its 90th percentile")
+    undecided: Optional[float] = Field(description="share of tests in which some tag never reached the confidence")
+
+
+class TagsResults(BaseModel):
+    """A search for several tags (issue 21; docs/tags.md)."""
+
+    per_tag: list[AlgorithmResults] = Field(description="per tag k, its block: DR_t against tag k's carrier (eq. 11 per tag), "
+                                                        "calibration, decision")
+    mean_tag_dr_final: float = Field(description="the mean over the tags of their final DR")
+    all_found: AllFound
+    all_decided: Optional[AllDecided] = Field(None, description="early decision (campaigns with stop_confidence > 0)")
 
 
 class PairedComparison(BaseModel):
@@ -198,6 +224,9 @@ class PairedComparison(BaseModel):
 class LatencySummary(BaseModel):
     p50: float
     p99: float
+
+
+AlgorithmResults.model_rebuild()
 
 
 class ResultsPublic(BaseModel):
