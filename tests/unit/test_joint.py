@@ -192,3 +192,33 @@ def test_bench_step_times_the_joint_search_on_a_preset_with_several_tags(monkeyp
     monkeypatch.setattr(scenarios, "build_scenario", lambda preset, overrides=None: real(preset, {"steps": 12, "n_train": 200}))
     report = controller_step("ra2vipas", 1, 1, "ward")
     assert report["n_tags"] == 3 and report["steps"] == 12 and report["median_ms"] > 0
+
+
+def test_a_tag_whose_person_is_out_of_view_keeps_its_belief_and_is_named_again(two_tags):
+    """Tag 1 found, then the camera is held pointing away from its carrier for 2 s: its answer
+    stays on the same person (its RF belief and the shared tracks persist), and it is still that
+    person when the search points where it likes again."""
+    from ra2vipas.services.orchestrator.metrics import associate
+    from ra2vipas.services.protocol.angles import wrap
+
+    scenario, model = two_tags
+    scenario = scenario.model_copy(update={"steps": 80})
+    search = joint_search("ra2vipas", _context(scenario, model), 2)
+    platform = SimulatedPlatform(scenario, 1, 0)
+    bearings = platform.truth.bearings_rad
+    pan, t = search.first_pan(), 0
+    for t in range(40):
+        d = search.step(platform.sense(t, pan))
+        pan = d.next_pan_rad
+    carrier = platform.truth.carriers[1]
+    assert associate(np.array([d.tags[1].estimate_rad]), bearings)[0] == carrier  # found
+    away = float(wrap(bearings[carrier] + math.pi))
+    for t in range(40, 60):  # its carrier far outside the field of view
+        d = search.step(platform.sense(t, away))
+        assert abs(float(wrap(away - bearings[carrier]))) > 2 * scenario.fov_half_angle_rad
+        assert associate(np.array([d.tags[1].estimate_rad]), bearings)[0] == carrier
+    pan = d.next_pan_rad
+    for t in range(60, 80):
+        d = search.step(platform.sense(t, pan))
+        pan = d.next_pan_rad
+    assert associate(np.array([d.tags[1].estimate_rad]), bearings)[0] == carrier and d.tags[1].confidence > 0.5
