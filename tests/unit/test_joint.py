@@ -222,3 +222,28 @@ def test_a_tag_whose_person_is_out_of_view_keeps_its_belief_and_is_named_again(t
         d = search.step(platform.sense(t, pan))
         pan = d.next_pan_rad
     assert associate(np.array([d.tags[1].estimate_rad]), bearings)[0] == carrier and d.tags[1].confidence > 0.5
+
+
+def test_with_one_tag_per_person_two_tags_that_want_one_person_are_assigned_jointly(two_tags):
+    """Both tags' likelihoods peak on the same track: on their own both name it; one person one
+    tag, the pair with the larger joint likelihood wins (tag 0 keeps it, tag 1 takes its second)."""
+    scenario, model = two_tags
+    search = joint_search("ra2vipas", _context(scenario, model), 2)
+    _drive(search, SimulatedPlatform(scenario, 1, 0), 12)  # the camera has seen everyone: tracks exist
+    m = len(search.tracks)
+    assert m >= 3
+    grid = search.parts[0].fusion.circle.size
+    l0 = np.full(m, -20.0)
+    l0[0], l0[1] = 0.0, -8.0  # tag 0: track 0, by far
+    l1 = np.full(m, -20.0)
+    l1[0], l1[1] = 0.0, -0.5  # tag 1: track 0, track 1 nearly as likely
+    missed = np.full(grid, -60.0)
+    scored = [(l0, missed), (l1, missed)]
+    where = search.parts[0].fusion.where
+    search.one_tag_per_person = False
+    own = search._answers(scored)
+    assert own[0][0] == own[1][0]  # on their own both name one person
+    search.one_tag_per_person = True
+    joint = search._answers(scored)
+    assert joint[0][0] == pytest.approx(float(where[0])) and joint[1][0] == pytest.approx(float(search.parts[1].fusion.where[1]))
+    assert joint[1][1] > 0.5  # tag 1's confidence in track 1 under the constraint
