@@ -185,7 +185,8 @@ def confidence_table(results: dict[str, Any]) -> Table | None:
 def paired_table(results: dict[str, Any]) -> Table | None:
     """Every pair of algorithms compared test by test (the same world in test k for each):
     the discordant tests and McNemar's exact p-value; None with fewer than two algorithms."""
-    pairs = results.get("paired") or []
+    pairs = list(results.get("paired") or [])
+    pairs += [{**p, "a": f"{p['a']} (all tags)", "b": f"{p['b']} (all tags)"} for p in results.get("paired_all_found") or []]
     if not pairs:
         return None
     table = Table(title="Paired comparison of the final answers (same worlds test by test; exact McNemar test)")

@@ -22,6 +22,9 @@ step it:
    [0, 1] and weighted by its share of the summed entropy (``multitag.pan_weights``).
 
 The episode ends when every tag is decided (``JointDecision.all_decided``) or at the horizon.
+``entropy`` is the default: on the paper world with K = 3 and ``stop_confidence`` 0.95 the two
+rules decide all tags in the same median time and with the same accuracy, and ``entropy`` has
+the shorter tail (docs/tags.md, "Measured").
 
 ``SequentialSearch`` is the fair baseline: the single-tag search (a fresh ``Composition``, so a
 fresh tracker and warm-up) for tag 0 until it is decided or its share of the remaining horizon

@@ -145,6 +145,13 @@ class AlgorithmTally:
                 out[k] = int(hit)
         return out
 
+    def all_found_outcomes(self, tests: int) -> list[int | None]:
+        """A search for several tags: whether every tag's final answer was right (1/0) in tests
+        0 .. ``tests`` - 1, None for a test not added."""
+        if self.tags is None:
+            raise ValueError("no per-tag outcomes were added")
+        return self.tags.all_found_outcomes(self._test_index, tests)
+
     def _bin_mean_confidence(self, b: int, n: int) -> float:
         """The mean confidence of bin ``b`` (n samples): its exact sum, correctly rounded (int / int
         is), divided by n: ``math.fsum`` over the bin's samples, divided by n."""
@@ -274,9 +281,14 @@ class TagTally:
                                   "undecided": round(1.0 - times.size / tests, 6) if tests else None}
         return out
 
-    def all_found_outcomes(self) -> list[int]:
-        """Each test's final "every tag found" (1/0), in arrival order."""
-        return list(self._final_all)
+    def all_found_outcomes(self, test_indices, tests: int) -> list[int | None]:
+        """The final "every tag found" (1/0) of tests 0 .. ``tests`` - 1 (None: not added), given
+        each added episode's test index in arrival order (its ``AlgorithmTally``'s)."""
+        out: list[int | None] = [None] * tests
+        for k, found in zip(test_indices, self._final_all):
+            if 0 <= k < tests:
+                out[k] = int(found)
+        return out
 
 
 class LatencyTally:
@@ -379,6 +391,9 @@ def results_object(preset: str, scenario, tests: int, seed: int, pod, tallies: M
     # both ran (every algorithm meets the same world in test k: McNemar's exact test)
     out["outcomes"] = {name: tally.outcomes(tests) for name, tally in tallies.items()}
     out["paired"] = paired_comparisons(out["outcomes"])
+    found = {name: tally.all_found_outcomes(tests) for name, tally in tallies.items() if tally.tags is not None}
+    if found:  # several tags (issue 21): the same comparison on "every tag found" at the end
+        out["paired_all_found"] = paired_comparisons(found)
     add_provenance(out)
     warnings = dr_warnings(out)
     if warnings:

@@ -165,6 +165,11 @@ def test_campaign_results_carry_every_tag_and_the_baseline_is_paired_on_the_same
         assert set(tags["all_decided"]) == {"median_s", "p90_s", "undecided"}
         assert results["algorithms"][name]["dr"] == tags["per_tag"][0]["dr"]  # the top-level block is tag 0's
     assert "policies" not in results  # a policy ra2vipas ships: no provenance block
+    (pair,) = results["paired_all_found"]  # paired on "every tag found", beside tag 0's
+    assert (pair["a"], pair["b"], pair["tests"]) == ("ra2vipas", "ra2vipas-seq", 2)
+    finals = [results["algorithms"][n]["tags"]["all_found"]["dr_final"] for n in ("ra2vipas", "ra2vipas-seq")]
+    assert pair["both"] + pair["only_a"] + pair["only_b"] + pair["neither"] == 2
+    assert pair["dr_difference"] == pytest.approx(finals[0] - finals[1])
     assert "ra2vipas-seq" in registry.names() and registry.info("ra2vipas-seq").package in ("ra2vipas", "?")
 
 

@@ -250,6 +250,8 @@ class ResultsPublic(BaseModel):
     outcomes: Optional[dict[str, list[Optional[int]]]] = Field(None, description="per algorithm, the final hit (1/0) of every test "
                                                                                  "by index (null: not recorded)")
     paired: Optional[list[PairedComparison]] = Field(None, description="every pair of algorithms compared test by test (McNemar)")
+    paired_all_found: Optional[list[PairedComparison]] = Field(None, description="several tags: the same comparison on whether "
+                                                                                  "every tag's final answer was right")
     warnings: Optional[list[str]] = Field(None, description="what makes these numbers suspect, e.g. every radio algorithm far below "
                                                             "chance, or Rx(dir)'s samples contradicting the assumed antenna model")
     assumptions: Optional[dict[str, Any]] = Field(None, description="present when some episodes ran on undescribed rigs: they were "
