@@ -40,13 +40,13 @@ from dataclasses import dataclass, replace
 from typing import Callable, Literal
 
 import numpy as np
-from scipy.special import logsumexp
 
 from ra2vipas.services.controller import multitag
 from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, Beliefs
 from ra2vipas.services.controller.composed import Composition, Decision, Parts
 from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softmax
 from ra2vipas.services.controller.rf_belief import PacketClock, Packets
+from ra2vipas.services.controller.rf_filter import logsumexp
 from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
 
@@ -266,7 +266,8 @@ class JointSearch:
             else:
                 p.rf.update_packets(s, got, p.iso, vision.tracks)
         scored = [p.fusion.beliefs(p.rf, vision, p.iso) for p in self.parts]
-        answers = self._answers(scored)
+        which = self._which_track(scored)
+        answers = self._answers(scored, which)
         tags: list[TagDecision] = []
         for k, (p, (estimate, raw, _post)) in enumerate(zip(self.parts, answers)):
             if self.decided[k] is not None:
@@ -280,7 +281,7 @@ class JointSearch:
                 self.decided[k] = decision
             tags.append(decision)
         open_ = [d is None for d in self.decided]
-        weights = multitag.pan_weights(self._which_track(scored), [not o for o in open_], self.pan_rule)
+        weights = multitag.pan_weights(which, [not o for o in open_], self.pan_rule)
         lead = int(np.argmax(weights)) if weights.any() else 0
         per_tag = tuple(Beliefs(t, p.rf, vision, scored[k][0], answers[k][2], self._due(k, t)) for k, p in enumerate(self.parts))
         lead_beliefs = per_tag[lead]
@@ -307,32 +308,35 @@ class JointSearch:
         if not self.vision.sees:
             return np.stack([softmax((1.0 if p.rf.exact else p.fusion.rf_weight) * p.rf.log_likelihood) for p in self.parts])
         tracks = np.stack([s[0] for s in scored])
-        missed = np.array([float(logsumexp(s[1])) for s in scored])
-        if self.one_tag_per_person and self.n_tags > 1:
+        missed = np.array([logsumexp(s[1]) for s in scored])
+        if self._jointly():
             return multitag.exclusive_posteriors(tracks, missed)
         return multitag.independent_posteriors(tracks, missed)
 
-    def _answers(self, scored) -> list[tuple[float, float, np.ndarray]]:
+    def _jointly(self) -> bool:
+        """Whether the answers are a joint assignment: one person one tag, K > 1, tracks to assign."""
+        return self.one_tag_per_person and self.n_tags > 1 and self.vision.sees and len(self.vision.tracks) > 0
+
+    def _answers(self, scored, which: np.ndarray) -> list[tuple[float, float, np.ndarray]]:
         """Per tag (estimate, raw confidence, tracks' posterior): each on its own
-        (``Fusion.answer``), or jointly when a person carries at most one tag."""
-        own = [p.fusion.answer(p.rf, l_tracks, l_missed, self._first_pan) for p, (l_tracks, l_missed) in zip(self.parts, scored)]
-        if not (self.one_tag_per_person and self.n_tags > 1 and self.vision.sees and len(self.vision.tracks)):
-            return own
+        (``Fusion.answer``), or jointly when a person carries at most one tag (``which``: the
+        marginals under that constraint, ``_which_track``)."""
+        if not self._jointly():
+            return [p.fusion.answer(p.rf, l_tracks, l_missed, self._first_pan) for p, (l_tracks, l_missed) in zip(self.parts, scored)]
         tracks = np.stack([s[0] for s in scored])
         m = tracks.shape[1]
-        missed_total = np.array([float(logsumexp(s[1])) for s in scored])
-        marginals = multitag.exclusive_posteriors(tracks, missed_total)
+        marginals = which
         half = [max(1, int(round(p.fusion.answer_window_rad / p.fusion.circle.step))) for p in self.parts]
         # the assignment weighs "missed" as the answer would: the mass of its best arc, not all of it
         missed_arc = []
-        for (_, l_missed), h in zip(scored, half):
-            post = softmax(l_missed)
-            missed_arc.append(float(logsumexp(l_missed)) + math.log(max(arc_mass(post, int(np.argmax(post)), h), 1e-300)))
+        where_missed = [softmax(l_missed) for _, l_missed in scored]  # where an undetected carrier of tag k would be
+        for (_, l_missed), post, h in zip(scored, where_missed, half):
+            missed_arc.append(logsumexp(l_missed) + math.log(max(arc_mass(post, int(np.argmax(post)), h), 1e-300)))
         assignment = multitag.joint_assignment(tracks, np.array(missed_arc))
         out = []
         for k, (p, (_, l_missed), a) in enumerate(zip(self.parts, scored, assignment)):
             post_tracks = marginals[k, :m]
-            missed = softmax(l_missed)  # where an undetected carrier of tag k would be
+            missed = where_missed[k]
             if a < m:
                 estimate = float(p.fusion.where[a])
                 if p.rf.listens and p.fusion.walker_answer_from_rf and p.rf.tx_walks > 0.5:

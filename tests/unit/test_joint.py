@@ -246,9 +246,9 @@ def test_with_one_tag_per_person_two_tags_that_want_one_person_are_assigned_join
     scored = [(l0, missed), (l1, missed)]
     where = search.parts[0].fusion.where
     search.one_tag_per_person = False
-    own = search._answers(scored)
+    own = search._answers(scored, search._which_track(scored))
     assert own[0][0] == own[1][0]  # on their own both name one person
     search.one_tag_per_person = True
-    joint = search._answers(scored)
+    joint = search._answers(scored, search._which_track(scored))
     assert joint[0][0] == pytest.approx(float(where[0])) and joint[1][0] == pytest.approx(float(search.parts[1].fusion.where[1]))
     assert joint[1][1] > 0.5  # tag 1's confidence in track 1 under the constraint
