@@ -247,7 +247,6 @@ class JointSearch:
         whether all are decided."""
         s, t = float(m.pan_rad), int(m.step)
         vision = self.vision
-        packets: list[Packets | None] = []
         for k, p in enumerate(self.parts):
             view = tag_view(m, k)
             got = None
@@ -258,7 +257,6 @@ class JointSearch:
                 self.clocks[k].take(got)
                 for _, z, _ in got.iso:
                     p.iso.add(z)
-            packets.append(got)
             if k == 0 and vision.sees:
                 vision.update(s, m.frames)
             if got is None:
