@@ -102,6 +102,59 @@ def dr_table(results: dict[str, Any]) -> Table:
     return table
 
 
+def report_times(results: dict[str, Any]) -> list[float]:
+    """The times the DR tables show: 1, 2, 4, 8, 12 s within the test, and its end."""
+    period = results["scenario"]["rf_period_s"]
+    steps = results["scenario"]["steps"]
+    times = [t for t in REPORT_TIMES_S if round(t / period) <= steps]
+    if not times or abs(times[-1] - steps * period) > 1e-9:
+        times.append(round(steps * period, 6))
+    return times
+
+
+def tags_table(results: dict[str, Any]) -> Table | None:
+    """A search for several tags (issue 21): per algorithm, each tag's DR_t (eq. 11 against its
+    carrier) and the rate at which every tag was found, with the final Wilson interval, t90, the
+    final ECE and, with early decisions, when each tag (and the last of them) was decided. None
+    when no algorithm reports tags."""
+    blocks = {name: b["tags"] for name, b in results["algorithms"].items() if b.get("tags")}
+    if not blocks:
+        return None
+    period = results["scenario"]["rf_period_s"]
+    times = report_times(results)
+    decided = any("all_decided" in t for t in blocks.values())
+    table = Table(title="Per tag: DR_t of each tag k against its carrier, and of all tags found at once",
+                  caption="mean per-tag DR at the end: " + ", ".join(f"{n} {t['mean_tag_dr_final']:.3f}" for n, t in blocks.items())
+                  + ("; median/p90: time until the tag (all: the last tag) was decided" if decided else ""))
+    for col in ("algorithm", "tag"):
+        table.add_column(col, no_wrap=True)
+    for t in times:
+        table.add_column(f"{t:g} s", justify="right")
+    for col in ("95% CI", "t90", "ECE") + (("median", "p90", "undec.") if decided else ()):
+        table.add_column(col, justify="right", no_wrap=True)
+
+    def cells(block: dict[str, Any]) -> list[str]:
+        dr = block["dr"]
+        lo, hi = block["ci95"]
+        t90 = block["time_to_dr90_s"]
+        return ([f"{dr[max(0, min(len(dr), round(t / period)) - 1)]:.3f}" for t in times]
+                + [f"{lo:.3f}–{hi:.3f}", "—" if t90 is None else f"{t90:g} s"])
+
+    def when(d: dict[str, Any] | None) -> list[str]:
+        if not decided:
+            return []
+        d = d or {}
+        return ["—" if d.get(k) is None else (f"{d[k]:g} s" if k != "undecided" else f"{d[k]:.3f}")
+                for k in ("median_s", "p90_s", "undecided")]
+
+    for name, tags in blocks.items():
+        for k, block in enumerate(tags["per_tag"]):
+            ece = (block.get("calibration") or {}).get("ece_final")
+            table.add_row(name, str(k), *cells(block), "—" if ece is None else f"{ece:.3f}", *when(block.get("decision")))
+        table.add_row(name, "all", *cells(tags["all_found"]), "—", *when(tags.get("all_decided")))
+    return table
+
+
 def confidence_table(results: dict[str, Any]) -> Table | None:
     """Calibration (and early decision) per algorithm, when the results carry them."""
     blocks = results["algorithms"]
@@ -132,7 +185,8 @@ def confidence_table(results: dict[str, Any]) -> Table | None:
 def paired_table(results: dict[str, Any]) -> Table | None:
     """Every pair of algorithms compared test by test (the same world in test k for each):
     the discordant tests and McNemar's exact p-value; None with fewer than two algorithms."""
-    pairs = results.get("paired") or []
+    pairs = list(results.get("paired") or [])
+    pairs += [{**p, "a": f"{p['a']} (all tags)", "b": f"{p['b']} (all tags)"} for p in results.get("paired_all_found") or []]
     if not pairs:
         return None
     table = Table(title="Paired comparison of the final answers (same worlds test by test; exact McNemar test)")
@@ -171,6 +225,9 @@ def print_results(results: dict[str, Any]) -> None:
             stdout.print("the algorithms are unpaired: they rest on different numbers of tests (different worlds); the DR "
                          "table compares unequal sets, the paired comparison only the tests both ran")
     stdout.print(dr_table(results))
+    tags = tags_table(results)
+    if tags is not None:
+        stdout.print(tags)
     for warning in results.get("warnings") or []:
         stdout.print(f"[bold red]warning:[/] {escape(warning)}")
     if results.get("assumptions"):

@@ -13,9 +13,10 @@ TARGET_MEDIAN_MS = 1.0
 def controller_step(algorithm: str, tests: int, seed: int, preset: str) -> dict:
     """Time every step of ``tests`` episodes of the built-in ``algorithm`` on ``preset``'s
     scenario: the median and p99 over all steps and over the last step of each test (when the
-    controller holds n_test samples). ``algorithm`` is a built-in, ``preset`` a known preset."""
+    controller holds n_test samples). ``algorithm`` is a built-in, ``preset`` a known preset; a
+    preset with several tags (``ward``) times the joint search for all of them (issue 21)."""
     from ra2vipas.services.controller.policy import Controller, sensor_config_from_scenario, tuned_settings
-    from ra2vipas.services.orchestrator.simulate import train_pod
+    from ra2vipas.services.orchestrator.simulate import new_policy, train_pod
     from ra2vipas.services.protocol.scenario import build_scenario
     from ra2vipas.services.sensors.world import SimulatedPlatform
 
@@ -25,7 +26,10 @@ def controller_step(algorithm: str, tests: int, seed: int, preset: str) -> dict:
     last_ms: list[float] = []
     for k in range(tests):
         platform = SimulatedPlatform(scenario, seed, k)
-        controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod.model, tuned_settings(algorithm))
+        if scenario.n_tags > 1:  # the built-in's joint search over the K tags (what a campaign runs)
+            controller = new_policy(algorithm, scenario, seed, k, pod.model)
+        else:
+            controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod.model, tuned_settings(algorithm))
         pan = controller.first_pan()
         for t in range(scenario.steps):
             m = platform.sense(t, pan)
@@ -39,6 +43,7 @@ def controller_step(algorithm: str, tests: int, seed: int, preset: str) -> dict:
         "benchmark": "controller-step",
         "algorithm": algorithm,
         "preset": preset,
+        "n_tags": scenario.n_tags,
         "tests": tests,
         "steps": len(all_ms),
         "median_ms": round(statistics.median(all_ms), 4),

@@ -14,6 +14,7 @@ acquisition and the confidence map), built below by ``compose`` with the algorit
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import ClassVar
 
@@ -25,7 +26,8 @@ from ra2vipas.services.controller.confidence import Confidence
 from ra2vipas.services.controller.contract import EpisodeContext, Policy
 from ra2vipas.services.controller.fusion import Fusion
 from ra2vipas.services.controller.grid import CircleGrid
-from ra2vipas.services.controller.policy import Controller, ControllerSettings, Decision, SensorConfig
+from ra2vipas.services.controller.joint import JointSearch, SequentialSearch
+from ra2vipas.services.controller.policy import Controller, ControllerSettings, Decision, SensorConfig, tuned_settings
 from ra2vipas.services.controller.rf_belief import IsoLevel, LobeBelief, RFBelief, RFFilterBelief, lobe_gp
 from ra2vipas.services.controller.rf_filter import PacketBearingFilter, RxDirModel
 from ra2vipas.services.controller.vision_belief import CameraBelief, PODLookup, VisionBelief
@@ -124,13 +126,30 @@ class BuiltinPolicy(Policy):
 
     def __init__(self, context: EpisodeContext, settings: ControllerSettings | None = None) -> None:
         super().__init__(context)
-        self.controller = Controller(self.algorithm, context.sensors, context.pod_model, settings)
+        n_tags = int(context.scenario.get("n_tags", 1) or 1)
+        if n_tags > 1:  # issue 21: one belief per tag over the shared camera tracks, one pan for all
+            self.controller = joint_search(self.algorithm, context, n_tags, settings)
+        else:
+            self.controller = Controller(self.algorithm, context.sensors, context.pod_model, settings)
 
     def first_pan(self) -> float:
         return self.controller.first_pan()
 
     def step(self, measurement: StepMeasurement) -> Decision:
         return self.controller.step(measurement)
+
+
+def joint_search(algorithm: str, context: EpisodeContext, n_tags: int, settings: ControllerSettings | None = None) -> JointSearch:
+    """The search for ``n_tags`` tags at once of a built-in ``algorithm`` (``joint.JointSearch``):
+    the algorithm's parts once per tag, every tag's vision belief the first tag's (one tracker
+    over the people the camera sees), the first tag's acquisition for the one pan; the scenario's
+    ``one_tag_per_person`` and the context's ``stop_confidence`` apply."""
+    cfg = tuned_settings(algorithm, settings)
+    tags = [compose(algorithm, context.sensors, context.pod_model, cfg) for _ in range(n_tags)]
+    tags = [tags[0]] + [dataclasses.replace(p, vision=tags[0].vision) for p in tags[1:]]
+    return JointSearch(context.sensors.initial_pan_rad, tags, rf_period_s=context.sensors.rf_period_s, pan_rule=cfg.tag_pan_rule,
+                       one_tag_per_person=bool(context.scenario.get("one_tag_per_person", True)),
+                       stop_confidence=context.stop_confidence)
 
 
 class Ra2ViPAS(BuiltinPolicy):
@@ -152,3 +171,21 @@ class RaViPAS(BuiltinPolicy):
 class Sweep(BuiltinPolicy):
     name = algorithm = "sweep"
     summary = "sweep: both cues fused, pans evenly round the circle (non-active)"
+
+
+class Ra2ViPASSequential(BuiltinPolicy):
+    """The one-tag-at-a-time baseline of issue 21 (``joint.SequentialSearch``): Ra²ViPAS searches
+    for tag 0 until decided (``stop_confidence``) or its share of the horizon is spent, then for
+    tag 1 afresh, and so on. With one tag it is Ra²ViPAS, step for step."""
+
+    name = "ra2vipas-seq"
+    algorithm = "ra2vipas"
+    summary = "Ra2ViPAS one tag at a time: a fresh single-tag search per tag, each until decided or its share of the horizon"
+
+    def __init__(self, context: EpisodeContext, settings: ControllerSettings | None = None) -> None:
+        Policy.__init__(self, context)
+        cfg = tuned_settings(self.algorithm, settings)
+        sensors = context.sensors
+        self.controller = SequentialSearch(sensors.initial_pan_rad, lambda: compose(self.algorithm, sensors, context.pod_model, cfg),
+                                           n_tags=int(context.scenario.get("n_tags", 1) or 1), steps=sensors.steps,
+                                           rf_period_s=sensors.rf_period_s, stop_confidence=context.stop_confidence)

@@ -92,6 +92,9 @@ class EpisodeContext:
         The test index k.
     sensors : Any
         The controller's ``SensorConfig`` built from the same description (the built-ins use it).
+    stop_confidence : float
+        The campaign's early-decision level (0: none): with several tags, a tag whose confidence
+        reaches it is decided and stops steering the camera (issue 21).
     """
 
     rig: RigDescription
@@ -100,6 +103,7 @@ class EpisodeContext:
     seed: int = 0
     test: int = 0
     sensors: Any = None
+    stop_confidence: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -161,9 +165,10 @@ def rig_description(sensors: Any) -> RigDescription:
                           rx_dir_curvature=sensors.rx_dir_curvature, rx_dir_floor_db=sensors.rx_dir_floor_db)
 
 
-def episode_context(sensors: Any, pod_model: PODModel, scenario: Any, seed: int, test: int) -> EpisodeContext:
+def episode_context(sensors: Any, pod_model: PODModel, scenario: Any, seed: int, test: int,
+                    stop_confidence: float = 0.0) -> EpisodeContext:
     """The ``EpisodeContext`` of an episode: ``sensors`` is the controller's ``SensorConfig``
     (from the rig's descriptor or the scenario), ``scenario`` a ``Scenario`` (its public
-    parameters are passed on)."""
+    parameters are passed on), ``stop_confidence`` the campaign's early-decision level."""
     return EpisodeContext(rig=rig_description(sensors), pod_model=pod_model, scenario=scenario.model_dump(mode="json"),
-                          seed=seed, test=test, sensors=sensors)
+                          seed=seed, test=test, sensors=sensors, stop_confidence=float(stop_confidence))

@@ -51,6 +51,7 @@ from ra2vipas.services.protocol.messages import (
     PODRequest,
     PODResponse,
     PolicyOffer,
+    TagResult,
     dump,
     episode_control_adapter,
     training_job_id,
@@ -83,6 +84,7 @@ class _Episode:
     confidences: list[float] = field(default_factory=list)
     says_confidence: bool = True  # False once the policy gave a step no confidence
     costs: CostClock = field(default_factory=CostClock)
+    tags: list = field(default_factory=list)  # several tags (1.4): each step's per-tag decisions (joint.TagDecision)
 
 
 def warm_up() -> None:
@@ -258,7 +260,7 @@ class ControllerNode:
         if ep is None:
             return
         ep.sensors = self._sensor_config(ep.start)
-        context = episode_context(ep.sensors, model, ep.start.scenario, ep.start.seed, ep.start.test_index)
+        context = episode_context(ep.sensors, model, ep.start.scenario, ep.start.seed, ep.start.test_index, ep.start.stop_confidence)
         try:
             ep.policy = registry.create(self.served.get(ep.start.algorithm, ep.start.algorithm), context, self.settings)
         except registry.UnknownPolicy as err:
@@ -301,7 +303,12 @@ class ControllerNode:
         ep.confidences.append(0.0 if confidence is None else float(confidence))
         ep.next_step = m.step + 1
         stop = ep.start.stop_confidence
-        decided = stop > 0.0 and confidence is not None and confidence >= stop
+        tags = getattr(decision, "tags", None) if sc.n_tags > 1 else None
+        if tags:  # several tags (issue 21): the episode ends when every tag is decided
+            ep.tags.append(tags)
+            decided = stop > 0.0 and bool(getattr(decision, "all_decided", False))
+        else:
+            decided = stop > 0.0 and confidence is not None and confidence >= stop
         if ep.next_step < sc.steps and not decided:
             command = Command(episode_id=m.episode_id, step=ep.next_step, pan_rad=float(decision.next_pan_rad))
             costs.lap("compute")
@@ -318,11 +325,23 @@ class ControllerNode:
         self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(
             episode_id=m.episode_id, rig=self.rig, estimates_rad=tuple(ep.estimates), pans_rad=tuple(ep.pans), rewards=tuple(ep.rewards),
             confidences=tuple(ep.confidences) if ep.says_confidence else (), decided_step=m.step if decided else None,
-            model_check=check, costs=costs.report())))
+            model_check=check, costs=costs.report(), tags=tag_results(ep.tags))))
 
     def close(self) -> None:
         undeclare_all(self._handles)
         self.loop.stop()
+
+
+def tag_results(steps: list) -> tuple[TagResult, ...]:
+    """The ``EpisodeResult.tags`` of a search for several tags: per tag, its estimate and
+    confidence after each step and the step it was decided at (``steps``: each step's
+    ``joint.TagDecision`` s; none: a single-tag episode, no tags)."""
+    if not steps:
+        return ()
+    last = steps[-1]
+    return tuple(TagResult(tag=d.tag, estimates_rad=tuple(float(row[k].estimate_rad) for row in steps),
+                           confidences=tuple(min(max(float(row[k].confidence), 0.0), 1.0) for row in steps),
+                           decided_step=d.decided_step) for k, d in enumerate(last))
 
 
 def model_check(sensors: SensorConfig, controller: Controller | None = None) -> ModelCheck:

@@ -115,6 +115,8 @@ class ControllerSettings:
     due_probe_every: int = 1  # probe in every n-th step an advertisement is due (the beacon's interval, rf_belief.PacketClock)
     packet_fading_tempering: bool = False  # temper each packet's term by its AR(1) correlation with the previous (rf_filter)
     receiver_offset_db: float = 8.0  # prior spread of Rx(dir)'s offset when packets carry no channel (two receivers' difference)
+    # -- several tags (issue 21; joint.JointSearch): how the one pan serves the undecided tags: entropy | neediest
+    tag_pan_rule: str = "entropy"
 
     def __post_init__(self) -> None:
         if self.confidence_calibration is not None and not isinstance(self.confidence_calibration, ConfidenceMap):
@@ -127,6 +129,8 @@ class ControllerSettings:
             raise ValueError("lobe_width_rad and residual_length_scale_rad must be > 0")
         if self.probe_every < 0:
             raise ValueError("probe_every must be >= 0")
+        if self.tag_pan_rule not in ("entropy", "neediest"):
+            raise ValueError("tag_pan_rule must be entropy or neediest")
 
 
 @dataclass(frozen=True)

@@ -26,8 +26,11 @@ BUILTINS: tuple[str, ...] = ("ra2vipas", "rapas", "ravipas", "sweep")
 """The policies ra2vipas ships, in the order tables and plots show them (paper Sec. IV-B, plus
 the non-active sweep). They are registered through the same entry-point group as anyone's;
 this table is their fallback in a source tree whose metadata is not installed."""
+SHIPPED_BASELINES: tuple[str, ...] = ("ra2vipas-seq",)
+"""Policies ra2vipas also ships, run only when named: ``ra2vipas-seq``, Ra²ViPAS one tag at a
+time (the many-tags baseline of issue 21; ``joint.SequentialSearch``)."""
 _BUILTIN_TARGETS = {name: f"ra2vipas.services.controller.builtins:{cls}"
-                    for name, cls in zip(BUILTINS, ("Ra2ViPAS", "RaPAS", "RaViPAS", "Sweep"))}
+                    for name, cls in zip(BUILTINS + SHIPPED_BASELINES, ("Ra2ViPAS", "RaPAS", "RaViPAS", "Sweep", "Ra2ViPASSequential"))}
 
 
 class UnknownPolicy(ValueError):
@@ -150,7 +153,7 @@ def provenance(names) -> dict[str, dict[str, str]]:
     here is reported with package "?"."""
     out = {}
     for name in names:
-        if name in BUILTINS:
+        if name in BUILTINS or name in SHIPPED_BASELINES:
             continue
         try:
             found = info(name)

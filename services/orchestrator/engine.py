@@ -80,12 +80,20 @@ class EpisodeSummary:
     confidences: np.ndarray | None  # (T,) float, None if the controller gave none
     decided_step: int | None
     steps_run: int  # control steps actually run (fewer after an early decision)
+    tag_hits: np.ndarray | None = None  # (K, T) bool: a search for several tags, per tag (issue 21)
+    tag_in_fov: np.ndarray | None = None  # (K, T) bool
+    tag_confidences: np.ndarray | None = None  # (K, T) float
+    tag_decided: tuple[int | None, ...] | None = None  # K values
 
     @classmethod
     def of(cls, outcome: TestOutcome) -> "EpisodeSummary":
+        tags = outcome.tags
         return cls(hits=np.asarray(outcome.hits, dtype=bool), in_fov=np.asarray(outcome.in_fov, dtype=bool),
                    confidences=np.asarray(outcome.confidences, dtype=np.float64) if outcome.confidences else None,
-                   decided_step=outcome.decided_step, steps_run=len(outcome.estimates))
+                   decided_step=outcome.decided_step, steps_run=len(outcome.estimates),
+                   tag_hits=None if tags is None else tags.hits, tag_in_fov=None if tags is None else tags.in_fov,
+                   tag_confidences=None if tags is None else tags.held_confidences,
+                   tag_decided=None if tags is None else tuple(tags.decided_steps))
 
 
 @dataclass
@@ -301,6 +309,8 @@ def run_points(points: Sequence[Point], workers: int | None = None, progress: Ca
             for k, test_row in enumerate(rows, start=first):
                 for a, ep in zip(points[i].algorithms, test_row):
                     tallies[i][a].add(ep.hits, ep.in_fov, ep.confidences, ep.decided_step, ep.steps_run, test_index=k)
+                    if ep.tag_hits is not None:
+                        tallies[i][a].add_tags(ep.tag_hits, ep.tag_in_fov, ep.tag_confidences, ep.tag_decided)
                     if workers > 1:
                         tick()
             submit_next()

@@ -78,9 +78,13 @@ def overlay_title(runs: list[tuple[str, dict[str, Any]]], label: str | None = No
     return "\n".join(textwrap.wrap(line, width)) or line
 
 
+_TAG_STYLES = (":", "--", "-.", (0, (1, 1)), (0, (5, 1)))  # tag k's curve in a many-tags figure
+
+
 def dr_figure(results: dict[str, Any], name: str | None = None) -> Figure:
     """DR_t of every algorithm against time, with its Wilson 95 % band (paper Fig. 4); the
-    title says what was run (``run_title``)."""
+    title says what was run (``run_title``). An algorithm that searched for several tags
+    (issue 21) draws one curve per tag and the "all tags found" rate with its band."""
     period = results["scenario"]["rf_period_s"]
     fig = Figure(figsize=(7.0, 4.2), dpi=120)
     ax = fig.subplots()
@@ -88,7 +92,16 @@ def dr_figure(results: dict[str, Any], name: str | None = None) -> Figure:
     for algorithm, block in results["algorithms"].items():
         dr = block["dr"]
         t = [(i + 1) * period for i in range(len(dr))]
-        line = ax.plot(t, dr, label=f"{LABELS.get(algorithm, algorithm)} (final {block['dr_final']:.3f})", linewidth=1.8,
+        label = LABELS.get(algorithm, algorithm)
+        tags = block.get("tags")
+        if tags:  # several tags (issue 21): one thin curve per tag, and "all found" with its band
+            for k, tag in enumerate(tags["per_tag"]):
+                ax.plot(t, tag["dr"], label=f"{label}, tag {k} (final {tag['dr_final']:.3f})", linewidth=1.1,
+                        linestyle=_TAG_STYLES[k % len(_TAG_STYLES)], color=colour[algorithm], alpha=0.85)
+            block = tags["all_found"]
+            dr = block["dr"]
+            label = f"{label}, all found"
+        line = ax.plot(t, dr, label=f"{label} (final {block['dr_final']:.3f})", linewidth=2.2 if tags else 1.8,
                        color=colour[algorithm])[0]
         lo = [b[0] for b in block["dr_ci95"]]
         hi = [b[1] for b in block["dr_ci95"]]

@@ -85,6 +85,15 @@ class AlgorithmTally:
         self._bin_special: list[list[float]] = [[] for _ in range(BINS)]  # inf/nan confidences, if ever
         self._samples = 0  # every (test, step) confidence, binned or not (metrics' denominator)
         self._bin_hits = np.zeros(BINS, dtype=np.int64)
+        self.tags: TagTally | None = None  # a search for several tags (issue 21): per tag, and all found
+
+    def add_tags(self, hits, in_fov, confidences=None, decided_steps=None) -> None:
+        """One episode's per-tag outcomes (after ``add`` took its top-level series): (K, T) hits
+        and in-FoV flags, (K, T) confidences or None, K decided steps (None: not decided)."""
+        hits = np.asarray(hits, dtype=bool)
+        if self.tags is None:
+            self.tags = TagTally(self.steps, self.rf_period_s, hits.shape[0])
+        self.tags.add(hits, in_fov, confidences, decided_steps)
 
     def add(self, hits, in_fov, confidences=None, decided_step: int | None = None, steps_run: int | None = None,
             test_index: int | None = None) -> None:
@@ -136,6 +145,13 @@ class AlgorithmTally:
                 out[k] = int(hit)
         return out
 
+    def all_found_outcomes(self, tests: int) -> list[int | None]:
+        """A search for several tags: whether every tag's final answer was right (1/0) in tests
+        0 .. ``tests`` - 1, None for a test not added."""
+        if self.tags is None:
+            raise ValueError("no per-tag outcomes were added")
+        return self.tags.all_found_outcomes(self._test_index, tests)
+
     def _bin_mean_confidence(self, b: int, n: int) -> float:
         """The mean confidence of bin ``b`` (n samples): its exact sum, correctly rounded (int / int
         is), divided by n: ``math.fsum`` over the bin's samples, divided by n."""
@@ -184,6 +200,8 @@ class AlgorithmTally:
                                     "reliability": reliability_bins(conf, final_hits)}
         if decisions:
             extra["decision"] = decision_summary(final_hits, list(self._decided), self.rf_period_s)
+        if self.tags is not None:
+            extra["tags"] = self.tags.summary(decisions)
         return {
             "dr": [round(float(v), 6) for v in dr],
             "dr_final": round(float(dr[-1]), 6),
@@ -193,6 +211,84 @@ class AlgorithmTally:
             "in_fov_final": round(self._final_in_fov / tests, 6),
             **extra,
         }
+
+
+class TagTally:
+    """Running sums of one algorithm's searches for K tags (issue 21): one ``AlgorithmTally`` per
+    tag, the per-step count of tests in which every tag's answer was right, and each test's step
+    at which the last tag was decided. ``summary`` is ``metrics.summarize_tags``, value for value.
+
+    Parameters
+    ----------
+    steps : int
+        n_test.
+    rf_period_s : float
+        T_RF.
+    n_tags : int
+        K.
+    """
+
+    def __init__(self, steps: int, rf_period_s: float, n_tags: int) -> None:
+        self.steps, self.rf_period_s, self.n_tags = int(steps), float(rf_period_s), int(n_tags)
+        self.per_tag = [AlgorithmTally(steps, rf_period_s) for _ in range(self.n_tags)]
+        self.tests = 0
+        self._all_hits = np.zeros(self.steps, dtype=np.int64)
+        self._all_decided: list[int | None] = []
+        self._final_all = array("b")
+
+    def add(self, hits, in_fov, confidences=None, decided_steps=None) -> None:
+        """One episode: (K, T) hits and in-FoV flags, (K, T) confidences or None, K decided steps.
+
+        Raises
+        ------
+        ValueError
+            Not K tags, or a series not ``steps`` long.
+        """
+        h = np.asarray(hits, dtype=bool)
+        f = np.asarray(in_fov, dtype=bool)
+        if h.shape != (self.n_tags, self.steps) or f.shape != h.shape:
+            raise ValueError(f"per-tag hits and in-FoV flags must be ({self.n_tags}, {self.steps}), got {h.shape} and {f.shape}")
+        decided = list(decided_steps) if decided_steps is not None else [None] * self.n_tags
+        for k, tally in enumerate(self.per_tag):
+            tally.add(h[k], f[k], None if confidences is None else np.asarray(confidences)[k], decided[k])
+        self.tests += 1
+        everyone = h.min(axis=0)
+        self._all_hits += everyone
+        self._final_all.append(int(everyone[-1]))
+        self._all_decided.append(None if any(d is None for d in decided) else max(decided))
+
+    def summary(self, decisions: bool = False) -> dict[str, Any]:
+        """The ``tags`` block of an algorithm (``metrics.summarize_tags``'s fields)."""
+        if self.tests == 0:
+            raise ValueError("no episode to summarize")
+        per_tag = [t.summary(decisions=decisions) for t in self.per_tag]
+        tests = self.tests
+        all_dr = self._all_hits.astype(np.float64) / tests
+        bands = [wilson_interval(float(k), tests) for k in self._all_hits.astype(np.float64)]
+        finals = [block["dr_final"] for block in per_tag]
+        out: dict[str, Any] = {
+            "per_tag": per_tag,
+            "mean_tag_dr_final": round(math.fsum(finals) / len(finals), 6),  # metrics._mean
+            "all_found": {"dr": [round(float(v), 6) for v in all_dr], "dr_final": round(float(all_dr[-1]), 6),
+                          "ci95": [round(bands[-1][0], 6), round(bands[-1][1], 6)],
+                          "dr_ci95": [[round(lo, 6), round(hi, 6)] for lo, hi in bands],
+                          "time_to_dr90_s": time_to_level(all_dr, 0.9, self.rf_period_s)},
+        }
+        if decisions:
+            times = np.asarray([(d + 1) * self.rf_period_s for d in self._all_decided if d is not None], dtype=float)
+            out["all_decided"] = {"median_s": round(float(np.median(times)), 6) if times.size else None,
+                                  "p90_s": round(float(np.percentile(times, 90)), 6) if times.size else None,
+                                  "undecided": round(1.0 - times.size / tests, 6) if tests else None}
+        return out
+
+    def all_found_outcomes(self, test_indices, tests: int) -> list[int | None]:
+        """The final "every tag found" (1/0) of tests 0 .. ``tests`` - 1 (None: not added), given
+        each added episode's test index in arrival order (its ``AlgorithmTally``'s)."""
+        out: list[int | None] = [None] * tests
+        for k, found in zip(test_indices, self._final_all):
+            if 0 <= k < tests:
+                out[k] = int(found)
+        return out
 
 
 class LatencyTally:
@@ -295,6 +391,9 @@ def results_object(preset: str, scenario, tests: int, seed: int, pod, tallies: M
     # both ran (every algorithm meets the same world in test k: McNemar's exact test)
     out["outcomes"] = {name: tally.outcomes(tests) for name, tally in tallies.items()}
     out["paired"] = paired_comparisons(out["outcomes"])
+    found = {name: tally.all_found_outcomes(tests) for name, tally in tallies.items() if tally.tags is not None}
+    if found:  # several tags (issue 21): the same comparison on "every tag found" at the end
+        out["paired_all_found"] = paired_comparisons(found)
     add_provenance(out)
     warnings = dr_warnings(out)
     if warnings:

@@ -51,6 +51,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
+from ra2vipas.services.controller.registry import SHIPPED_BASELINES
 from ra2vipas.services.learner.node import NO_SENSORS
 from ra2vipas.services.learner.pod import predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
@@ -705,6 +706,11 @@ class Scheduler:
             return
         hits, in_fov, chosen = score_episode(np.asarray(res.estimates_rad), bearings, truth.tx_index,
                                              run.scenario.fov_half_angle_rad, steps, decided)
+        tags = score_tags(res, truth, bearings, run.scenario, decided)
+        if tags is False:
+            log.warning("episode %s: inconsistent per-tag result; rerun", eid)
+            self._requeue(eid, count_attempt=True, reason="inconsistent result")
+            return
         record = dict(
             hits=[bool(h) for h in hits], in_fov=[bool(f) for f in in_fov], estimates=list(res.estimates_rad),
             pans=list(res.pans_rad), rewards=list(res.rewards), chosen=[int(i) for i in chosen],
@@ -713,6 +719,7 @@ class Scheduler:
             trajectories=[t.model_dump(mode="json") for t in truth.trajectories] or None,
             confidences=list(res.confidences) or None, decided_step=decided,
             model_check=None if res.model_check is None else res.model_check.model_dump(mode="json"),
+            tags=tags,
         )
 
         flight.saving = True  # a duplicate result must not record it twice meanwhile
@@ -862,7 +869,7 @@ class Scheduler:
         else:
             log.info("the controller of rig %s serves %s", name, ", ".join(p.name for p in info.policies))
             for offer in info.policies:
-                if offer.name not in BUILTIN_POLICIES and offer.package:
+                if offer.name not in BUILTIN_POLICIES and offer.name not in SHIPPED_BASELINES and offer.package:
                     self._provenance[offer.name] = {"package": offer.package, "version": offer.version or "?"}
         self._dispatch()
 
@@ -934,6 +941,29 @@ def _policies_public(rig: _Rig) -> list[dict[str, str]] | None:
     return [{"name": name, "package": "ra2vipas", "version": ""} for name in rig.policies]
 
 
+def score_tags(res, truth, bearings, scenario: Scenario, decided: int | None) -> dict[str, Any] | None | bool:
+    """An ``EpisodeResult`` that searched for several tags (``tags``, protocol 1.4) scored per tag
+    against ``EpisodeTruth.tx_indices`` (eq. 11 per tag, held to the horizon after an early end,
+    as ``simulate.score_tags``): the ``episodes.tags`` record; None for a single-tag result (or a
+    one-tag scenario), False when the tags do not match the truth's (the result is rerun)."""
+    if not res.tags or scenario.n_tags <= 1:
+        return None
+    carriers = truth.tx_indices or (truth.tx_index,)
+    if sorted(t.tag for t in res.tags) != list(range(len(carriers))) or any(not 0 <= c < len(truth.bearings_rad) for c in carriers):
+        return False
+    steps = scenario.steps
+    out: dict[str, Any] = {"hits": [], "in_fov": [], "confidences": [], "decided": []}
+    for tag in sorted(res.tags, key=lambda t: t.tag):
+        h, f, _ = score_episode(np.asarray(tag.estimates_rad), bearings, carriers[tag.tag], scenario.fov_half_angle_rad, steps, decided)
+        out["hits"].append([int(x) for x in h])
+        out["in_fov"].append([int(x) for x in f])
+        out["confidences"].append(held(list(tag.confidences), steps) if tag.confidences else None)
+        out["decided"].append(tag.decided_step)
+    if any(c is None for c in out["confidences"]):
+        out["confidences"] = None
+    return out
+
+
 def reduce_recorded(rows: Iterable[dict[str, Any]], algorithms: Iterable[str],
                     scenario: Scenario) -> tuple[dict[str, AlgorithmTally], LatencyTally, RigChecks]:
     """A campaign's recorded episodes (``Store.episode_outcomes``: read a page at a time)
@@ -948,6 +978,11 @@ def reduce_recorded(rows: Iterable[dict[str, Any]], algorithms: Iterable[str],
     for row in rows:
         tallies[row["algorithm"]].add(row["hits"], row["in_fov"], held(row.get("confidences") or [], steps) or None,
                                       row.get("decided_step"), row["n_estimates"], test_index=row.get("test_index"))
+        tags = row.get("tags")
+        if tags:
+            tallies[row["algorithm"]].add_tags(np.asarray(tags["hits"], dtype=bool), np.asarray(tags["in_fov"], dtype=bool),
+                                               None if tags.get("confidences") is None else np.asarray(tags["confidences"]),
+                                               tags["decided"])
         latencies.add(row.get("latencies") or ())
         checks.add(row.get("rig"), row.get("model_check"))
     return tallies, latencies, checks

@@ -46,6 +46,22 @@ class TestOutcome:
     chosen: list[int] = field(default_factory=list)
     confidences: list[float] = field(default_factory=list)  # per step of the whole test (held after a decision)
     decided_step: int | None = None  # the step of an early decision (stop_confidence), if any
+    tags: TagOutcome | None = None  # a search for several tags (issue 21): per tag, what it named and how it scored
+
+
+@dataclass
+class TagOutcome:
+    """Per tag of one test that searched for K tags: the estimates and confidences it named after
+    each step, the step each tag was decided at, and, once scored, per step whether the target
+    named for tag k carries tag k (eq. 11 per tag) and whether that carrier is in the FoV.
+    Arrays are (K, T) over the whole test (an episode that ended early holds its answers)."""
+
+    estimates: list[list[float]] = field(default_factory=list)  # per step, K values
+    confidences: list[list[float]] = field(default_factory=list)  # per step, K values
+    decided_steps: list[int | None] = field(default_factory=list)  # K values
+    hits: np.ndarray | None = None  # (K, T) bool
+    in_fov: np.ndarray | None = None  # (K, T) bool
+    held_confidences: np.ndarray | None = None  # (K, T) float
 
 
 def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = None) -> TrainedPOD:
@@ -63,13 +79,19 @@ def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod
     first step whose confidence reaches ``stop_confidence`` (> 0): that answer is final. The
     policy sees the measurements only (``StepMeasurement``); truth scores it afterwards."""
     platform = SimulatedPlatform(scenario, seed, test_index)
-    policy = new_policy(algorithm, scenario, seed, test_index, pod_model, settings)
+    policy = new_policy(algorithm, scenario, seed, test_index, pod_model, settings, stop_confidence)
     outcome = TestOutcome(algorithm=algorithm, test_index=test_index)
     pan = policy.first_pan()
     says_confidence = True
     for t in range(scenario.steps):
         measurement = platform.sense(t, pan)
         decision = policy.step(measurement)
+        tags = getattr(decision, "tags", None) if scenario.n_tags > 1 else None
+        if tags:  # several tags (issue 21): the episode ends when every tag is decided
+            outcome.tags = outcome.tags or TagOutcome()
+            outcome.tags.estimates.append([float(d.estimate_rad) for d in tags])
+            outcome.tags.confidences.append([float(d.confidence) for d in tags])
+            outcome.tags.decided_steps = [d.decided_step for d in tags]
         outcome.pans.append(pan)
         outcome.estimates.append(float(decision.estimate_rad))
         reward = getattr(decision, "reward", None)
@@ -78,7 +100,11 @@ def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod
         says_confidence = says_confidence and confidence is not None
         outcome.confidences.append(0.0 if confidence is None else float(confidence))
         pan = float(decision.next_pan_rad)
-        if stop_confidence > 0.0 and confidence is not None and confidence >= stop_confidence:
+        if tags:
+            if stop_confidence > 0.0 and getattr(decision, "all_decided", False):
+                outcome.decided_step = t
+                break
+        elif stop_confidence > 0.0 and confidence is not None and confidence >= stop_confidence:
             outcome.decided_step = t
             break
     truth = platform.truth
@@ -89,14 +115,34 @@ def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod
     outcome.in_fov = [bool(f) for f in in_fov]
     outcome.chosen = [int(i) for i in chosen]
     outcome.confidences = held(outcome.confidences, scenario.steps) if says_confidence else []
+    if outcome.tags is not None:
+        score_tags(outcome.tags, bearings, truth.carriers, scenario, outcome.decided_step)
     return outcome
 
 
+def score_tags(tags: TagOutcome, bearings, carriers, scenario: Scenario, decided_step: int | None) -> None:
+    """Score each tag's estimates against its carrier (eq. 11 per tag), held to the horizon after
+    an early end; fills ``tags.hits``, ``tags.in_fov`` and ``tags.held_confidences``."""
+    estimates = np.asarray(tags.estimates, dtype=float)  # (t_run, K)
+    hits, in_fov = [], []
+    for k in range(estimates.shape[1]):
+        h, f, _ = score_episode(estimates[:, k], bearings, carriers[k], scenario.fov_half_angle_rad, scenario.steps, decided_step)
+        hits.append(h)
+        in_fov.append(f)
+    tags.hits = np.asarray(hits, dtype=bool)
+    tags.in_fov = np.asarray(in_fov, dtype=bool)
+    conf = np.asarray(tags.confidences, dtype=float)
+    if conf.shape[0] < scenario.steps:
+        conf = np.concatenate([conf, np.repeat(conf[-1:], scenario.steps - conf.shape[0], axis=0)])
+    tags.held_confidences = conf.T.copy()
+
+
 def new_policy(algorithm: str, scenario: Scenario, seed: int, test_index: int, pod_model: PODModel,
-               settings: ControllerSettings | None = None):
+               settings: ControllerSettings | None = None, stop_confidence: float = 0.0):
     """The policy object of one simulated episode, given what the contract allows: the rig as
-    the scenario describes it, the POD model, the public scenario, the seed and test index."""
-    context = episode_context(sensor_config_from_scenario(scenario), pod_model, scenario, seed, test_index)
+    the scenario describes it, the POD model, the public scenario, the seed and test index, and
+    the campaign's early-decision level."""
+    context = episode_context(sensor_config_from_scenario(scenario), pod_model, scenario, seed, test_index, stop_confidence)
     return registry.create(algorithm, context, settings)
 
 
@@ -167,21 +213,6 @@ def overrides_of(preset: str, scenario: dict[str, Any]) -> dict[str, Any]:
     return {name: value for name, value in scenario.items() if base.get(name) != value}
 
 
-def check_tags(scenario: Scenario) -> None:
-    """Refuse, in one line, a scenario with several tags (protocol 1.4, ``n_tags`` > 1): the world
-    and the wire carry them (docs/tags.md), but the built-in controllers and the in-process
-    scoring still search for one tag (issue 21: the joint search lands next).
-
-    Raises
-    ------
-    ScenarioError
-        ``n_tags`` is not 1.
-    """
-    if scenario.n_tags != 1:
-        raise ScenarioError(f"n_tags={scenario.n_tags}: the built-in controllers do not search for several tags yet "
-                            "(protocol 1.4; docs/tags.md, 'What is not done yet'); use n_tags=1")
-
-
 def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = registry.BUILTINS,
                  settings: ControllerSettings | None = None,
                  progress: Callable[[int, int], None] | None = None, stop_confidence: float = 0.0,
@@ -197,7 +228,6 @@ def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorit
     """
     from ra2vipas.services.orchestrator.engine import Point, run_points
 
-    check_tags(scenario)
     point = Point(preset=preset, scenario=scenario, tests=tests, seed=seed, algorithms=tuple(algorithms),
                   stop_confidence=stop_confidence)
     announce = None if on_trained is None else (lambda _i, pod: on_trained(pod))

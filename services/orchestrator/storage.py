@@ -31,7 +31,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 from pydantic_core import to_json
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -124,6 +124,12 @@ _MIGRATIONS: dict[int, str] = {
     6: """
     ALTER TABLE campaigns ADD COLUMN targeting TEXT;
     ALTER TABLE episodes ADD COLUMN model_check TEXT
+    """,
+    # 7: many tags (issue 21): an episode that searched for K > 1 tags, scored per tag
+    #    ({"hits": [[0|1] * T] * K, "in_fov": same, "confidences": [[float] * T] * K | null,
+    #    "decided": [step | null] * K}, the series held to the horizon); NULL for one tag.
+    7: """
+    ALTER TABLE episodes ADD COLUMN tags TEXT
     """,
 }
 
@@ -546,16 +552,17 @@ class Store:
                        rewards: list[float], chosen: list[int], tx_index: int, bearings: list[float], ranges: list[float],
                        latencies: list[float] | None, trajectories: list[dict] | None = None,
                        confidences: list[float] | None = None, decided_step: int | None = None,
-                       model_check: dict | None = None) -> bool:
+                       model_check: dict | None = None, tags: dict | None = None) -> bool:
         """Record a finished test in one transaction; False if it was already recorded (no
         duplicate) or its campaign was cancelled. ``bearings``/``ranges`` are the targets at
         step 0; ``trajectories`` the walking ones' per-step truth, if any; ``confidences`` the
         controller's per step (None from a v1 controller); ``decided_step`` an early decision;
-        ``model_check`` how the controller modelled the rig (None from a v1 controller)."""
+        ``model_check`` how the controller modelled the rig (None from a v1 controller); ``tags``
+        a search for several tags scored per tag (schema 7's ``episodes.tags``; None for one tag)."""
         return self.finish_episodes([(key, dict(
             hits=hits, in_fov=in_fov, estimates=estimates, pans=pans, rewards=rewards, chosen=chosen, tx_index=tx_index,
             bearings=bearings, ranges=ranges, latencies=latencies, trajectories=trajectories, confidences=confidences,
-            decided_step=decided_step, model_check=model_check))])[0]
+            decided_step=decided_step, model_check=model_check, tags=tags))])[0]
 
     def finish_episodes(self, finished: Sequence[tuple[EpisodeKey, dict[str, Any]]]) -> list[bool]:
         """Record finished tests in one transaction (the orchestrator saves a burst of them at
@@ -583,7 +590,7 @@ class Store:
         """A campaign's done episodes in (test index, algorithm) order, a page at a time (the lock
         is released between pages), each with only what its reduction needs: ``hits``,
         ``in_fov``, ``confidences`` (None from a v1 controller), ``decided_step``, ``latencies``,
-        ``rig``, ``model_check`` (None from a v1 controller) and ``n_estimates`` (control steps run). Memory holds one page, whatever the campaign's size.
+        ``rig``, ``model_check`` (None from a v1 controller), ``tags`` (per tag, None for one tag) and ``n_estimates`` (control steps run). Memory holds one page, whatever the campaign's size.
 
         Raises
         ------
@@ -594,7 +601,7 @@ class Store:
         while True:
             with self._reading() as db:
                 rows = db.execute(
-                    "SELECT test_index, algorithm, rig, hits, in_fov, confidences, decided_step, latencies, model_check,"
+                    "SELECT test_index, algorithm, rig, hits, in_fov, confidences, decided_step, latencies, model_check, tags,"
                     " json_array_length(estimates) AS n_estimates FROM episodes"
                     " WHERE campaign_id=? AND status='done' AND (test_index, algorithm) > (?, ?)"
                     " ORDER BY test_index, algorithm LIMIT ?", (cid, *after, page)).fetchall()
@@ -697,7 +704,7 @@ def _campaign_dict(row: sqlite3.Row, counts: dict[str, int]) -> dict[str, Any]:
 
 
 _FINISH_SQL = ("UPDATE episodes SET status='done', hits=?, in_fov=?, estimates=?, pans=?, rewards=?, chosen=?, tx_index=?,"
-               " bearings=?, ranges=?, latencies=?, trajectories=?, confidences=?, decided_step=?, model_check=?, finished_at=?"
+               " bearings=?, ranges=?, latencies=?, trajectories=?, confidences=?, decided_step=?, model_check=?, tags=?, finished_at=?"
                " WHERE campaign_id=? AND test_index=? AND algorithm=? AND status IN ('pending', 'running')")
 
 
@@ -713,21 +720,21 @@ def _finished_row(key: EpisodeKey, finished_at: float, *, hits: list[bool], in_f
                   pans: list[float], rewards: list[float], chosen: list[int], tx_index: int, bearings: list[float],
                   ranges: list[float], latencies: list[float] | None, trajectories: list[dict] | None = None,
                   confidences: list[float] | None = None, decided_step: int | None = None,
-                  model_check: dict | None = None) -> tuple:
+                  model_check: dict | None = None, tags: dict | None = None) -> tuple:
     """The parameters of ``_FINISH_SQL`` for one finished test."""
     return (_json_text([int(h) for h in hits]), _json_text([int(f) for f in in_fov]), _json_text(estimates), _json_text(pans),
             _json_text(rewards), _json_text(chosen), tx_index, _json_text(bearings), _json_text(ranges),
             None if latencies is None else _json_text(latencies),
             None if trajectories is None else _json_text(trajectories),
             None if confidences is None else _json_text(confidences), decided_step,
-            None if model_check is None else _json_text(model_check), finished_at,
+            None if model_check is None else _json_text(model_check), None if tags is None else _json_text(tags), finished_at,
             key.campaign_id, key.test_index, key.algorithm)
 
 
 def _episode_dict(row: sqlite3.Row) -> dict[str, Any]:
     d = dict(row)
     for k in ("hits", "in_fov", "estimates", "pans", "rewards", "chosen", "bearings", "ranges", "latencies", "trajectories",
-              "confidences", "model_check"):
+              "confidences", "model_check", "tags"):
         if d.get(k) is not None:
             d[k] = json.loads(d[k])
     return d

@@ -32,7 +32,7 @@ def finish(store: Store, key: EpisodeKey) -> bool:
 def test_the_database_is_in_wal_mode_at_the_current_schema_version(tmp_path, store):
     db = sqlite3.connect(tmp_path / "s.db")
     assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
-    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == str(storage.SCHEMA_VERSION) == "6"
+    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == str(storage.SCHEMA_VERSION) == "7"
     db.close()
 
 
@@ -53,7 +53,7 @@ def test_a_version_1_database_is_migrated_and_keeps_its_campaigns(tmp_path):
     finally:
         s.close()
     db = sqlite3.connect(path)
-    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == "6"
+    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0] == "7"
     db.close()
 
 

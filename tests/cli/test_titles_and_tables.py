@@ -82,3 +82,38 @@ def test_a_study_results_points_carry_their_paired_tests():
     study = ra2vipas.study({"rf_noise_db": [2.0, 6.0]}, overrides=SMALL, tests=3, seed=2, algorithms=["ra2vipas", "rapas"])
     for point in study["points"]:
         assert [(p["a"], p["b"], p["tests"]) for p in point["paired"]] == [("ra2vipas", "rapas", 3)]
+
+
+def _tags_block(finals: list[float], all_found: float, decided: bool = True) -> dict:
+    def one(v: float) -> dict:
+        return {"dr": [v / 2, v], "dr_final": v, "ci95": [v - 0.1, min(v + 0.05, 1.0)], "dr_ci95": [[0.0, 0.5], [v - 0.1, v]],
+                "time_to_dr90_s": None, "in_fov_final": v, "calibration": {"ece_final": 0.042}}
+    per_tag = [one(v) for v in finals]
+    if decided:
+        for b in per_tag:
+            b["decision"] = {"median_s": 0.7, "p90_s": 1.1, "undecided": 0.25}
+    out = {"per_tag": per_tag, "mean_tag_dr_final": sum(finals) / len(finals), "all_found": one(all_found)}
+    if decided:
+        out["all_decided"] = {"median_s": 1.3, "p90_s": 1.9, "undecided": 0.5}
+    return out
+
+
+def test_a_many_tags_campaign_has_a_per_tag_table_and_one_curve_per_tag_plus_all_found(capsys):
+    results = results_of(8)
+    results["algorithms"]["ra2vipas"]["tags"] = _tags_block([0.75, 0.5, 0.25], 0.125)
+    print_results(results)
+    out = capsys.readouterr().out
+    assert "Per tag: DR_t of each tag k" in out
+    table = out[out.index("Per tag"):]
+    rows = [line for line in table.splitlines() if line.startswith("│ ra2vipas ")]
+    assert [r.split("│")[2].strip() for r in rows] == ["0", "1", "2", "all"]
+    assert "0.125" in rows[-1] and "1.3 s" in rows[-1] and "1.9 s" in rows[-1] and "0.500" in rows[-1]
+    assert "0.042" in rows[0] and "0.7 s" in rows[0]
+    assert "ra2vipas 0.500" in " ".join(out.split())  # the mean per-tag DR, in the caption
+    labels = [line.get_label() for line in dr_figure(results).axes[0].lines]
+    assert [lb for lb in labels if lb.startswith("Ra")][:4] == [
+        "Ra²ViPAS, tag 0 (final 0.750)", "Ra²ViPAS, tag 1 (final 0.500)", "Ra²ViPAS, tag 2 (final 0.250)",
+        "Ra²ViPAS, all found (final 0.125)"]
+    del results["algorithms"]["ra2vipas"]["tags"]
+    print_results(results)
+    assert "Per tag" not in capsys.readouterr().out  # one tag: no such table

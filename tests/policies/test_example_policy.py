@@ -72,4 +72,4 @@ def test_simulate_and_a_mesh_campaign_run_it_beside_a_builtin_and_agree(installe
 def test_a_policy_that_is_not_installed_is_refused_naming_the_installed_ones(tmp_path):
     out = _run(["simulate", "-a", "greedy", "--tests", "1", *SMALL], {k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
     assert out.returncode == 2
-    assert "unknown policy 'greedy'; installed: ra2vipas, rapas, ravipas, sweep (or give module:Class)" in out.stderr
+    assert "unknown policy 'greedy'; installed: ra2vipas, rapas, ravipas, sweep, ra2vipas-seq (or give module:Class)" in out.stderr

@@ -160,7 +160,7 @@ def test_measurements_of_several_tags_round_trip_the_wire():
             assert back.tags() == m.tags() and back.rssi_dbm("dir", tag=None) == m.rssi_dbm("dir", tag=None)
 
 
-def test_simulate_refuses_several_tags_in_one_line():
-    with pytest.raises(ScenarioError, match=r"^n_tags=3: the built-in controllers do not search for several tags yet") as err:
-        run_campaign("ward", build_scenario("ward"), tests=1, seed=1)
-    assert "\n" not in str(err.value)
+def test_simulate_searches_every_tag_of_a_ward_and_reports_each():
+    results = run_campaign("ward", build_scenario("ward", {"steps": 20, "n_targets": 8}), tests=2, seed=1, algorithms=["ra2vipas"])
+    tags = results["algorithms"]["ra2vipas"]["tags"]
+    assert len(tags["per_tag"]) == 3 and len(tags["all_found"]["dr"]) == 20

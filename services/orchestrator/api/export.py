@@ -12,7 +12,8 @@ Two tables, each a plain CSV (UTF-8, ``\\n`` line ends, one header row, no comme
   the discovery rate DR_t and its Wilson 95 % interval;
 * ``summary``: one row per algorithm: the final DR and its interval, the time to DR >= 0.9,
   the in-FoV rate, the calibration (``ece_final``, ``confidence_final``) and early-decision
-  fields when the results have them, the POD R², and ``partial`` / ``tests_recorded``.
+  fields when the results have them, the per-tag fields of a search for several tags
+  (``tag_columns``), the POD R², and ``partial`` / ``tests_recorded``.
 
 Both start with the same columns: what was run. ``campaign_id`` and ``name``, then ``preset``,
 ``seed`` and ``tests``, then one column per scenario parameter that differs from the preset
@@ -71,11 +72,33 @@ def summary_rows(results: dict[str, Any], ids: dict[str, Any] | None = None) -> 
                 row[f"decision_{key}_lo"], row[f"decision_{key}_hi"] = value
             elif not isinstance(value, (list, dict)):
                 row[f"decision_{key}"] = value
+        row.update(tag_columns(block.get("tags")))
         row["pod_r2"] = results["pod"].get("r2")
         row["partial"] = bool(results.get("partial"))
         row["tests_recorded"] = recorded.get(name, results["tests"])
         rows.append(row)
     return rows
+
+
+def tag_columns(tags: dict[str, Any] | None) -> dict[str, Any]:
+    """A search for several tags (issue 21) in the summary table: the mean per-tag DR, the
+    all-found rate (final, interval, time to 0.9), the time until all were decided, and per tag k
+    ``tag{k}_dr_final``, its interval, ECE and median time to decision. Empty for one tag."""
+    if not tags:
+        return {}
+    found = tags["all_found"]
+    out: dict[str, Any] = {"mean_tag_dr_final": tags["mean_tag_dr_final"], "all_found_final": found["dr_final"],
+                           "all_found_ci_lo": found["ci95"][0], "all_found_ci_hi": found["ci95"][1],
+                           "all_found_time_to_dr90_s": found["time_to_dr90_s"]}
+    for key, value in (tags.get("all_decided") or {}).items():
+        out[f"all_decided_{key}"] = value
+    for k, block in enumerate(tags["per_tag"]):
+        out[f"tag{k}_dr_final"] = block["dr_final"]
+        out[f"tag{k}_ci_lo"], out[f"tag{k}_ci_hi"] = block["ci95"]
+        out[f"tag{k}_ece_final"] = (block.get("calibration") or {}).get("ece_final")
+        if "decision" in block:
+            out[f"tag{k}_decided_median_s"] = block["decision"].get("median_s")
+    return out
 
 
 def write_rows(rows: list[dict[str, Any]]) -> str:

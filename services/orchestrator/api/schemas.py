@@ -177,6 +177,32 @@ class AlgorithmResults(BaseModel):
     in_fov_final: float = Field(description="rate of tests with the Tx inside the FoV at the final estimate (secondary)")
     calibration: Optional[Calibration] = Field(None, description="how honest the confidences were (absent without confidences)")
     decision: Optional[Decision] = Field(None, description="early decision (campaigns with stop_confidence > 0)")
+    tags: Optional["TagsResults"] = Field(None, description="a search for several tags (n_tags > 1): per tag and all found; "
+                                                            "the fields above then describe tag 0")
+
+
+class AllFound(BaseModel):
+    dr: list[float] = Field(description="at every step, the share of tests in which every tag's named target carries it")
+    dr_final: float
+    ci95: list[float] = Field(min_length=2, max_length=2, description="Wilson 95 % interval of the final rate")
+    dr_ci95: list[list[float]] = Field(description="Wilson 95 % interval [lo, hi] at every step")
+    time_to_dr90_s: Optional[float] = Field(description="time after which the rate stays >= 0.9; null if it ends below")
+
+
+class AllDecided(BaseModel):
+    median_s: Optional[float] = Field(description="median time until every tag was decided, over the tests where all were")
+    p90_s: Optional[float] = Field(description="its 90th percentile")
+    undecided: Optional[float] = Field(description="share of tests in which some tag never reached the confidence")
+
+
+class TagsResults(BaseModel):
+    """A search for several tags (issue 21; docs/tags.md)."""
+
+    per_tag: list[AlgorithmResults] = Field(description="per tag k, its block: DR_t against tag k's carrier (eq. 11 per tag), "
+                                                        "calibration, decision")
+    mean_tag_dr_final: float = Field(description="the mean over the tags of their final DR")
+    all_found: AllFound
+    all_decided: Optional[AllDecided] = Field(None, description="early decision (campaigns with stop_confidence > 0)")
 
 
 class PairedComparison(BaseModel):
@@ -200,6 +226,9 @@ class LatencySummary(BaseModel):
     p99: float
 
 
+AlgorithmResults.model_rebuild()
+
+
 class ResultsPublic(BaseModel):
     """The results object, the same as ``ra2vipas simulate --json`` prints."""
 
@@ -221,6 +250,8 @@ class ResultsPublic(BaseModel):
     outcomes: Optional[dict[str, list[Optional[int]]]] = Field(None, description="per algorithm, the final hit (1/0) of every test "
                                                                                  "by index (null: not recorded)")
     paired: Optional[list[PairedComparison]] = Field(None, description="every pair of algorithms compared test by test (McNemar)")
+    paired_all_found: Optional[list[PairedComparison]] = Field(None, description="several tags: the same comparison on whether "
+                                                                                  "every tag's final answer was right")
     warnings: Optional[list[str]] = Field(None, description="what makes these numbers suspect, e.g. every radio algorithm far below "
                                                             "chance, or Rx(dir)'s samples contradicting the assumed antenna model")
     assumptions: Optional[dict[str, Any]] = Field(None, description="present when some episodes ran on undescribed rigs: they were "

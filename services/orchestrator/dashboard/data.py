@@ -132,11 +132,34 @@ def summary_table(results: dict[str, Any]) -> dict[str, Any]:
     present = set().union(*blocks.values()) if blocks else set()
     columns = [(key, title) for key, title in SUMMARY_COLUMNS if key in present]
     known = {key for key, _ in SUMMARY_COLUMNS} | _NOT_SUMMARISED
-    extra = sorted(k for k in present - known if all(_shown(b.get(k)) for b in blocks.values()))
+    extra = sorted(k for k in present - known if all(_shown(b.get(k)) for b in blocks.values()) and not k.startswith("tags."))
     columns += [(key, key) for key in extra]
     rows = [{"algorithm": name, "label": label(name), "cells": [fmt(flat.get(key)) for key, _ in columns]}
             for name, flat in blocks.items()]
     return {"columns": [title for _, title in columns], "keys": [key for key, _ in columns], "rows": rows}
+
+
+def tags_table(results: dict[str, Any]) -> dict[str, Any] | None:
+    """A search for several tags (issue 21): per algorithm, one row per tag k (its final DR
+    against its carrier, Wilson interval, time to 0.9, final ECE, median time to decide) and one
+    for "all found" (with the time until the last tag was decided); None for one tag."""
+    rows = []
+    for name, block in results.get("algorithms", {}).items():
+        tags = block.get("tags")
+        if not tags:
+            continue
+        for k, tag in enumerate(tags["per_tag"]):
+            rows.append({"label": label(name), "tag": str(k),
+                         "cells": [fmt(tag["dr_final"]), fmt(tag["ci95"]), fmt(tag["time_to_dr90_s"], 1),
+                                   fmt((tag.get("calibration") or {}).get("ece_final")),
+                                   fmt((tag.get("decision") or {}).get("median_s"), 2)]})
+        found = tags["all_found"]
+        rows.append({"label": label(name), "tag": f"all (mean per tag {fmt(tags['mean_tag_dr_final'])})",
+                     "cells": [fmt(found["dr_final"]), fmt(found["ci95"]), fmt(found["time_to_dr90_s"], 1), "—",
+                               fmt((tags.get("all_decided") or {}).get("median_s"), 2)]})
+    if not rows:
+        return None
+    return {"columns": ["final DR", "95 % CI", "t90 [s]", "ECE final", "median time to decide [s]"], "rows": rows}
 
 
 def dr_curves(results: dict[str, Any], max_points: int = MAX_POINTS) -> dict[str, Any]:

@@ -307,6 +307,7 @@ def campaign_page(request: Request, campaign_id: CampaignId, missed: bool = Fals
         "changed": sum(1 for r in data.scenario_rows(row["preset"], row["scenario"], row["overrides"]) if r["changed"]),
         "active": row["status"] in ACTIVE, "finished": row["status"] in FINISHED, "results": results,
         "summary": data.summary_table(results) if results else None,
+        "tags": data.tags_table(results) if results else None,
         "curves": data.dr_curves(results) if results else None,
         "has_reliability": bool(results) and any("calibration" in b for b in results["algorithms"].values()),
         "reliability": data.reliability_series(results) if results else None,
