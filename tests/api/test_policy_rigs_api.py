@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import pytest
 
+from ra2vipas.services.controller import registry
 from ra2vipas.services.controller.registry import BUILTINS
 from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from tests.api.live import SMALL, LiveAPI
@@ -42,7 +43,7 @@ def test_rigs_show_the_policies_their_controllers_serve(server):
 def test_a_policy_no_live_controller_serves_is_a_422_listing_the_available_ones(server):
     r = _start(server, algorithms=["ra2vipas", "nope"])
     assert r.status_code == 422, r.text
-    available = ", ".join([*BUILTINS, "spin"])
+    available = ", ".join([*registry.names(), "spin"])  # all-1 serves every installed policy (ra2vipas-seq too)
     assert r.json()["detail"] == f"algorithms: no live controller serves policy 'nope'; available: {available}"
     assert r.json()["errors"][0]["loc"] == ["body", "algorithms"]
     r = _start(server, algorithms=["rapas"], rigs=["spin-1"])  # only the targeted rigs' controllers count
