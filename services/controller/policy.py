@@ -103,6 +103,7 @@ class ControllerSettings:
     walk_penalty: float = 2.0  # nats the recent lobe must gain to count as motion
     probe_rf_peaks: bool = False  # probe between the two best RF peaks, not the two best tracks (always when the Tx walks)
     walker_answer_from_rf: bool = True  # a Tx that walks is named where l_RF peaks (its track may lag or be lost)
+    walker_track_snap_rad: float = 0.0  # ... unless the most probable track, being followed, is this close: its bearing (0: off)
     mass_in_acquisition: bool = True
     # -- the Rx(dir) response known from the rig: a grid Bayes filter over the Tx bearing (rf_filter.py)
     rf_filter: bool = True
@@ -120,7 +121,7 @@ class ControllerSettings:
     # -- box heights as a range cue (protocol 1.3 boxes with heights; range_cue.py): used only when the rig says its boxes
     # carry heights (SensorConfig.box_heights) and a public propagation model is given (range_model: the campaign's
     # configured path loss and shadowing, range_cue.RangeModel.from_scenario; the built-ins take it from the episode's scenario)
-    height_cue: bool = True
+    height_cue: bool = False  # off by default: measured not to help on dynamic with heights (docs/radio.md); heights_policy.py turns it on
     range_model: "RangeModel | None" = None
     person_height_m: tuple[float, float] = (1.5, 1.9)  # public prior of a person's height (adults standing), uniform [m]
     height_weight: float = 1.0  # tempering of the range cue's log Bayes factor

@@ -12,6 +12,7 @@ import pytest
 
 from ra2vipas.services.controller.builtins import Ra2ViPAS
 from ra2vipas.services.controller.contract import episode_context
+from ra2vipas.services.controller.heights_policy import Ra2ViPASHeights
 from ra2vipas.services.controller.policy import (
     Controller,
     ControllerSettings,
@@ -27,6 +28,7 @@ from ra2vipas.services.sensors import radio
 from ra2vipas.services.sensors.world import SimulatedPlatform
 from tests.conftest import small_scenario
 
+ON = ControllerSettings(height_cue=True)
 MODEL = RangeModel(ref_dbm=-30.0, exponent=2.0, ref_distance_m=1.0, shadowing_db=4.0)
 
 
@@ -143,10 +145,11 @@ def test_a_walking_track_is_scored_on_its_recent_boxes_and_level():
 def test_with_range_model_only_when_the_boxes_carry_heights(small_pod):
     sc = small_scenario(box_heights=True, shadowing_db=3.0, path_loss_ref_dbm=-40.0, path_loss_exponent=2.5)
     ctx = episode_context(sensor_config_from_scenario(sc), small_pod.model, sc, 1, 0)
-    cfg = with_range_model(None, ctx)
+    assert with_range_model(None, ctx) is None  # the cue is off by default: nothing to add
+    cfg = with_range_model(ON, ctx)
     assert cfg.range_model == RangeModel(ref_dbm=-40.0, exponent=2.5, ref_distance_m=1.0, shadowing_db=3.0)
     plain = small_scenario()
-    assert with_range_model(None, episode_context(sensor_config_from_scenario(plain), small_pod.model, plain, 1, 0)) is None
+    assert with_range_model(ON, episode_context(sensor_config_from_scenario(plain), small_pod.model, plain, 1, 0)) is ON
     off = ControllerSettings(height_cue=False)
     assert with_range_model(off, ctx) is off
     # the rig's descriptor decides: a rig whose boxes carry no heights turns the cue off whatever the campaign says
@@ -159,7 +162,7 @@ def test_the_cue_reads_a_public_prior_never_the_world_s_heights(small_pod):
     """The world's height range is the world's business: the controller's prior is its own
     setting (1.5-1.9 m), so a world of 1.0-1.1 m people does not move it."""
     sc = small_scenario(box_heights=True, target_height_min_m=1.0, target_height_max_m=1.1)
-    policy = Ra2ViPAS(episode_context(sensor_config_from_scenario(sc), small_pod.model, sc, 1, 0))
+    policy = Ra2ViPASHeights(episode_context(sensor_config_from_scenario(sc), small_pod.model, sc, 1, 0))
     cue = policy.controller.parts.vision.ranges
     assert cue is not None and (cue.m_h, cue.v_h) == height_prior(1.5, 1.9)
     assert set(dataclasses.asdict(cue.model)) == {"ref_dbm", "exponent", "ref_distance_m", "shadowing_db"}
@@ -175,17 +178,18 @@ def _decisions(policy, platform, steps=30):
 
 
 def test_the_cue_changes_the_decisions_only_when_heights_are_on(small_pod):
-    """With box heights on, the built-in with the cue decides differently from the one without
-    (the cue enters the posterior); a rig without heights builds no cue and decides as before."""
+    """With box heights on, Ra2ViPAS with the cue decides differently from the built-in (off by
+    default: no cue); a rig without heights builds no cue and decides as the built-in does."""
     sc = small_scenario("dynamic", box_heights=True)
     ctx = episode_context(sensor_config_from_scenario(sc), small_pod.model, sc, 2, 1)
-    with_cue = _decisions(Ra2ViPAS(ctx), SimulatedPlatform(sc, 2, 1))
-    without = _decisions(Ra2ViPAS(ctx, ControllerSettings(height_cue=False)), SimulatedPlatform(sc, 2, 1))
-    assert Ra2ViPAS(ctx).controller.parts.vision.ranges is not None
+    with_cue = _decisions(Ra2ViPASHeights(ctx), SimulatedPlatform(sc, 2, 1))
+    without = _decisions(Ra2ViPAS(ctx), SimulatedPlatform(sc, 2, 1))
+    assert Ra2ViPASHeights(ctx).controller.parts.vision.ranges is not None
+    assert Ra2ViPAS(ctx).controller.parts.vision.ranges is None  # the built-in: off by default
     assert [d[2] for d in with_cue] != [d[2] for d in without]
     plain = small_scenario("dynamic")
     ctx = episode_context(sensor_config_from_scenario(plain), small_pod.model, plain, 2, 1)
-    policy = Ra2ViPAS(ctx)
+    policy = Ra2ViPASHeights(ctx)
     assert policy.controller.parts.vision.ranges is None
     same = Controller("ra2vipas", sensor_config_from_scenario(plain), small_pod.model)
     assert _decisions(policy, SimulatedPlatform(plain, 2, 1)) == _decisions(same, SimulatedPlatform(plain, 2, 1))
