@@ -83,8 +83,7 @@ def active_search(circle: CircleGrid, sensors: SensorConfig, cfg: ControllerSett
 def _parts(circle, sensors, pod, cfg, rf: RFBelief, vision: VisionBelief, acquisition: Acquisition) -> Parts:
     return Parts(iso=IsoLevel(pod.rf_noise_db), rf=rf, vision=vision,
                  fusion=Fusion(circle, rf_weight=cfg.rf_weight, missed_prior_per_rad=cfg.missed_prior_per_rad,
-                               answer_window_rad=cfg.answer_window_rad, walker_answer_from_rf=cfg.walker_answer_from_rf,
-                               walker_track_snap_rad=cfg.walker_track_snap_rad),
+                               answer_window_rad=cfg.answer_window_rad, walker_answer_from_rf=cfg.walker_answer_from_rf),
                  acquisition=acquisition, confidence=Confidence(cfg.confidence_calibration, walk_prior=cfg.tx_walk_prior))
 
 

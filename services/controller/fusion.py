@@ -22,7 +22,6 @@ from ra2vipas.services.controller import _kernels
 from ra2vipas.services.controller.grid import CircleGrid
 from ra2vipas.services.controller.rf_belief import IsoLevel, RFBelief
 from ra2vipas.services.controller.vision_belief import VisionBelief
-from ra2vipas.services.protocol.angles import wrap
 
 
 def refined_argmax(circle: CircleGrid, values: np.ndarray) -> float:
@@ -65,12 +64,6 @@ class Fusion:
         The posterior mass within this of the answer is its raw confidence.
     walker_answer_from_rf : bool
         A Tx that walks (P > 0.5) is named where l_RF peaks (its track may lag or be lost).
-    walker_track_snap_rad : float
-        ... unless the most probable track is that close to the l_RF peak and is being followed
-        (its bearing's standard deviation at most ``walker_track_sd_rad``): then its bearing, the
-        camera's, far sharper than Rx(dir)'s lobe (0: off).
-    walker_track_sd_rad : float
-        The largest bearing standard deviation of a track so named.
 
     Attributes
     ----------
@@ -80,11 +73,8 @@ class Fusion:
     """
 
     def __init__(self, circle: CircleGrid, rf_weight: float = 1.0, missed_prior_per_rad: float = 5.0,
-                 answer_window_rad: float = math.radians(2.0), walker_answer_from_rf: bool = True,
-                 walker_track_snap_rad: float = 0.0, walker_track_sd_rad: float = math.radians(1.0)) -> None:
+                 answer_window_rad: float = math.radians(2.0), walker_answer_from_rf: bool = True) -> None:
         self.circle = circle
-        self.walker_track_snap_rad, self.walker_track_sd_rad = walker_track_snap_rad, walker_track_sd_rad
-        self._bearing = self._sd = np.empty(0)
         self.rf_weight, self.missed_prior_per_rad = rf_weight, missed_prior_per_rad
         self.answer_window_rad, self.walker_answer_from_rf = answer_window_rad, walker_answer_from_rf
         self.where = np.empty(0)
@@ -99,8 +89,6 @@ class Fusion:
         alpha, beta = vision.tx_pod(iso)
         a0, b0 = vision.null_pod_prior
         n = len(tracks)
-        if self.walker_track_snap_rad > 0.0:
-            self._bearing, self._sd = tracks.bearing, tracks.bearing_sd
         l_tracks = np.empty(n)
         self.where = np.empty(n)
         if n and rf.exact:  # the filter's trajectory evidence plus the POD evidence (``_kernels.pod_evidence``)
@@ -155,8 +143,5 @@ class Fusion:
             if rf.listens and self.walker_answer_from_rf and rf.tx_walks > 0.5:
                 # a walker: the tracks are where the camera last saw people, l_RF where the Tx is now
                 estimate = refined_argmax(self.circle, l_rf)
-                if (self.walker_track_snap_rad > 0.0 and i < self._sd.size and self._sd[i] <= self.walker_track_sd_rad
-                        and abs(float(wrap(self._bearing[i] - estimate))) <= self.walker_track_snap_rad):
-                    estimate = float(self._bearing[i])  # the walker's track is being followed: the camera's bearing
             return estimate, float(post[i]) + arc_mass(post_missed, self.circle.nearest(estimate), half), post
         return refined_argmax(self.circle, l_missed), missed_mass, post

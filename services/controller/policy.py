@@ -103,7 +103,6 @@ class ControllerSettings:
     walk_penalty: float = 2.0  # nats the recent lobe must gain to count as motion
     probe_rf_peaks: bool = False  # probe between the two best RF peaks, not the two best tracks (always when the Tx walks)
     walker_answer_from_rf: bool = True  # a Tx that walks is named where l_RF peaks (its track may lag or be lost)
-    walker_track_snap_rad: float = 0.0  # ... unless the most probable track, being followed, is this close: its bearing (0: off)
     mass_in_acquisition: bool = True
     # -- the Rx(dir) response known from the rig: a grid Bayes filter over the Tx bearing (rf_filter.py)
     rf_filter: bool = True

@@ -126,12 +126,6 @@ class BearingTracker:
         return self._x[v, :, 0], np.sqrt(np.maximum(self._P[v, :, 0, 0], 0.0)), self._mu[v]
 
     @property
-    def bearing_sd(self) -> np.ndarray:
-        """Standard deviation of each track's combined bearing (small while it is being detected,
-        growing with the IMM's prediction while it is not)."""
-        return np.sqrt(np.maximum(self._var[self._view], 0.0))
-
-    @property
     def walking(self) -> np.ndarray:
         """Probability that each track walks (the IMM's walking-model probability)."""
         return self._mu[self._view, 1]
