@@ -38,8 +38,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ra2vipas.services.protocol.angles import wrap
-
 LOG10_2 = math.log10(2.0)
 
 
@@ -106,6 +104,11 @@ class RecentStats:
         self.w = self.w2 = self.s = self.s2 = 0.0
 
     def add(self, values: np.ndarray | list[float], t: float) -> None:
+        """Take ``values`` read at time ``t`` [s]."""
+        self.add_sums(len(values), float(sum(values)), float(sum(v * v for v in values)), t)
+
+    def add_sums(self, count: float, total: float, squares: float, t: float) -> None:
+        """Take ``count`` values read at time ``t`` [s], given by their sum and sum of squares."""
         if self.t is not None and t > self.t and math.isfinite(self.tau):
             f = math.exp(-(t - self.t) / self.tau)
             self.w *= f
@@ -113,11 +116,10 @@ class RecentStats:
             self.s *= f
             self.s2 *= f
         self.t = t if self.t is None else max(self.t, t)
-        for v in values:
-            self.w += 1.0
-            self.w2 += 1.0
-            self.s += v
-            self.s2 += v * v
+        self.w += count
+        self.w2 += count
+        self.s += total
+        self.s2 += squares
 
     def mean_var(self) -> tuple[float, float, float]:
         """(weighted mean, weighted variance of the values, effective count (sum w)^2 / sum w^2)."""
@@ -155,8 +157,11 @@ class RangeCue:
         self.m_h, self.v_h = height_prior(*person_height_m)
         self.gate = max(gate_sigmas * box_bearing_noise_rad, math.radians(1.0))
         self.walk_memory_s, self.floor_db, self.span_floor, self.weight = walk_memory_s, floor_db, span_floor, weight
-        self._all: dict[int, RecentStats] = {}  # per track id: every box
-        self._recent: dict[int, RecentStats] = {}  # per track id: the recent boxes
+        # per track id (stable, never reused), rows of (sum w, sum w^2, sum w y, sum w y^2): every box, and the recent
+        # boxes weighted exp(-(t_now - t)/walk_memory_s)
+        self._all = np.zeros((64, 4))
+        self._recent = np.zeros((64, 4))
+        self._t: float | None = None
         self.boxes = 0  # boxes with a height taken
 
     def update(self, pan_rad: float, frames, tracks, t: float) -> None:
@@ -164,25 +169,32 @@ class RangeCue:
         nearest confirmed track within the gate, its log10 span to the track's statistics."""
         if not len(tracks):
             return
-        bearings, ids = tracks.bearing, tracks.ids
-        per: dict[int, list[float]] = {}
-        for f in frames:
-            heights = getattr(f, "box_heights_rad", ())
-            if not heights or len(heights) != len(f.box_bearings_rad):
-                continue
-            rel = np.asarray(f.box_bearings_rad, dtype=float)
-            gaps = np.abs(wrap(pan_rad + rel[:, None] - bearings[None, :]))
-            nearest = np.argmin(gaps, axis=1)
-            ok = gaps[np.arange(rel.size), nearest] <= self.gate
-            if not ok.any():
-                continue
-            spans = log10_span(np.asarray(heights, dtype=float))
-            for j in np.flatnonzero(ok):
-                per.setdefault(int(ids[nearest[j]]), []).append(float(spans[j]))
-        for tid, values in per.items():
-            self.boxes += len(values)
-            self._all.setdefault(tid, RecentStats(math.inf)).add(values, t)
-            self._recent.setdefault(tid, RecentStats(self.walk_memory_s)).add(values, t)
+        counts = [len(h) if len(h) == len(f.box_bearings_rad) else 0 for f in frames for h in (getattr(f, "box_heights_rad", ()),)]
+        total = sum(counts)
+        if not total:
+            return
+        rel = np.fromiter((b for f, c in zip(frames, counts) if c for b in f.box_bearings_rad), dtype=float, count=total)
+        heights = np.fromiter((h for f, c in zip(frames, counts) if c for h in f.box_heights_rad), dtype=float, count=total)
+        bearings = tracks.bearing
+        gaps = np.abs((pan_rad + rel[:, None] - bearings[None, :] + math.pi) % (2.0 * math.pi) - math.pi)
+        nearest = np.argmin(gaps, axis=1)
+        ok = gaps[np.arange(total), nearest] <= self.gate
+        if self._t is not None and t > self._t and math.isfinite(self.walk_memory_s):
+            f = math.exp(-(t - self._t) / self.walk_memory_s)
+            self._recent *= np.array([f, f * f, f, f])
+        self._t = t if self._t is None else max(self._t, t)
+        if not ok.any():
+            return
+        spans = log10_span(heights[ok])
+        rows = tracks.ids[nearest[ok]]
+        if int(rows.max()) >= self._all.shape[0]:
+            grow = max(int(rows.max()) + 1, 2 * self._all.shape[0])
+            self._all = np.vstack([self._all, np.zeros((grow - self._all.shape[0], 4))])
+            self._recent = np.vstack([self._recent, np.zeros((grow - self._recent.shape[0], 4))])
+        add = np.column_stack([np.ones(spans.size), np.ones(spans.size), spans, spans * spans])
+        np.add.at(self._all, rows, add)
+        np.add.at(self._recent, rows, add)
+        self.boxes += int(spans.size)
 
     def log_likelihood(self, tracks, iso) -> np.ndarray | None:
         """Per confirmed track, weight * [log N(z_bar; mu_i, s_i^2) (eq. 3) - log of its mean over
@@ -197,33 +209,31 @@ class RangeCue:
         n = len(tracks)
         if not n or not iso.n or not self.boxes:
             return None
-        out = np.zeros(n)
-        scored = np.zeros(n, dtype=bool)
-        walking = tracks.walking
         ids = tracks.ids
-        mean_all, sd_all = iso.mean_and_std()
-        noise_correlation = iso.noise_correlation()
-        infl = (1.0 + noise_correlation) / max(1.0 - noise_correlation, 1e-3)
-        slope = 10.0 * self.model.exponent
-        base = self.model.shadowing_db**2 + self.floor_db**2
-        for i in range(n):
-            walks = walking[i] > 0.5
-            boxes = (self._recent if walks else self._all).get(int(ids[i]))
-            if boxes is None or boxes.w < 1e-3:
-                continue
-            if walks and iso.recent is not None and iso.recent.w >= 1e-3:
-                z, _, z_n = iso.recent.mean_var()
-            else:
-                z, z_n = mean_all, float(iso.n)
-            y, y_var, y_n = boxes.mean_var()
-            var_y = max(y_var / y_n, self.span_floor**2)
-            var_z = sd_all * sd_all * infl / z_n
-            mu = self.model.level_dbm(self.m_h - y)
-            s2 = base + var_z + slope * slope * (self.v_h + var_y)
-            out[i] = -0.5 * ((z - mu) ** 2 / s2 + math.log(2.0 * math.pi * s2))
-            scored[i] = True
+        known = ids < self._all.shape[0]
+        walks = tracks.walking > 0.5
+        stats = np.zeros((n, 4))
+        stats[known] = np.where(walks[known, None], self._recent[ids[known]], self._all[ids[known]])
+        scored = stats[:, 0] >= 1e-3
+        out = np.zeros(n)
         if not scored.any():
             return None
+        mean_all, sd_all = iso.mean_and_std()
+        rho = iso.noise_correlation()
+        infl = (1.0 + rho) / max(1.0 - rho, 1e-3)
+        recent = iso.recent.mean_var() if iso.recent is not None and iso.recent.w >= 1e-3 else None
+        z = np.full(n, mean_all)
+        z_n = np.full(n, float(iso.n))
+        if recent is not None:
+            z[walks], z_n[walks] = recent[0], recent[2]
+        w, w2, sy, sy2 = (stats[scored, k] for k in range(4))
+        y = sy / w
+        y_var = np.maximum(sy2 / w - y * y, 0.0) * w2 / (w * w)  # the weighted mean's variance: var / effective count
+        var_y = np.maximum(y_var, self.span_floor**2)
+        slope = 10.0 * self.model.exponent
+        s2 = self.model.shadowing_db**2 + self.floor_db**2 + sd_all * sd_all * infl / z_n[scored] + slope * slope * (self.v_h + var_y)
+        mu = self.model.level_dbm(self.m_h - y)
+        out[scored] = -0.5 * ((z[scored] - mu) ** 2 / s2 + np.log(2.0 * math.pi * s2))
         top = float(out[scored].max())
         reference = top + math.log(float(np.mean(np.exp(out[scored] - top))))
         out[scored] -= reference

@@ -147,7 +147,7 @@ class IsoLevel:
         if t is not None:
             if self.recent is None:
                 self.recent = RecentStats(self.recent_memory_s)
-            self.recent.add((iso_dbm,), t)
+            self.recent.add_sums(1.0, iso_dbm, iso_dbm * iso_dbm, t)
         self.n += 1
         self._sum += iso_dbm
         self._sq += iso_dbm**2

@@ -193,4 +193,3 @@ def test_the_cue_changes_the_decisions_only_when_heights_are_on(small_pod):
     assert policy.controller.parts.vision.ranges is None
     same = Controller("ra2vipas", sensor_config_from_scenario(plain), small_pod.model)
     assert _decisions(policy, SimulatedPlatform(plain, 2, 1)) == _decisions(same, SimulatedPlatform(plain, 2, 1))
-
