@@ -27,7 +27,15 @@ from ra2vipas.services.controller.contract import EpisodeContext, Policy
 from ra2vipas.services.controller.fusion import Fusion
 from ra2vipas.services.controller.grid import CircleGrid
 from ra2vipas.services.controller.joint import JointSearch, SequentialSearch
-from ra2vipas.services.controller.policy import Controller, ControllerSettings, Decision, SensorConfig, tuned_settings
+from ra2vipas.services.controller.policy import (
+    Controller,
+    ControllerSettings,
+    Decision,
+    SensorConfig,
+    tuned_settings,
+    with_range_model,
+)
+from ra2vipas.services.controller.range_cue import RangeCue
 from ra2vipas.services.controller.rf_belief import IsoLevel, LobeBelief, RFBelief, RFFilterBelief, lobe_gp
 from ra2vipas.services.controller.rf_filter import PacketBearingFilter, RxDirModel
 from ra2vipas.services.controller.vision_belief import CameraBelief, PODLookup, VisionBelief
@@ -58,11 +66,17 @@ def radio(circle: CircleGrid, sensors: SensorConfig, pod: PODLookup, cfg: Contro
 
 
 def camera(circle: CircleGrid, sensors: SensorConfig, pod: PODLookup, cfg: ControllerSettings) -> CameraBelief:
-    """The vision belief: the bearing tracker and the POD evidence."""
+    """The vision belief: the bearing tracker and the POD evidence, and the boxes' heights as a
+    range cue when the rig's boxes carry them and a propagation model is given (``range_cue``)."""
+    ranges = None
+    if cfg.height_cue and cfg.range_model is not None and getattr(sensors, "box_heights", False):
+        ranges = RangeCue(cfg.range_model, cfg.person_height_m, sensors.box_bearing_noise_rad, cfg.height_walk_memory_s,
+                          cfg.height_floor_db, weight=cfg.height_weight)
     return CameraBelief(circle, sensors.fov_half_angle_rad, sensors.box_bearing_noise_rad, sensors.rf_period_s,
                         sensors.frames_per_rf, pod, recent_memory_s=cfg.rf_memory_s, pod_floor_std=cfg.pod_floor_std,
                         null_pod_prior=cfg.null_pod_prior, pod_outlier=cfg.pod_outlier,
-                        occlusion_halfwidth_rad=cfg.occlusion_halfwidth_rad, occluded_probability=cfg.occluded_probability)
+                        occlusion_halfwidth_rad=cfg.occlusion_halfwidth_rad, occluded_probability=cfg.occluded_probability,
+                        ranges=ranges)
 
 
 def active_search(circle: CircleGrid, sensors: SensorConfig, cfg: ControllerSettings) -> Acquisition:
@@ -126,6 +140,7 @@ class BuiltinPolicy(Policy):
 
     def __init__(self, context: EpisodeContext, settings: ControllerSettings | None = None) -> None:
         super().__init__(context)
+        settings = with_range_model(settings, context)
         n_tags = int(context.scenario.get("n_tags", 1) or 1)
         if n_tags > 1:  # issue 21: one belief per tag over the shared camera tracks, one pan for all
             self.controller = joint_search(self.algorithm, context, n_tags, settings)

@@ -114,13 +114,13 @@ class Composition:
         s, t, rf = float(m.pan_rad), int(m.step), m.rf
         packets = None
         if rf is not None:
-            p.iso.add(rf.iso_rssi_dbm)
+            p.iso.add(rf.iso_rssi_dbm, t * self.rf_period_s)
         elif m.advertisements():  # protocol 1.3: 0..n packets per receiver (none at all: no RF evidence, as rf=None);
             # tag 0's only: the built-ins search for one tag (1.4 steps may carry other tags' packets)
             packets = Packets.of(m, self.rf_period_s)
             self.clock.take(packets)
-            for _, z, _ in packets.iso:
-                p.iso.add(z)
+            for when, z, _ in packets.iso:
+                p.iso.add(z, when)
         if p.vision.sees:
             p.vision.update(s, m.frames)
         if packets is None:

@@ -4,7 +4,10 @@
 Two kinds of hypothesis compete: "the Tx is camera track i", l(i) = rf_weight l_RF(gamma_i) +
 l_D(i) (the RF belief at the track's bearing plus its POD evidence), and "the Tx is a target the
 camera never detected, at grid bearing gamma", rf_weight l_RF(gamma) + log P(missed in every
-frame that looked there) + a prior density. The estimate gamma_hat_t names the most probable
+frame that looked there) + a prior density. When the rig's boxes carry heights, a track's l(i)
+also gains the range cue l_H(i) (``range_cue``: the range its boxes give against the range
+Rx(iso)'s level gives, as a log Bayes factor against a detected target's range at random, which
+is what "missed" keeps). The estimate gamma_hat_t names the most probable
 (the LOS condition, eq. 10, makes the Tx one of the detected targets, but a far target's POD is
 close to 0); without a camera it is the lobe centre (eq. 27).
 """
@@ -100,6 +103,10 @@ class Fusion:
             means, sds, weights = tracks.components()
             _kernels.track_logpost(l_rf, rf.track_loglik(tracks), step, self.rf_weight, means, sds, weights, tracks.detections,
                                    tracks.frames_in_view, alpha, beta, a0, b0, vision.pod_outlier, l_tracks, self.where)
+        if n:  # boxes with heights: their range against Rx(iso)'s (a log Bayes factor; an undetected Tx's is 0)
+            l_range = vision.range_loglik(iso)
+            if l_range is not None:
+                l_tracks += l_range
         miss_stand, miss_walk = vision.miss_loglik(alpha, beta)
         l_missed = _kernels.missed_logdensity(l_rf, self.rf_weight, miss_stand, miss_walk, rf.tx_walks,
                                               math.log(self.missed_prior_per_rad * step), vision.miss_outlier(), self._missed)

@@ -48,11 +48,13 @@ from enum import Enum
 
 from ra2vipas.services.controller.composed import Composition, Decision
 from ra2vipas.services.controller.confidence import CROWDING_SCALE_RAD, RAW_CONFIDENCE_CLIP, ConfidenceMap, shipped_maps
+from ra2vipas.services.controller.range_cue import RangeModel
 from ra2vipas.services.controller.vision_belief import PODLookup
 from ra2vipas.services.protocol.pod import PODModel
 
 __all__ = ["ALGORITHMS", "CROWDING_SCALE_RAD", "RAW_CONFIDENCE_CLIP", "Algorithm", "Controller", "ControllerSettings", "Decision",
-           "PODLookup", "SensorConfig", "TUNING", "sensor_config_from_descriptor", "sensor_config_from_scenario", "tuned_settings"]
+           "PODLookup", "SensorConfig", "TUNING", "sensor_config_from_descriptor", "sensor_config_from_scenario", "tuned_settings",
+           "with_range_model"]
 
 
 class Algorithm(str, Enum):
@@ -117,6 +119,15 @@ class ControllerSettings:
     receiver_offset_db: float = 8.0  # prior spread of Rx(dir)'s offset when packets carry no channel (two receivers' difference)
     # -- several tags (issue 21; joint.JointSearch): how the one pan serves the undecided tags: entropy | neediest
     tag_pan_rule: str = "entropy"
+    # -- box heights as a range cue (protocol 1.3 boxes with heights; range_cue.py): used only when the rig says its boxes
+    # carry heights (SensorConfig.box_heights) and a public propagation model is given (range_model: the campaign's
+    # configured path loss and shadowing, range_cue.RangeModel.from_scenario; the built-ins take it from the episode's scenario)
+    height_cue: bool = False  # off by default: measured not to help on dynamic with heights (docs/radio.md); heights_policy.py turns it on
+    range_model: "RangeModel | None" = None
+    person_height_m: tuple[float, float] = (1.5, 1.9)  # public prior of a person's height (adults standing), uniform [m]
+    height_weight: float = 1.0  # tempering of the range cue's log Bayes factor
+    height_floor_db: float = 2.0  # misfit of the propagation model (in quadrature with its shadowing)
+    height_walk_memory_s: float = 1.0  # memory of a walking track's boxes and of the level they are scored against
 
     def __post_init__(self) -> None:
         if self.confidence_calibration is not None and not isinstance(self.confidence_calibration, ConfidenceMap):
@@ -148,6 +159,7 @@ class SensorConfig:
     rx_dir: str = "paper"  # the Rx(dir) response assumed: paper | db-gain | unknown
     rx_dir_curvature: float | None = None  # a in rho = 1 - a Delta^2 (None: not known)
     rx_dir_floor_db: float = -20.0  # db-gain: the lowest gain
+    box_heights: bool = False  # the detector's boxes carry their angular heights (protocol 1.3; a range cue)
 
 
 class Controller(Composition):
@@ -204,6 +216,19 @@ def tuned_settings(algorithm: "Algorithm | str", base: ControllerSettings | None
     return dataclasses.replace(base or ControllerSettings(), **tuning)
 
 
+def with_range_model(settings: ControllerSettings | None, context) -> ControllerSettings | None:
+    """``settings`` with the episode's public propagation model (``range_cue.RangeModel``: the
+    path loss and shadowing its scenario configures) when the rig's boxes carry heights, so the
+    built-ins can score box ranges against the RSSI's; unchanged otherwise (or if one is set)."""
+    sensors, scenario = getattr(context, "sensors", None), getattr(context, "scenario", None)
+    if not getattr(sensors, "box_heights", False) or not scenario:
+        return settings
+    base = settings or ControllerSettings()
+    if base.range_model is not None or not base.height_cue:
+        return settings
+    return dataclasses.replace(base, range_model=RangeModel.from_scenario(scenario))
+
+
 def sensor_config_from_scenario(scenario) -> SensorConfig:
     """The hardware description a simulated platform gives its controller.
 
@@ -224,6 +249,7 @@ def sensor_config_from_scenario(scenario) -> SensorConfig:
         rx_dir=scenario.antenna_model.value,
         rx_dir_curvature=scenario.antenna_curvature,
         rx_dir_floor_db=scenario.antenna_floor_db,
+        box_heights=bool(scenario.box_heights),
     )
 
 
@@ -258,4 +284,5 @@ def sensor_config_from_descriptor(descriptor, scenario) -> SensorConfig:
         rx_dir_curvature=None if rx_dir == "unknown" else float(scenario.antenna_curvature if rx is None or rx.curvature is None
                                                                  else rx.curvature),
         rx_dir_floor_db=float(scenario.antenna_floor_db if rx is None or rx.floor_db is None else rx.floor_db),
+        box_heights=bool(scenario.box_heights if descriptor.box_heights is None else descriptor.box_heights),
     )

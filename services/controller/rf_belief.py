@@ -29,6 +29,7 @@ import numpy as np
 
 from ra2vipas.services.controller.circle_gp import LobeGP, RecentLobe
 from ra2vipas.services.controller.grid import CircleGrid
+from ra2vipas.services.controller.range_cue import RecentStats
 from ra2vipas.services.controller.rf_filter import RFBearingFilter, logsumexp
 
 
@@ -130,14 +131,23 @@ class IsoLevel:
         The RSSI noise sigma_RF to assume until three samples give an estimate (the POD model's).
     """
 
+    recent_memory_s = 1.0
+    """Memory of the recent level (``recent``): a walking Tx's range, and so its level, change."""
+
     def __init__(self, default_std_db: float) -> None:
         self.default_std_db = float(default_std_db)
         self.n = 0
         self._sum = self._sq = self._diff_sq = 0.0
         self._prev: float | None = None
+        self.recent: RecentStats | None = None  # the level's exponentially weighted recent statistics, once a time is given
 
-    def add(self, iso_dbm: float) -> None:
-        """Take one Rx(iso) sample [dBm]."""
+    def add(self, iso_dbm: float, t: float | None = None) -> None:
+        """Take one Rx(iso) sample [dBm], read at time ``t`` [s] since the episode's start (the
+        recent level, weighted exp(-(t_now - t)/``recent_memory_s``), needs it)."""
+        if t is not None:
+            if self.recent is None:
+                self.recent = RecentStats(self.recent_memory_s)
+            self.recent.add_sums(1.0, iso_dbm, iso_dbm * iso_dbm, t)
         self.n += 1
         self._sum += iso_dbm
         self._sq += iso_dbm**2

@@ -21,6 +21,7 @@ from scipy.special import gammaln
 
 from ra2vipas.services.controller import _kernels
 from ra2vipas.services.controller.grid import CircleGrid
+from ra2vipas.services.controller.range_cue import RangeCue
 from ra2vipas.services.controller.rf_belief import IsoLevel
 from ra2vipas.services.controller.tracks import BearingTracker
 from ra2vipas.services.protocol.angles import wrap
@@ -85,6 +86,12 @@ class VisionBelief:
         """Take step t's camera frames (``CameraFrame``: anonymous box bearings), taken at pan
         ``pan_rad``."""
 
+    def range_loglik(self, iso: IsoLevel) -> np.ndarray | None:
+        """Per track, the range cue's log Bayes factor (``range_cue.RangeCue``: the range its
+        boxes' heights give against the range Rx(iso)'s level gives); None when boxes carry no
+        heights or the cue is off."""
+        return None
+
     def mass_at(self, pan_rad: float, post: np.ndarray) -> float:
         """U_D(s): the posterior mass of the tracks in view at s, 1 where the camera has not looked
         yet (1 everywhere without a camera)."""
@@ -124,6 +131,8 @@ class CameraBelief(VisionBelief):
         An undetected target this close to a track's bearing may stand behind it ...
     occluded_probability : float
         ... and is then hidden with this probability (its misses say nothing).
+    ranges : RangeCue or None
+        The boxes' heights as a range cue (``range_cue``), when the rig's boxes carry them.
     """
 
     sees = True
@@ -131,7 +140,8 @@ class CameraBelief(VisionBelief):
     def __init__(self, circle: CircleGrid, fov_half_angle_rad: float, box_bearing_noise_rad: float, rf_period_s: float,
                  frames_per_rf: int, pod: PODLookup, recent_memory_s: float = 0.8, pod_floor_std: float = 0.08,
                  null_pod_prior: tuple[float, float] = (1.0, 1.0), pod_outlier: float = 0.2,
-                 occlusion_halfwidth_rad: float = math.radians(5.0), occluded_probability: float = 0.9) -> None:
+                 occlusion_halfwidth_rad: float = math.radians(5.0), occluded_probability: float = 0.9,
+                 ranges: RangeCue | None = None) -> None:
         self.circle, self.pod, self.frames_per_rf = circle, pod, frames_per_rf
         self.pod_floor_std, self.null_pod_prior, self.pod_outlier = pod_floor_std, null_pod_prior, pod_outlier
         self.occlusion_halfwidth_rad, self.occluded_probability = occlusion_halfwidth_rad, occluded_probability
@@ -140,9 +150,15 @@ class CameraBelief(VisionBelief):
         self.view_frames = np.zeros(circle.size)  # frames in which each grid bearing was in view
         self.view_recent = np.zeros(circle.size)  # the same, discounted over the recent memory
         self._outlier = np.empty(circle.size)
+        self.ranges = ranges
+        self.rf_period_s = rf_period_s
+        self._steps = 0
 
     def update(self, pan_rad, frames) -> None:
         self.tracks.update(pan_rad, frames, self.view_frames)
+        if self.ranges is not None:
+            self.ranges.update(pan_rad, frames, self.tracks, self._steps * self.rf_period_s)
+        self._steps += 1
         window = self.circle.window(pan_rad, self.tracks.count_limit)
         self.view_frames[window] += len(frames)
         self.view_recent *= self.forget
@@ -158,6 +174,9 @@ class CameraBelief(VisionBelief):
         p_hat, p_std, slope = self.pod(z_iso)
         var = p_std**2 + (slope * sigma) ** 2 / iso.n + self.pod_floor_std**2
         return beta_of(p_hat, var)
+
+    def range_loglik(self, iso: IsoLevel) -> np.ndarray | None:
+        return None if self.ranges is None else self.ranges.log_likelihood(self.tracks, iso)
 
     def miss_loglik(self, alpha: float, beta: float) -> tuple[np.ndarray, np.ndarray]:
         """Per grid bearing, log P(no detection in the frames that looked there | POD ~

@@ -97,6 +97,7 @@ def test_sensor_config_describes_only_the_platform():
         "steps", "frames_per_rf", "fov_half_angle_rad", "box_bearing_noise_rad", "initial_pan_rad", "rssi_grows_with_alignment", "rf_period_s",
         "source", "rx_dir",  # where the description came from (descriptor | scenario) and the Rx(dir) response it names
         "rx_dir_curvature", "rx_dir_floor_db",  # that response's shape: the antenna's, a property of the platform
+        "box_heights",  # whether the detector's boxes carry their angular heights (a property of the detector)
     }
     sc = small_scenario(initial_pan_deg=45.0)
     cfg = sensor_config_from_scenario(sc)
