@@ -76,6 +76,27 @@ def test_step_measurement_carries_only_sensor_readings():
     }
 
 
+def test_a_policys_episode_context_holds_nothing_of_the_world_it_will_search(small_pod):
+    """What a policy gets when an episode starts (``contract.episode_context``: the rig's public
+    description, the POD model, the public scenario, seed, test, early-decision level) is the same
+    for two tests of one campaign, whose worlds (targets, Tx, walkers) differ: nothing in it comes
+    from the world's draw. Only ``test`` differs."""
+    import dataclasses
+
+    from ra2vipas.services.controller.contract import EpisodeContext, episode_context
+    from ra2vipas.services.controller.policy import sensor_config_from_scenario
+    from ra2vipas.services.protocol.scenario import Scenario
+
+    assert [f.name for f in dataclasses.fields(EpisodeContext)] == [
+        "rig", "pod_model", "scenario", "seed", "test", "sensors", "stop_confidence"]
+    scenario = small_scenario("dynamic")
+    worlds = [SimulatedPlatform(scenario, 5, k).truth for k in (0, 1)]
+    assert worlds[0].tx_index != worlds[1].tx_index or not np.allclose(worlds[0].bearings_rad, worlds[1].bearings_rad)
+    a, b = (episode_context(sensor_config_from_scenario(scenario), small_pod.model, scenario, 5, k, 0.9) for k in (0, 1))
+    assert set(a.scenario) == set(Scenario.model_fields)  # the parameters, nothing drawn
+    assert dataclasses.replace(a, test=1) == b
+
+
 def test_training_sample_carries_only_sensor_readings():
     assert _leaf_fields(TrainingSample) == {"index", "iso_rssi_dbm", "frames[].box_bearings_rad", "frames[].box_heights_rad",
                                             "frames[].box_scores", "adverts[].receiver", "adverts[].rssi_dbm",
