@@ -145,20 +145,42 @@ def reliability_bins(confidence, correct, bins: int = 10) -> list[dict[str, Any]
     return out
 
 
+def rate_curve(successes, tests: int, rf_period_s: float) -> dict[str, Any]:
+    """A DR-shaped block from the per-step count of successful tests (T,): the rate at every step
+    (DR_t of eq. 11, or "every tag found"), its final value, the Wilson 95 % band at the end and at
+    every step, and the time after which the rate stays >= 0.9."""
+    successes = np.asarray(successes, dtype=np.float64)
+    rate = successes / tests
+    bands = [wilson_interval(float(k), tests) for k in successes]
+    return {
+        "dr": [round(float(v), 6) for v in rate],
+        "dr_final": round(float(rate[-1]), 6),
+        "ci95": [round(bands[-1][0], 6), round(bands[-1][1], 6)],
+        "dr_ci95": [[round(lo, 6), round(hi, 6)] for lo, hi in bands],
+        "time_to_dr90_s": time_to_level(rate, 0.9, rf_period_s),
+    }
+
+
+def decision_times(decided_steps, tests: int, rf_period_s: float) -> dict[str, Any]:
+    """The median and 90th percentile of the time to decision over the tests that decided (a step
+    index each, None for a test that did not), and the share of the ``tests`` still undecided."""
+    times = np.asarray([(d + 1) * rf_period_s for d in decided_steps if d is not None], dtype=float)
+    return {
+        "median_s": round(float(np.median(times)), 6) if times.size else None,
+        "p90_s": round(float(np.percentile(times, 90)), 6) if times.size else None,
+        "undecided": round(1.0 - times.size / tests, 6) if tests else None,
+    }
+
+
 def decision_summary(final_hits, decided_steps, rf_period_s: float) -> dict[str, Any]:
-    """The early-decision block: accuracy of the final answers with its Wilson interval, the
-    median and 90th percentile of the time to decision (over the tests that decided), and the
-    share of tests still undecided at the horizon."""
+    """The early-decision block: accuracy of the final answers with its Wilson interval, and
+    ``decision_times``."""
     hits = np.asarray(final_hits, dtype=float)
-    decided = [d for d in decided_steps if d is not None]
-    times = np.asarray([(d + 1) * rf_period_s for d in decided], dtype=float)
     lo, hi = wilson_interval(float(hits.sum()), hits.size)
     return {
         "accuracy": round(float(hits.mean()), 6) if hits.size else None,
         "accuracy_ci95": [round(lo, 6), round(hi, 6)],
-        "median_s": round(float(np.median(times)), 6) if times.size else None,
-        "p90_s": round(float(np.percentile(times, 90)), 6) if times.size else None,
-        "undecided": round(1.0 - len(decided) / hits.size, 6) if hits.size else None,
+        **decision_times(decided_steps, hits.size, rf_period_s),
     }
 
 
@@ -252,10 +274,6 @@ def summarize_algorithm(hits: np.ndarray, in_fov: np.ndarray, rf_period_s: float
     """
     hits = np.asarray(hits, dtype=float)
     in_fov = np.asarray(in_fov, dtype=float)
-    tests = hits.shape[0]
-    successes = hits.sum(axis=0)
-    dr = successes / tests
-    bands = [wilson_interval(float(k), tests) for k in successes]
     extra: dict[str, Any] = {}
     if confidences is not None and np.size(confidences):
         conf = np.asarray(confidences, dtype=float)
@@ -267,11 +285,7 @@ def summarize_algorithm(hits: np.ndarray, in_fov: np.ndarray, rf_period_s: float
     if decided_steps is not None:
         extra["decision"] = decision_summary(hits[:, -1], decided_steps, rf_period_s)
     return {
-        "dr": [round(float(v), 6) for v in dr],
-        "dr_final": round(float(dr[-1]), 6),
-        "ci95": [round(bands[-1][0], 6), round(bands[-1][1], 6)],
-        "dr_ci95": [[round(lo, 6), round(hi, 6)] for lo, hi in bands],
-        "time_to_dr90_s": time_to_level(dr, 0.9, rf_period_s),
+        **rate_curve(hits.sum(axis=0), hits.shape[0], rf_period_s),
         "in_fov_final": round(float(in_fov[:, -1].mean()), 6),
         **extra,
     }
@@ -302,23 +316,14 @@ def summarize_tags(hits, in_fov, rf_period_s: float, confidences=None, decided_s
                                    None if decided_steps is None else [row[k] for row in decided_steps])
                for k in range(tags)]
     everyone = hits.min(axis=1)  # (tests, T): 1 where every tag's answer is right
-    successes = everyone.sum(axis=0)
-    all_dr = successes / tests
-    bands = [wilson_interval(float(k), tests) for k in successes]
     out: dict[str, Any] = {
         "per_tag": per_tag,
         "mean_tag_dr_final": round(_mean([block["dr_final"] for block in per_tag]), 6),
-        "all_found": {"dr": [round(float(v), 6) for v in all_dr], "dr_final": round(float(all_dr[-1]), 6),
-                      "ci95": [round(bands[-1][0], 6), round(bands[-1][1], 6)],
-                      "dr_ci95": [[round(lo, 6), round(hi, 6)] for lo, hi in bands],
-                      "time_to_dr90_s": time_to_level(all_dr, 0.9, rf_period_s)},
+        "all_found": rate_curve(everyone.sum(axis=0), tests, rf_period_s),
     }
     if decided_steps is not None:
         last = [None if any(d is None for d in row) else max(row) for row in decided_steps]
-        times = np.asarray([(d + 1) * rf_period_s for d in last if d is not None], dtype=float)
-        out["all_decided"] = {"median_s": round(float(np.median(times)), 6) if times.size else None,
-                              "p90_s": round(float(np.percentile(times, 90)), 6) if times.size else None,
-                              "undecided": round(1.0 - times.size / tests, 6) if tests else None}
+        out["all_decided"] = decision_times(last, tests, rf_period_s)
     return out
 
 

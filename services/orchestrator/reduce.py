@@ -38,12 +38,12 @@ import numpy as np
 
 from ra2vipas.services.orchestrator.metrics import (
     decision_summary,
+    decision_times,
     ece_sampling_floor,
     expected_calibration_error,
     paired_comparisons,
+    rate_curve,
     reliability_bins,
-    time_to_level,
-    wilson_interval,
 )
 
 BINS = 10  # the calibration bins of metrics.expected_calibration_error
@@ -185,9 +185,6 @@ class AlgorithmTally:
         if self.tests == 0:
             raise ValueError("no episode to summarize")
         tests = self.tests
-        successes = self._hit_counts.astype(np.float64)
-        dr = successes / tests
-        bands = [wilson_interval(float(k), tests) for k in successes]
         final_hits = np.frombuffer(self._final_hits, dtype=np.int8).astype(np.float64)
         extra: dict[str, Any] = {}
         if self._with_conf and len(self._final_conf) == tests:
@@ -203,11 +200,7 @@ class AlgorithmTally:
         if self.tags is not None:
             extra["tags"] = self.tags.summary(decisions)
         return {
-            "dr": [round(float(v), 6) for v in dr],
-            "dr_final": round(float(dr[-1]), 6),
-            "ci95": [round(bands[-1][0], 6), round(bands[-1][1], 6)],
-            "dr_ci95": [[round(lo, 6), round(hi, 6)] for lo, hi in bands],
-            "time_to_dr90_s": time_to_level(dr, 0.9, self.rf_period_s),
+            **rate_curve(self._hit_counts, tests, self.rf_period_s),
             "in_fov_final": round(self._final_in_fov / tests, 6),
             **extra,
         }
@@ -262,23 +255,14 @@ class TagTally:
         if self.tests == 0:
             raise ValueError("no episode to summarize")
         per_tag = [t.summary(decisions=decisions) for t in self.per_tag]
-        tests = self.tests
-        all_dr = self._all_hits.astype(np.float64) / tests
-        bands = [wilson_interval(float(k), tests) for k in self._all_hits.astype(np.float64)]
         finals = [block["dr_final"] for block in per_tag]
         out: dict[str, Any] = {
             "per_tag": per_tag,
             "mean_tag_dr_final": round(math.fsum(finals) / len(finals), 6),  # metrics._mean
-            "all_found": {"dr": [round(float(v), 6) for v in all_dr], "dr_final": round(float(all_dr[-1]), 6),
-                          "ci95": [round(bands[-1][0], 6), round(bands[-1][1], 6)],
-                          "dr_ci95": [[round(lo, 6), round(hi, 6)] for lo, hi in bands],
-                          "time_to_dr90_s": time_to_level(all_dr, 0.9, self.rf_period_s)},
+            "all_found": rate_curve(self._all_hits, self.tests, self.rf_period_s),
         }
         if decisions:
-            times = np.asarray([(d + 1) * self.rf_period_s for d in self._all_decided if d is not None], dtype=float)
-            out["all_decided"] = {"median_s": round(float(np.median(times)), 6) if times.size else None,
-                                  "p90_s": round(float(np.percentile(times, 90)), 6) if times.size else None,
-                                  "undecided": round(1.0 - times.size / tests, 6) if tests else None}
+            out["all_decided"] = decision_times(self._all_decided, self.tests, self.rf_period_s)
         return out
 
     def all_found_outcomes(self, test_indices, tests: int) -> list[int | None]:
