@@ -78,6 +78,31 @@ class Parts:
     confidence: Confidence
 
 
+def take_iso(p: Parts, m: StepMeasurement, clock: PacketClock, rf_period_s: float) -> Packets | None:
+    """Rx(iso)'s readings of step m into ``p.iso``, each with its time since the episode's start;
+    returns the step's packets (protocol 1.3: 0..n per receiver, tag 0's only: 1.4 steps may carry
+    other tags' packets), or None for an RSSI pair or a step with no RF evidence (``m.rf`` None
+    and no packet: the RF belief is then left as it was)."""
+    if m.rf is not None:
+        p.iso.add(m.rf.iso_rssi_dbm, int(m.step) * rf_period_s)
+        return None
+    if not m.advertisements():
+        return None
+    packets = Packets.of(m, rf_period_s)
+    clock.take(packets)
+    for when, z, _ in packets.iso:
+        p.iso.add(z, when)
+    return packets
+
+
+def update_rf(p: Parts, s: float, m: StepMeasurement, packets: Packets | None) -> None:
+    """The RF belief ``p.rf`` after step m at pan s: from its packets (``take_iso``'s) or its pair."""
+    if packets is None:
+        p.rf.update(s, m.rf, p.iso, p.vision.tracks)
+    else:
+        p.rf.update_packets(s, packets, p.iso, p.vision.tracks)
+
+
 class Composition:
     """One episode of a composed policy: create it, call ``first_pan()``, then ``step`` for every
     sample.
@@ -111,22 +136,11 @@ class Composition:
         """Take the measurement of step t (``StepMeasurement``; ``m.rf`` None: no RF sample this
         step, the RF belief is left as it was); return s_{t+1} and gamma_hat_t."""
         p = self.parts
-        s, t, rf = float(m.pan_rad), int(m.step), m.rf
-        packets = None
-        if rf is not None:
-            p.iso.add(rf.iso_rssi_dbm, t * self.rf_period_s)
-        elif m.advertisements():  # protocol 1.3: 0..n packets per receiver (none at all: no RF evidence, as rf=None);
-            # tag 0's only: the built-ins search for one tag (1.4 steps may carry other tags' packets)
-            packets = Packets.of(m, self.rf_period_s)
-            self.clock.take(packets)
-            for when, z, _ in packets.iso:
-                p.iso.add(z, when)
+        s, t = float(m.pan_rad), int(m.step)
+        packets = take_iso(p, m, self.clock, self.rf_period_s)
         if p.vision.sees:
             p.vision.update(s, m.frames)
-        if packets is None:
-            p.rf.update(s, rf, p.iso, p.vision.tracks)
-        else:
-            p.rf.update_packets(s, packets, p.iso, p.vision.tracks)
+        update_rf(p, s, m, packets)
         l_tracks, l_missed = p.fusion.beliefs(p.rf, p.vision, p.iso)
         estimate, raw, post = p.fusion.answer(p.rf, l_tracks, l_missed, self._first_pan)
         reward = p.vision.mass_at(s, post) * p.rf.gain_at(s)

@@ -43,9 +43,9 @@ import numpy as np
 
 from ra2vipas.services.controller import multitag
 from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, Beliefs
-from ra2vipas.services.controller.composed import Composition, Decision, Parts
+from ra2vipas.services.controller.composed import Composition, Decision, Parts, take_iso, update_rf
 from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softmax
-from ra2vipas.services.controller.rf_belief import PacketClock, Packets
+from ra2vipas.services.controller.rf_belief import PacketClock
 from ra2vipas.services.controller.rf_filter import logsumexp
 from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
@@ -247,22 +247,12 @@ class JointSearch:
         whether all are decided."""
         s, t = float(m.pan_rad), int(m.step)
         vision = self.vision
-        for k, p in enumerate(self.parts):
+        for k, p in enumerate(self.parts):  # as Composition.step, per tag on its own evidence; the tracks once
             view = tag_view(m, k)
-            got = None
-            if view.rf is not None:
-                p.iso.add(view.rf.iso_rssi_dbm)
-            elif view.adverts:
-                got = Packets.of(view, self.rf_period_s)
-                self.clocks[k].take(got)
-                for _, z, _ in got.iso:
-                    p.iso.add(z)
+            packets = take_iso(p, view, self.clocks[k], self.rf_period_s)
             if k == 0 and vision.sees:
                 vision.update(s, m.frames)
-            if got is None:
-                p.rf.update(s, view.rf, p.iso, vision.tracks)
-            else:
-                p.rf.update_packets(s, got, p.iso, vision.tracks)
+            update_rf(p, s, view, packets)
         scored = [p.fusion.beliefs(p.rf, vision, p.iso) for p in self.parts]
         which = self._which_track(scored)
         answers = self._answers(scored, which)
