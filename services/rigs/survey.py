@@ -20,15 +20,18 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.measurements import (
+    ADDRESS_PATTERN,
+    MAX_TAGS,
     OPTIONAL_SINCE_1_3,
     SINCE_1_3,
+    SINCE_1_4,
     Advertisement,
     CameraFrame,
     RFSample,
@@ -60,25 +63,36 @@ class _Model(BaseModel):
 
 class SurveySample(_Model):
     """What the platform measured at one pan in one pass: the 1.0 RSSI pair ``rf``, or (protocol
-    1.3) the ``adverts`` heard during the sample, possibly none; never both."""
+    1.3) the ``adverts`` heard during the sample, possibly none; never both. With several tags
+    (1.4) the adverts name their tag, and with the paper's radio ``rf`` is tag 0's pair and
+    ``rf_tags`` the other tags' (``Measurement.rf_tags``)."""
 
     rf: RFSample | None = Field(None, json_schema_extra=OPTIONAL_SINCE_1_3)
     frames: tuple[CameraFrame, ...] = Field(min_length=1, max_length=1000)
     adverts: tuple[Advertisement, ...] = Field(default=(), max_length=10_000, json_schema_extra=SINCE_1_3)
+    rf_tags: tuple[RFSample, ...] = Field(default=(), max_length=MAX_TAGS - 1, json_schema_extra=SINCE_1_4,
+                                          description="the paper's radio with several tags: every tag's pair but tag 0's")
 
     @model_validator(mode="after")
     def _one_form(self) -> "SurveySample":
         if self.rf is not None and self.adverts:
             raise ValueError("a survey sample holds rf (1.0) or adverts (1.3), not both")
+        if self.rf_tags and self.rf is None:
+            raise ValueError("a survey sample's rf_tags need rf, tag 0's pair")
         return self
 
 
 class Layout(_Model):
-    """The scene: every target's bearing in the platform frame [rad], its range [m] if known."""
+    """The scene: every target's bearing in the platform frame [rad], its range [m] if known;
+    with several tags (1.4), the target that carries each (``EpisodeTruth.tx_indices``)."""
 
     bearings_rad: tuple[float, ...] = Field(min_length=1, max_length=1000)
     ranges_m: tuple[float, ...] | None = Field(None, description="null if the ranges were not measured")
     tx_index: int = Field(ge=0, description="i*, the target carrying the Tx")
+    tx_indices: tuple[int, ...] = Field(default=(), max_length=MAX_TAGS, json_schema_extra=SINCE_1_4,
+                                        description="K > 1 tags: the carrier of tag k (tx_indices[0] is tx_index)")
+    tag_addresses: tuple[Annotated[str, Field(pattern=ADDRESS_PATTERN)], ...] = Field(default=(), max_length=MAX_TAGS, json_schema_extra=SINCE_1_4,
+                                           description="the tags' addresses, in the order of tx_indices (may be empty)")
 
     @model_validator(mode="after")
     def _consistent(self) -> "Layout":
@@ -86,6 +100,10 @@ class Layout(_Model):
             raise ValueError("tx_index must name one of the targets")
         if self.ranges_m is not None and len(self.ranges_m) != len(self.bearings_rad):
             raise ValueError("ranges_m must have one range per bearing")
+        if self.tx_indices and (self.tx_indices[0] != self.tx_index or not all(0 <= i < len(self.bearings_rad) for i in self.tx_indices)):
+            raise ValueError("tx_indices must start with tx_index and name targets of the layout")
+        if self.tag_addresses and len(self.tag_addresses) != len(self.tx_indices):
+            raise ValueError("tag_addresses must have one address per tag of tx_indices")
         return self
 
 
@@ -224,9 +242,11 @@ def record_survey(bus: Bus, rig: str, pans: int = 180, passes: int = 3, n_train:
         t = truths[0]
         if t.trajectories:
             raise RuntimeError("the scene moved during the survey (walking targets): a survey needs a static scene")
-        layout = Layout(bearings_rad=t.bearings_rad, ranges_m=t.ranges_m, tx_index=t.tx_index)
+        layout = Layout(bearings_rad=t.bearings_rad, ranges_m=t.ranges_m, tx_index=t.tx_index, tx_indices=t.tx_indices,
+                        tag_addresses=t.tag_addresses)
     passes_out = tuple(tuple(SurveySample(rf=measured[p * pans + j].rf, frames=measured[p * pans + j].frames,
-                                              adverts=measured[p * pans + j].adverts) for j in range(pans))
+                                              adverts=measured[p * pans + j].adverts, rf_tags=measured[p * pans + j].rf_tags)
+                             for j in range(pans))
                        for p in range(passes))
     return Survey(rig=RigDescriptor.model_validate(hardware), pans_rad=tuple(angles), passes=passes_out, layout=layout,
                   training=training, notes=f"recorded from rig {rig}: {passes} passes of {pans} pans")
@@ -279,7 +299,8 @@ class SurveyNode:
         lay = self.survey.layout
         ranges = lay.ranges_m if lay.ranges_m is not None else (1.0,) * len(lay.bearings_rad)
         self.bus.publish(keys.episode_truth(self.rig), dump(EpisodeTruth(episode_id=msg.episode_id, bearings_rad=lay.bearings_rad,
-                                                                         ranges_m=ranges, tx_index=lay.tx_index)))
+                                                                         ranges_m=ranges, tx_index=lay.tx_index, tx_indices=lay.tx_indices,
+                                                                         tag_addresses=lay.tag_addresses)))
         early = self._early.pop(msg.episode_id, None)
         if early is not None:
             self._on_command(early)
@@ -315,7 +336,7 @@ class SurveyNode:
         j = self.nearest(float(cmd.pan_rad))
         sample = self._draw(ep, j)
         m = Measurement(episode_id=cmd.episode_id, step=cmd.step, pan_rad=float(self.pans[j]), rf=sample.rf, frames=sample.frames,
-                        adverts=sample.adverts)
+                        adverts=sample.adverts, rf_tags=sample.rf_tags)
         ep["last"] = m
         self.bus.publish(keys.measurement(self.rig), dump(m))
         if cmd.step == ep["start"].scenario.steps - 1:
