@@ -311,6 +311,7 @@ def replay_scores(rec: Recording) -> dict[str, Any]:
     from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
     from ra2vipas.services.orchestrator.reduce import AlgorithmTally, LatencyTally, results_object
     from ra2vipas.services.orchestrator.rigcheck import RigChecks
+    from ra2vipas.services.orchestrator.scheduler import score_tags
     from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
     from ra2vipas.services.protocol.scenario import Scenario
 
@@ -331,6 +332,11 @@ def replay_scores(rec: Recording) -> dict[str, Any]:
                                         scenario.fov_half_angle_rad, steps, res.decided_step)
         tallies[ep.start.algorithm].add(hits, in_fov, held(list(res.confidences), steps) or None, res.decided_step,
                                         len(res.estimates_rad), test_index=ep.start.test_index)
+        tags = score_tags(res, truth, truth_bearings(truth, steps), scenario, res.decided_step)
+        if tags:  # several tags (issue 21): each scored against its carrier, as the orchestrator does
+            tallies[ep.start.algorithm].add_tags(np.asarray(tags["hits"], dtype=bool), np.asarray(tags["in_fov"], dtype=bool),
+                                                 None if tags["confidences"] is None else np.asarray(tags["confidences"]),
+                                                 tags["decided"])
         checks.add(res.rig, None if res.model_check is None else res.model_check.model_dump(mode="json"))
         if ep.timing is not None:
             latencies.add(ep.timing.latencies_ms)
@@ -358,7 +364,9 @@ class Rerun:
     matched: int  # steps the new controller took on recorded measurements
     estimates: list[float]
     hits: list[bool]
-    same_estimates: bool  # equal, step for step, to the recorded controller's
+    same_estimates: bool  # equal, step for step, to the recorded controller's (every tag's, with several)
+    tag_estimates: list[list[float]] = field(default_factory=list)  # several tags (issue 21): per tag, per step taken
+    tag_hits: list[list[bool]] = field(default_factory=list)  # per tag, eq. 11 against its carrier
 
 
 def rerun(rec: Recording, algorithm: str | None = None, settings=None, pan_tolerance_rad: float = 1e-9) -> list[Rerun]:
@@ -372,7 +380,9 @@ def rerun(rec: Recording, algorithm: str | None = None, settings=None, pan_toler
     RecordingError
         The recording has no measurements (made from the store) or no POD model.
     """
-    from ra2vipas.services.controller.policy import Controller, sensor_config_from_descriptor, sensor_config_from_scenario
+    from ra2vipas.services.controller import registry
+    from ra2vipas.services.controller.contract import episode_context
+    from ra2vipas.services.controller.policy import sensor_config_from_descriptor, sensor_config_from_scenario
     from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
     from ra2vipas.services.protocol.angles import wrap
 
@@ -388,24 +398,34 @@ def rerun(rec: Recording, algorithm: str | None = None, settings=None, pan_toler
         descriptor = rec.descriptors.get(ep.result.rig)
         uses_descriptor = ep.result.model_check is not None and ep.result.model_check.sensor_model == "descriptor"
         config = sensor_config_from_descriptor(descriptor, sc) if (descriptor is not None and uses_descriptor) else sensor_config_from_scenario(sc)
-        ctl = Controller(algorithm or start.algorithm, config, rec.pod.model, settings)
+        # the policy as the controller node makes it (registry.create): with several tags, the joint search
+        context = episode_context(config, rec.pod.model, sc, start.seed, start.test_index, start.stop_confidence)
+        ctl = registry.create(algorithm or start.algorithm, context, settings)
         pan = ctl.first_pan()
         estimates: list[float] = []
+        tag_estimates: list[list[float]] = []
         for t in range(sc.steps):
             m = ep.measurements.get(t)
             if m is None or abs(float(wrap(pan - m.pan_rad))) > pan_tolerance_rad:
                 break
             d = ctl.step(m)
             estimates.append(d.estimate_rad)
+            tags = getattr(d, "tags", None) if sc.n_tags > 1 else None
+            if tags:
+                tag_estimates.append([float(x.estimate_rad) for x in tags])
             pan = d.next_pan_rad
         hits: list[bool] = []
+        bearings = truth_bearings(ep.truth, sc.steps)
         if estimates:
-            h, _, _ = score_episode(np.asarray(estimates), truth_bearings(ep.truth, sc.steps), ep.truth.tx_index,
-                                    sc.fov_half_angle_rad, len(estimates), None)
+            h, _, _ = score_episode(np.asarray(estimates), bearings, ep.truth.tx_index, sc.fov_half_angle_rad, len(estimates), None)
             hits = [bool(x) for x in h]
+        per_tag = [list(col) for col in zip(*tag_estimates)] if tag_estimates else []
+        tag_hits = [[bool(x) for x in score_episode(np.asarray(e), bearings, ep.truth.carriers[k], sc.fov_half_angle_rad, len(e), None)[0]]
+                    for k, e in enumerate(per_tag) if k < len(ep.truth.carriers)]
         recorded = list(ep.result.estimates_rad)
+        recorded_tags = [list(r.estimates_rad) for r in sorted(ep.result.tags, key=lambda r: r.tag)]
         out.append(Rerun(ep.episode_id, start.test_index, algorithm or start.algorithm, len(recorded), len(estimates), estimates, hits,
-                         estimates == recorded))
+                         estimates == recorded and per_tag == recorded_tags, per_tag, tag_hits))
     return out
 
 
@@ -424,6 +444,9 @@ def rerun_summary(reruns: list[Rerun]) -> dict[str, Any]:
             "dr_final_matched": round(sum(r.hits[-1] for r in full) / len(full), 6) if full else None,
             "same_estimates": sum(r.same_estimates for r in rs),
         }
+        if full and all(r.tag_hits for r in full):  # several tags: each tag's final DR over those episodes
+            out[name]["tag_dr_final_matched"] = [round(sum(r.tag_hits[k][-1] for r in full) / len(full), 6)
+                                                 for k in range(len(full[0].tag_hits))]
     return out
 
 
