@@ -230,20 +230,40 @@ def tag_address(seed: int, tag: int) -> str:
     return ":".join(f"{b:02X}" for b in raw)
 
 
-def draw_carriers(sc: Scenario, rng: np.random.Generator, n_targets: int, tx_index: int) -> tuple[int, ...]:
+def draw_carriers(sc: Scenario, rng: np.random.Generator, ranges_m: np.ndarray, tx_index: int) -> tuple[int, ...]:
     """The carriers of the K tags (empty for K = 1): tag 0 is carried by the Tx ``tx_index`` (the
-    placement's rule chose it); tags 1..K-1, from ``rng``: K - 1 distinct other targets when
-    ``one_tag_per_person``, else each uniform over all N targets (so two tags may share one)."""
+    placement's rule chose it); tags 1..K-1, from ``rng``, by the rule that chose the Tx as far as
+    the layout allows without moving anyone (``carrier_pool``): K - 1 distinct targets of the
+    pool when ``one_tag_per_person``, else each uniform over the pool and the Tx (so two tags may
+    share one). ``ranges_m``: every target's range at step 0."""
     k = sc.n_tags
     if k == 1:
         return ()
+    n_targets = len(ranges_m)
     if sc.one_tag_per_person:
         if k > n_targets:
             raise ScenarioError(f"n_tags ({k}) exceeds the {n_targets} targets while one_tag_per_person is true")
-        rest = rng.choice(np.delete(np.arange(n_targets), tx_index), size=k - 1, replace=False)
+        rest = rng.choice(carrier_pool(sc, ranges_m, tx_index, k - 1), size=k - 1, replace=False)
     else:
-        rest = rng.integers(n_targets, size=k - 1)
+        pool = np.concatenate([[tx_index], carrier_pool(sc, ranges_m, tx_index, 1)])
+        rest = pool[rng.integers(len(pool), size=k - 1)]
     return (int(tx_index), *(int(i) for i in rest))
+
+
+def carrier_pool(sc: Scenario, ranges_m: np.ndarray, tx_index: int, need: int) -> np.ndarray:
+    """The targets other than the Tx that may carry a tag (docs/tags.md, "Carriers"): with the
+    ``reference`` placement, those within ``tx_max_range_m`` of the platform, as the Tx is (the
+    rule's other half, no other target within ``min_range_gap_m`` of the carrier's range, cannot
+    hold for several carriers without moving people), completed by the nearest others when
+    fewer than ``need``; with ``uniform``, every other target. Sorted by index."""
+    others = np.delete(np.arange(len(ranges_m)), tx_index)
+    if sc.placement is not Placement.reference:
+        return others
+    near = others[ranges_m[others] < sc.tx_max_range_m]
+    if len(near) < need:
+        far = others[ranges_m[others] >= sc.tx_max_range_m]
+        near = np.sort(np.concatenate([near, far[np.argsort(ranges_m[far], kind="stable")[:need - len(near)]]]))
+    return near
 
 
 def episode_truth(truth: GroundTruth, episode_id: str) -> EpisodeTruth:
@@ -356,7 +376,7 @@ class SimulatedPlatform:
         if truth.static:
             truth = add_walkers(sc, streams.walk, truth)
         if sc.n_tags > 1:  # protocol 1.4: tags 1..K-1 and their carriers, from the tags stream (nothing else moves)
-            carriers = truth.tx_indices or draw_carriers(sc, streams.tags, truth.positions_m.shape[0], truth.tx_index)
+            carriers = truth.tx_indices or draw_carriers(sc, streams.tags, truth.ranges_m, truth.tx_index)
             if len(carriers) != sc.n_tags or carriers[0] != truth.tx_index:
                 raise ScenarioError(f"the layout names {len(carriers)} tag carriers for n_tags={sc.n_tags}")
             truth = replace(truth, tx_indices=tuple(carriers), tag_addresses=tuple(tag_address(seed, k) for k in range(sc.n_tags)))

@@ -17,7 +17,7 @@ from ra2vipas.services.protocol.messages import EpisodeTruth, Measurement, dump
 from ra2vipas.services.protocol.scenario import ScenarioError, build_scenario
 from ra2vipas.services.protocol.schemas import schema_documents
 from ra2vipas.services.sensors import physics
-from ra2vipas.services.sensors.world import GroundTruth, SimulatedPlatform, episode_truth, tag_address
+from ra2vipas.services.sensors.world import GroundTruth, SimulatedPlatform, carrier_pool, episode_truth, tag_address
 
 MAC = re.compile(r"^[0-9A-F]{2}(:[0-9A-F]{2}){5}$")
 PANS = np.linspace(-3.0, 3.0, 40)
@@ -77,9 +77,41 @@ def test_one_tag_per_person_puts_the_tags_on_distinct_targets():
 
 def test_without_one_tag_per_person_two_tags_may_share_a_person():
     sc = build_scenario("paper", {"n_targets": 5, "n_tags": 3, "one_tag_per_person": False})
-    shared = [len(set(SimulatedPlatform(sc, 3, test).truth.carriers)) < 3 for test in range(200)]
-    # each of tags 1, 2 uniform over 5 targets: P(all three distinct) = 4/5 * 3/5 = 0.48
-    assert 0.35 < np.mean(shared) < 0.70
+    shared, expected = [], []
+    for test in range(400):
+        truth = SimulatedPlatform(sc, 3, test).truth
+        pool = set(carrier_pool(sc, truth.ranges_m, truth.tx_index, 1).tolist()) | {truth.tx_index}
+        assert set(truth.carriers) <= pool
+        shared.append(len(set(truth.carriers)) < 3)
+        m = len(pool)  # each of tags 1, 2 uniform over the m candidates: P(all three distinct) = (m-1)/m * (m-2)/m
+        expected.append(1.0 - (m - 1) / m * (m - 2) / m)
+    assert abs(np.mean(shared) - np.mean(expected)) < 0.08 and np.mean(shared) > 0.3
+
+
+def test_each_tag_is_carried_by_someone_the_txs_range_rule_allows():
+    """``reference``: tags 1..K-1 go to people within ``tx_max_range_m``, as the Tx is, however
+    far the placement pushed the others; ``uniform``: to anyone (docs/tags.md, "Carriers")."""
+    sc = build_scenario("paper", {"n_tags": 3})
+    near = []
+    for test in range(100):
+        truth = SimulatedPlatform(sc, 2, test).truth
+        ranges = truth.ranges_m
+        if np.sum(np.delete(ranges, truth.tx_index) < sc.tx_max_range_m) >= 2:
+            assert all(ranges[c] < sc.tx_max_range_m for c in truth.carriers)
+        near.append(np.mean(np.delete(ranges, truth.tx_index) < sc.tx_max_range_m))
+    assert np.mean(near) < 0.5  # the others mostly lie beyond: a uniform choice among them would mostly be far
+    uniform = build_scenario("paper-uniform", {"n_tags": 3})
+    truths = [SimulatedPlatform(uniform, 2, t).truth for t in range(100)]
+    far = [truth.ranges_m[c] >= 4.0 for truth in truths for c in truth.carriers[1:]]
+    assert 0.3 < np.mean(far) < 0.7  # P(range > 4 m) uniform in the 10 m square: 1 - 16 pi / 100 = 0.50
+
+
+def test_too_few_people_within_range_completes_the_carriers_with_the_nearest():
+    layout = GroundTruth(positions_m=np.array([[2.0, 0.0], [0.0, 3.0], [-6.0, 0.0], [4.5, 0.0], [0.0, -5.0]]), tx_index=0)
+    sc = build_scenario("paper", {"n_targets": 5, "n_tags": 3})
+    for test in range(10):
+        carriers = SimulatedPlatform(sc, 1, test, layout=layout).truth.carriers
+        assert carriers[0] == 0 and sorted(carriers[1:]) == [1, 3]  # target 1 is within 4 m; 3 (4.5 m) is the nearest other
 
 
 def test_the_paper_radio_gives_one_pair_per_tag_per_step_at_its_carriers_level():
