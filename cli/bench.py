@@ -341,6 +341,7 @@ def bench_calibrate(
     from_s: Annotated[float, typer.Option("--from-s", min=0.0, max=60.0, help="Fit on the steps whose sample is taken this many seconds or more after the start (0: every step).")] = 0.0,
     workers: Annotated[Optional[int], typer.Option(min=1, max=1024, help="Worker processes running the scenarios (default: the CPU count); the maps do not depend on it.")] = None,
     write: Annotated[bool, typer.Option("--write", help="Write the maps into the shipped file (services/controller/data/confidence_maps.json), one named coefficient each, with this command.")] = False,
+    joint: Annotated[bool, typer.Option("--joint", help="Fit the maps of the searches for several tags at once (issue 21; named ALGORITHM-joint), on every tag's steps in worlds with 2-3 tags.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Refit the controllers' confidence maps (Platt scaling with covariates the controller
@@ -358,7 +359,7 @@ def bench_calibrate(
     except ScenarioError as err:
         fail(str(err), EXIT_USAGE)
     report = calibrate(names, tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"), from_s=from_s,
-                       workers=workers or os.cpu_count() or 1)
+                       workers=workers or os.cpu_count() or 1, joint=joint)
     if write:
         from ra2vipas.services.controller.confidence import MAPS_FILE, write_maps
 

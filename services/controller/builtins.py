@@ -22,7 +22,7 @@ from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, ProbeSc
 from ra2vipas.services.controller.acquisition import Sweep as EvenSweep
 from ra2vipas.services.controller.circle_gp import RecentLobe
 from ra2vipas.services.controller.composed import Parts
-from ra2vipas.services.controller.confidence import Confidence
+from ra2vipas.services.controller.confidence import Confidence, shipped_maps
 from ra2vipas.services.controller.contract import EpisodeContext, Policy
 from ra2vipas.services.controller.fusion import Fusion
 from ra2vipas.services.controller.grid import CircleGrid
@@ -160,6 +160,9 @@ def joint_search(algorithm: str, context: EpisodeContext, n_tags: int, settings:
     over the people the camera sees), the first tag's acquisition for the one pan; the scenario's
     ``one_tag_per_person`` and the context's ``stop_confidence`` apply."""
     cfg = tuned_settings(algorithm, settings)
+    joint_map = shipped_maps().get(f"{algorithm}-joint")  # fitted on joint searches (``bench calibrate --joint``)
+    if joint_map is not None:
+        cfg = dataclasses.replace(cfg, confidence_calibration=joint_map)
     tags = [compose(algorithm, context.sensors, context.pod_model, cfg) for _ in range(n_tags)]
     tags = [tags[0]] + [dataclasses.replace(p, vision=tags[0].vision) for p in tags[1:]]
     return JointSearch(context.sensors.initial_pan_rad, tags, rf_period_s=context.sensors.rf_period_s, pan_rule=cfg.tag_pan_rule,

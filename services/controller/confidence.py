@@ -138,9 +138,11 @@ def write_maps(report: dict[str, Any], path: Path = MAPS_FILE) -> None:
     """Write the maps of a ``calibration.calibrate`` report (merged into the file's other maps),
     with the command that made them."""
     data = json.loads(path.read_text()) if path.exists() else {"maps": {}}
+    joint = bool(report.get("joint"))
     for name, a in report["algorithms"].items():
+        algorithm = name.removesuffix("-joint") if joint else name
         data["maps"][name] = {"map": asdict(ConfidenceMap.from_vector(a["map"])),
-                              "command": f"ra2vipas bench calibrate -a {name} --tests {report['tests_per_scenario']} "
+                              "command": f"ra2vipas bench calibrate {'--joint ' if joint else ''}-a {algorithm} --tests {report['tests_per_scenario']} "
                                          f"--seed {report['seed']} --from-s {report['from_s']:g} --write",
                               "from_s": report["from_s"], "samples": a["samples"], "ece_raw": a["ece_raw"],
                               "ece_fitted": a["ece_fitted"]}

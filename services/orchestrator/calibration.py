@@ -91,6 +91,76 @@ def _collect_scenario(algorithm: str, name: str, tests: int, seed: int, from_s: 
     return np.asarray(raw, dtype=float), np.asarray(walks, dtype=float).reshape(-1, 4), np.asarray(hit, dtype=float)
 
 
+# Worlds with several tags (issue 21) for the joint searches' maps: the paper's with K = 3, its
+# uniform placement, two tags that may share a person, and the ward (the dynamic world, K = 3).
+JOINT_SCENARIOS: dict[str, tuple[str, dict[str, Any]]] = {
+    "paper-3": ("paper", {"n_tags": 3}),
+    "paper-uniform-3": ("paper-uniform", {"n_tags": 3}),
+    "paper-2-shared": ("paper", {"n_tags": 2, "one_tag_per_person": False}),
+    "ward": ("ward", {}),
+}
+
+
+def joint_map_name(algorithm: str) -> str:
+    """The name of ``algorithm``'s map for searches of several tags at once in the maps file."""
+    return f"{algorithm}-joint"
+
+
+def collect_joint(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = JOINT_SCENARIOS,
+                  progress: Callable[[str], None] | None = None, from_s: float = 0.0,
+                  workers: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``collect`` for the joint search of several tags (``builtins.joint_search``): at every
+    step from ``from_s`` seconds on, every tag's raw confidence, covariates and hit (eq. 11
+    against that tag's carrier), of ``tests`` tests of each of ``JOINT_SCENARIOS``."""
+    from ra2vipas.services.orchestrator.engine import worker_pool
+
+    names = list(scenarios)
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    with worker_pool(max(1, min(workers, len(names)))) as pool:
+        futures = [pool.submit(_collect_joint_scenario, algorithm, name, tests, seed, from_s) for name in names]
+        for name, future in zip(names, futures):
+            parts.append(future.result())
+            if progress:
+                progress(name)
+    if not parts:
+        return np.zeros(0), np.zeros((0, 4)), np.zeros(0)
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))  # type: ignore[return-value]
+
+
+def _collect_joint_scenario(algorithm: str, name: str, tests: int, seed: int,
+                            from_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``collect_joint`` for one scenario."""
+    from ra2vipas.services.controller.builtins import joint_search
+    from ra2vipas.services.controller.contract import episode_context
+
+    preset, overrides = JOINT_SCENARIOS[name]
+    scenario = build_scenario(preset, overrides)
+    pod = train_pod(scenario, seed)
+    first = 0
+    while (first + 1) * scenario.rf_period_s < from_s - 1e-9:
+        first += 1
+    raw, cov, hit = [], [], []
+    for k in range(tests):
+        platform = SimulatedPlatform(scenario, seed, k)
+        context = episode_context(sensor_config_from_scenario(scenario), pod.model, scenario, seed, k)
+        search = joint_search(algorithm, context, scenario.n_tags)
+        pan, decisions = search.first_pan(), []
+        for t in range(scenario.steps):
+            d = search.step(platform.sense(t, pan))
+            pan = d.next_pan_rad
+            decisions.append(d.tags)
+        truth = platform.truth
+        for tag, carrier in enumerate(truth.carriers):
+            estimates = np.asarray([step[tag].estimate_rad for step in decisions])
+            hits, _ = score_test(estimates, truth.step_bearings_rad(), carrier, scenario.fov_half_angle_rad)
+            hit += hits[first:].tolist()
+            for step in decisions[first:]:
+                c = step[tag].covariates
+                raw.append(step[tag].raw_confidence)
+                cov.append((c.tx_walks, c.noise_correlation, c.clutter_density, c.crowding))
+    return np.asarray(raw, dtype=float), np.asarray(cov, dtype=float).reshape(-1, 4), np.asarray(hit, dtype=float)
+
+
 def _design(raw: np.ndarray, covariates: np.ndarray) -> np.ndarray:
     """Columns: logit(raw clipped), 1, the covariates, and logit x the first covariate (tx_walks)."""
     p = np.clip(raw, RAW_CONFIDENCE_CLIP, 1.0 - RAW_CONFIDENCE_CLIP)
@@ -152,16 +222,21 @@ def map_drift(agreement: dict[str, float]) -> list[str]:
 
 
 def calibrate(algorithms: Iterable[str], tests: int, seed: int, progress: Callable[[str], None] | None = None,
-              from_s: float = 0.0, workers: int = 1) -> dict[str, Any]:
+              from_s: float = 0.0, workers: int = 1, joint: bool = False) -> dict[str, Any]:
     """Fit every algorithm's map on the steps from ``from_s`` seconds on (``workers`` processes
     run the scenarios; the maps do not depend on it); report it with the ECE before and after on
-    the fitting data."""
-    out: dict[str, Any] = {"tests_per_scenario": tests, "seed": seed, "from_s": from_s, "scenarios": list(SCENARIOS), "algorithms": {}}
+    the fitting data. ``joint``: the maps of the searches for several tags at once, fitted on
+    every tag's steps in ``JOINT_SCENARIOS`` (named ``joint_map_name(algorithm)``)."""
+    out: dict[str, Any] = {"tests_per_scenario": tests, "seed": seed, "from_s": from_s,
+                           "scenarios": list(JOINT_SCENARIOS if joint else SCENARIOS), "algorithms": {}}
+    if joint:
+        out["joint"] = True
     for algorithm in algorithms:
-        raw, walks, hit = collect(algorithm, tests, seed, progress=(lambda name, a=algorithm: progress(f"{a}: {name}")) if progress else None,
-                                  from_s=from_s, workers=workers)
+        fit_on = collect_joint if joint else collect
+        raw, walks, hit = fit_on(algorithm, tests, seed, progress=(lambda name, a=algorithm: progress(f"{a}: {name}")) if progress else None,
+                                 from_s=from_s, workers=workers)
         coefficients = fit_platt(raw, walks, hit)
-        out["algorithms"][algorithm] = {
+        out["algorithms"][joint_map_name(algorithm) if joint else algorithm] = {
             "map": [round(v, 4) for v in coefficients], "samples": int(raw.size),
             "ece_raw": round(expected_calibration_error(raw, hit), 4),
             "ece_fitted": round(expected_calibration_error(platt(raw, walks, *coefficients), hit), 4),

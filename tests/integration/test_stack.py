@@ -68,6 +68,23 @@ def test_campaign_through_the_cli_equals_simulate_value_for_value(stack):
     assert mesh_results["steps_per_second"] > 0
 
 
+def test_a_three_tag_campaign_through_real_processes_equals_simulate(stack):
+    """Issue 21 through the stack: every tag's RF pair over Zenoh, the joint search and the
+    one-tag-at-a-time baseline in the rigs' controller processes, each tag scored against its
+    carrier by the orchestrator; value for value what ``simulate`` gives, per tag too."""
+    args = ["--preset", "paper", "--tests", "3", "--seed", "5", "--algorithms", "ra2vipas,ra2vipas-seq", *SMALL, "--set", "n_tags=3",
+            "--stop-confidence", "0.9"]
+    mesh = cli("campaign", "start", "--api", stack["api"], *args, "--wait", "--json")
+    assert mesh.returncode == 0, mesh.stderr
+    sim = cli("simulate", *args, "--json")
+    assert sim.returncode == 0, sim.stderr
+    mesh_results = json.loads(mesh.stdout.strip().splitlines()[-1])
+    sim_results = json.loads(sim.stdout.strip().splitlines()[-1])
+    assert untimed(mesh_results) == untimed(sim_results)
+    for name in ("ra2vipas", "ra2vipas-seq"):
+        assert len(mesh_results["algorithms"][name]["tags"]["per_tag"]) == 3
+
+
 def test_campaign_start_status_and_results_commands(stack):
     started = cli("campaign", "start", "--api", stack["api"], "--tests", "2", "--seed", "9", "-a", "rapas", *SMALL)
     assert started.returncode == 0, started.stderr
