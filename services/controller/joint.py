@@ -44,6 +44,7 @@ import numpy as np
 from ra2vipas.services.controller import multitag
 from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, Beliefs
 from ra2vipas.services.controller.composed import Composition, Decision, Parts, take_iso, update_rf
+from ra2vipas.services.controller.confidence import Covariates
 from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softmax
 from ra2vipas.services.controller.rf_belief import PacketClock
 from ra2vipas.services.controller.rf_filter import logsumexp
@@ -51,7 +52,9 @@ from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
 
 PanRule = Literal["entropy", "neediest"]
-PAN_RULES: tuple[str, ...] = ("entropy", "neediest")
+PAN_RULES: tuple[str, ...] = ("entropy", "neediest", "revisit")
+REVISIT_STEPS = 20
+"""``revisit``: a walking tag's weight grows by its entropy share per this many steps since the camera last looked at its answer."""
 
 
 def tag_view(m: StepMeasurement, tag: int, step: int | None = None) -> StepMeasurement:
@@ -98,6 +101,9 @@ class TagDecision:
         The same under the controller's own model.
     decided_step : int or None
         The step at which the confidence reached ``stop_confidence`` (None: not decided).
+    covariates : Covariates or None
+        What the confidence map conditioned on for this tag (``confidence.Covariates``; what
+        ``calibration.collect_joint`` fits the joint map on).
     """
 
     tag: int
@@ -105,6 +111,7 @@ class TagDecision:
     confidence: float
     raw_confidence: float
     decided_step: int | None = None
+    covariates: Covariates | None = None
 
 
 @dataclass(frozen=True)
@@ -223,7 +230,9 @@ class JointSearch:
         self.one_tag_per_person = bool(one_tag_per_person)
         self.stop_confidence = float(stop_confidence)
         acquisition = tags[0].acquisition
-        self.acquisition = with_summed_gpucb(acquisition) if pan_rule == "entropy" else acquisition
+        self.acquisition = with_summed_gpucb(acquisition) if pan_rule in ("entropy", "revisit") else acquisition
+        self.fov_half_rad = float(self.vision.tracks.count_limit) if self.vision.sees else 0.0
+        self.last_seen = np.zeros(len(tags))  # the step the camera last looked at each tag's answer
         self.clocks = [PacketClock(rf_period_s) for _ in tags]
         self.decided: list[TagDecision | None] = [None] * len(tags)
         self._first_pan = float(wrap(first_pan_rad))
@@ -263,13 +272,16 @@ class JointSearch:
                 continue
             cov = p.confidence.covariates(estimate, p.rf, vision, p.iso)
             confidence = round(p.confidence(raw, cov), 6)
-            decision = TagDecision(tag=k, estimate_rad=float(wrap(estimate)), confidence=confidence, raw_confidence=float(raw))
+            decision = TagDecision(tag=k, estimate_rad=float(wrap(estimate)), confidence=confidence, raw_confidence=float(raw),
+                                   covariates=cov)
             if self.stop_confidence > 0.0 and confidence >= self.stop_confidence:
                 decision = replace(decision, decided_step=t)
                 self.decided[k] = decision
             tags.append(decision)
         open_ = [d is None for d in self.decided]
-        weights = multitag.pan_weights(which, [not o for o in open_], self.pan_rule)
+        weights = multitag.pan_weights(which, [not o for o in open_], "entropy" if self.pan_rule == "revisit" else self.pan_rule)
+        if self.pan_rule == "revisit" and self.vision.sees:
+            weights = self._revisit(weights, tags, s, t)
         lead = int(np.argmax(weights)) if weights.any() else 0
         per_tag = tuple(Beliefs(t, p.rf, vision, scored[k][0], answers[k][2], self._due(k, t)) for k, p in enumerate(self.parts))
         lead_beliefs = per_tag[lead]
@@ -285,6 +297,18 @@ class JointSearch:
                              confidence=first.confidence, raw_confidence=first.raw_confidence, tx_walks=cov0.tx_walks,
                              noise_correlation=cov0.noise_correlation, clutter_density=cov0.clutter_density,
                              crowding=cov0.crowding, tags=tuple(tags), all_decided=not any(open_), lead_tag=lead)
+
+    def _revisit(self, weights: np.ndarray, tags: list[TagDecision], s: float, t: int) -> np.ndarray:
+        """``revisit``: the entropy weights, each walking tag's (its RF belief says it walks)
+        raised by 1 per ``REVISIT_STEPS`` steps since the camera last had its answer in view."""
+        out = weights.copy()
+        for k, (p, d) in enumerate(zip(self.parts, tags)):
+            if abs(float(wrap(s - d.estimate_rad))) <= self.fov_half_rad:
+                self.last_seen[k] = t
+            if out[k] > 0.0 and p.rf.listens and p.rf.tx_walks > 0.5:
+                out[k] *= 1.0 + (t - self.last_seen[k]) / REVISIT_STEPS
+        total = out.sum()
+        return out / total if total > 0.0 else out
 
     def _due(self, k: int, t: int) -> bool | None:
         clock = self.clocks[k]
