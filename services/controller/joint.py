@@ -52,9 +52,7 @@ from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
 
 PanRule = Literal["entropy", "neediest"]
-PAN_RULES: tuple[str, ...] = ("entropy", "neediest", "revisit")
-REVISIT_STEPS = 20
-"""``revisit``: a walking tag's weight grows by its entropy share per this many steps since the camera last looked at its answer."""
+PAN_RULES: tuple[str, ...] = ("entropy", "neediest")
 
 
 def tag_view(m: StepMeasurement, tag: int, step: int | None = None) -> StepMeasurement:
@@ -230,9 +228,7 @@ class JointSearch:
         self.one_tag_per_person = bool(one_tag_per_person)
         self.stop_confidence = float(stop_confidence)
         acquisition = tags[0].acquisition
-        self.acquisition = with_summed_gpucb(acquisition) if pan_rule in ("entropy", "revisit") else acquisition
-        self.fov_half_rad = float(self.vision.tracks.count_limit) if self.vision.sees else 0.0
-        self.last_seen = np.zeros(len(tags))  # the step the camera last looked at each tag's answer
+        self.acquisition = with_summed_gpucb(acquisition) if pan_rule == "entropy" else acquisition
         self.clocks = [PacketClock(rf_period_s) for _ in tags]
         self.decided: list[TagDecision | None] = [None] * len(tags)
         self._first_pan = float(wrap(first_pan_rad))
@@ -279,9 +275,7 @@ class JointSearch:
                 self.decided[k] = decision
             tags.append(decision)
         open_ = [d is None for d in self.decided]
-        weights = multitag.pan_weights(which, [not o for o in open_], "entropy" if self.pan_rule == "revisit" else self.pan_rule)
-        if self.pan_rule == "revisit" and self.vision.sees:
-            weights = self._revisit(weights, tags, s, t)
+        weights = multitag.pan_weights(which, [not o for o in open_], self.pan_rule)
         lead = int(np.argmax(weights)) if weights.any() else 0
         per_tag = tuple(Beliefs(t, p.rf, vision, scored[k][0], answers[k][2], self._due(k, t)) for k, p in enumerate(self.parts))
         lead_beliefs = per_tag[lead]
@@ -297,18 +291,6 @@ class JointSearch:
                              confidence=first.confidence, raw_confidence=first.raw_confidence, tx_walks=cov0.tx_walks,
                              noise_correlation=cov0.noise_correlation, clutter_density=cov0.clutter_density,
                              crowding=cov0.crowding, tags=tuple(tags), all_decided=not any(open_), lead_tag=lead)
-
-    def _revisit(self, weights: np.ndarray, tags: list[TagDecision], s: float, t: int) -> np.ndarray:
-        """``revisit``: the entropy weights, each walking tag's (its RF belief says it walks)
-        raised by 1 per ``REVISIT_STEPS`` steps since the camera last had its answer in view."""
-        out = weights.copy()
-        for k, (p, d) in enumerate(zip(self.parts, tags)):
-            if abs(float(wrap(s - d.estimate_rad))) <= self.fov_half_rad:
-                self.last_seen[k] = t
-            if out[k] > 0.0 and p.rf.listens and p.rf.tx_walks > 0.5:
-                out[k] *= 1.0 + (t - self.last_seen[k]) / REVISIT_STEPS
-        total = out.sum()
-        return out / total if total > 0.0 else out
 
     def _due(self, k: int, t: int) -> bool | None:
         clock = self.clocks[k]

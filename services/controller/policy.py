@@ -140,8 +140,8 @@ class ControllerSettings:
             raise ValueError("lobe_width_rad and residual_length_scale_rad must be > 0")
         if self.probe_every < 0:
             raise ValueError("probe_every must be >= 0")
-        if self.tag_pan_rule not in ("entropy", "neediest", "revisit"):
-            raise ValueError("tag_pan_rule must be entropy, neediest or revisit")
+        if self.tag_pan_rule not in ("entropy", "neediest"):
+            raise ValueError("tag_pan_rule must be entropy or neediest")
 
 
 @dataclass(frozen=True)
