@@ -122,6 +122,27 @@ def test_bench_calibrate_refits_only_the_maps_asked_for_and_names_a_bad_algorith
     assert proc.returncode == 2 and "unknown policy 'ravipa'" in one_error_line(proc)
 
 
+def test_bench_calibrate_joint_fits_the_joint_searchs_map_on_every_tags_steps(tmp_path):
+    """`bench calibrate --joint` (issue 21) fits ``ra2vipas-joint`` on every tag's steps of the
+    worlds with several tags (3 + 3 + 2 + 3 tags), and writes it beside the others with the
+    command that remakes it."""
+    from ra2vipas.services.controller.confidence import write_maps
+
+    proc = ra2vipas("bench", "calibrate", "--joint", "-a", "ra2vipas", "--tests", "2", "--from-s", "3", "--workers", "1", "--json",
+                    timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["joint"] is True and report["scenarios"] == ["paper-3", "paper-uniform-3", "paper-2-shared", "ward"]
+    fit = report["algorithms"]["ra2vipas-joint"]
+    assert list(report["algorithms"]) == ["ra2vipas-joint"] and len(fit["map"]) == 7
+    assert fit["samples"] == 2 * (3 + 3 + 2 + 3) * (120 - 29)
+    maps = tmp_path / "maps.json"
+    maps.write_text(json.dumps({"maps": {}}))
+    write_maps(report, maps)
+    entry = json.loads(maps.read_text())["maps"]["ra2vipas-joint"]
+    assert entry["command"] == "ra2vipas bench calibrate --joint -a ra2vipas --tests 2 --seed 1001 --from-s 3 --write"
+
+
 def test_bench_simulate_reports_both_speeds_the_speedup_and_peak_memory_as_json():
     """A small `bench simulate` (2 tests, one memory run of 3 short tests; one worker, so it
     stays cheap on a shared machine: `--workers 2 == --workers 1` has its own test): the keys
