@@ -157,7 +157,9 @@ def test_survey_record_with_an_operators_layout_then_serve_it_as_a_rig(local_sta
     assert recorded.returncode == 0, recorded.stderr
     assert recorded.stdout.strip() == f"wrote a survey of 4 targets, 2 passes of 12 pans, 40 training samples to {file}"
     survey = load(file)
-    assert survey.layout.model_dump() == {**layout, "bearings_rad": tuple(layout["bearings_rad"]), "ranges_m": tuple(layout["ranges_m"])}
+    assert survey.layout.model_dump() == {**layout, "bearings_rad": tuple(layout["bearings_rad"]), "ranges_m": tuple(layout["ranges_m"]),
+                                          "tx_indices": (), "tag_addresses": ()}  # one tag: no carriers of others
+    assert b"tx_indices" not in file.read_bytes() and b"rf_tags" not in file.read_bytes()  # a single-tag survey is written as before
     assert len(survey.pans_rad) == 12 and len(survey.passes) == 2 and survey.rig.kind == "hardware"
 
     served = registry.start("survey", "serve", str(file), "--rig", "survey-1", env=env)
