@@ -157,8 +157,10 @@ class BuiltinPolicy(Policy):
 def joint_search(algorithm: str, context: EpisodeContext, n_tags: int, settings: ControllerSettings | None = None) -> JointSearch:
     """The search for ``n_tags`` tags at once of a built-in ``algorithm`` (``joint.JointSearch``):
     the algorithm's parts once per tag, every tag's vision belief the first tag's (one tracker
-    over the people the camera sees), the first tag's acquisition for the one pan; the scenario's
-    ``one_tag_per_person`` and the context's ``stop_confidence`` apply."""
+    over the people the camera sees), the first tag's acquisition for the one pan, and the
+    algorithm's map fitted on joint searches (``{algorithm}-joint`` in the maps file, ``bench
+    calibrate --joint``) where one ships; the scenario's ``one_tag_per_person`` and the context's
+    ``stop_confidence`` apply."""
     cfg = tuned_settings(algorithm, settings)
     joint_map = shipped_maps().get(f"{algorithm}-joint")  # fitted on joint searches (``bench calibrate --joint``)
     if joint_map is not None:
