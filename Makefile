@@ -16,8 +16,9 @@ setup: $(STAMP)
 # information only, silenced here (tests/packaging checks the install prints no warning).
 EDITABLE_QUIET := PYTHONWARNINGS="ignore:Editable installation"
 
+# A set-up interrupted while the venv was being made leaves one without pip: make it again.
 $(STAMP): pyproject.toml constraints.txt
-	$(PYTHON) -m venv $(VENV)
+	@if [ ! -x $(BIN)/pip ]; then rm -rf $(VENV) && echo "$(PYTHON) -m venv $(VENV)" && $(PYTHON) -m venv $(VENV); fi
 	$(BIN)/pip install --quiet --upgrade pip
 	$(EDITABLE_QUIET) $(BIN)/pip install --quiet -c constraints.txt -e '.[test]'
 	touch $(STAMP)

@@ -340,6 +340,7 @@ def bench_calibrate(
     algorithms: Annotated[Optional[str], typer.Option("--algorithms", "-a", help="Comma-separated subset of: ra2vipas, rapas, ravipas, sweep (default: all); each map is fitted on its own runs, so a subset prints the same maps.")] = None,
     from_s: Annotated[float, typer.Option("--from-s", min=0.0, max=60.0, help="Fit on the steps whose sample is taken this many seconds or more after the start (0: every step).")] = 0.0,
     workers: Annotated[Optional[int], typer.Option(min=1, max=1024, help="Worker processes running the scenarios (default: the CPU count); the maps do not depend on it.")] = None,
+    scenarios: Annotated[Optional[str], typer.Option("--scenarios", help="Comma-separated subset of the fitting worlds (default: all of paper, paper-uniform, crowd-40, noise-6dB, db-gain, wide-lobe, fov-45, nu-3, dynamic, dynamic-static): fit on the worlds you deploy in. The shipped maps use all of them, so --write refuses a subset.")] = None,
     write: Annotated[bool, typer.Option("--write", help="Write the maps into the shipped file (services/controller/data/confidence_maps.json), one named coefficient each, with this command.")] = False,
     joint: Annotated[bool, typer.Option("--joint", help="Fit the maps of the searches for several tags at once (issue 21; named ALGORITHM-joint), on every tag's steps in worlds with 2-3 tags.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
@@ -351,15 +352,26 @@ def bench_calibrate(
     come from `ra2vipas bench calibrate --tests 40 --seed 1001 --write` (Ra²ViPAS's with `--from-s 3`)."""
     from ra2vipas.cli.output import stderr
     from ra2vipas.cli.simulate import parse_algorithms
-    from ra2vipas.services.orchestrator.calibration import calibrate
+    from ra2vipas.services.orchestrator.calibration import SCENARIOS, calibrate
     from ra2vipas.services.protocol.scenario import ScenarioError
 
     try:
         names = parse_algorithms(algorithms)
     except ScenarioError as err:
         fail(str(err), EXIT_USAGE)
+    worlds = list(SCENARIOS)
+    if joint and scenarios is not None:
+        fail("--scenarios chooses among the single-tag worlds; --joint fits on its own (drop one of them)", EXIT_USAGE)
+    if scenarios is not None:
+        worlds = list(dict.fromkeys(w.strip() for w in scenarios.split(",") if w.strip()))
+        unknown = [w for w in worlds if w not in SCENARIOS]
+        if unknown or not worlds:
+            fail(f"--scenarios: unknown world(s) {', '.join(map(repr, unknown)) or '(none given)'}; choose among {', '.join(SCENARIOS)}",
+                 EXIT_USAGE)
+        if write and worlds != list(SCENARIOS):
+            fail("--write ships maps fitted on every world: drop --scenarios (or keep the map printed, without --write)", EXIT_USAGE)
     report = calibrate(names, tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"), from_s=from_s,
-                       workers=workers or os.cpu_count() or 1, joint=joint)
+                       workers=workers or os.cpu_count() or 1, scenarios=worlds, joint=joint)
     if write:
         from ra2vipas.services.controller.confidence import MAPS_FILE, write_maps
 

@@ -37,7 +37,7 @@ def simulate(
     plot: Annotated[Optional[str], typer.Option(metavar="FILE", help="Write the DR curves with 95% bands to FILE (.png or .svg).")] = None,
     reliability_plot: Annotated[Optional[str], typer.Option("--reliability-plot", metavar="FILE", help="Write the reliability diagram of the final confidences to FILE (.png or .svg).")] = None,
     vary: Annotated[Optional[list[str]], typer.Option("--vary", metavar="NAME=a,b,c|NAME=a:b:step", help="Run a parameter study instead: vary a scenario parameter over a list or an inclusive range (repeatable: the grid is the product); prints one row per point x algorithm, and --plot draws the final DR against it.")] = None,
-    workers: Annotated[int, typer.Option("--workers", "-w", min=0, max=1024, help="Processes to run the tests on (0: one per CPU core). Results are identical for any number.")] = 0,
+    workers: Annotated[int, typer.Option("--workers", "-w", min=0, max=1024, help="Processes to run the tests on (0: one per CPU core, fewer for a campaign too small to pay for starting them: one per ~10 000 control steps). Results are identical for any number.")] = 0,
 ) -> None:
     """Run the Monte Carlo campaign in-process and print the discovery-rate table.
 

@@ -41,39 +41,58 @@ SCENARIOS: dict[str, tuple[str, dict[str, Any]]] = {
 }
 
 
+Samples = tuple[np.ndarray, np.ndarray, np.ndarray]  # raw confidence, covariates (steps, 4), hit
+
+
 def collect(algorithm: str, tests: int, seed: int, scenarios: Iterable[str] = SCENARIOS,
             progress: Callable[[str], None] | None = None, from_s: float = 0.0,
-            workers: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            workers: int = 1) -> Samples:
     """(raw confidence, covariates (steps, 4): tx_walks, rho, clutter density, crowding, hit) at every
     step of ``tests`` tests of each scenario from ``from_s`` seconds on (the sample of step t is
     taken (t + 1) T_RF after the start), with the algorithm's tuning (its confidence map does not
     change the raw value); scenarios in order, one per worker process at a time (the same arrays
     whatever ``workers``)."""
+    return collect_many({algorithm: from_s}, tests, seed, scenarios, progress, workers)[algorithm]
+
+
+def collect_many(from_s: dict[str, float], tests: int, seed: int, scenarios: Iterable[str] = SCENARIOS,
+                 progress: Callable[[str], None] | None = None, workers: int = 1) -> dict[str, Samples]:
+    """``collect`` for several algorithms at once (``from_s``: each one's first second), each
+    scenario's POD model trained once for all of them: the same arrays as one ``collect`` per
+    algorithm (the model depends on the scenario and seed only), for a quarter of the training
+    when the four built-ins are fitted."""
     from ra2vipas.services.orchestrator.engine import worker_pool
 
     names = list(scenarios)
-    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    unknown = [n for n in names if n not in SCENARIOS]
+    if unknown:
+        raise ValueError(f"unknown calibration scenario(s) {unknown}; known: {', '.join(SCENARIOS)}")
+    parts: list[dict[str, Samples]] = []
     with worker_pool(max(1, min(workers, len(names)))) as pool:
-        futures = [pool.submit(_collect_scenario, algorithm, name, tests, seed, from_s) for name in names]
+        futures = [pool.submit(_collect_scenario, dict(from_s), name, tests, seed) for name in names]
         for name, future in zip(names, futures):
             parts.append(future.result())
             if progress:
                 progress(name)
     if not parts:
-        return np.zeros(0), np.zeros((0, 4)), np.zeros(0)
-    return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))  # type: ignore[return-value]
+        return {a: (np.zeros(0), np.zeros((0, 4)), np.zeros(0)) for a in from_s}
+    return {a: tuple(np.concatenate([p[a][i] for p in parts]) for i in range(3)) for a in from_s}  # type: ignore[misc]
 
 
-def _collect_scenario(algorithm: str, name: str, tests: int, seed: int, from_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``collect`` for one scenario."""
-    settings = tuned_settings(algorithm)
-    raw, walks, hit = [], [], []
+def _collect_scenario(from_s: dict[str, float], name: str, tests: int, seed: int) -> dict[str, Samples]:
+    """``collect_many`` for one scenario: its POD model trained once, then each algorithm's tests."""
     preset, overrides = SCENARIOS[name]
     scenario = build_scenario(preset, overrides)
     pod = train_pod(scenario, seed)
+    return {algorithm: _run_tests(algorithm, scenario, pod.model, tests, seed, first_s) for algorithm, first_s in from_s.items()}
+
+
+def _run_tests(algorithm: str, scenario, pod_model, tests: int, seed: int, from_s: float) -> Samples:
+    settings = tuned_settings(algorithm)
+    raw, walks, hit = [], [], []
     for k in range(tests):
         platform = SimulatedPlatform(scenario, seed, k)
-        controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod.model, settings)
+        controller = Controller(algorithm, sensor_config_from_scenario(scenario), pod_model, settings)
         pan, estimates = controller.first_pan(), []
         first = 0
         for t in range(scenario.steps):
@@ -222,19 +241,24 @@ def map_drift(agreement: dict[str, float]) -> list[str]:
 
 
 def calibrate(algorithms: Iterable[str], tests: int, seed: int, progress: Callable[[str], None] | None = None,
-              from_s: float = 0.0, workers: int = 1, joint: bool = False) -> dict[str, Any]:
-    """Fit every algorithm's map on the steps from ``from_s`` seconds on (``workers`` processes
-    run the scenarios; the maps do not depend on it); report it with the ECE before and after on
+              from_s: float = 0.0, workers: int = 1, scenarios: Iterable[str] = SCENARIOS, joint: bool = False) -> dict[str, Any]:
+    """Fit every algorithm's map on the steps from ``from_s`` seconds on of ``scenarios`` (default:
+    all of ``SCENARIOS``; ``workers`` processes run the scenarios, each training its POD model once
+    for every algorithm; the maps do not depend on it); report it with the ECE before and after on
     the fitting data. ``joint``: the maps of the searches for several tags at once, fitted on
-    every tag's steps in ``JOINT_SCENARIOS`` (named ``joint_map_name(algorithm)``)."""
-    out: dict[str, Any] = {"tests_per_scenario": tests, "seed": seed, "from_s": from_s,
-                           "scenarios": list(JOINT_SCENARIOS if joint else SCENARIOS), "algorithms": {}}
+    every tag's steps in ``JOINT_SCENARIOS`` (named ``joint_map_name(algorithm)``; ``scenarios``
+    is not used)."""
+    names = list(algorithms)
+    worlds = list(JOINT_SCENARIOS) if joint else list(scenarios)
+    out: dict[str, Any] = {"tests_per_scenario": tests, "seed": seed, "from_s": from_s, "scenarios": worlds, "algorithms": {}}
     if joint:
         out["joint"] = True
-    for algorithm in algorithms:
-        fit_on = collect_joint if joint else collect
-        raw, walks, hit = fit_on(algorithm, tests, seed, progress=(lambda name, a=algorithm: progress(f"{a}: {name}")) if progress else None,
-                                 from_s=from_s, workers=workers)
+        samples = {a: collect_joint(a, tests, seed, progress=(lambda name, a=a: progress(f"{a}: {name}")) if progress else None,
+                                    from_s=from_s, workers=workers) for a in names}
+    else:
+        samples = collect_many({a: from_s for a in names}, tests, seed, worlds, progress=progress, workers=workers)
+    for algorithm in names:
+        raw, walks, hit = samples[algorithm]
         coefficients = fit_platt(raw, walks, hit)
         out["algorithms"][joint_map_name(algorithm) if joint else algorithm] = {
             "map": [round(v, 4) for v in coefficients], "samples": int(raw.size),

@@ -18,7 +18,7 @@ def serve(settings: OrchestratorSettings, log_level: str = "INFO") -> None:
 
     Not niced like the learner and router: the API's latency matters (issue 14: at nice 5, any
     nice-0 process on a busy machine delays every read); figures are drawn by its renderer
-    processes at nice 19 instead.
+    processes at nice 10 instead.
 
     Raises
     ------

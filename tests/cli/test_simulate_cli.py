@@ -102,24 +102,33 @@ def test_bench_step_prints_timings_as_json():
 
 def test_bench_calibrate_refits_only_the_maps_asked_for_and_names_a_bad_algorithm():
     """`bench calibrate -a ravipas` fits RaViPAS's map alone (seven coefficients, its ECE before
-    and after on the fitting runs); an unknown name is one line and exit code 2."""
-    proc = ra2vipas("bench", "calibrate", "-a", "ravipas", "--tests", "2", "--json")
+    and after on the fitting runs), on the worlds `--scenarios` names (two here, to stay cheap);
+    an unknown name is one line and exit code 2."""
+    worlds = ("--scenarios", "paper,dynamic")
+    proc = ra2vipas("bench", "calibrate", "-a", "ravipas", "--tests", "2", *worlds, "--json")
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert list(report["algorithms"]) == ["ravipas"] and report["tests_per_scenario"] == 2 and report["seed"] == 1001
+    assert report["scenarios"] == ["paper", "dynamic"]
     fit = report["algorithms"]["ravipas"]
-    assert len(fit["map"]) == 7 and fit["samples"] == 2 * len(report["scenarios"]) * 120
+    assert len(fit["map"]) == 7 and fit["samples"] == 2 * 2 * 120
     assert 0.0 <= fit["ece_fitted"] <= fit["ece_raw"]
     # --from-s 3: the samples taken 3 s or more after the start (step t's at (t + 1) x 0.1 s), and another map
-    proc = ra2vipas("bench", "calibrate", "-a", "ravipas", "--tests", "2", "--from-s", "3", "--json")
+    proc = ra2vipas("bench", "calibrate", "-a", "ravipas", "--tests", "2", *worlds, "--from-s", "3", "--json")
     later = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert later["from_s"] == 3.0 and later["algorithms"]["ravipas"]["samples"] == 2 * len(report["scenarios"]) * (120 - 29)
+    assert later["from_s"] == 3.0 and later["algorithms"]["ravipas"]["samples"] == 2 * 2 * (120 - 29)
     assert later["algorithms"]["ravipas"]["map"] != fit["map"]
-    # one worker or one per core: the same steps in the same order, the same map
-    proc = ra2vipas("bench", "calibrate", "-a", "ravipas", "--tests", "2", "--workers", "1", "--json")
-    assert json.loads(proc.stdout.strip().splitlines()[-1])["algorithms"]["ravipas"] == fit
+    # one worker or one per core, one algorithm or two (each world's POD model trained once for both):
+    # the same steps in the same order, the same map
+    proc = ra2vipas("bench", "calibrate", "-a", "rapas,ravipas", "--tests", "2", *worlds, "--workers", "1", "--json")
+    both = json.loads(proc.stdout.strip().splitlines()[-1])["algorithms"]
+    assert list(both) == ["rapas", "ravipas"] and both["ravipas"] == fit and both["rapas"]["map"] != fit["map"]
     proc = ra2vipas("bench", "calibrate", "-a", "ravipa")
     assert proc.returncode == 2 and "unknown policy 'ravipa'" in one_error_line(proc)
+    proc = ra2vipas("bench", "calibrate", "--scenarios", "paper,mars")
+    assert proc.returncode == 2 and "unknown world(s) 'mars'" in one_error_line(proc)
+    proc = ra2vipas("bench", "calibrate", "--scenarios", "paper", "--write")
+    assert proc.returncode == 2 and "--write ships maps fitted on every world" in one_error_line(proc)
 
 
 def test_bench_calibrate_joint_fits_the_joint_searchs_map_on_every_tags_steps(tmp_path):

@@ -5,6 +5,7 @@ partial, and exits 130."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -99,31 +100,30 @@ def test_ctrl_c_on_simulate_json_prints_partial_results(compiled):
     assert results["partial"] is True and 0 < results["tests_recorded"]["rapas"] < 3000
 
 
-def test_simulate_dynamic_says_within_a_second_that_it_trains_the_pod_model():
+def test_simulate_dynamic_says_at_once_that_it_trains_the_pod_model():
     """The first seconds (a minute on a first run: the numerical kernels compile) are not a blank
-    terminal (issue 23, point 6): one line at once, another when the model is trained. "At once"
-    is within a second of what the command line itself takes to start (`ra2vipas --version`, timed
-    just before under the same load): on a busy machine the interpreter alone can take seconds."""
+    terminal (issue 23, point 6): one line before the model trains, another when it is trained.
+    "Before" is checked by order, not by a clock (which a busy machine stretches): the second line
+    comes at least half the training time the command reports after the first."""
     env = _env()
-    started = time.monotonic()
-    subprocess.run([sys.executable, "-m", "ra2vipas.cli.main", "--version"], capture_output=True, cwd=ROOT, env=env, check=True)
-    start_up = time.monotonic() - started
-    started = time.monotonic()
     proc = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", "simulate", "--preset", "dynamic", "--tests", "1", "-a", "rapas",
                              "--set", "steps=20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
                             start_new_session=True, preexec_fn=restore_ctrl_c)
     try:
         first = proc.stderr.readline()
-        said_after = time.monotonic() - started
+        first_at = time.monotonic()
+        second = proc.stderr.readline()
+        gap = time.monotonic() - first_at
         rest = proc.communicate(timeout=300)[1]
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     assert first.startswith("training the POD model on 900 self-supervised samples (dynamic, seed 1), then 1 episodes"), first
-    assert said_after < start_up + 1.0, f"the first line came after {said_after:.2f} s (the command line starts in {start_up:.2f} s)"
+    trained = re.match(r"POD model trained \(R² [0-9.]+\) after ([0-9.]+) s; running 1 episodes", second)
+    assert trained, second
+    assert gap >= 0.5 * float(trained.group(1)), f"the first line came {gap:.2f} s before the model was trained in {trained.group(1)} s"
     assert proc.returncode == 0, rest
-    assert "POD model trained (R² " in rest and "running 1 episodes" in rest
 
 
 def test_ctrl_c_on_a_study_prints_its_partial_rows_and_exits_130(compiled):

@@ -12,12 +12,21 @@ import pytest
 
 from ra2vipas.services.controller.confidence import shipped_entry, shipped_maps
 from ra2vipas.services.controller.policy import ALGORITHMS
-from ra2vipas.services.orchestrator.calibration import MAP_TOLERANCE, collect, collect_joint, fit_platt, map_agreement, map_drift
+from ra2vipas.services.orchestrator.calibration import (
+    MAP_TOLERANCE,
+    collect_joint,
+    collect_many,
+    fit_platt,
+    map_agreement,
+    map_drift,
+)
 
 
 @pytest.fixture(scope="module")
 def fitting_data() -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    return {a: collect(a, tests=40, seed=1001, from_s=shipped_entry(a)["from_s"], workers=2) for a in ALGORITHMS}
+    """Each map's fitting runs (as `bench calibrate -a A` makes them: ``collect_many`` gives every
+    algorithm the arrays ``collect`` gives it alone, tests/unit/test_calibration.py)."""
+    return collect_many({a: shipped_entry(a)["from_s"] for a in ALGORITHMS}, tests=40, seed=1001, workers=2)
 
 
 @pytest.mark.parametrize("algorithm", ALGORITHMS)

@@ -9,6 +9,7 @@ from ra2vipas.services.controller.policy import ALGORITHMS
 from ra2vipas.services.orchestrator import engine
 from ra2vipas.services.orchestrator.engine import Point, plan, run_points
 from ra2vipas.services.orchestrator.simulate import run_campaign, run_test, summarize, train_pod
+from ra2vipas.services.protocol.scenario import build_scenario
 from tests.conftest import differences, small_scenario, untimed
 
 TINY = {"steps": 25, "n_train": 150, "n_targets": 8}
@@ -68,3 +69,16 @@ def test_chunks_are_small_enough_to_balance_the_workers():
 def test_no_point_is_an_error():
     with pytest.raises(ValueError):
         run_points([])
+
+
+def test_by_default_a_small_campaign_runs_in_this_process_and_a_large_one_on_every_core(monkeypatch):
+    """A worker costs seconds to start: the default is one per core, but only as many as the work
+    (control steps, and POD training samples) pays for."""
+    monkeypatch.setattr(engine, "default_workers", lambda: 8)
+    paper = build_scenario("paper")
+    assert engine.workers_for([Point("paper", paper, 2, 1, ("rapas", "sweep"))]) == 1
+    assert engine.workers_for([Point("paper", paper, 50, 1, ("ra2vipas", "rapas", "ravipas", "sweep"))]) == 2
+    assert engine.workers_for([Point("paper", paper, 1000, 1, ("rapas",))]) == 8
+    # training counts: ten points with their own seeds train ten models
+    assert engine.workers_for([Point("paper", paper, 1, s, ("rapas",)) for s in range(10)]) == 4
+    assert engine.workers_for([Point("paper", paper, 1, 1, ("rapas",)) for _ in range(10)]) == 1

@@ -32,6 +32,7 @@ import resource
 import time
 from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
+from typing import Callable
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -211,9 +212,11 @@ class RepeatFilter(logging.Filter):
     first line of the message as formatted: lines that differ there, e.g. naming another rig,
     are not the same line); the next one that passes says how many were suppressed."""
 
-    def __init__(self, interval_s: float = 10.0, burst: int = 5, max_keys: int = 1024) -> None:
+    def __init__(self, interval_s: float = 10.0, burst: int = 5, max_keys: int = 1024,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__()
         self.interval_s, self.burst, self.max_keys = interval_s, burst, max_keys
+        self.clock = clock  # time.monotonic; a test passes its own
         self._seen: dict[tuple, list] = {}  # key -> [window start, passed in window, suppressed]
 
     def filter(self, record: logging.LogRecord) -> bool:
@@ -222,7 +225,7 @@ class RepeatFilter(logging.Filter):
         except Exception:  # noqa: BLE001 - a filter must never raise (a bad format is the handler's to report)
             return True
         key = (record.name, record.levelno, first)
-        now = time.monotonic()
+        now = self.clock()
         state = self._seen.get(key)
         if state is None or now - state[0] >= self.interval_s:
             suppressed = state[2] if state else 0

@@ -5,9 +5,13 @@ process stalled every route and the scheduler that runs in the same process (iss
 
 * **Renderer processes.** ``PlotRenderer`` owns a ``ProcessPoolExecutor`` of ``workers``
   processes (``OrchestratorSettings.plot_workers``, env ``RA2VIPAS_PLOT_WORKERS``), started with
-  ``spawn`` (the API process runs Zenoh's threads, so forking it is unsafe), at nice 19 and
-  under ``SCHED_IDLE`` so they only take CPU that the services leave idle, and exiting by
-  themselves if the API process dies. A renderer that dies is replaced on the next request.
+  ``spawn`` (the API process runs Zenoh's threads, so forking it is unsafe), at nice 10 so a
+  campaign's services get the cores first (a renderer weighs about a tenth of a nice-0 process in
+  Linux's scheduler), and exiting by themselves if the API process dies. A renderer that dies is
+  replaced on the next request. Not ``SCHED_IDLE``: it runs only on a core nothing else
+  wants, so while anything else keeps every core busy a figure never arrives (every figure
+  request timed out after 30 s with three busy processes on two cores; at nice 10 the same
+  figures took 7-17 s for 20 requests each).
 * **Bounded.** At most ``capacity`` distinct renders are running or queued (two per worker by
   default); one more raises ``Saturated`` and the route answers 503 with ``Retry-After``
   instead of queueing. Concurrent requests for the same figure share one render.
@@ -60,7 +64,7 @@ from ra2vipas.services.orchestrator.api.errors import responses
 from ra2vipas.services.orchestrator.api.negotiate import IMAGE_CONTENT
 
 CACHE_BYTES = 64 * 1024 * 1024  # rendered figures (PNG and SVG) kept in memory
-NICENESS = 19  # renderer processes: the lowest priority, so a campaign's services get the cores first
+NICENESS = 10  # renderer processes: low priority (services first), yet never starved by a busy machine
 RETRY_AFTER_MAX_S = 30
 PARENT_POLL_S = 1.0
 
@@ -114,18 +118,13 @@ class RenderStats:
 # -- in the renderer processes ---------------------------------------------------------------------
 
 def _init_renderer(parent_pid: int, niceness: int) -> None:
-    """Renderer start-up: the lowest CPU priority (nice 19, and Linux's SCHED_IDLE policy where
-    available: run only on a core nothing else wants), exit with the API process, and import
+    """Renderer start-up: a low CPU priority (``niceness``, under the normal scheduling policy so
+    a busy machine slows a render but never starves it), exit with the API process, and import
     matplotlib's canvases now rather than during the first render."""
     try:
         os.nice(max(0, niceness - os.nice(0)))
     except OSError:
         pass
-    if niceness >= NICENESS and hasattr(os, "SCHED_IDLE"):
-        try:
-            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-        except OSError:
-            pass
     threading.Thread(target=_exit_with_parent, args=(parent_pid,), name="renderer-parent-watch", daemon=True).start()
     from matplotlib.backends import backend_agg, backend_svg  # noqa: F401  (the two formats' canvases)
 
