@@ -120,7 +120,7 @@ class ControllerSettings:
     # only), once the camera has seen packet_rate_walkers people walk (0: never): sparse packets leave a random walk behind a walker
     packet_walk_rate_std_rad_s: float = 0.5
     packet_walk_rate_change_rad_s: float = 0.2
-    packet_rate_walkers: int = 3
+    packet_rate_walkers: int = 5
     receiver_offset_db: float = 8.0  # prior spread of Rx(dir)'s offset when packets carry no channel (two receivers' difference)
     # -- several tags (issue 21; joint.JointSearch): how the one pan serves the undecided tags: entropy | neediest
     tag_pan_rule: str = "entropy"

@@ -272,3 +272,21 @@ def test_a_walker_at_a_steady_rate_is_followed_closer_with_the_rate_model():
     with_rate = np.mean([_walker_error(0.5, s) for s in range(8)])
     assert with_rate < 0.5 * lagging
     assert with_rate < math.radians(10.0)
+
+
+@pytest.mark.parametrize("preset, engaged", [("ble", False), ("ble-dynamic", True)])
+def test_the_rate_model_engages_once_the_camera_has_seen_people_walk(preset, engaged, ble_pod):
+    """The built-in Ra2ViPAS on packets: the walking model gains its bearing rate once the camera
+    has seen ``packet_rate_walkers`` (3) people walk: in the world where half of them walk, within
+    the episode; where everyone stands, never (the filter is then the random-walk one, step for step)."""
+    scenario = small_scenario(preset, steps=80)
+    controller = Controller("ra2vipas", sensor_config_from_scenario(scenario), ble_pod.model)
+    platform = SimulatedPlatform(scenario, 3, 1)
+    pan = controller.first_pan()
+    seen = []
+    for t in range(scenario.steps):
+        pan = controller.step(platform.sense(t, pan)).next_pan_rad
+        seen.append(controller.parts.vision.tracks.walkers_seen())
+    rff = controller.parts.rf.rff
+    assert rff.rates_engaged is engaged
+    assert (max(seen) >= controller.settings.packet_rate_walkers) is engaged
