@@ -387,6 +387,7 @@ class PacketBearingFilter(RFBearingFilter):
             self._rate_change = float(walk_rate_change_rad_s)
             self._walk_var_rad2 = float(walk_std_rad) ** 2
             self._freqs = np.fft.rfftfreq(circle.size)  # cycles per cell
+            self._transitions: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
     @property
     def rates_engaged(self) -> bool:
@@ -509,19 +510,31 @@ class PacketBearingFilter(RFBearingFilter):
         """The (rates x grid) walking state ``joint`` predicted over dt [s]: each rate's row shifted
         by omega dt (a phase shift of its FFT) and spread by the random walk (``walk_std_rad`` per
         T_RF), then the rates mixed (omega changes by N(0, change^2 dt)); normalised."""
-        circle = self.circle
         if dt <= 0.0:
             return joint
-        shift = self._rates * dt / circle.step  # cells each rate moves in dt
-        cells_var = self._walk_var_rad2 * (dt / self.rf_period_s) / circle.step**2
+        phase, mix = self._rate_transition(dt)
+        moved = np.maximum(np.fft.irfft(np.fft.rfft(joint, axis=1) * phase, n=self.circle.size, axis=1), 0.0)
+        predicted = mix @ moved
+        return predicted / predicted.sum()
+
+    def _rate_transition(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(the rows' FFT multipliers, the rates' mixing matrix) over dt, kept per dt (packets come
+        a whole number of steps apart: a few values per episode)."""
+        key = round(dt, 9)
+        cached = self._transitions.get(key)
+        if cached is not None:
+            return cached
+        step = self.circle.step
+        shift = self._rates * dt / step  # cells each rate moves in dt
+        cells_var = self._walk_var_rad2 * (dt / self.rf_period_s) / step**2
         diffusion = np.exp(-2.0 * (math.pi * self._freqs) ** 2 * cells_var)
         phase = np.exp(-2j * math.pi * shift[:, None] * self._freqs[None, :]) * diffusion[None, :]
-        moved = np.maximum(np.fft.irfft(np.fft.rfft(joint, axis=1) * phase, n=circle.size, axis=1), 0.0)
         d = self._rates[:, None] - self._rates[None, :]
         mix = np.exp(-0.5 * d * d / max(self._rate_change**2 * dt, 1e-12))
         mix /= mix.sum(axis=0, keepdims=True)
-        predicted = mix @ moved
-        return predicted / predicted.sum()
+        if len(self._transitions) < 64:
+            self._transitions[key] = (phase, mix)
+        return phase, mix
 
     def _absorb_rates(self, ll_stand: np.ndarray, ll_walk: np.ndarray, dt: float) -> None:
         """``_absorb`` with a walker whose bearing has a rate: the walking model's state is
