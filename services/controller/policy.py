@@ -116,6 +116,11 @@ class ControllerSettings:
     rssi_step_db: float = 1.0  # the receivers' RSSI step (whole dBm): its rounding adds step^2 / 12 to a packet's variance
     due_probe_every: int = 1  # probe in every n-th step an advertisement is due (the beacon's interval, rf_belief.PacketClock)
     packet_fading_tempering: bool = False  # temper each packet's term by its AR(1) correlation with the previous (rf_filter)
+    # a walking Tx's bearing has a rate, prior N(0, std^2), changing by change per sqrt(s) (rf_filter.PacketBearingFilter, packets
+    # only), once the camera has seen packet_rate_walkers people walk (0: never): sparse packets leave a random walk behind a walker
+    packet_walk_rate_std_rad_s: float = 0.5
+    packet_walk_rate_change_rad_s: float = 0.2
+    packet_rate_walkers: int = 5
     receiver_offset_db: float = 8.0  # prior spread of Rx(dir)'s offset when packets carry no channel (two receivers' difference)
     # -- several tags (issue 21; joint.JointSearch): how the one pan serves the undecided tags: entropy | neediest
     tag_pan_rule: str = "entropy"

@@ -409,14 +409,19 @@ class RFFilterBelief(RFBelief):
         the targets), shrunk towards ``walk_prior``.
     walk_prior : float
         Prior probability that the Tx walks.
+    rate_walkers : int
+        On packets, the walking model gets its bearing rate (``PacketBearingFilter.engage_rates``)
+        once the camera has seen this many people walk (0: never).
     """
 
     listens = True
     exact = True
 
-    def __init__(self, rff: RFBearingFilter, check: LobeGP, walk_prior_from_tracks: bool = True, walk_prior: float = 0.3) -> None:
+    def __init__(self, rff: RFBearingFilter, check: LobeGP, walk_prior_from_tracks: bool = True, walk_prior: float = 0.3,
+                 rate_walkers: int = 0) -> None:
         super().__init__(rff.circle)
         self.rff, self.check = rff, check
+        self.rate_walkers = int(rate_walkers)
         self.walk_prior_from_tracks, self.walk_prior = walk_prior_from_tracks, walk_prior
         self._dir_samples: list[tuple[float, float]] = []
 
@@ -433,6 +438,9 @@ class RFFilterBelief(RFBelief):
 
     def _after_sample(self, tracks) -> None:
         if tracks is not None:
+            if self.rate_walkers and not getattr(self.rff, "rates_engaged", True) and self.rff.packets \
+                    and tracks.walkers_seen() >= self.rate_walkers:
+                self.rff.engage_rates()  # packets, and the camera has seen people walk: a walking Tx has a bearing rate
             if self.walk_prior_from_tracks:  # the Tx is one of the targets: it walks as often as they do
                 self.rff.walk_prior = min(max(tracks.walking_share(self.walk_prior), 0.01), 0.99)
             self.rff.follow(tracks.ids.tolist(), *tracks.components())

@@ -355,7 +355,8 @@ class PacketBearingFilter(RFBearingFilter):
     def __init__(self, circle: CircleGrid, response: RxDirModel, noise_db: float, rf_period_s: float,
                  walk_std_rad: float = math.radians(2.0), level_memory_s: float = 0.5, walk_prior: float = 0.3,
                  tail_dof: float | None = 4.0, channel_offset_db: float = 3.0, rssi_step_db: float = 1.0,
-                 prior_dof: float = 5.0, receiver_offset_db: float = 8.0, temper_fading: bool = False) -> None:
+                 prior_dof: float = 5.0, receiver_offset_db: float = 8.0, temper_fading: bool = False,
+                 walk_rate_std_rad_s: float = 0.0, walk_rate_change_rad_s: float = 0.2, walk_rate_cells: int = 21) -> None:
         super().__init__(circle, response, noise_db, rf_period_s, walk_std_rad, level_memory_s, walk_prior, tail_dof)
         self.rf_period_s = float(rf_period_s)
         self.level_memory_s = float(level_memory_s)
@@ -375,6 +376,31 @@ class PacketBearingFilter(RFBearingFilter):
         self._dir_groups: dict[object, list] = {}  # channel -> [n, residual sums (standing), (walking)]
         self._dir_last: float | None = None
         self._update_time: float | None = None  # when the bearing was last updated (its packets' mean time)
+        # the walking Tx with a bearing rate (walk_rate_std_rad_s > 0): a grid over (rate, bearing), on packets, once
+        # ``engage_rates`` is called (the built-ins: once the camera has seen someone walk)
+        self._rates = self._rate_joint = self._rate_prior = None
+        if walk_rate_std_rad_s > 0.0:
+            top = 3.0 * float(walk_rate_std_rad_s)
+            self._rates = np.linspace(-top, top, max(int(walk_rate_cells), 3))
+            prior = np.exp(-0.5 * (self._rates / walk_rate_std_rad_s) ** 2)
+            self._rate_prior = prior / prior.sum()
+            self._rate_change = float(walk_rate_change_rad_s)
+            self._walk_var_rad2 = float(walk_std_rad) ** 2
+            self._freqs = np.fft.rfftfreq(circle.size)  # cycles per cell
+            self._transitions: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+
+    @property
+    def rates_engaged(self) -> bool:
+        """Whether the walking model has a bearing rate now."""
+        return self._rate_joint is not None
+
+    def engage_rates(self) -> None:
+        """From now on the walking model has a bearing rate (``walk_rate_std_rad_s`` > 0; else
+        nothing changes): the walker's posterior of gamma so far times the rates' prior."""
+        if self._rates is None or self._rate_joint is not None:
+            return
+        post = np.exp(self._walk - self._walk.max())
+        self._rate_joint = self._rate_prior[:, None] * (post / post.sum())[None, :]
 
     # -- Rx(iso) ----------------------------------------------------------------------------------
     def white_var(self) -> float:
@@ -474,8 +500,59 @@ class PacketBearingFilter(RFBearingFilter):
         now = sum(p[0] for p in dir_) / len(dir_)
         steps = 1 if self._update_time is None else max(int(round((now - self._update_time) / self.rf_period_s)), 1)
         self._update_time = now
-        self._absorb(total[0], total[1], steps)  # the walker moved for every step since the last update
+        if self._rate_joint is not None:
+            self._absorb_rates(total[0], total[1], steps * self.rf_period_s)
+        else:
+            self._absorb(total[0], total[1], steps)  # the walker moved for every step since the last update
         return True
+
+    def _predict_rates(self, joint: np.ndarray, dt: float) -> np.ndarray:
+        """The (rates x grid) walking state ``joint`` predicted over dt [s]: each rate's row shifted
+        by omega dt (a phase shift of its FFT) and spread by the random walk (``walk_std_rad`` per
+        T_RF), then the rates mixed (omega changes by N(0, change^2 dt)); normalised."""
+        if dt <= 0.0:
+            return joint
+        phase, mix = self._rate_transition(dt)
+        moved = np.maximum(np.fft.irfft(np.fft.rfft(joint, axis=1) * phase, n=self.circle.size, axis=1), 0.0)
+        predicted = mix @ moved
+        return predicted / predicted.sum()
+
+    def _rate_transition(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(the rows' FFT multipliers, the rates' mixing matrix) over dt, kept per dt (packets come
+        a whole number of steps apart: a few values per episode)."""
+        key = round(dt, 9)
+        cached = self._transitions.get(key)
+        if cached is not None:
+            return cached
+        step = self.circle.step
+        shift = self._rates * dt / step  # cells each rate moves in dt
+        cells_var = self._walk_var_rad2 * (dt / self.rf_period_s) / step**2
+        diffusion = np.exp(-2.0 * (math.pi * self._freqs) ** 2 * cells_var)
+        phase = np.exp(-2j * math.pi * shift[:, None] * self._freqs[None, :]) * diffusion[None, :]
+        d = self._rates[:, None] - self._rates[None, :]
+        mix = np.exp(-0.5 * d * d / max(self._rate_change**2 * dt, 1e-12))
+        mix /= mix.sum(axis=0, keepdims=True)
+        if len(self._transitions) < 64:
+            self._transitions[key] = (phase, mix)
+        return phase, mix
+
+    def _absorb_rates(self, ll_stand: np.ndarray, ll_walk: np.ndarray, dt: float) -> None:
+        """``_absorb`` with a walker whose bearing has a rate: the walking model's state is
+        (omega, gamma) on (rates x grid); over dt, gamma moves by omega dt plus a random walk,
+        omega by N(0, change^2 dt) (a person turns, their range changes): ``_predict_rates``. The
+        update multiplies every rate's row by the packet likelihood over gamma; ``_walk`` stays
+        the log posterior of gamma (summed over omega), so everything that reads the walking
+        model is unchanged."""
+        predicted = self._predict_rates(self._rate_joint, dt)
+        top = ll_walk.max()
+        post = predicted * np.exp(ll_walk - top)[None, :]
+        c = float(post.sum())
+        log_c = top + math.log(max(c, 1e-300))
+        self._rate_joint = post / c
+        self._walk = np.log(np.maximum(self._rate_joint.sum(axis=0), 1e-300))
+        self.ll_stand = ll_stand - log_c
+        self.ll_walk = ll_walk - log_c
+        self._static += self.ll_stand
 
     def _packet_loglik(self, resid: np.ndarray, var: np.ndarray) -> np.ndarray:
         if self.tail_dof is None:

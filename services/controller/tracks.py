@@ -189,6 +189,12 @@ class BearingTracker:
         walkers = int(np.count_nonzero(self._mu[:n, 1][settled] > 0.5))
         return (prior * strength + walkers) / (strength + int(settled.sum()))
 
+    def walkers_seen(self) -> int:
+        """How many tracks detected in at least three steps the IMM says walk."""
+        n = self._n
+        settled = self._det_steps[:n] >= 3.0
+        return int(np.count_nonzero(self._mu[:n, 1][settled] > 0.5))
+
     def detection_rate(self) -> tuple[np.ndarray, np.ndarray]:
         """(p~_i, n_i): each track's empirical POD and the (discounted) frames it rests on."""
         n = self.frames_in_view
