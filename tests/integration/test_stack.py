@@ -56,14 +56,18 @@ def test_up_starts_router_orchestrator_learner_and_two_rigs(stack):
     assert all([p["name"] for p in r["policies"]][:4] == ["ra2vipas", "rapas", "ravipas", "sweep"] for r in rigs)
 
 
-def test_campaign_through_the_cli_equals_simulate_value_for_value(stack):
-    args = ["--preset", "paper", "--tests", "4", "--seed", "5", "--algorithms", "ra2vipas,rapas,ravipas,sweep", *SMALL]
+def mesh_and_simulate(stack, args: list[str]) -> tuple[dict, dict]:
+    """The results object of the campaign ``args`` run through the stack, and of ``simulate``."""
     mesh = cli("campaign", "start", "--api", stack["api"], *args, "--wait", "--json")
     assert mesh.returncode == 0, mesh.stderr
     sim = cli("simulate", *args, "--json")
     assert sim.returncode == 0, sim.stderr
-    mesh_results = json.loads(mesh.stdout.strip().splitlines()[-1])
-    sim_results = json.loads(sim.stdout.strip().splitlines()[-1])
+    return json.loads(mesh.stdout.strip().splitlines()[-1]), json.loads(sim.stdout.strip().splitlines()[-1])
+
+
+def test_campaign_through_the_cli_equals_simulate_value_for_value(stack):
+    args = ["--preset", "paper", "--tests", "4", "--seed", "5", "--algorithms", "ra2vipas,rapas,ravipas,sweep", *SMALL]
+    mesh_results, sim_results = mesh_and_simulate(stack, args)
     assert untimed(mesh_results) == untimed(sim_results)
     assert mesh_results["steps_per_second"] > 0
 
@@ -74,12 +78,7 @@ def test_a_three_tag_campaign_through_real_processes_equals_simulate(stack):
     carrier by the orchestrator; value for value what ``simulate`` gives, per tag too."""
     args = ["--preset", "paper", "--tests", "3", "--seed", "5", "--algorithms", "ra2vipas,ra2vipas-seq", *SMALL, "--set", "n_tags=3",
             "--stop-confidence", "0.9"]
-    mesh = cli("campaign", "start", "--api", stack["api"], *args, "--wait", "--json")
-    assert mesh.returncode == 0, mesh.stderr
-    sim = cli("simulate", *args, "--json")
-    assert sim.returncode == 0, sim.stderr
-    mesh_results = json.loads(mesh.stdout.strip().splitlines()[-1])
-    sim_results = json.loads(sim.stdout.strip().splitlines()[-1])
+    mesh_results, sim_results = mesh_and_simulate(stack, args)
     assert untimed(mesh_results) == untimed(sim_results)
     for name in ("ra2vipas", "ra2vipas-seq"):
         assert len(mesh_results["algorithms"][name]["tags"]["per_tag"]) == 3
