@@ -163,7 +163,8 @@ def test_bench_simulate_reports_both_speeds_the_speedup_and_peak_memory_as_json(
     assert report["benchmark"] == "simulate" and report["workers"] == 1 and report["tests"] == 2
     assert report["steps"] == 2 * 4 * 120 and report["identical"] is True
     assert report["steps_per_second_1"] > 0 and report["steps_per_second_n"] > 0
-    assert report["speedup"] == round(report["steps_per_second_n"] / report["steps_per_second_1"], 3)
+    # computed from the unrounded speeds, printed beside their rounded values: within a unit of the 3rd decimal
+    assert report["speedup"] == pytest.approx(report["steps_per_second_n"] / report["steps_per_second_1"], abs=2e-3)
     assert len(report["cpu_loop_speedup"]) == 2 and report["target_speedup"] == 1.7
     [memory] = report["memory"]
     assert {k: memory[k] for k in ("tests", "steps", "algorithm", "workers", "episodes")} == {
@@ -188,13 +189,16 @@ def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
     expected = run_campaign("paper", build_scenario("paper"), 2, 1, ["ra2vipas", "rapas", "ravipas"])
     assert report["fast"]["dr_final"] == {a: s["dr_final"] for a, s in expected["algorithms"].items()}
     assert report["fast"]["dr_final_equals_inprocess"] is True and report["inprocess_steps_per_second_1"] > 0
-    assert report["mesh_over_inprocess"] == round(report["steps_per_second"] / report["inprocess_steps_per_second_1"], 3)
+    # the report divides unrounded figures and prints them rounded: recomputed from the printed ones, a
+    # ratio can land one unit of its 3rd decimal away (0.7274 / 1.1666 -> 0.624 printed as 0.623)
+    ratio = pytest.approx
+    assert report["mesh_over_inprocess"] == ratio(report["steps_per_second"] / report["inprocess_steps_per_second_1"], abs=2e-3)
     cpu = report["fast"]["cpu_ms_per_step"]  # what a step cost the stack's processes, by service (issue 22)
     assert set(cpu) == {"controller", "sensors", "router", "orchestrator", "learner", "total"}
     assert cpu["controller"] > 0 and cpu["sensors"] > 0 and all(v >= 0 for v in cpu.values())
     assert cpu["total"] == pytest.approx(sum(v for k, v in cpu.items() if k != "total"), abs=1e-3)
     assert report["inprocess_cpu_ms_per_step"] > 0
-    assert report["cpu_efficiency"] == round(report["inprocess_cpu_ms_per_step"] / cpu["total"], 3)
+    assert report["cpu_efficiency"] == ratio(report["inprocess_cpu_ms_per_step"] / cpu["total"], abs=2e-3)
     _check_breakdown(report["fast"]["step_breakdown"], episodes=6, steps=2 * 3 * 120)
     rt = report["realtime"]["step_breakdown"]
     assert rt["controller"]["steps"] == rt["sensors"]["steps"] == 120
