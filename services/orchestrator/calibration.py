@@ -61,22 +61,31 @@ def collect_many(from_s: dict[str, float], tests: int, seed: int, scenarios: Ite
     scenario's POD model trained once for all of them: the same arrays as one ``collect`` per
     algorithm (the model depends on the scenario and seed only), for a quarter of the training
     when the four built-ins are fitted."""
-    from ra2vipas.services.orchestrator.engine import worker_pool
-
     names = list(scenarios)
     unknown = [n for n in names if n not in SCENARIOS]
     if unknown:
         raise ValueError(f"unknown calibration scenario(s) {unknown}; known: {', '.join(SCENARIOS)}")
-    parts: list[dict[str, Samples]] = []
+    parts = _per_scenario(lambda name: (_collect_scenario, dict(from_s), name, tests, seed), names, workers, progress)
+    if not parts:
+        return {a: (np.zeros(0), np.zeros((0, 4)), np.zeros(0)) for a in from_s}
+    return {a: tuple(np.concatenate([p[a][i] for p in parts]) for i in range(3)) for a in from_s}  # type: ignore[misc]
+
+
+def _per_scenario(task: Callable[[str], tuple], names: list[str], workers: int,
+                  progress: Callable[[str], None] | None) -> list:
+    """Run ``task(name)`` (a function and its arguments, picklable) for each scenario, one per
+    worker process at a time, and return the results in the scenarios' order (the same whatever
+    ``workers``), calling ``progress(name)`` as each is collected."""
+    from ra2vipas.services.orchestrator.engine import worker_pool
+
+    parts = []
     with worker_pool(max(1, min(workers, len(names)))) as pool:
-        futures = [pool.submit(_collect_scenario, dict(from_s), name, tests, seed) for name in names]
+        futures = [pool.submit(*task(name)) for name in names]
         for name, future in zip(names, futures):
             parts.append(future.result())
             if progress:
                 progress(name)
-    if not parts:
-        return {a: (np.zeros(0), np.zeros((0, 4)), np.zeros(0)) for a in from_s}
-    return {a: tuple(np.concatenate([p[a][i] for p in parts]) for i in range(3)) for a in from_s}  # type: ignore[misc]
+    return parts
 
 
 def _collect_scenario(from_s: dict[str, float], name: str, tests: int, seed: int) -> dict[str, Samples]:
@@ -131,16 +140,8 @@ def collect_joint(algorithm: str, tests: int, seed: int, scenarios: Iterable[str
     """``collect`` for the joint search of several tags (``builtins.joint_search``): at every
     step from ``from_s`` seconds on, every tag's raw confidence, covariates and hit (eq. 11
     against that tag's carrier), of ``tests`` tests of each of ``JOINT_SCENARIOS``."""
-    from ra2vipas.services.orchestrator.engine import worker_pool
-
     names = list(scenarios)
-    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    with worker_pool(max(1, min(workers, len(names)))) as pool:
-        futures = [pool.submit(_collect_joint_scenario, algorithm, name, tests, seed, from_s) for name in names]
-        for name, future in zip(names, futures):
-            parts.append(future.result())
-            if progress:
-                progress(name)
+    parts = _per_scenario(lambda name: (_collect_joint_scenario, algorithm, name, tests, seed, from_s), names, workers, progress)
     if not parts:
         return np.zeros(0), np.zeros((0, 4)), np.zeros(0)
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))  # type: ignore[return-value]
