@@ -47,12 +47,13 @@ def _sizes(text: str, option: str) -> list[int]:
     return sizes
 
 
-def _local_stack(*, rigs: int, db_path: str, log_dir: str, window: int = 8):
+def _local_stack(*, rigs: int, db_path: str, log_dir: str, window: int = 8, rig_layout: str | None = None):
     """A benchmark's stack (services/benchmarks/common.py's ``StackFactory``): cli/stack.py's,
     on a free port, its services logging warnings only."""
     from ra2vipas.cli.stack import Stack, StackConfig, free_port
 
-    return Stack(StackConfig(rigs=rigs, port=free_port(), db_path=db_path, window=window, log_dir=log_dir, log_level="WARNING"))
+    layout = {"rig_layout": rig_layout} if rig_layout else {}
+    return Stack(StackConfig(rigs=rigs, port=free_port(), db_path=db_path, window=window, log_dir=log_dir, log_level="WARNING", **layout))
 
 
 @app.command("step")
@@ -122,6 +123,7 @@ def bench_mesh(
     memory_algorithm: Annotated[str, typer.Option(help="The algorithm of the memory campaigns.")] = "rapas",
     preset: Annotated[str, typer.Option(help="Scenario preset of the fast and realtime campaigns (paper, dynamic, ...).")] = "paper",
     inprocess: Annotated[bool, typer.Option(help="Also run the fast campaign in-process on one worker: mesh_over_inprocess.")] = True,
+    rig_layout: Annotated[str, typer.Option("--rig-layout", help="How the rigs run (as `ra2vipas up --rig-layout`): one-process, split, or both (each measured in turn; the top-level figures are one-process's, by_layout has both).")] = "one-process",
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Start local stacks and measure them through the real processes.
@@ -158,19 +160,27 @@ def bench_mesh(
         fail(f"unknown algorithm {memory_algorithm!r}; choose from {', '.join(registry.names())}", EXIT_USAGE)
     _check_preset(preset)
     sizes = _sizes(memory_tests, "--memory-tests")
+    from ra2vipas.cli.stack import RIG_LAYOUTS
+
+    if rig_layout not in (*RIG_LAYOUTS, "both"):
+        fail(f"--rig-layout: unknown layout {rig_layout!r}; choose from {', '.join(RIG_LAYOUTS)}, both", EXIT_USAGE)
+    layouts = RIG_LAYOUTS if rig_layout == "both" else (rig_layout,)
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count") or max(1, min(os.cpu_count() or 1, 16))
     try:
         report = mesh(_local_stack, rigs=rigs, window=window, tests=tests, realtime_tests=realtime_tests, memory_tests=sizes,
-                      memory_steps=memory_steps, memory_algorithm=memory_algorithm, preset=preset, inprocess=inprocess)
+                      memory_steps=memory_steps, memory_algorithm=memory_algorithm, preset=preset, inprocess=inprocess,
+                      rig_layouts=layouts)
     except BenchmarkError as err:
         fail(str(err))
     if as_json:
         print_json(report)
         return
     if tests or realtime_tests:
-        lat = report["latency_ms"] or {}
-        stdout.print(f"mesh ({rigs} rigs): {report['steps_per_second']} control steps/s in fast mode (target 2200); "
-                     f"realtime sample->command latency p50 {lat.get('p50')} ms, p99 {lat.get('p99')} ms (target p99 <= 5)")
+        for layout, part in (report.get("by_layout") or {report["rig_layout"]: report}).items():
+            lat = part["latency_ms"] or {}
+            stdout.print(f"mesh ({rigs} {layout} rigs): {part['steps_per_second']} control steps/s in fast mode (target 2200), "
+                         f"{part.get('mesh_over_inprocess')} x in-process on 1 worker; realtime sample->command latency p50 "
+                         f"{lat.get('p50')} ms, p99 {lat.get('p99')} ms (target p99 <= 5)")
     b = (report.get("fast") or {}).get("step_breakdown") or {}
     if b.get("step_ms") is not None:
         c = b["controller"]

@@ -6,11 +6,16 @@ and its controller must agree on it. A ``rig`` process runs both nodes, so they 
 its name from ``--rig`` / ``RA2VIPAS_RIG`` or, when neither is given, from the host name (a
 container's host name is unique and survives a restart).
 
-Each node keeps its own Zenoh session, exactly as if it were ``ra2vipas sensors`` and
-``ra2vipas controller`` in two processes: their traffic goes through the router like any
-other, and both liveliness tokens disappear together if the process dies. ``--listen``
-endpoints belong to the sensors' session; the controller's session connects through
-``--connect``, or, without it, to the sensors' listener.
+The two nodes share one Zenoh session and one worker thread (``EventLoop(inline=True)``): a
+command the controller publishes reaches the sensors, and a measurement the sensors publish
+reaches the controller, through the session's own delivery to its matching subscribers (Zenoh
+1.x delivers a put to the putting session's subscribers as well as to the network), handled on
+the same worker as soon as the publishing handler returns: no router, no socket, no thread hop
+between them. Every message still goes to the network under its documented key, for anyone
+else subscribed (a recorder, a test, the router's access control). Both liveliness tokens are
+the session's, so they disappear together if the process dies. ``--listen`` and ``--connect``
+are the session's (``--split`` runs the two nodes as before, each with its own session: the
+controller's connects through ``--connect`` or, without it, to the sensors' listener).
 """
 
 from __future__ import annotations
@@ -57,7 +62,7 @@ def rig_name_from_host(hostname: str) -> str:
 
 
 def controller_settings(sensors: ZenohSettings) -> ZenohSettings:
-    """The controller session's settings: the sensors' settings without their listeners (one
+    """``rig --split``: the controller session's settings: the sensors' settings without their listeners (one
     port, one listener), joining through the same ``connect`` endpoints or, if there are none,
     through the sensors' own listener (on loopback when it listens on every address)."""
     connect = sensors.connect or tuple(ep.replace("/0.0.0.0:", "/127.0.0.1:").replace("/[::]:", "/[::1]:") for ep in sensors.listen)
@@ -71,13 +76,14 @@ def rig(
     policy: PolicyOpt = None,
     mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
     zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO",
+    split: Annotated[bool, typer.Option("--split", help="A Zenoh session and a worker thread per node (their traffic through the router), as two processes would.")] = False,
 ) -> None:
-    """Run one rig, its simulated sensors and its Ra²ViPAS controller, in one process."""
+    """Run one rig, its simulated sensors and its Ra²ViPAS controller, in one process and one Zenoh session."""
     from ra2vipas.services.controller.node import ControllerNode
     from ra2vipas.services.controller.policy import ControllerSettings
     from ra2vipas.services.protocol.keys import check_chunk
     from ra2vipas.services.sensors.node import SensorsNode
-    from ra2vipas.services.transport.runtime import configure_logging, wait_for_shutdown_signal
+    from ra2vipas.services.transport.runtime import EventLoop, configure_logging, wait_for_shutdown_signal
     from ra2vipas.services.transport.zenoh_bus import ZenohBus
 
     configure_logging(log_level)
@@ -95,16 +101,20 @@ def rig(
 
     buses: list = []
     nodes: list = []
+    loop = None
     try:
         try:
             buses.append(ZenohBus(settings))
-            buses.append(ZenohBus(controller_settings(settings)))
+            if split:
+                buses.append(ZenohBus(controller_settings(settings)))
         except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, unreachable routers, ...
             fail(open_error(err, settings))
         warn_while_alone(buses[0].session, settings)
         warn_if_unreachable(settings)
-        nodes.append(ControllerNode(buses[1], name, ControllerSettings(beta=beta), policies=served))
-        nodes.append(SensorsNode(buses[0], name))
+        if not split:
+            loop = EventLoop(f"rig-{name}", inline=True)
+        nodes.append(ControllerNode(buses[-1], name, ControllerSettings(beta=beta), policies=served, loop=loop))
+        nodes.append(SensorsNode(buses[0], name, loop=loop))
         gc.collect()
         gc.freeze()
         sys.setswitchinterval(0.0005)
@@ -114,5 +124,7 @@ def rig(
     finally:
         for node in reversed(nodes):
             node.close()
+        if loop is not None:
+            loop.stop()
         for bus in reversed(buses):
             bus.close()

@@ -1,6 +1,11 @@
 """A whole local stack as child processes: a Zenoh router on loopback, the orchestrator
-(REST API), the learner and N rigs (sensors + controller). Used by ``ra2vipas up``,
+(REST API), the learner and N rigs. Used by ``ra2vipas up``,
 ``ra2vipas campaign start --embedded`` and ``ra2vipas bench mesh``.
+
+A rig is one process by default (``ra2vipas rig``: its sensors and controller on one Zenoh
+session and one worker thread, their step messages delivered within the session and still
+published to the router), or, with ``rig_layout="split"``, a ``sensors`` and a ``controller``
+process, as a third-party hardware node and its controller run.
 
 Everything listens on 127.0.0.1 only: the router and the API. The services are Zenoh
 *clients* of the router and listen on nothing (as in a deployment across machines). Peers
@@ -72,6 +77,8 @@ class Child:
     argv: list[str]
     env: dict[str, str]
     log_path: Path
+    role: str = ""  # router, learner, orchestrator, rig (a whole rig), sensors or controller (half of a split one)
+    rig: str = ""  # the rig it serves, if any
     proc: subprocess.Popen | None = None
     restarts: int = 0
     crashes: list[float] = field(default_factory=list)  # monotonic times it was found dead
@@ -115,6 +122,13 @@ class StackConfig:
     rig_acl: bool = False
     extra_rigs: tuple[str, ...] = ()
     max_restart_delay: float = 30.0  # a crashed service's restart delay doubles from 0.5 s up to this
+    # how a rig runs: "one-process" (``ra2vipas rig``: its sensors and controller in one process, one
+    # Zenoh session and one worker thread) or "split" (a ``sensors`` and a ``controller`` process,
+    # each its own session: the layout of a third-party hardware node and its controller)
+    rig_layout: str = "one-process"
+
+
+RIG_LAYOUTS = ("one-process", "split")
 
 
 def _write_private(path: Path, text: str) -> None:
@@ -189,10 +203,15 @@ class StackIdentities:
         return {"RA2VIPAS_ZENOH_USER": user, "RA2VIPAS_ZENOH_PASSWORD_FILE": str(self.directory / f"{user}.password")}
 
     @classmethod
-    def create(cls, rigs: list[str], extra_rigs: list[str], endpoint: str) -> "StackIdentities":
+    def create(cls, rigs: list[str], extra_rigs: list[str], endpoint: str, split: bool = True) -> "StackIdentities":
+        """``rigs``: the stack's own (a ``sensors`` and a ``controller`` identity each if ``split``,
+        else one ``rig`` identity); ``extra_rigs``: a ``rig`` identity each."""
         from ra2vipas.services.transport.acl import access_control, standard_identities
 
-        identities = standard_identities(rigs=list(extra_rigs), split_rigs=rigs)
+        if split:
+            identities = standard_identities(rigs=list(extra_rigs), split_rigs=rigs)
+        else:
+            identities = standard_identities(rigs=[*rigs, *extra_rigs])
         directory = Path(tempfile.mkdtemp(prefix="ra2vipas-stack-"))
         os.chmod(directory, 0o700)
         made = cls(directory, tuple(identities))
@@ -343,11 +362,14 @@ class Stack:
             "PYTHONUNBUFFERED": "1",
         })
         rig_names = [f"rig-{i}" for i in range(1, cfg.rigs + 1)]
+        if cfg.rig_layout not in RIG_LAYOUTS:
+            raise StackError(f"unknown rig layout {cfg.rig_layout!r}; choose from {', '.join(RIG_LAYOUTS)}")
+        split = cfg.rig_layout == "split"
         if cfg.rig_acl and not cfg.insecure:
             from ra2vipas.services.transport.acl import AclError
 
             try:
-                self.identities = StackIdentities.create(rig_names, list(cfg.extra_rigs), endpoint)
+                self.identities = StackIdentities.create(rig_names, list(cfg.extra_rigs), endpoint, split=split)
             except AclError as err:
                 raise StackError(f"--extra-rig: {err}") from None
         elif not cfg.insecure:
@@ -356,24 +378,27 @@ class Stack:
             _write_private(self.credentials.env_file, "".join(f"{k}={v}\n" for k, v in {
                 "RA2VIPAS_ZENOH_MODE": "client", "RA2VIPAS_ZENOH_CONNECT": endpoint, **self.credentials.env()}.items()))
         py = [sys.executable, "-m", "ra2vipas.cli.main"]
-        specs = [("router", [*py, "router", "--listen", endpoint], {"RA2VIPAS_ZENOH_CONNECT": "", "RA2VIPAS_ZENOH_LISTEN": ""})]
-        specs.append(("learner", [*py, "learner"], {}))
-        for i in range(1, cfg.rigs + 1):
-            rig = f"rig-{i}"
-            specs.append((f"sensors-{rig}", [*py, "sensors", "--rig", rig], {}))
-            specs.append((f"controller-{rig}", [*py, "controller", "--rig", rig], {}))
-        specs.append(("orchestrator", [*py, "orchestrator"], {
+        # (name, role, rig, argv, environment)
+        specs = [("router", "router", "", [*py, "router", "--listen", endpoint], {"RA2VIPAS_ZENOH_CONNECT": "", "RA2VIPAS_ZENOH_LISTEN": ""})]
+        specs.append(("learner", "learner", "", [*py, "learner"], {}))
+        for rig in rig_names:
+            if split:
+                specs.append((f"sensors-{rig}", "sensors", rig, [*py, "sensors", "--rig", rig], {}))
+                specs.append((f"controller-{rig}", "controller", rig, [*py, "controller", "--rig", rig], {}))
+            else:
+                specs.append((rig, "rig", rig, [*py, "rig", "--rig", rig], {}))
+        specs.append(("orchestrator", "orchestrator", "", [*py, "orchestrator"], {
             "RA2VIPAS_HOST": cfg.host, "RA2VIPAS_PORT": str(cfg.port), "RA2VIPAS_DB": cfg.db_path,
             "RA2VIPAS_WINDOW": str(cfg.window), "RA2VIPAS_EXPECT_RIGS": str(cfg.rigs), "RA2VIPAS_INSTANCE_ID": self.instance_id,
             "RA2VIPAS_SUPERVISOR_STATUS": str(self.status_file),
         }))
         if self.identities is not None:  # each service its own identity; the router checks them and enforces the ACL
             ids = self.identities
-            specs = [(name, argv, {**extra, **self._identity_env(name, ids)}) for name, argv, extra in specs]
-        for name, argv, extra in specs:
+            specs = [(name, role, rig, argv, {**extra, **self._identity_env(role, rig, ids)}) for name, role, rig, argv, extra in specs]
+        for name, role, rig, argv, extra in specs:
             env = {**base_env, **extra}
             env = {k: v for k, v in env.items() if v != ""}
-            child = Child(name, argv, env, self.log_dir / f"{name}.log")
+            child = Child(name, argv, env, self.log_dir / f"{name}.log", role=role, rig=rig)
             child.start()
             self.children.append(child)
             if name == "router":
@@ -381,13 +406,14 @@ class Stack:
         self._wait_ready(ready_timeout)
 
     @staticmethod
-    def _identity_env(service: str, ids: StackIdentities) -> dict[str, str]:
-        """The Zenoh identity of one of the stack's services (``--rig-acl``)."""
-        if service == "router":
+    def _identity_env(role: str, rig: str, ids: StackIdentities) -> dict[str, str]:
+        """The Zenoh identity of one of the stack's services (``--rig-acl``): the router checks
+        them; a whole rig is its rig's name, a split one's halves ``RIG.sensors`` and
+        ``RIG.controller`` (``acl.standard_identities``)."""
+        if role == "router":
             return {"RA2VIPAS_ZENOH_CREDENTIALS": str(ids.dictionary_file), "RA2VIPAS_ZENOH_CONFIG": str(ids.router_config),
                     "RA2VIPAS_ZENOH_USER": "", "RA2VIPAS_ZENOH_PASSWORD_FILE": ""}
-        role, _, rig = service.partition("-")  # sensors-rig-1, controller-rig-1, learner, orchestrator
-        user = f"{rig}.{role}" if rig else service
+        user = rig if role == "rig" else f"{rig}.{role}" if rig else role
         return ids.env(user)
 
     def _wait_port(self, port: int, child: Child, timeout: float) -> None:

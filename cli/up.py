@@ -11,7 +11,7 @@ import typer
 
 from ra2vipas.cli.output import EXIT_USAGE, fail
 from ra2vipas.cli.polish import deprecated, prefer
-from ra2vipas.cli.stack import Stack, StackConfig, StackError
+from ra2vipas.cli.stack import RIG_LAYOUTS, Stack, StackConfig, StackError
 
 
 def up(
@@ -26,12 +26,13 @@ def up(
     max_restart_delay: Annotated[float, typer.Option(min=0.5, max=3600, help="A crashed service is restarted after 0.5 s, doubling up to this many seconds; one in a crash loop (5 crashes within a minute) waits this long each time.")] = 30.0,
     rig_acl: Annotated[bool, typer.Option("--rig-acl", help="Give every service its own Zenoh identity and let the router's access control confine each to its own keys (as the secured deployment does): a process holding one rig's credentials cannot pass for another rig, forge its results, or act as the orchestrator or the learner.")] = False,
     extra_rigs: Annotated[Optional[list[str]], typer.Option("--extra-rig", metavar="NAME", help="With --rig-acl: make an identity for a rig run outside the stack (repeatable); its environment file is printed, and it may act as that rig only.")] = None,
+    rig_layout: Annotated[str, typer.Option("--rig-layout", envvar="RA2VIPAS_RIG_LAYOUT", help="one-process: each rig's sensors and controller in one process, one Zenoh session and one worker thread (ra2vipas rig; their step messages are delivered inside the session and still published to the router); split: a sensors and a controller process per rig, as a third-party hardware node and its controller run.")] = "one-process",
     insecure: Annotated[bool, typer.Option("--insecure", help="No Zenoh credentials: any local process may join the stack's Zenoh network (by default the stack makes up its own, readable by you only).")] = False,
 ) -> None:
     """Run a local stack in the foreground: Zenoh router, orchestrator (REST API), learner and rigs.
 
     Starts a Zenoh router on loopback, the orchestrator, the learner and RIG_COUNT
-    sensor+controller pairs, and prints the API address once GET /health answers 200; Ctrl-C
+    rigs (each one process with its sensors and controller, or two with --rig-layout split), and prints the API address once GET /health answers 200; Ctrl-C
     or SIGTERM stops every process it started. A service that crashes is restarted after a
     delay that doubles with each crash (0.5 s to --max-restart-delay, 30 s); one that crashes
     5 times within a minute is in a crash loop: up says so on stderr with its last log lines
@@ -58,12 +59,16 @@ def up(
         ra2vipas up --rig-count 2 --port 8080 --db ra2vipas.db
 
         ra2vipas up --db /var/lib/ra2vipas/ra2vipas.db --log-dir logs
+
+        ra2vipas up --rig-layout split
     """
     rigs = prefer(rigs, old_rigs, "--rigs", "--rig-count")
     if extra_rigs and not rig_acl:
         fail("--extra-rig needs --rig-acl", EXIT_USAGE)
     if rig_acl and insecure:
         fail("--rig-acl and --insecure contradict each other: choose one", EXIT_USAGE)
+    if rig_layout not in RIG_LAYOUTS:
+        fail(f"--rig-layout: unknown layout {rig_layout!r}; choose from {', '.join(RIG_LAYOUTS)}", EXIT_USAGE)
     stop = threading.Event()
 
     def on_signal(_signum, _frame) -> None:
@@ -73,7 +78,7 @@ def up(
     signal.signal(signal.SIGTERM, on_signal)
     stack = Stack(StackConfig(rigs=rigs, host=host, port=port, db_path=db, router_port=router_port, window=window, log_dir=log_dir,
                               insecure=insecure, max_restart_delay=max_restart_delay, rig_acl=rig_acl,
-                              extra_rigs=tuple(extra_rigs or ())))
+                              extra_rigs=tuple(extra_rigs or ()), rig_layout=rig_layout))
     try:
         try:
             stack.start()

@@ -63,7 +63,9 @@ class Stack(Protocol):
     api_url: str  # the orchestrator's REST API
     router_endpoint: str | None  # the Zenoh router's endpoint, after start()
     credentials: Any  # None (an insecure stack), or the stack's Zenoh credentials: ``env()`` -> the variables to join it
-    children: list  # its processes: each with ``name`` ("controller-1", "orchestrator", ...) and ``proc`` (a Popen, or None)
+    # its processes: each with ``name`` ("rig-1", "controller-rig-1", "orchestrator", ...), ``role`` ("rig", "sensors",
+    # "controller", "router", ...) and ``proc`` (a Popen, or None)
+    children: list
 
     def start(self) -> None: ...
 
@@ -72,9 +74,10 @@ class Stack(Protocol):
 
 class StackFactory(Protocol):
     """Makes a stack, not yet started, of ``rigs`` rigs (sensors + controller pairs), its
-    database at ``db_path``, its logs in ``log_dir``, ``window`` episodes in flight per rig."""
+    database at ``db_path``, its logs in ``log_dir``, ``window`` episodes in flight per rig, its
+    rigs laid out as ``rig_layout`` ("one-process" or "split"; None: the stack's default)."""
 
-    def __call__(self, *, rigs: int, db_path: str, log_dir: str, window: int = 8) -> Stack: ...
+    def __call__(self, *, rigs: int, db_path: str, log_dir: str, window: int = 8, rig_layout: str | None = None) -> Stack: ...
 
 
 def run_campaign(api: str, body: dict, timeout: float, poll: float = 0.1, on_running: Callable[[], None] | None = None,
@@ -150,10 +153,11 @@ class StackCPU:
     role: what a campaign costs the machine's cores, whatever else runs on them (a shared
     machine slows every process down, it does not make one use more CPU per step)."""
 
-    ROLES = ("controller", "sensors", "router", "orchestrator", "learner")
+    ROLES = ("rig", "controller", "sensors", "router", "orchestrator", "learner")  # rig: a one-process rig (both nodes)
 
     def __init__(self, stack: Stack) -> None:
         self.pids = {c.name: c.proc.pid for c in stack.children if c.proc is not None}
+        self.roles = {c.name: getattr(c, "role", "") or c.name.split("-")[0] for c in stack.children}
         self.at: dict[str, float] = {}
         self.used: dict[str, float] = {}
 
@@ -167,7 +171,7 @@ class StackCPU:
         """Per control step [ms of CPU], by role (summed over rigs) and in total."""
         if not self.used or not steps:
             return None
-        out = {role: round(1e3 * sum(v for name, v in self.used.items() if name.split("-")[0] == role) / steps, 4)
+        out = {role: round(1e3 * sum(v for name, v in self.used.items() if self.roles.get(name) == role) / steps, 4)
                for role in self.ROLES}
         out["total"] = round(sum(out.values()), 4)
         return out

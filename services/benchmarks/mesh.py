@@ -51,24 +51,30 @@ def mesh_memory(stack: Stack, tests: int, steps: int, algorithm: str) -> dict:
 
 
 def mesh(launch: StackFactory, *, rigs: int, window: int, tests: int, realtime_tests: int, memory_tests: list[int],
-         memory_steps: int, memory_algorithm: str, preset: str, inprocess: bool) -> dict:
+         memory_steps: int, memory_algorithm: str, preset: str, inprocess: bool, rig_layouts: tuple[str, ...] = ("one-process",)) -> dict:
     """Each part on a stack of its own made by ``launch`` (every one stopped afterwards): the
     PRESET campaign of ``tests`` tests x the active built-ins on ``rigs`` rigs in fast mode
     (0: skip; with ``inprocess``, also in-process on one worker), ``realtime_tests`` tests paced
-    at T_RF on one rig (0: skip), and one campaign of each size in ``memory_tests``."""
+    at T_RF on one rig (0: skip), and one campaign of each size in ``memory_tests``.
+
+    The fast and realtime parts run once per layout of ``rig_layouts`` ("one-process": a rig's
+    two nodes in one process and one Zenoh session; "split": two processes); the report's
+    top-level figures are the first layout's, and ``by_layout`` has every layout's."""
     from ra2vipas.services.controller import registry
 
     algorithms = [a for a in registry.BUILTINS if a != "sweep"]  # the active built-ins
-    report: dict = {"benchmark": "mesh", "preset": preset, "rigs": rigs, "window": window,
+    report: dict = {"benchmark": "mesh", "preset": preset, "rigs": rigs, "window": window, "rig_layout": rig_layouts[0],
                     "targets": {"steps_per_second": target_steps_per_second(preset), "latency_p99_ms": TARGET_LATENCY_P99_MS},
                     "steps_per_second": None}
+    parts = {layout: {"steps_per_second": None, "latency_ms": None} for layout in rig_layouts}
     with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
 
-        def stack_of(n: int, name: str) -> Stack:
-            return launch(rigs=n, db_path=os.path.join(tmp, f"{name}.db"), log_dir=os.path.join(tmp, f"logs-{name}"), window=window)
+        def stack_of(n: int, name: str, layout: str | None = None) -> Stack:
+            return launch(rigs=n, db_path=os.path.join(tmp, f"{name}.db"), log_dir=os.path.join(tmp, f"logs-{name}"), window=window,
+                          rig_layout=layout)
 
-        if tests:
-            stack = stack_of(rigs, "fast")
+        for layout, part in parts.items() if tests else ():
+            stack = stack_of(rigs, f"fast-{layout}", layout)
             try:
                 stack.start()
                 listener = CostListener(stack)
@@ -80,31 +86,31 @@ def mesh(launch: StackFactory, *, rigs: int, window: int, tests: int, realtime_t
                     breakdown = listener.breakdown()
                 finally:
                     listener.close()
-                report["fast"] = {
+                part["fast"] = {
                     "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
                     "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
                     "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
                     "step_breakdown": breakdown,
                     "cpu_ms_per_step": cpu.per_step_ms(tests * len(algorithms) * fast["scenario"]["steps"]),
                 }
-                report["steps_per_second"] = fast["steps_per_second"]
+                part["steps_per_second"] = fast["steps_per_second"]
             except (TimeoutError, RuntimeError) as err:  # a stack that did not start raises a RuntimeError too
-                raise BenchmarkError(f"bench mesh (fast): {err}") from err
+                raise BenchmarkError(f"bench mesh (fast, {layout} rigs): {err}") from err
             finally:
                 stack.stop()
-            if inprocess:
-                sps1, dr1, cpu1 = inprocess_steps_per_second(preset, tests, algorithms)
-                report["inprocess_steps_per_second_1"] = round(sps1, 1)
-                report["mesh_over_inprocess"] = round(report["steps_per_second"] / sps1, 3) if sps1 else None
+        if tests and inprocess:
+            sps1, dr1, cpu1 = inprocess_steps_per_second(preset, tests, algorithms)
+            report["inprocess_steps_per_second_1"] = round(sps1, 1)
+            report["inprocess_cpu_ms_per_step"] = None if cpu1 is None else round(cpu1, 4)
+            for part in parts.values():
+                part["mesh_over_inprocess"] = round(part["steps_per_second"] / sps1, 3) if sps1 else None
                 # per-core efficiency, independent of what else the machine runs: the CPU a control step costs
                 # in process over what it costs the whole mesh (1.0: a mesh core does what an in-process core does)
-                report["inprocess_cpu_ms_per_step"] = None if cpu1 is None else round(cpu1, 4)
-                mesh_cpu = report["fast"]["cpu_ms_per_step"]
-                report["cpu_efficiency"] = round(cpu1 / mesh_cpu["total"], 3) if cpu1 and mesh_cpu and mesh_cpu["total"] else None
-                report["fast"]["dr_final_equals_inprocess"] = dr1 == report["fast"]["dr_final"]
-        report["latency_ms"] = None
-        if realtime_tests:
-            stack = stack_of(1, "realtime")
+                mesh_cpu = part["fast"]["cpu_ms_per_step"]
+                part["cpu_efficiency"] = round(cpu1 / mesh_cpu["total"], 3) if cpu1 and mesh_cpu and mesh_cpu["total"] else None
+                part["fast"]["dr_final_equals_inprocess"] = dr1 == part["fast"]["dr_final"]
+        for layout, part in parts.items() if realtime_tests else ():
+            stack = stack_of(1, f"realtime-{layout}", layout)
             try:
                 stack.start()
                 listener = CostListener(stack)
@@ -115,18 +121,21 @@ def mesh(launch: StackFactory, *, rigs: int, window: int, tests: int, realtime_t
                     breakdown = listener.breakdown(realtime=True)
                 finally:
                     listener.close()
-                report["latency_ms"] = rt.get("latency_ms")
-                report["realtime"] = {"rigs": 1, "tests": realtime_tests, "samples": realtime_tests * (rt["scenario"]["steps"] - 1),
-                                      "wall_seconds": round(rt_wall, 3), "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"],
-                                      "step_breakdown": breakdown}
+                part["latency_ms"] = rt.get("latency_ms")
+                part["realtime"] = {"rigs": 1, "tests": realtime_tests, "samples": realtime_tests * (rt["scenario"]["steps"] - 1),
+                                    "wall_seconds": round(rt_wall, 3), "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"],
+                                    "step_breakdown": breakdown}
             except (TimeoutError, RuntimeError) as err:
-                raise BenchmarkError(f"bench mesh (realtime): {err}") from err
+                raise BenchmarkError(f"bench mesh (realtime, {layout} rigs): {err}") from err
             finally:
                 stack.stop()
+        report.update(parts[rig_layouts[0]])
+        if len(rig_layouts) > 1:
+            report["by_layout"] = parts
         if memory_tests:
             report["memory"] = []
         for size in memory_tests:
-            stack = stack_of(rigs, f"memory-{size}")
+            stack = stack_of(rigs, f"memory-{size}", rig_layouts[0])
             try:
                 stack.start()
                 report["memory"].append(mesh_memory(stack, size, memory_steps, memory_algorithm))

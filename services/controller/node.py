@@ -146,20 +146,22 @@ def controller_info(rig: str, served: dict[str, str]) -> ControllerInfo:
 
 
 class ControllerNode:
-    """One rig's controller process. All state lives on ``self.loop``'s thread.
+    """One rig's controller process. All state lives on ``self.loop``'s thread (its own, or
+    ``loop``, shared with its rig's sensors on the same bus: ``ra2vipas rig``).
 
     ``policies``: the policies it serves (installed names or ``module:Class``; None: every
     installed policy). Raises ``registry.UnknownPolicy`` for one that does not load."""
 
     def __init__(self, bus: Bus, rig: str, settings: ControllerSettings | None = None,
-                 policies: Sequence[str] | None = None) -> None:
+                 policies: Sequence[str] | None = None, loop: EventLoop | None = None) -> None:
         self.bus = bus
         self.rig = keys.check_chunk(rig)
         self.settings = settings or ControllerSettings()
         self.served = served_policies(policies)
         self.info = controller_info(self.rig, self.served)
         info_payload = dump(self.info)
-        self.loop = EventLoop(f"controller-{rig}")
+        self._own_loop = loop is None  # else shared with the rig's sensors (``ra2vipas rig``), stopped by its owner
+        self.loop = EventLoop(f"controller-{rig}") if loop is None else loop
         self.episodes: dict[str, _Episode] = {}
         self.models: dict[str, PODModel] = {}
         self._waiting: dict[str, list[str]] = {}  # job id -> episodes waiting for that model
@@ -329,7 +331,8 @@ class ControllerNode:
 
     def close(self) -> None:
         undeclare_all(self._handles)
-        self.loop.stop()
+        if self._own_loop:
+            self.loop.stop()
 
 
 def tag_results(steps: list) -> tuple[TagResult, ...]:

@@ -72,10 +72,11 @@ class _Episode:
 
 
 class SensorsNode:
-    """One rig's simulated sensors. All state lives on ``self.loop``'s thread."""
+    """One rig's simulated sensors. All state lives on ``self.loop``'s thread (its own, or
+    ``loop``, a loop it shares with its rig's controller on the same bus: ``ra2vipas rig``)."""
 
     def __init__(self, bus: Bus, rig: str, clock=time.monotonic, descriptor: RigDescriptor | None = None,
-                 describe: bool = True) -> None:
+                 describe: bool = True, loop: EventLoop | None = None) -> None:
         self.bus = bus
         self.rig = keys.check_chunk(rig)
         self.descriptor = descriptor or simulated_descriptor(rig)
@@ -83,7 +84,8 @@ class SensorsNode:
             raise ValueError(f"the descriptor names rig {self.descriptor.rig!r}, this node is rig {rig!r}")
         self.clock = clock
         self.report_costs = describe  # a node that serves no descriptor speaks 1.0: no StepCosts (1.2)
-        self.loop = EventLoop(f"sensors-{rig}")
+        self._own_loop = loop is None  # else shared with the rig's controller (``ra2vipas rig``), stopped by its owner
+        self.loop = EventLoop(f"sensors-{rig}") if loop is None else loop
         self.episodes: dict[str, _Episode] = {}
         self._finished: dict[str, None] = {}
         self._early: dict[str, list[bytes]] = {}  # commands that overtook their EpisodeStart
@@ -271,7 +273,8 @@ class SensorsNode:
             self._closing = True
             self._timer_cv.notify()
         undeclare_all(self._handles)
-        self.loop.stop()
+        if self._own_loop:
+            self.loop.stop()
 
 
 def simulated_descriptor(rig: str, **fixed) -> RigDescriptor:

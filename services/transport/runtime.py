@@ -11,6 +11,7 @@ import signal
 import sys
 import threading
 import time
+from collections import deque
 from typing import Any, Callable, Iterable
 
 from ra2vipas.services.protocol import keys
@@ -39,9 +40,17 @@ class EventLoop:
     For a fed message ``posted_ns`` is when the worker started waiting for it, or, if it was
     already waiting in the bus, when the worker looked: the time it spent queued in the bus
     behind other messages is not seen (it counts as the time outside the node).
+
+    ``inline=True`` makes a loop for several nodes on one bus session (``ra2vipas rig``: a
+    rig's sensors and controller, one process, one Zenoh session, one worker). Their per-step
+    traffic is then subscribed with ``Bus.subscribe_inline`` where the bus offers it: a message
+    one of the nodes publishes is delivered by the session to the other's subscription inside
+    the publisher's ``put``, on this worker, and queued there in a local deque (no lock, no
+    wake-up, no other thread) to run once the publishing handler returns; a message from the
+    network (another process) arrives on the bus's thread and is posted like any other.
     """
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, inline: bool = False) -> None:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self.posted_ns = 0
         self.started_ns = 0
@@ -49,8 +58,12 @@ class EventLoop:
         self._feed = None  # (Feed, handler) once ``feed`` found a bus that offers one
         self._waiting = False  # the worker may be blocked in the feed's recv: a post must wake it
         self._fed_last = False  # the last item came from the feed: posted events go first next
+        self.inline = inline
+        self._local: deque = deque()  # messages delivered on the worker itself (inline), in order
+        self._local_last = False  # the last item came from ``_local``: a posted event goes first next
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
+        self._ident = self._thread.ident
 
     def post(self, fn: Callable[..., None], *args) -> None:
         """Queue ``fn(*args)`` to run on the worker thread (dropped once the loop is stopped)."""
@@ -70,6 +83,9 @@ class EventLoop:
         from ``bus.feed(key)`` by the worker itself; on a bus without feeds, through
         ``bus.subscribe`` and ``post`` like any other subscription. One feed per loop. The
         returned handle's ``undeclare`` ends it."""
+        inline = getattr(bus, "subscribe_inline", None) if self.inline else None
+        if inline is not None:
+            return inline(key, lambda _k, p: self._arrive(handler, p))
         make = getattr(bus, "feed", None)
         feed = make(key) if make is not None and self._feed is None else None
         if feed is None:
@@ -78,8 +94,25 @@ class EventLoop:
         self._queue.put((_nothing, (), time.perf_counter_ns()))  # the worker may be blocked on the queue: now it pulls
         return feed
 
+    def _arrive(self, handler: Callable[[bytes], None], payload: bytes) -> None:
+        """A message of an inline subscription (``feed`` on an ``inline`` loop): delivered on the
+        worker itself (a put by a node of this loop), it waits in the local deque until the
+        running handler returns; from any other thread (the network), it is posted."""
+        if threading.get_ident() == self._ident:
+            self._local.append((handler, (payload,), None))  # posted when the publishing handler returns (``_run``)
+        else:
+            self.post(handler, payload)
+
     def _next(self):
         """The next ``(fn, args, posted_ns)`` to run, None to stop."""
+        local = self._local
+        if local:  # inline deliveries and posted events take turns; each keeps its order
+            if self._local_last and not self._queue.empty():
+                self._local_last = False
+                return self._queue.get_nowait()
+            self._local_last = True
+            return local.popleft()
+        self._local_last = False
         while True:
             feed = self._feed
             if feed is None:
@@ -118,7 +151,7 @@ class EventLoop:
 
     def backlog(self) -> int:
         """Handlers queued and not yet run (approximate)."""
-        return self._queue.qsize()
+        return self._queue.qsize() + len(self._local)
 
     def wait_idle(self, timeout: float = 10.0) -> bool:
         """Block until everything posted before this call has run (tests and shutdown)."""
@@ -139,6 +172,14 @@ class EventLoop:
                 fn(*args)
             except Exception:
                 log.exception("event handler %s failed", getattr(fn, "__name__", fn))
+            local = self._local
+            if local and local[-1][2] is None:
+                # delivered inline while ``fn`` ran (its put): posted now, as ``fn`` returns, since it
+                # could not run before; the rest of that put is the publisher's time, not queueing
+                ended, i = time.perf_counter_ns(), len(local) - 1
+                while i >= 0 and local[i][2] is None:
+                    local[i] = (*local[i][:2], ended)
+                    i -= 1
 
     def stop(self, timeout: float = 5.0) -> None:
         self._stopped.set()

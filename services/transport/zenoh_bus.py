@@ -145,6 +145,27 @@ class ZenohBus:
         self._declared.append(sub)
         return sub
 
+    def subscribe_inline(self, key: str, callback: Callback):
+        """Like ``subscribe``, but ``callback(key, payload)`` runs on the thread that delivers
+        the sample, with no Python callback thread in between: for a put by this same session
+        (Zenoh 1.x delivers it to the session's own matching subscribers before ``put``
+        returns, besides sending it to the network), the publisher's own thread, inside its
+        ``put``; for a sample from the network, Zenoh's receiving thread. The callback must
+        only hand the message on (``EventLoop.feed`` on an ``inline`` loop queues it)."""
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                payload = sample.payload
+                if len(payload) > MAX_MESSAGE_BYTES:
+                    log.warning("dropping a %d-byte message on %s (limit %d)", len(payload), sample.key_expr, MAX_MESSAGE_BYTES)
+                    return
+                callback(str(sample.key_expr), payload.to_bytes())
+            except Exception:  # a bad message must never kill Zenoh's thread (nor the publisher's put)
+                log.exception("subscriber callback on %s failed", key)
+
+        sub = self.session.declare_subscriber(key, zenoh.handlers.Callback(on_sample, indirect=False))
+        self._declared.append(sub)
+        return sub
+
     def feed(self, key: str) -> "_ZenohFeed | None":
         """Samples on keys matching ``key`` for the caller's thread to take (``bus.Feed``);
         None if this session cannot wake its consumer (``_ZenohFeed.wakes``): subscribe then."""

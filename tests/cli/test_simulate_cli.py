@@ -174,37 +174,46 @@ def test_bench_simulate_reports_both_speeds_the_speedup_and_peak_memory_as_json(
 
 
 def test_bench_mesh_measures_through_real_processes_and_leaves_nothing_behind():
-    """A small `bench mesh`: its three parts run on their own stacks, the report carries the
-    measured figures (and the DR the mesh reached, equal to the in-process campaign's): fast
-    steps/s, realtime latency, and the orchestrator's peak memory over a campaign (VmHWM)."""
+    """A small `bench mesh` over both rig layouts (one process and one Zenoh session per rig, and
+    a sensors and a controller process per rig): its parts run on their own stacks, the report
+    carries the measured figures of each layout (and the DR the mesh reached, equal to the
+    in-process campaign's): fast steps/s, realtime latency, and the orchestrator's peak memory
+    over a campaign (VmHWM)."""
     mark, env = _marked_env()
     proc = ra2vipas("bench", "mesh", "--rigs", "1", "--tests", "2", "--realtime-tests", "1", "--memory-tests", "3",
-                    "--memory-steps", "5", "--json", timeout=300, env=env)
+                    "--memory-steps", "5", "--rig-layout", "both", "--json", timeout=400, env=env)
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert report["benchmark"] == "mesh" and report["rigs"] == 1
-    assert report["fast"]["steps"] == 2 * 3 * 120 and report["steps_per_second"] > 0
-    assert report["realtime"]["samples"] == 119
-    assert 0 < report["latency_ms"]["p50"] <= report["latency_ms"]["p99"]
+    assert report["benchmark"] == "mesh" and report["rigs"] == 1 and report["rig_layout"] == "one-process"
+    assert set(report["by_layout"]) == {"one-process", "split"}
+    assert {k: v for k, v in report.items() if k in report["by_layout"]["one-process"]} == report["by_layout"]["one-process"]
     expected = run_campaign("paper", build_scenario("paper"), 2, 1, ["ra2vipas", "rapas", "ravipas"])
-    assert report["fast"]["dr_final"] == {a: s["dr_final"] for a, s in expected["algorithms"].items()}
-    assert report["fast"]["dr_final_equals_inprocess"] is True and report["inprocess_steps_per_second_1"] > 0
-    # the report divides unrounded figures and prints them rounded: recomputed from the printed ones, a
-    # ratio can land one unit of its 3rd decimal away (0.7274 / 1.1666 -> 0.624 printed as 0.623)
-    ratio = pytest.approx
-    assert report["mesh_over_inprocess"] == ratio(report["steps_per_second"] / report["inprocess_steps_per_second_1"], abs=2e-3)
-    cpu = report["fast"]["cpu_ms_per_step"]  # what a step cost the stack's processes, by service (issue 22)
-    assert set(cpu) == {"controller", "sensors", "router", "orchestrator", "learner", "total"}
-    assert cpu["controller"] > 0 and cpu["sensors"] > 0 and all(v >= 0 for v in cpu.values())
-    assert cpu["total"] == pytest.approx(sum(v for k, v in cpu.items() if k != "total"), abs=1e-3)
-    assert report["inprocess_cpu_ms_per_step"] > 0
-    assert report["cpu_efficiency"] == ratio(report["inprocess_cpu_ms_per_step"] / cpu["total"], abs=2e-3)
-    _check_breakdown(report["fast"]["step_breakdown"], episodes=6, steps=2 * 3 * 120)
-    rt = report["realtime"]["step_breakdown"]
-    assert rt["controller"]["steps"] == rt["sensors"]["steps"] == 120
-    # the parts the services timed fit in the latency the sensors measured, to the timers' overlap: the sensors'
-    # queue and decode times are means over every message they handle, not only the commands on the latency's path
-    assert rt["transport_ms"] >= -0.1 * rt["latency_ms"] - 0.05
+    assert report["inprocess_steps_per_second_1"] > 0 and report["inprocess_cpu_ms_per_step"] > 0
+    for layout, part in report["by_layout"].items():
+        assert part["fast"]["steps"] == 2 * 3 * 120 and part["steps_per_second"] > 0
+        assert part["realtime"]["samples"] == 119
+        assert 0 < part["latency_ms"]["p50"] <= part["latency_ms"]["p99"]
+        assert part["fast"]["dr_final"] == {a: s["dr_final"] for a, s in expected["algorithms"].items()}, layout
+        assert part["fast"]["dr_final_equals_inprocess"] is True
+        # the report divides unrounded figures and prints them rounded: recomputed from the printed ones, a
+        # ratio can land one unit of its 3rd decimal away (0.7274 / 1.1666 -> 0.624 printed as 0.623)
+        ratio = pytest.approx
+        assert part["mesh_over_inprocess"] == ratio(part["steps_per_second"] / report["inprocess_steps_per_second_1"], abs=2e-3)
+        cpu = part["fast"]["cpu_ms_per_step"]  # what a step cost the stack's processes, by service (issue 22)
+        assert set(cpu) == {"rig", "controller", "sensors", "router", "orchestrator", "learner", "total"}
+        if layout == "split":
+            assert cpu["controller"] > 0 and cpu["sensors"] > 0 and cpu["rig"] == 0
+        else:
+            assert cpu["rig"] > 0 and cpu["controller"] == cpu["sensors"] == 0
+        assert all(v >= 0 for v in cpu.values())
+        assert cpu["total"] == pytest.approx(sum(v for k, v in cpu.items() if k != "total"), abs=1e-3)
+        assert part["cpu_efficiency"] == ratio(report["inprocess_cpu_ms_per_step"] / cpu["total"], abs=2e-3)
+        _check_breakdown(part["fast"]["step_breakdown"], episodes=6, steps=2 * 3 * 120)
+        rt = part["realtime"]["step_breakdown"]
+        assert rt["controller"]["steps"] == rt["sensors"]["steps"] == 120
+        # the parts the services timed fit in the latency the sensors measured, to the timers' overlap: the sensors'
+        # queue and decode times are means over every message they handle, not only the commands on the latency's path
+        assert rt["transport_ms"] >= -0.1 * rt["latency_ms"] - 0.05
     [memory] = report["memory"]
     assert {k: memory[k] for k in ("tests", "steps", "algorithm", "episodes")} == {
         "tests": 3, "steps": 5, "algorithm": "rapas", "episodes": 3}

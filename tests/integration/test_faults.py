@@ -97,7 +97,7 @@ def _recorded_once(db: Path, cid: str) -> None:
     assert {s for _, _, s in rows} == {"done"}
 
 
-@pytest.mark.parametrize("victim", [("controller", "rig-1"), ("sensors", "rig-2")])
+@pytest.mark.parametrize("victim", [("main rig --rig rig-1",)])  # a whole rig: its sensors and controller, one process
 def test_killing_a_rig_process_loses_nothing_and_changes_nothing(stack, undisturbed, victim):
     c, results = _campaign_with_a_kill(stack, victim, 0.15)
     assert c["status"] == "done", c["error"]

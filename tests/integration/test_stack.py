@@ -40,7 +40,7 @@ def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
 
 
 def test_up_starts_router_orchestrator_learner_and_two_rigs(stack):
-    assert len(stack["children"]) == 1 + 1 + 1 + 2 * 2
+    assert len(stack["children"]) == 1 + 1 + 1 + 2  # each rig one process (its sensors and controller on one Zenoh session)
     health = httpx.get(f"{stack['api']}/health", timeout=10)
     assert health.status_code == 200
     body = health.json()
