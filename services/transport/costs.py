@@ -110,7 +110,10 @@ def step_breakdown(controller: list[StepCosts], sensors: list[StepCosts], latenc
     sensors' in-process stages plus the transport both ways, so ``transport_ms`` =
     controller ``outside`` - sensors' stages. ``transport_ms_sensors_view`` is the same
     derived the other way round (sensors ``outside`` - the controller's stages): the two
-    agree when both nodes' timers are right. ``step_ms`` is the controller's span per step,
+    agree when both nodes' timers are right, but for the episodes' edges (the sensors have no
+    ``outside`` before their first reply, and no command follows the controller's last step:
+    the sensors' view is a few percent of a step short, visible only where the transport is ~0,
+    as in a one-process rig). ``step_ms`` is the controller's span per step,
     measured as one interval; ``parts_sum_ms`` the sum of the parts. With several episodes in
     flight per rig a step's ``queued`` time is mostly other episodes' steps: ``*_busy_ms`` (the
     stages but the queue) is what one step costs each node's worker thread.

@@ -252,7 +252,10 @@ def _check_breakdown(b: dict, episodes: int, steps: int) -> None:
         part = b[role]
         assert part["episodes"] == episodes and part["steps"] == steps, (role, part)
         assert all(part[s] >= 0 for s in (*stages, "outside_ms", "span_ms")), (role, part)
-    assert b["step_ms"] > 0 and b["transport_ms"] >= 0 and b["transport_ms_sensors_view"] >= 0, b
+    # the sensors' view misses each episode's first wait (before their first reply) and counts the controller's last
+    # step (no command follows it): a few percent of a step short, which only shows where the transport is ~0 (a
+    # one-process rig, whose two nodes hand each other messages inside one session)
+    assert b["step_ms"] > 0 and b["transport_ms"] >= 0 and b["transport_ms_sensors_view"] >= -0.05 * b["step_ms"], b
     assert b["parts_sum_ms"] == pytest.approx(b["step_ms"], rel=0.02), b
     own = sum(b["controller"][s] + b["sensors"][s] for s in stages)
     assert own + b["transport_ms"] == pytest.approx(b["parts_sum_ms"], abs=1e-3)
