@@ -110,21 +110,35 @@ def wire_exclude(message: BaseModel, version: str | None = None) -> dict[str, An
     cls = type(message)
     if not has_newer_fields(cls):
         return out
-    for name, info in cls.model_fields.items():
+    for name, added, default, optional, nested in _exclusion_plan(cls):
         value = getattr(message, name)
-        added = since(cls, name)
         if added != V1_0:
-            default = info.get_default(call_default_factory=True)
             if (version is not None and newer(added, version)) or value == default:
                 out[name] = True
                 continue
-        elif value is None and optional_since(cls, name) is not None:
+        elif value is None and optional:
             out[name] = True  # a 1.0 field absent since it became optional: absent on the wire too
             continue
-        inner = _exclude_value(value, version)
-        if inner:
-            out[name] = inner
+        if nested:
+            inner = _exclude_value(value, version)
+            if inner:
+                out[name] = inner
     return out
+
+
+@cache
+def _exclusion_plan(cls: type[BaseModel]) -> tuple[tuple[str, str, Any, bool, bool], ...]:
+    """Per field of ``cls``, what ``wire_exclude`` needs, worked out once (it runs for every
+    message sent, e.g. a measurement per control step): its name, the version that added it,
+    its default (fields added after 1.0), whether it became optional after 1.0, and whether a
+    message it may hold has anything to leave out (else its value is not walked)."""
+    plan = []
+    for name, info in cls.model_fields.items():
+        added = since(cls, name)
+        default = info.get_default(call_default_factory=True) if added != V1_0 else None
+        nested = any(has_newer_fields(m) for m in _models_in(info.annotation))
+        plan.append((name, added, default, optional_since(cls, name) is not None, nested))
+    return tuple(plan)
 
 
 def _exclude_value(value: Any, version: str | None) -> dict[Any, Any]:
