@@ -128,6 +128,10 @@ def bench_mesh(
 ) -> None:
     """Start local stacks and measure them through the real processes.
 
+    Rigs run as `ra2vipas up` runs them (--rig-layout one-process: a rig's sensors and
+    controller in one process on one Zenoh session; split: two processes per rig; both: each
+    layout measured in turn, the top-level figures one-process's, ``by_layout`` both; the report
+    names the layout in ``rig_layout``).
     Fast mode: the PRESET campaign (TESTS tests x ra2vipas, rapas, ravipas x 120 steps) in
     lockstep on RIG_COUNT rigs; reports control steps per second (target >= 2 200 on 2 cores
     for paper, >= 2 000 for dynamic).
@@ -150,6 +154,8 @@ def bench_mesh(
         ra2vipas bench mesh --json
 
         ra2vipas bench mesh --preset dynamic --realtime-tests 0 --json
+
+        ra2vipas bench mesh --rig-layout both --json
 
         ra2vipas bench mesh --tests 0 --realtime-tests 0 --memory-tests 1000,10000 --json
     """
