@@ -15,7 +15,7 @@ from ra2vipas.cli.output import EXIT_USAGE, fail, print_json, stdout
 from ra2vipas.cli.polish import deprecated, prefer
 from ra2vipas.services.benchmarks import BenchmarkError
 from ra2vipas.services.benchmarks.plots import READ_PAUSE_S
-from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
+from ra2vipas.services.protocol.messages import MAX_TESTS
 
 app = typer.Typer(help="Speed benchmarks (print JSON with --json).", no_args_is_help=True)
 

@@ -32,7 +32,7 @@ from ra2vipas.cli.output import (
 )
 from ra2vipas.cli.polish import deprecated, prefer
 from ra2vipas.services.controller import registry
-from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
+from ra2vipas.services.protocol.messages import MAX_TESTS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
 app = typer.Typer(help="Start, watch and read campaigns on a running stack (see `ra2vipas up`).", no_args_is_help=True)

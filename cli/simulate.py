@@ -11,7 +11,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from ra2vipas.cli.output import EXIT_USAGE, check_output, emit_results, fail, print_json, print_results, stderr
 from ra2vipas.services.controller import registry
-from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
+from ra2vipas.services.protocol.messages import MAX_TESTS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, build_scenario, parse_overrides
 
 

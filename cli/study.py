@@ -17,7 +17,7 @@ from rich.table import Table
 
 from ra2vipas.cli.client import DEFAULT_API, FINISHED, ApiOpt, Client, JsonOpt, TokenOpt
 from ra2vipas.cli.output import EXIT_USAGE, check_output, fail, print_json, stderr, stdout, write_file
-from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
+from ra2vipas.services.protocol.messages import MAX_TESTS
 from ra2vipas.services.protocol.scenario import PRESETS, ScenarioError, parse_overrides
 
 app = typer.Typer(help="Parameter studies: DR against scenario parameters, one campaign per grid point (see `ra2vipas up`).",

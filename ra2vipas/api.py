@@ -16,7 +16,7 @@ def _check_run(algorithms: Iterable[str] | None, tests: int, seed: int, stop_con
     if isinstance(algorithms, str):
         algorithms = [algorithms]
     names = registry.check(list(algorithms)) if algorithms is not None else list(registry.BUILTINS)  # UnknownPolicy is a ValueError
-    from ra2vipas.services.orchestrator.api.schemas import MAX_TESTS
+    from ra2vipas.services.protocol.messages import MAX_TESTS
 
     if isinstance(tests, bool) or not isinstance(tests, int) or not 1 <= tests <= MAX_TESTS:
         raise ValueError(f"tests: expected an integer from 1 to {MAX_TESTS}, got {tests!r}")

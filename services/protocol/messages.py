@@ -29,6 +29,7 @@ from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.protocol.versions import V1_0, VERSION_PATTERN, wire_exclude
 
 MAX_STEPS = 10000
+MAX_TESTS = 10000  # Monte Carlo tests per algorithm in one campaign: the API's, the CLI's and the client's limit
 
 ALGORITHMS: tuple[str, ...] = ("ra2vipas", "rapas", "ravipas", "sweep")
 """The built-in policies (paper Sec. IV-B plus the non-active sweep): every name a node of

@@ -3,7 +3,10 @@ are what the command the file names for each fits now: `ra2vipas bench calibrate
 --seed 1001 --write`, Ra²ViPAS's with `--from-s 3`. A map is compared by what it does on the fitting data (its likelihood, the
 confidences it gives, its ECE: ``calibration.map_agreement``), not by its coefficients' digits,
 which another CPU moves. A change to a controller that moves its raw confidence fails here
-until the maps are refitted (and `make docs` rerun)."""
+until the maps are refitted (and `make docs` rerun).
+
+In a session that also runs tests/docs/test_other_cpus.py (``make test``), this file runs in that
+test's child, on kernels other than this CPU's best, only (``tests/conftest.py``); run alone, here."""
 
 from __future__ import annotations
 

@@ -39,6 +39,11 @@ CROSS_MACHINE_CHECKS = [
 ]
 
 
+# Run by that child only when the session runs it too (``tests/conftest.py``): the same check twice
+# would cost the suite ~190 s more of CPU for a check the child's kernels make harder.
+ONLY_ON_OTHER_KERNELS = ("tests/docs/test_confidence_maps.py",)
+
+
 def reduced_cpu_environment() -> dict[str, str]:
     """The variables that put numpy, OpenBLAS and numba on other kernels than this CPU's best."""
     from numpy._core import _multiarray_umath as umath
@@ -140,3 +145,8 @@ def test_the_cross_machine_checks_pass_on_other_kernels():
         _started.append(CrossMachineRun())
     code, tail = _started[0].result(timeout=900)
     assert code == 0, tail
+
+
+def test_what_the_suite_leaves_to_the_cross_machine_run_is_in_it():
+    """A check the session deselects for the child (``ONLY_ON_OTHER_KERNELS``) is one it runs."""
+    assert all(any(check.startswith(path) for check in CROSS_MACHINE_CHECKS) for path in ONLY_ON_OTHER_KERNELS)

@@ -11,9 +11,8 @@ from typing import Annotated, Any, Literal, Optional, Union
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StringConstraints
 
 from ra2vipas.services.controller.registry import BUILTINS
-from ra2vipas.services.protocol.messages import AlgorithmName
+from ra2vipas.services.protocol.messages import MAX_TESTS, AlgorithmName
 
-MAX_TESTS = 10000
 MAX_OVERRIDES = 64
 MAX_PAGE = 200
 MAX_OFFSET = 1_000_000_000
