@@ -429,6 +429,12 @@ class Stack:
         raise StackError(f"{child.name} did not open port {port} within {timeout:.0f} s")
 
     def _wait_ready(self, timeout: float) -> None:
+        # one client for every poll: an ``httpx.get`` makes a client, whose TLS context loads the CA
+        # bundle (~75 ms of CPU) even for an http:// address; 30 polls cost a start-up 2.3 s of CPU
+        with httpx.Client(timeout=1.0) as client:
+            self._poll_health(client, timeout)
+
+    def _poll_health(self, client: httpx.Client, timeout: float) -> None:
         deadline = time.monotonic() + timeout
         last = "no answer"
         while time.monotonic() < deadline:
@@ -436,7 +442,7 @@ class Stack:
             if dead:
                 raise StackError(f"{dead[0].name} exited during start-up (log {dead[0].log_path}):\n{dead[0].tail()}")
             try:
-                r = httpx.get(f"{self.api_url}/health", timeout=1.0)
+                r = client.get(f"{self.api_url}/health")
                 try:
                     instance = r.json().get("instance")
                 except ValueError:

@@ -27,36 +27,39 @@ def orchestrator(launch: StackFactory, *, tests: int, rig_count: int, window: in
     algorithms = list(ALGORITHMS)
     with tempfile.TemporaryDirectory(prefix="ra2vipas-bench-") as tmp:
         stack = launch(rigs=0, db_path=os.path.join(tmp, "orchestrator.db"), log_dir=os.path.join(tmp, "logs"), window=window)
-        bus = fakes = None
+        bus = fakes = client = None
         try:
             stack.start()
             bus = stack_bus(stack)
             fakes = [InstantRig(bus, f"rig-{i}") for i in range(1, rig_count + 1)]
             orchestrator = next(c for c in stack.children if c.name == "orchestrator").proc.pid
             api = stack.api_url
+            client = httpx.Client()  # one client: each new one loads the CA bundle (~75 ms of CPU)
             deadline = time.monotonic() + 30
-            while len([r for r in httpx.get(f"{api}/rigs", timeout=10).json()["rigs"] if r["live"]]) < rig_count:
+            while len([r for r in client.get(f"{api}/rigs", timeout=10).json()["rigs"] if r["live"]]) < rig_count:
                 if time.monotonic() > deadline:
                     raise RuntimeError("the orchestrator did not see the fake rigs within 30 s")
                 time.sleep(0.1)
             started = time.perf_counter()
-            c = httpx.post(f"{api}/campaigns", json={"preset": preset, "tests": tests, "seed": 1, "algorithms": algorithms},
-                           timeout=30).json()
+            c = client.post(f"{api}/campaigns", json={"preset": preset, "tests": tests, "seed": 1, "algorithms": algorithms},
+                            timeout=30).json()
             running_at = cpu_at = own_at = None
             while c["status"] not in ("done", "failed", "cancelled"):
                 if time.perf_counter() - started > 1800:
                     raise TimeoutError(f"campaign {c['id']} did not finish within 1800 s")
                 time.sleep(0.25)  # polls slowly: a request costs the orchestrator CPU
-                c = httpx.get(f"{api}/campaigns/{c['id']}", timeout=30).json()
+                c = client.get(f"{api}/campaigns/{c['id']}", timeout=30).json()
                 if running_at is None and c["status"] == "running":
                     running_at, cpu_at, own_at = time.perf_counter(), cpu_of(orchestrator), time.process_time()
             done_at, cpu_done, own_done = time.perf_counter(), cpu_of(orchestrator), time.process_time()
             if c["status"] != "done":
                 raise RuntimeError(f"campaign {c['id']} {c['status']}: {c.get('error')}")
-            results = httpx.get(f"{api}/campaigns/{c['id']}/results", timeout=30).json()
+            results = client.get(f"{api}/campaigns/{c['id']}/results", timeout=30).json()
         except (TimeoutError, RuntimeError, httpx.HTTPError) as err:  # a stack that did not start raises a RuntimeError too
             raise BenchmarkError(f"bench orchestrator: {err}") from err
         finally:
+            if client is not None:
+                client.close()
             for fake in fakes or []:
                 fake.close()
             if bus is not None:
