@@ -13,6 +13,7 @@ import threading
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
 
 import zenoh
 
@@ -130,7 +131,10 @@ class ZenohBus:
                     self._publishers[(key, express)] = pub
         pub.put(payload)
 
-    def subscribe(self, key: str, callback: Callback):
+    @staticmethod
+    def _on_sample(key: str, callback: Callback) -> Callable[[zenoh.Sample], None]:
+        """``callback(key, payload)`` for each sample of at most ``MAX_MESSAGE_BYTES``; a failure
+        is logged, never raised into Zenoh's thread (nor a publisher's ``put``)."""
         def on_sample(sample: zenoh.Sample) -> None:
             try:
                 payload = sample.payload
@@ -141,7 +145,10 @@ class ZenohBus:
             except Exception:  # a bad message must never kill Zenoh's thread
                 log.exception("subscriber callback on %s failed", key)
 
-        sub = self.session.declare_subscriber(key, on_sample)
+        return on_sample
+
+    def subscribe(self, key: str, callback: Callback):
+        sub = self.session.declare_subscriber(key, self._on_sample(key, callback))
         self._declared.append(sub)
         return sub
 
@@ -152,17 +159,7 @@ class ZenohBus:
         returns, besides sending it to the network), the publisher's own thread, inside its
         ``put``; for a sample from the network, Zenoh's receiving thread. The callback must
         only hand the message on (``EventLoop.feed`` on an ``inline`` loop queues it)."""
-        def on_sample(sample: zenoh.Sample) -> None:
-            try:
-                payload = sample.payload
-                if len(payload) > MAX_MESSAGE_BYTES:
-                    log.warning("dropping a %d-byte message on %s (limit %d)", len(payload), sample.key_expr, MAX_MESSAGE_BYTES)
-                    return
-                callback(str(sample.key_expr), payload.to_bytes())
-            except Exception:  # a bad message must never kill Zenoh's thread (nor the publisher's put)
-                log.exception("subscriber callback on %s failed", key)
-
-        sub = self.session.declare_subscriber(key, zenoh.handlers.Callback(on_sample, indirect=False))
+        sub = self.session.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample(key, callback), indirect=False))
         self._declared.append(sub)
         return sub
 
