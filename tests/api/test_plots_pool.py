@@ -30,6 +30,7 @@ from ra2vipas.services.orchestrator.api.app import create_app
 from ra2vipas.services.orchestrator.api.render import FigureSource, PlotKey, PlotRenderer, Saturated
 from ra2vipas.services.orchestrator.settings import OrchestratorSettings
 from ra2vipas.services.protocol.scenario import build_scenario
+from tests import http
 from tests.api.live import SMALL, LiveAPI
 from tests.conftest import restore_ctrl_c
 
@@ -417,21 +418,19 @@ def test_figure_requests_beyond_the_rate_get_503_with_retry_after(tmp_path):
     with 503 and Retry-After, before any work, and serves again a second later."""
     import time
 
-    import httpx
-
     from tests.api.live import SMALL, LiveAPI
 
     server = LiveAPI(tmp_path / "rate.db", plot_rate=2.0).start()
     try:
         body = {"preset": "paper", "overrides": SMALL, "algorithms": ["rapas"], "tests": 1, "seed": 1}
-        cid = httpx.post(f"{server.url}/campaigns", json=body, timeout=30).json()["id"]
+        cid = http.post(f"{server.url}/campaigns", json=body, timeout=30).json()["id"]
         assert server.wait(cid)["status"] == "done"
         time.sleep(1.1)  # a full bucket
-        codes = [httpx.get(f"{server.url}/campaigns/{cid}/plots/dr", timeout=60) for _ in range(6)]
+        codes = [http.get(f"{server.url}/campaigns/{cid}/plots/dr", timeout=60) for _ in range(6)]
         refused = [r for r in codes if r.status_code == 503]
         assert [r.status_code for r in codes[:2]] == [200, 200] and len(refused) >= 3
         assert all(r.headers["Retry-After"] == "1" and "figure requests per second" in r.json()["detail"] for r in refused)
         time.sleep(1.1)
-        assert httpx.get(f"{server.url}/campaigns/{cid}/plots/dr", timeout=60).status_code == 200
+        assert http.get(f"{server.url}/campaigns/{cid}/plots/dr", timeout=60).status_code == 200
     finally:
         server.stop()

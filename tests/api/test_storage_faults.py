@@ -20,6 +20,7 @@ from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol.scenario import build_scenario
 from ra2vipas.services.sensors.node import SensorsNode
+from tests import http
 from tests.api.live import SMALL, LiveAPI
 from tests.conftest import untimed
 
@@ -163,7 +164,6 @@ def test_up_on_a_read_only_folder_starts_degraded_and_heals(tmp_path, mounts):
     orchestrator could not create its lock file, exited, and `up` gave up). Now the stack
     starts degraded: /health and the API answer 503 naming the cause ("read-only", not "disk
     I/O error"), and everything works once the folder is writable again, without a restart."""
-    import httpx
 
     from tests.integration.conftest import Procs, start_stack, stop_stack
 
@@ -175,22 +175,22 @@ def test_up_on_a_read_only_folder_starts_degraded_and_heals(tmp_path, mounts):
     try:
         state = start_stack(registry, tmp_path, "--db", str(view / "ro.db"), rigs=1)
         api, up = state["api"], state["up"]
-        health = httpx.get(f"{api}/health", timeout=5)
+        health = http.get(f"{api}/health", timeout=5)
         assert health.status_code == 503 and health.json()["database"] is False, health.text
         assert "read-only" in health.json()["database_error"] and "disk I/O" not in health.json()["database_error"], health.json()
         assert health.json()["zenoh"] and health.json()["rigs"] == ["rig-1"]
-        r = httpx.get(f"{api}/campaigns", timeout=5)
+        r = http.get(f"{api}/campaigns", timeout=5)
         assert r.status_code == 503 and r.headers["content-type"].startswith("application/json") and "read-only" in r.json()["detail"]
-        r = httpx.post(f"{api}/campaigns", json={"overrides": OVERRIDES, "tests": 1}, timeout=5)
+        r = http.post(f"{api}/campaigns", json={"overrides": OVERRIDES, "tests": 1}, timeout=5)
         assert r.status_code == 503 and "read-only" in r.json()["detail"]
 
         _mount("-o", "remount,rw,bind", str(view))
-        wait_for(lambda: httpx.get(f"{api}/health", timeout=5).status_code == 200, "/health did not recover", timeout=90)
-        r = httpx.post(f"{api}/campaigns", json={"overrides": OVERRIDES, "algorithms": ALGORITHMS, "tests": TESTS, "seed": SEED},
+        wait_for(lambda: http.get(f"{api}/health", timeout=5).status_code == 200, "/health did not recover", timeout=90)
+        r = http.post(f"{api}/campaigns", json={"overrides": OVERRIDES, "algorithms": ALGORITHMS, "tests": TESTS, "seed": SEED},
                        timeout=10)
         assert r.status_code == 201, r.text
         cid = r.json()["id"]
-        c = wait_for(lambda: (lambda c: c if c["status"] in ("done", "failed") else None)(httpx.get(f"{api}/campaigns/{cid}", timeout=5).json()),
+        c = wait_for(lambda: (lambda c: c if c["status"] in ("done", "failed") else None)(http.get(f"{api}/campaigns/{cid}", timeout=5).json()),
                      "the campaign did not finish", timeout=120)
         assert c["status"] == "done", c
         stop_stack(registry, up)

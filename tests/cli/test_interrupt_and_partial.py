@@ -10,10 +10,9 @@ import subprocess
 import sys
 import time
 
-import httpx
-
 from ra2vipas.services.controller.node import ControllerNode
 from ra2vipas.services.orchestrator.scheduler import MAX_ATTEMPTS
+from tests import http
 from tests.api.live import SMALL
 from tests.cli.conftest import ROOT, ra2vipas
 from tests.conftest import restore_ctrl_c
@@ -23,13 +22,13 @@ LONG = {**SMALL, "steps": 120}
 
 def _start(live, tests: int = 400) -> str:
     body = {"preset": "paper", "overrides": LONG, "algorithms": ["ra2vipas"], "tests": tests, "seed": 9}
-    r = httpx.post(f"{live.url}/campaigns", json=body, timeout=30)
+    r = http.post(f"{live.url}/campaigns", json=body, timeout=30)
     assert r.status_code == 201, r.text
     return r.json()["id"]
 
 
 def _progress(live, cid: str) -> dict:
-    return httpx.get(f"{live.url}/campaigns/{cid}", timeout=30).json()
+    return http.get(f"{live.url}/campaigns/{cid}", timeout=30).json()
 
 
 def _open_streams(live) -> int:
@@ -87,7 +86,7 @@ def test_ctrl_c_on_watch_prints_the_id_and_the_commands_and_leaves_the_campaign_
     assert proc.returncode == 130, (out, err)
     _says_how_to_come_back(err, cid, live.url)
     assert _progress(live, cid)["status"] in ("queued", "running", "done")
-    httpx.post(f"{live.url}/campaigns/{cid}/cancel", timeout=30)
+    http.post(f"{live.url}/campaigns/{cid}/cancel", timeout=30)
 
 
 def test_ctrl_c_on_start_wait_prints_the_id_and_the_commands_and_leaves_the_campaign_running(live):
@@ -99,7 +98,7 @@ def test_ctrl_c_on_start_wait_prints_the_id_and_the_commands_and_leaves_the_camp
                 *(f"--set={k}={v}" for k, v in LONG.items()), "--api", live.url)
 
     def started() -> list[dict]:
-        return httpx.get(f"{live.url}/campaigns", params={"name": name}, timeout=30).json()["items"]
+        return http.get(f"{live.url}/campaigns", params={"name": name}, timeout=30).json()["items"]
 
     _until(lambda: _open_streams(live) == 1 and started() and started()[0]["progress"]["done"] >= 1, what="the CLI to follow")
     out, err = _interrupt(proc)
@@ -109,7 +108,7 @@ def test_ctrl_c_on_start_wait_prints_the_id_and_the_commands_and_leaves_the_camp
     _says_how_to_come_back(err, cid, live.url)
     assert out == f"campaign {cid}\n"  # its id, and no results table: it never finished
     assert _progress(live, cid)["status"] in ("running", "done")
-    httpx.post(f"{live.url}/campaigns/{cid}/cancel", timeout=30)
+    http.post(f"{live.url}/campaigns/{cid}/cancel", timeout=30)
 
 
 def test_a_cancelled_campaign_has_partial_results(live):
@@ -117,10 +116,10 @@ def test_a_cancelled_campaign_has_partial_results(live):
     deadline = time.monotonic() + 60
     while _progress(live, cid)["progress"]["done"] < 3 and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert httpx.post(f"{live.url}/campaigns/{cid}/cancel", timeout=30).status_code == 200
+    assert http.post(f"{live.url}/campaigns/{cid}/cancel", timeout=30).status_code == 200
     c = _progress(live, cid)
     assert c["status"] == "cancelled"
-    r = httpx.get(f"{live.url}/campaigns/{cid}/results", timeout=30)
+    r = http.get(f"{live.url}/campaigns/{cid}/results", timeout=30)
     assert r.status_code == 200, r.text
     results = r.json()
     assert results["partial"] is True
@@ -132,9 +131,9 @@ def test_a_cancelled_campaign_has_partial_results(live):
     assert f"partial results: the campaign stopped before its end; tests recorded: ra2vipas {recorded} (of 400)" in " ".join(shown.stdout.split())
     # a campaign still running has none yet
     running = _start(live, tests=50)
-    r = httpx.get(f"{live.url}/campaigns/{running}/results", timeout=30)
+    r = http.get(f"{live.url}/campaigns/{running}/results", timeout=30)
     assert r.status_code == 409 and "no results yet" in r.json()["detail"]
-    httpx.post(f"{live.url}/campaigns/{running}/cancel", timeout=30)
+    http.post(f"{live.url}/campaigns/{running}/cancel", timeout=30)
 
 
 def test_a_failed_campaign_has_partial_results_of_its_recorded_episodes(live, monkeypatch):
@@ -164,7 +163,7 @@ def test_a_failed_campaign_has_partial_results_of_its_recorded_episodes(live, mo
 
     monkeypatch.setattr(controller, "_begin", failing_begin)
     body = {"preset": "paper", "overrides": SMALL, "algorithms": ["ra2vipas"], "tests": tests, "seed": seed, "name": "fails"}
-    r = httpx.post(f"{live.url}/campaigns", json=body, timeout=30)
+    r = http.post(f"{live.url}/campaigns", json=body, timeout=30)
     assert r.status_code == 201, r.text
     cid = r.json()["id"]
     _until(lambda: _progress(live, cid)["progress"]["done"] >= 3, what="tests 0-2 to be recorded")
@@ -174,14 +173,14 @@ def test_a_failed_campaign_has_partial_results_of_its_recorded_episodes(live, mo
     assert f"test 3 (ra2vipas) failed {MAX_ATTEMPTS} times: camera unplugged" in c["error"]
     assert c["progress"]["done"] == 3
 
-    r = httpx.get(f"{live.url}/campaigns/{cid}/results", timeout=30)
+    r = http.get(f"{live.url}/campaigns/{cid}/results", timeout=30)
     assert r.status_code == 200, r.text
     results = r.json()
     assert results["partial"] is True and results["tests_recorded"] == {"ra2vipas": 3} and results["tests"] == tests
-    outcomes = httpx.get(f"{live.url}/campaigns/{cid}/tests", params={"status": "done"}, timeout=30).json()["items"]
+    outcomes = http.get(f"{live.url}/campaigns/{cid}/tests", params={"status": "done"}, timeout=30).json()["items"]
     assert sorted(o["test_index"] for o in outcomes) == [0, 1, 2]
     assert results["algorithms"]["ra2vipas"]["dr_final"] == sum(o["final_hit"] for o in outcomes) / 3
-    summary = httpx.get(f"{live.url}/campaigns/{cid}/results", params={"format": "csv", "table": "summary"}, timeout=30).text
+    summary = http.get(f"{live.url}/campaigns/{cid}/results", params={"format": "csv", "table": "summary"}, timeout=30).text
     row = dict(zip(*[line.split(",") for line in summary.splitlines()]))
     assert row["partial"] == "True" and row["tests_recorded"] == "3", summary
 

@@ -16,6 +16,7 @@ import pytest
 
 from ra2vipas.cli.stack import free_port
 from ra2vipas.services.orchestrator.presets import PRESETS
+from tests import http
 from tests.cli.conftest import ROOT, ra2vipas
 from tests.conftest import restore_ctrl_c
 
@@ -77,15 +78,15 @@ def test_orchestrator_token_flag_guards_state_changes(orchestrator_process):
     deadline = time.monotonic() + 60
     while True:
         try:
-            httpx.get(f"{api}/health", timeout=2)
+            http.get(f"{api}/health", timeout=2)
             break
         except httpx.HTTPError:
             assert proc.poll() is None and time.monotonic() < deadline, "the orchestrator did not come up"
             time.sleep(0.2)
     body = {"tests": 1, "algorithms": ["rapas"]}
-    assert httpx.post(f"{api}/campaigns", json=body, timeout=10).status_code == 401
-    ok = httpx.post(f"{api}/campaigns", json=body, headers={"Authorization": "Bearer flag-token"}, timeout=10)
+    assert http.post(f"{api}/campaigns", json=body, timeout=10).status_code == 401
+    ok = http.post(f"{api}/campaigns", json=body, headers={"Authorization": "Bearer flag-token"}, timeout=10)
     assert ok.status_code == 201
-    assert httpx.get(f"{api}/campaigns/{ok.json()['id']}", timeout=10).status_code == 200
+    assert http.get(f"{api}/campaigns/{ok.json()['id']}", timeout=10).status_code == 200
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(30) == 0

@@ -30,6 +30,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests import http
 from tests.conftest import untimed
 from tests.deploy.compose import environment, interpolate, load, ra2vipas_argv
 from tests.deploy.conftest import ROOT, Services, clean_env
@@ -166,7 +167,7 @@ def wait_healthy(mesh: Mesh, timeout: float) -> dict:
         dead = [s for s in mesh.procs.started if s.proc.poll() is not None]
         assert not dead, f"{dead[0].name} exited\n{mesh.diagnostics()}"
         try:
-            r = httpx.get(f"{mesh.api}/health", timeout=2)
+            r = http.get(f"{mesh.api}/health", timeout=2)
             if r.status_code == 200:
                 return r.json()
             last = r.text
@@ -186,13 +187,13 @@ def simulate(args: list[str]) -> dict:
 
 
 def start_campaign(mesh: Mesh, body: dict) -> str:
-    r = httpx.post(f"{mesh.api}/campaigns", json=body, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10)
+    r = http.post(f"{mesh.api}/campaigns", json=body, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10)
     assert r.status_code in (200, 201, 202), r.text
     return r.json()["id"]
 
 
 def campaign(mesh: Mesh, cid: str) -> dict:
-    return httpx.get(f"{mesh.api}/campaigns/{cid}", timeout=10).json()
+    return http.get(f"{mesh.api}/campaigns/{cid}", timeout=10).json()
 
 
 def wait_done(mesh: Mesh, cid: str, timeout: float) -> dict:
@@ -204,7 +205,7 @@ def wait_done(mesh: Mesh, cid: str, timeout: float) -> dict:
             break
         time.sleep(0.2)
     assert c.get("status") == "done", f"campaign {cid}: {c.get('status')} {c.get('progress')} {c.get('error')}\n{mesh.diagnostics()}"
-    return httpx.get(f"{mesh.api}/campaigns/{cid}/results", timeout=10).json()
+    return http.get(f"{mesh.api}/campaigns/{cid}/results", timeout=10).json()
 
 
 def episodes(mesh: Mesh, cid: str) -> list[tuple]:
@@ -229,7 +230,7 @@ def test_the_hosts_reach_each_other_only_through_the_router(mesh):
     assert route.returncode != 0 and "unreachable" in route.stderr
     assert subprocess.run([*mesh.net.exec_prefix("sensors"), "ip", "route", "get", "10.77.1.1"], capture_output=True).returncode == 0
     # the compose file's API token applies
-    r = httpx.post(f"{mesh.api}/campaigns", json={"preset": "paper", "tests": 1}, timeout=10)
+    r = http.post(f"{mesh.api}/campaigns", json={"preset": "paper", "tests": 1}, timeout=10)
     assert r.status_code == 401
 
 
@@ -284,7 +285,7 @@ def test_a_rig_lost_by_a_long_link_cut_is_used_again_once_it_is_back(mesh):
         deadline = time.monotonic() + 40
         rigs = [RIG]
         while time.monotonic() < deadline and RIG in rigs:
-            rigs = httpx.get(f"{mesh.api}/health", timeout=5).json()["rigs"]
+            rigs = http.get(f"{mesh.api}/health", timeout=5).json()["rigs"]
             time.sleep(0.2)
         assert RIG not in rigs, f"the orchestrator still sees {RIG} 40 s after its link went down\n{mesh.diagnostics()}"
         stalled = campaign(mesh, cid)

@@ -22,6 +22,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests import http
 from tests.conftest import differences, untimed
 from tests.deploy.conftest import Service, Services, clean_env
 from tests.deploy.netns import NetnsError, remove_stale_namespaces
@@ -72,7 +73,7 @@ class Layout:
 
     def health(self) -> dict:
         try:
-            return httpx.get(f"{self.api}/health", timeout=2).json()
+            return http.get(f"{self.api}/health", timeout=2).json()
         except (httpx.HTTPError, ValueError):
             return {}
 
@@ -89,12 +90,12 @@ class Layout:
         raise AssertionError(f"{what} not within {timeout} s (last /health: {last})\n{self.procs.tails()}")
 
     def start_campaign(self, body: dict) -> str:
-        r = httpx.post(f"{self.api}/campaigns", json=body, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10)
+        r = http.post(f"{self.api}/campaigns", json=body, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10)
         assert r.status_code in (200, 201, 202), r.text
         return r.json()["id"]
 
     def campaign(self, cid: str) -> dict:
-        return httpx.get(f"{self.api}/campaigns/{cid}", timeout=10).json()
+        return http.get(f"{self.api}/campaigns/{cid}", timeout=10).json()
 
     def wait_finished(self, cid: str, timeout: float) -> dict:
         deadline = time.monotonic() + timeout
@@ -146,7 +147,7 @@ def test_connect_without_a_mode_joins_the_router_and_a_campaign_started_before_t
     assert health["status"] == "ok"
     c = layout.wait_finished(cid, timeout=420)
     assert c["status"] == "done", f"{c.get('error')}\n{layout.procs.tails()}"
-    results = httpx.get(f"{layout.api}/campaigns/{cid}/results", timeout=30).json()
+    results = http.get(f"{layout.api}/campaigns/{cid}/results", timeout=30).json()
     expected = simulate(args)
     assert untimed(results) == untimed(expected), differences(untimed(results), untimed(expected))
     for s in layout.procs.started:

@@ -19,6 +19,7 @@ import zenoh
 from ra2vipas.cli.rig import controller_settings, rig_name_from_host
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
+from tests import http
 from tests.conftest import differences, untimed
 from tests.deploy.compose import environment, interpolate, load, ra2vipas_argv
 from tests.deploy.conftest import ROOT, clean_env, free_port, wait_port
@@ -75,7 +76,7 @@ def test_the_compose_deployment_on_one_host_runs_a_campaign_through_a_rig(procs,
     health = {}
     while time.monotonic() < deadline:
         try:
-            r = httpx.get(f"{api}/health", timeout=2)
+            r = http.get(f"{api}/health", timeout=2)
             health = r.json()
             if r.status_code == 200:
                 break

@@ -26,6 +26,7 @@ import zenoh
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
+from tests import http
 from tests.conftest import untimed
 from tests.deploy.conftest import ROOT, Service, Services, clean_env, free_port, wait_port
 
@@ -79,7 +80,7 @@ class Deployment:
             dead = [s for s in self.services.values() if s.proc.poll() is not None]
             assert not dead, dead[0].tail()
             try:
-                r = httpx.get(f"{self.api}/health", timeout=2)
+                r = http.get(f"{self.api}/health", timeout=2)
                 if r.status_code == 200:
                     return r.json()
                 last = r.text
@@ -89,7 +90,7 @@ class Deployment:
         raise AssertionError(f"/health not 200 within {timeout} s: {last[:300]}\n{self.procs.tails()}")
 
     def rigs(self) -> dict[str, dict]:
-        return {r["name"]: r for r in httpx.get(f"{self.api}/rigs", timeout=5).json()["rigs"]}
+        return {r["name"]: r for r in http.get(f"{self.api}/rigs", timeout=5).json()["rigs"]}
 
 
 @pytest.fixture(scope="module")

@@ -25,6 +25,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests import http
 from tests.conftest import differences
 from tests.deploy.compose import environment, interpolate, load, ra2vipas_argv
 from tests.deploy.conftest import Services, clean_env
@@ -110,7 +111,7 @@ def wait_rigs(api: str, count: int, timeout: float = 90.0) -> list[str]:
     rigs: list[str] = []
     while time.monotonic() < deadline:
         try:
-            rigs = httpx.get(f"{api}/health", timeout=3).json().get("rigs", [])
+            rigs = http.get(f"{api}/health", timeout=3).json().get("rigs", [])
         except (httpx.HTTPError, ValueError):
             rigs = []
         if len(rigs) == count:

@@ -15,6 +15,7 @@ import pytest
 
 from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.protocol.scenario import build_scenario
+from tests import http
 from tests.conftest import differences, untimed
 from tests.integration.conftest import Procs, alive, children_of, start_stack, stop_stack
 
@@ -56,7 +57,7 @@ def _get(api: str, path: str, deadline: float) -> dict:
     """GET with retries: the API may be restarting."""
     while True:
         try:
-            r = httpx.get(f"{api}{path}", timeout=5)
+            r = http.get(f"{api}{path}", timeout=5)
             if r.status_code == 200:
                 return r.json()
         except httpx.HTTPError:
@@ -69,7 +70,7 @@ def _get(api: str, path: str, deadline: float) -> dict:
 def _campaign_with_a_kill(stack, victim: tuple[str, ...], at_fraction: float) -> tuple[dict, dict]:
     api, up = stack["api"], stack["up"]
     body = {"preset": "paper", "tests": TESTS, "seed": SEED, "algorithms": ALGORITHMS, "overrides": OVERRIDES}
-    cid = httpx.post(f"{api}/campaigns", json=body, timeout=30).json()["id"]
+    cid = http.post(f"{api}/campaigns", json=body, timeout=30).json()["id"]
     deadline = time.monotonic() + 300
     killed = None
     while True:
@@ -119,7 +120,7 @@ def test_killing_the_learner_before_a_new_model_is_needed(stack):
     os.kill(_child(up.pid, "learner"), signal.SIGKILL)
     overrides = {"n_train": 200, "steps": 40}
     body = {"preset": "paper", "tests": 3, "seed": 99, "algorithms": ["ra2vipas"], "overrides": overrides}
-    cid = httpx.post(f"{api}/campaigns", json=body, timeout=30).json()["id"]
+    cid = http.post(f"{api}/campaigns", json=body, timeout=30).json()["id"]
     deadline = time.monotonic() + 180
     while (c := _get(api, f"/campaigns/{cid}", deadline))["status"] not in ("done", "failed"):
         time.sleep(0.1)

@@ -8,13 +8,13 @@ import json
 import random
 import time
 
-import httpx
 import pytest
 
 from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import Command, EpisodeResult, EpisodeStart, EpisodeTruth, Measurement
 from ra2vipas.services.protocol.scenario import build_scenario
+from tests import http
 from tests.conftest import differences, untimed
 from tests.integration.conftest import Procs, alive, children_of, stack_zenoh_session, start_stack, stop_stack
 
@@ -107,12 +107,12 @@ def test_thousands_of_hostile_messages_crash_nothing(stack):
 
     overrides = {"steps": 40, "n_train": 250}
     body = {"preset": "paper", "tests": 3, "seed": 17, "algorithms": ["ra2vipas", "ravipas"], "overrides": overrides}
-    cid = httpx.post(f"{stack['api']}/campaigns", json=body, timeout=30).json()["id"]
+    cid = http.post(f"{stack['api']}/campaigns", json=body, timeout=30).json()["id"]
     deadline = time.monotonic() + 120
-    while (c := httpx.get(f"{stack['api']}/campaigns/{cid}", timeout=10).json())["status"] not in ("done", "failed"):
+    while (c := http.get(f"{stack['api']}/campaigns/{cid}", timeout=10).json())["status"] not in ("done", "failed"):
         assert time.monotonic() < deadline
         time.sleep(0.1)
     assert c["status"] == "done", c["error"]
-    got = httpx.get(f"{stack['api']}/campaigns/{cid}/results", timeout=10).json()
+    got = http.get(f"{stack['api']}/campaigns/{cid}/results", timeout=10).json()
     expected = untimed(run_campaign("paper", build_scenario("paper", overrides), 3, 17, ["ra2vipas", "ravipas"]))
     assert untimed(got) == expected, differences(untimed(got), expected)

@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import resource
 
-import httpx
-
+from tests import http
 from tests.integration.conftest import start_stack, stop_stack
 from tests.integration.slowloris import attack
 
@@ -35,6 +34,6 @@ def test_a_slow_client_attack_leaves_health_answering_and_the_log_bounded(procs,
     grown = log.stat().st_size - before
     text = log.read_text(errors="replace")
     assert grown < 64_000 and "out of system resource" not in text and "Too many open files" not in text, (grown, text[-2000:])
-    r = httpx.get(f"{state['api']}/health", timeout=2)
+    r = http.get(f"{state['api']}/health", timeout=2)
     assert r.status_code == 200, r.text
     stop_stack(procs, state["up"])

@@ -9,11 +9,11 @@ import signal
 import subprocess
 import sys
 
-import httpx
 import pytest
 
 from ra2vipas.cli.stack import free_port
 from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
+from tests import http
 from tests.conftest import untimed
 from tests.integration.conftest import ROOT, Procs, alive, children_of, wait_for_line
 
@@ -41,13 +41,13 @@ def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
 
 def test_up_starts_router_orchestrator_learner_and_two_rigs(stack):
     assert len(stack["children"]) == 1 + 1 + 1 + 2  # each rig one process (its sensors and controller on one Zenoh session)
-    health = httpx.get(f"{stack['api']}/health", timeout=10)
+    health = http.get(f"{stack['api']}/health", timeout=10)
     assert health.status_code == 200
     body = health.json()
     assert body["ready"] and body["database"] and body["zenoh"]
     assert body["rigs"] == ["rig-1", "rig-2"] and body["learners"] == ["learner"]
     # each rig's descriptor reached the orchestrator through the stack's access control
-    rigs = httpx.get(f"{stack['api']}/rigs", timeout=10).json()["rigs"]
+    rigs = http.get(f"{stack['api']}/rigs", timeout=10).json()["rigs"]
     assert [(r["name"], r["described"], r["descriptor"]["kind"]) for r in rigs] == [("rig-1", "described", "simulated"),
                                                                                    ("rig-2", "described", "simulated")]
     # and each controller's policies (rig/{rig}/policies), through the same access control
@@ -95,7 +95,7 @@ def test_campaign_start_status_and_results_commands(stack):
     import time
 
     for _ in range(600):
-        c = httpx.get(f"{stack['api']}/campaigns/{cid}", timeout=10).json()
+        c = http.get(f"{stack['api']}/campaigns/{cid}", timeout=10).json()
         if c["status"] == "done":
             break
         time.sleep(0.1)
@@ -105,11 +105,11 @@ def test_campaign_start_status_and_results_commands(stack):
 
 def test_api_rejects_bad_campaigns_and_unknown_ids(stack):
     api = stack["api"]
-    r = httpx.post(f"{api}/campaigns", json={"preset": "paper", "overrides": {"n_targets": 0}}, timeout=10)
+    r = http.post(f"{api}/campaigns", json={"preset": "paper", "overrides": {"n_targets": 0}}, timeout=10)
     assert r.status_code == 422 and "n_targets" in r.json()["detail"]
-    r = httpx.post(f"{api}/campaigns", json={"preset": "paper", "tests": 0}, timeout=10)
+    r = http.post(f"{api}/campaigns", json={"preset": "paper", "tests": 0}, timeout=10)
     assert r.status_code == 422
-    assert httpx.get(f"{api}/campaigns/nope", timeout=10).status_code == 404
+    assert http.get(f"{api}/campaigns/nope", timeout=10).status_code == 404
     bad = cli("campaign", "start", "--api", api, "--set", "rf_noise_db=99")
     assert bad.returncode == 2 and bad.stderr.startswith("error: ")
 

@@ -16,6 +16,7 @@ import pytest
 
 from ra2vipas.cli.stack import CRASH_LIMIT, Child, Stack, StackConfig, StackError, free_port, prepare_database
 from ra2vipas.services.orchestrator.dblock import DatabaseInUse, DatabaseLock
+from tests import http
 from tests.integration.conftest import ROOT, Procs, children_of, start_stack, stop_stack
 
 
@@ -161,17 +162,17 @@ def test_a_crash_loop_backs_off_and_never_stops_the_stack_and_up_restarts_at_onc
 
         _kill_each_restart(up, "learner", CRASH_LIMIT)
         deadline = time.monotonic() + 5  # `up` notices a death within half a second
-        while not (rigs := httpx.get(f"{api}/rigs", timeout=5).json())["services"] and time.monotonic() < deadline:
+        while not (rigs := http.get(f"{api}/rigs", timeout=5).json())["services"] and time.monotonic() < deadline:
             time.sleep(0.1)
         assert [(s["name"], s["state"], s["crashes"]) for s in rigs["services"]] == [("learner", "backing off", CRASH_LIMIT)], rigs
-        page = httpx.get(f"{api}/ui/rigs", timeout=5).text
+        page = http.get(f"{api}/ui/rigs", timeout=5).text
         assert 'data-service="learner" data-state="backing off"' in page
 
         _kill_each_restart(up, "orchestrator", CRASH_LIMIT)
         deadline, health = time.monotonic() + 60, None
         while time.monotonic() < deadline:
             try:
-                health = httpx.get(f"{api}/health", timeout=2)
+                health = http.get(f"{api}/health", timeout=2)
                 if health.status_code == 200:
                     break
             except httpx.HTTPError:

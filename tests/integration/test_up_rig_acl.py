@@ -10,8 +10,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import httpx
-
+from tests import http
 from tests.api.live import SMALL
 from tests.integration.conftest import start_stack, stop_stack
 
@@ -32,13 +31,13 @@ def test_up_with_rig_acl_runs_campaigns_and_confines_each_identity(procs, tmp_pa
     api = state["api"]
     env_file = Path(re.search(r"robot-9 joins with the environment in (\S+\.env)", state["line"]).group(1))
     assert oct(env_file.stat().st_mode & 0o777) == "0o600"
-    r = httpx.post(f"{api}/campaigns", json={"overrides": SMALL, "algorithms": ["rapas"], "tests": 2, "seed": 3}, timeout=10)
+    r = http.post(f"{api}/campaigns", json={"overrides": SMALL, "algorithms": ["rapas"], "tests": 2, "seed": 3}, timeout=10)
     assert r.status_code == 201, r.text
     cid = r.json()["id"]
     deadline = time.monotonic() + 120
-    while httpx.get(f"{api}/campaigns/{cid}", timeout=5).json()["status"] not in ("done", "failed") and time.monotonic() < deadline:
+    while http.get(f"{api}/campaigns/{cid}", timeout=5).json()["status"] not in ("done", "failed") and time.monotonic() < deadline:
         time.sleep(0.5)
-    assert httpx.get(f"{api}/campaigns/{cid}", timeout=5).json()["status"] == "done"
+    assert http.get(f"{api}/campaigns/{cid}", timeout=5).json()["status"] == "done"
 
     with zenoh.open(ZenohSettings.from_sources(env=_env(env_file)).to_zenoh()) as session:
         own = session.liveliness().declare_token(keys.alive("sensors", "robot-9"))  # its own name: allowed
@@ -48,14 +47,14 @@ def test_up_with_rig_acl_runs_campaigns_and_confines_each_identity(procs, tmp_pa
         deadline = time.monotonic() + 10
         rigs = {}
         while time.monotonic() < deadline:
-            rigs = {x["name"]: x for x in httpx.get(f"{api}/rigs", timeout=5).json()["rigs"]}
+            rigs = {x["name"]: x for x in http.get(f"{api}/rigs", timeout=5).json()["rigs"]}
             if "robot-9" in rigs:
                 break
             time.sleep(0.2)
         assert "robot-9" in rigs and "rig-7" not in rigs, rigs
         assert rigs["rig-1"]["announced"] == "announced", rigs["rig-1"]  # its controller's own identity may serve its policies
         time.sleep(1.0)
-        health = httpx.get(f"{api}/health", timeout=5).json()
+        health = http.get(f"{api}/health", timeout=5).json()
         assert sum(health["rejected_messages"].values()) == 0, health  # the forged result never reached the orchestrator
         for token in (own, fake, fake_ctl):
             token.undeclare()

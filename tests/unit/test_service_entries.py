@@ -11,6 +11,7 @@ import sys
 import pytest
 
 from ra2vipas.cli.stack import free_port
+from tests import http
 from tests.conftest import kill_process_groups, restore_ctrl_c
 from tests.integration.conftest import ROOT, wait_for_line
 
@@ -71,7 +72,7 @@ def test_the_orchestrator_entry_serves_the_api_and_stops_on_sigterm(started, tmp
     deadline, health = time.monotonic() + 120, None
     while health is None and time.monotonic() < deadline and p.poll() is None:
         try:
-            health = httpx.get(f"http://127.0.0.1:{port}/health", timeout=2)
+            health = http.get(f"http://127.0.0.1:{port}/health", timeout=2)
         except httpx.HTTPError:
             time.sleep(0.3)
     assert health is not None, p.stdout.read() if p.poll() is not None else "no answer"

@@ -13,9 +13,9 @@ import re
 import threading
 import time
 
-import httpx
 import pytest
 
+from tests import http
 from tests.web.conftest import PHONE, TOKEN
 
 SMALL = {"steps": 30, "n_train": 250, "n_targets": 10}
@@ -76,7 +76,7 @@ def test_up_prints_the_dashboard_address(stack):
     line = next_line_with(stack["up"], "dashboard on", 10)
     url = re.search(r"dashboard on (http://[0-9.:]+/)", line).group(1)
     assert url == stack["api"] + "/"
-    page = httpx.get(url, timeout=10)
+    page = http.get(url, timeout=10)
     assert page.status_code == 200 and "<h1>Campaigns</h1>" in page.text
 
 
