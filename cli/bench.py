@@ -135,8 +135,8 @@ def bench_mesh(
     Fast mode: the PRESET campaign (TESTS tests x ra2vipas, rapas, ravipas x 120 steps) in
     lockstep on RIG_COUNT rigs; reports control steps per second (target >= 2 200 on 2 cores
     for paper, >= 2 000 for dynamic).
-    Realtime mode: REALTIME_TESTS tests paced at T_RF on one rig (one platform in the loop);
-    reports the sample-to-command latency p50/p99 measured by the sensors (target p99 <= 5
+    Realtime mode: REALTIME_TESTS tests paced at T_RF on one rig (one platform in the loop; with
+    --rigs 1, on the fast campaign's stack after it); reports the sample-to-command latency p50/p99 measured by the sensors (target p99 <= 5
     ms). Both report ``step_breakdown``: per step, each service's time queued on its event
     loop, decoding and validating, computing, encoding and publishing, as the services measured
     it, and the transport between them (services/transport/costs.py). The fast campaign is

@@ -57,6 +57,7 @@ def mesh(launch: StackFactory, *, rigs: int, window: int, tests: int, realtime_t
     (0: skip; with ``inprocess``, also in-process on one worker), ``realtime_tests`` tests paced
     at T_RF on one rig (0: skip), and one campaign of each size in ``memory_tests``.
 
+    With ``rigs`` = 1 the realtime part runs on the fast part's stack, after its campaign.
     The fast and realtime parts run once per layout of ``rig_layouts`` ("one-process": a rig's
     two nodes in one process and one Zenoh session; "split": two processes); the report's
     top-level figures are the first layout's, and ``by_layout`` has every layout's."""
@@ -73,29 +74,53 @@ def mesh(launch: StackFactory, *, rigs: int, window: int, tests: int, realtime_t
             return launch(rigs=n, db_path=os.path.join(tmp, f"{name}.db"), log_dir=os.path.join(tmp, f"logs-{name}"), window=window,
                           rig_layout=layout)
 
+        def fast_part(stack: Stack, part: dict) -> None:
+            listener = CostListener(stack)
+            cpu = StackCPU(stack)
+            body = {"preset": preset, "tests": tests, "seed": 1, "algorithms": algorithms}
+            try:
+                fast, fast_wall, _ = run_campaign(stack.api_url, body, 1800, on_running=cpu.start, on_done=cpu.stop)
+                time.sleep(0.2)
+                breakdown = listener.breakdown()
+            finally:
+                listener.close()
+            part["fast"] = {
+                "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
+                "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
+                "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
+                "step_breakdown": breakdown,
+                "cpu_ms_per_step": cpu.per_step_ms(tests * len(algorithms) * fast["scenario"]["steps"]),
+            }
+            part["steps_per_second"] = fast["steps_per_second"]
+
+        def realtime_part(stack: Stack, part: dict) -> None:
+            listener = CostListener(stack)
+            try:
+                rt, rt_wall, _ = run_campaign(stack.api_url, {"preset": preset, "tests": realtime_tests, "seed": 1,
+                                                              "algorithms": ["ra2vipas"], "mode": "realtime"}, 900, poll=1.0)
+                time.sleep(0.2)
+                breakdown = listener.breakdown(realtime=True)
+            finally:
+                listener.close()
+            part["latency_ms"] = rt.get("latency_ms")
+            part["realtime"] = {"rigs": 1, "tests": realtime_tests, "samples": realtime_tests * (rt["scenario"]["steps"] - 1),
+                                "wall_seconds": round(rt_wall, 3), "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"],
+                                "step_breakdown": breakdown}
+
+        # the realtime part runs on one rig: with --rigs 1 it runs on the fast part's stack, after it (one
+        # stack start fewer per layout; its own campaign, so its breakdown and latency are its own)
+        shared = rigs == 1 and tests and realtime_tests
         for layout, part in parts.items() if tests else ():
             stack = stack_of(rigs, f"fast-{layout}", layout)
+            what = "fast"
             try:
                 stack.start()
-                listener = CostListener(stack)
-                cpu = StackCPU(stack)
-                body = {"preset": preset, "tests": tests, "seed": 1, "algorithms": algorithms}
-                try:
-                    fast, fast_wall, _ = run_campaign(stack.api_url, body, 1800, on_running=cpu.start, on_done=cpu.stop)
-                    time.sleep(0.2)
-                    breakdown = listener.breakdown()
-                finally:
-                    listener.close()
-                part["fast"] = {
-                    "tests": tests, "algorithms": algorithms, "steps": tests * len(algorithms) * fast["scenario"]["steps"],
-                    "steps_per_second": fast["steps_per_second"], "wall_seconds_with_training": round(fast_wall, 3),
-                    "dr_final": {a: b["dr_final"] for a, b in fast["algorithms"].items()},
-                    "step_breakdown": breakdown,
-                    "cpu_ms_per_step": cpu.per_step_ms(tests * len(algorithms) * fast["scenario"]["steps"]),
-                }
-                part["steps_per_second"] = fast["steps_per_second"]
+                fast_part(stack, part)
+                if shared:
+                    what = "realtime"
+                    realtime_part(stack, part)
             except (TimeoutError, RuntimeError) as err:  # a stack that did not start raises a RuntimeError too
-                raise BenchmarkError(f"bench mesh (fast, {layout} rigs): {err}") from err
+                raise BenchmarkError(f"bench mesh ({what}, {layout} rigs): {err}") from err
             finally:
                 stack.stop()
         if tests and inprocess:
@@ -109,22 +134,11 @@ def mesh(launch: StackFactory, *, rigs: int, window: int, tests: int, realtime_t
                 mesh_cpu = part["fast"]["cpu_ms_per_step"]
                 part["cpu_efficiency"] = round(cpu1 / mesh_cpu["total"], 3) if cpu1 and mesh_cpu and mesh_cpu["total"] else None
                 part["fast"]["dr_final_equals_inprocess"] = dr1 == part["fast"]["dr_final"]
-        for layout, part in parts.items() if realtime_tests else ():
+        for layout, part in parts.items() if realtime_tests and not shared else ():
             stack = stack_of(1, f"realtime-{layout}", layout)
             try:
                 stack.start()
-                listener = CostListener(stack)
-                try:
-                    rt, rt_wall, _ = run_campaign(stack.api_url, {"preset": preset, "tests": realtime_tests, "seed": 1,
-                                                                  "algorithms": ["ra2vipas"], "mode": "realtime"}, 900, poll=1.0)
-                    time.sleep(0.2)
-                    breakdown = listener.breakdown(realtime=True)
-                finally:
-                    listener.close()
-                part["latency_ms"] = rt.get("latency_ms")
-                part["realtime"] = {"rigs": 1, "tests": realtime_tests, "samples": realtime_tests * (rt["scenario"]["steps"] - 1),
-                                    "wall_seconds": round(rt_wall, 3), "dr_final": rt["algorithms"]["ra2vipas"]["dr_final"],
-                                    "step_breakdown": breakdown}
+                realtime_part(stack, part)
             except (TimeoutError, RuntimeError) as err:
                 raise BenchmarkError(f"bench mesh (realtime, {layout} rigs): {err}") from err
             finally:

@@ -44,13 +44,26 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.optimize import minimize
-from scipy.special import gammaln
-from sklearn.gaussian_process import GaussianProcessRegressor
-from sklearn.gaussian_process.kernels import ConstantKernel, Matern
 
 from ra2vipas.services.protocol.measurements import TrainingSample
 from ra2vipas.services.protocol.pod import PODModel
+
+
+# SciPy's optimiser and scikit-learn's GP (with SciPy's statistics, and pandas where installed, behind
+# them: ~2 s of CPU) are imported by the fits that use them, not with this module: the orchestrator, the
+# CLI and ``simulate`` import it for ``predict``/``r2_score``, and a learner with its model cached never fits.
+def minimize(*args, **kwargs):
+    """``scipy.optimize.minimize``, imported on first use."""
+    from scipy.optimize import minimize as scipy_minimize
+
+    return scipy_minimize(*args, **kwargs)
+
+
+def _matern_kernel(length_scale: float, amplitude: float):
+    """amplitude * Matern(nu=5/2), scikit-learn's kernel with both parameters fixed."""
+    from sklearn.gaussian_process.kernels import ConstantKernel, Matern
+
+    return ConstantKernel(amplitude, "fixed") * Matern(length_scale=length_scale, length_scale_bounds="fixed", nu=2.5)
 
 
 @dataclass(frozen=True)
@@ -389,8 +402,7 @@ def chain_posterior(z, grid, transition, R, phi, node):
 
 def _matern52(u: np.ndarray, length_scale: float, amplitude: float) -> np.ndarray:
     """amplitude * Matern(nu=5/2) on the warped axis ``u`` (scikit-learn's kernel)."""
-    kernel = ConstantKernel(amplitude, "fixed") * Matern(length_scale=length_scale, length_scale_bounds="fixed", nu=2.5)
-    return kernel(u[:, None])
+    return _matern_kernel(length_scale, amplitude)(u[:, None])
 
 
 def _integral_gp(stats: tuple, K: np.ndarray, want_mean: bool):
@@ -466,6 +478,8 @@ def _fit_integral_gp(P: np.ndarray, y: np.ndarray, u: np.ndarray, nu: int, resta
 
 def _binomial_loglik(k: np.ndarray, nu: int, p: np.ndarray) -> np.ndarray:
     """log Binomial(k_j; nu, p_g) as an (n, G) matrix."""
+    from scipy.special import gammaln
+
     p = np.clip(p, 5e-3, 1.0 - 5e-3)
     logc = gammaln(nu + 1) - gammaln(k + 1) - gammaln(nu - k + 1)
     return logc[:, None] + k[:, None] * np.log(p)[None, :] + (nu - k)[:, None] * np.log1p(-p)[None, :]
@@ -479,9 +493,10 @@ def _gp_on_cells(u: np.ndarray, successes: np.ndarray, trials: np.ndarray, theta
     p = successes[m] / trials[m]
     shrunk = (successes[m] + 0.5) / (trials[m] + 1.0)  # keeps the variance positive at p = 0 or 1
     noise = shrunk * (1.0 - shrunk) / trials[m] + tau2 * nu / np.maximum(trials[m], nu) + 1e-6
+    from sklearn.gaussian_process import GaussianProcessRegressor
+
     length_scale, amplitude = theta
-    kernel = ConstantKernel(amplitude, "fixed") * Matern(length_scale=length_scale, length_scale_bounds="fixed", nu=2.5)
-    gpr = GaussianProcessRegressor(kernel=kernel, alpha=noise, optimizer=None, normalize_y=False)
+    gpr = GaussianProcessRegressor(kernel=_matern_kernel(length_scale, amplitude), alpha=noise, optimizer=None, normalize_y=False)
     gpr.fit(u[m][:, None], p - m0)
     mean, std = gpr.predict(u[:, None], return_std=True)
     return m0 + mean, std

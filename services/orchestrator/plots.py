@@ -20,17 +20,18 @@ import math
 import os
 import threading
 from dataclasses import dataclass
-from typing import Any, Callable, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import numpy as np
-from matplotlib.figure import Figure
-from matplotlib.patches import Rectangle
 
 from ra2vipas.services.controller.registry import BUILTINS
 from ra2vipas.services.orchestrator.names import colours
 from ra2vipas.services.orchestrator.names import label as _label
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors import physics
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 LABELS = {name: _label(name, non_active=True) for name in BUILTINS}
 """The built-ins' labels in figures; any other policy is labelled with its name."""
@@ -39,6 +40,15 @@ MEDIA_TYPES = {"png": "image/png", "svg": "image/svg+xml"}
 MAX_SCATTER = 3000  # truth points drawn in the POD figure (a uniform subsample beyond this)
 
 _RENDER_LOCK = threading.RLock()
+
+
+def _figure(**kwargs) -> Figure:
+    """A new ``matplotlib.figure.Figure``; matplotlib is imported here, on the first figure, not with this
+    module: the orchestrator imports it for its names and renders in other processes (~0.6 s of CPU saved
+    at every start)."""
+    from matplotlib.figure import Figure
+
+    return Figure(**kwargs)
 
 
 def run_title(results: dict[str, Any], name: str | None = None, width: int = 90) -> str:
@@ -86,7 +96,7 @@ def dr_figure(results: dict[str, Any], name: str | None = None) -> Figure:
     title says what was run (``run_title``). An algorithm that searched for several tags
     (issue 21) draws one curve per tag and the "all tags found" rate with its band."""
     period = results["scenario"]["rf_period_s"]
-    fig = Figure(figsize=(7.0, 4.2), dpi=120)
+    fig = _figure(figsize=(7.0, 4.2), dpi=120)
     ax = fig.subplots()
     colour = colours(results["algorithms"])
     for algorithm, block in results["algorithms"].items():
@@ -130,7 +140,7 @@ def _line_style(algorithm: str) -> Any:
 def overlay_figure(runs: list[tuple[str, dict[str, Any]]], title: str = "") -> Figure:
     """DR_t of several campaigns on one axis (``runs``: (label, results object) pairs): one
     colour per campaign, one line style per algorithm, each with its Wilson 95 % band."""
-    fig = Figure(figsize=(7.6, 4.6), dpi=120)
+    fig = _figure(figsize=(7.6, 4.6), dpi=120)
     ax = fig.subplots()
     colours = [f"C{i % 10}" for i in range(len(runs))]
     x_max = 0.0
@@ -167,7 +177,7 @@ def reliability_figure(results: dict[str, Any], name: str | None = None) -> Figu
     """Reliability diagram of the final confidences: per bin, the share of final hits against
     the mean confidence, one line per algorithm (the diagonal is perfect calibration); ECE in
     the legend."""
-    fig = Figure(figsize=(5.6, 5.0), dpi=120)
+    fig = _figure(figsize=(5.6, 5.0), dpi=120)
     ax = fig.subplots()
     ax.plot([0, 1], [0, 1], color="0.6", linestyle=":", linewidth=1, label="perfectly calibrated")
     colour = colours(results["algorithms"])
@@ -208,7 +218,7 @@ def pod_figure(scenario: Scenario, model: dict[str, Any], truth: dict[str, Any] 
     grid = np.asarray(model["rssi_grid_dbm"], dtype=float)
     mean = np.asarray(model["mean"], dtype=float)
     std = np.asarray(model["std"], dtype=float)
-    fig = Figure(figsize=(7.0, 4.6), dpi=120)
+    fig = _figure(figsize=(7.0, 4.6), dpi=120)
     ax = fig.subplots()
     if truth is not None:
         r = np.asarray(truth["rssi_dbm"], dtype=float)
@@ -290,7 +300,7 @@ def episode_figure(scenario: Scenario, episode: dict[str, Any]) -> Figure:
             ranges_now[i] = w["ranges_m"][min(len(est), len(w["ranges_m"])) - 1]
     bearings = track[-1]
 
-    fig = Figure(figsize=(11.0, 4.6), dpi=110)
+    fig = _figure(figsize=(11.0, 4.6), dpi=110)
     grid = fig.add_gridspec(1, 2, width_ratios=(1.0, 1.7))
     top = fig.add_subplot(grid[0, 0], projection="polar")
     for i, w in walks.items():
@@ -398,7 +408,7 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
         (name,) = params
         xs = _ordered([r[name] for r in rows])
         numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in xs)
-        fig = Figure(figsize=(7.0, 4.2), dpi=120)
+        fig = _figure(figsize=(7.0, 4.2), dpi=120)
         ax = fig.subplots()
         lo_key, hi_key = band_fields(metric)
         colour = colours(results["algorithms"])
@@ -427,7 +437,9 @@ def study_figure(results: dict[str, Any], metric: str = "dr_final") -> Figure:
     ys, xs = _ordered([r[ny] for r in rows + never]), _ordered([r[nx] for r in rows + never])
     values = [r[metric] for r in rows] or [0.0, 1.0]
     vmin, vmax = (0.0, 1.0) if metric in ("dr_final", "in_fov_final") else (min(values), max(values))
-    fig = Figure(figsize=(3.2 * len(algorithms) + 1.4, max(3.6, 0.35 * len(ys) + 2.6)), dpi=120, layout="constrained")
+    from matplotlib.patches import Rectangle
+
+    fig = _figure(figsize=(3.2 * len(algorithms) + 1.4, max(3.6, 0.35 * len(ys) + 2.6)), dpi=120, layout="constrained")
     axes = fig.subplots(1, len(algorithms), squeeze=False)[0]
     image = None
     for ax, a in zip(axes, algorithms):
