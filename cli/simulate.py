@@ -71,7 +71,11 @@ def simulate(
         return
 
     total = tests * len(names)
-    say_training(f"the POD model on {scenario.n_train} self-supervised samples ({preset}, seed {seed}), then {total} episodes")
+    if pod_is_cached(scenario, seed):
+        print(f"the POD model of ({preset}, seed {seed}) is in the POD model cache (RA2VIPAS_POD_CACHE=off trains it again); "
+              f"running {total} episodes", file=sys.stderr, flush=True)
+    else:
+        say_training(f"the POD model on {scenario.n_train} self-supervised samples ({preset}, seed {seed}), then {total} episodes")
     started = time.monotonic()
 
     from ra2vipas.services.orchestrator.engine import Interrupted
@@ -84,8 +88,9 @@ def simulate(
         task = bar.add_task("training the POD model", total=None)
 
         def trained(pod) -> None:
-            bar.console.print(f"POD model trained (R² {pod.r2:.4f}) after {time.monotonic() - started:.1f} s; running {total} episodes",
-                              markup=False, highlight=False)
+            done = (f"POD model loaded (R² {pod.r2:.4f}; its training took {pod.train_seconds:.1f} s)" if pod.cached
+                    else f"POD model trained (R² {pod.r2:.4f}) after {time.monotonic() - started:.1f} s")
+            bar.console.print(f"{done}; running {total} episodes", markup=False, highlight=False)
             bar.update(task, description="episodes", total=total, completed=0)
 
         try:
@@ -104,6 +109,17 @@ def simulate(
         except OSError as err:
             fail(f"cannot write {reliability_plot}: {err.strerror or err}")
     emit_results(results, plot, as_json)
+
+
+def pod_is_cached(scenario, seed: int) -> bool:
+    """Whether the in-process run will load (scenario, seed)'s POD model from the cache rather than
+    train it (``services/learner/model_cache.py``)."""
+    from ra2vipas.services.learner.model_cache import PODCache
+    from ra2vipas.services.learner.pod import LearnerSettings
+    from ra2vipas.services.protocol.messages import training_job_id
+
+    cache = PODCache.from_environment(LearnerSettings())
+    return cache is not None and cache.path(training_job_id(scenario, seed)).is_file()
 
 
 def say_training(what: str) -> None:

@@ -8,6 +8,9 @@ trained once per session and shared.
 from __future__ import annotations
 
 import math
+import os
+import shutil
+import tempfile
 
 import numpy as np
 import pytest
@@ -195,6 +198,18 @@ def pytest_collection_finish(session: pytest.Session) -> None:
 def _xdist_controller(config: pytest.Config) -> bool:
     """This process hands tests to pytest-xdist workers and runs none itself."""
     return bool(getattr(config.option, "numprocesses", None)) and not hasattr(config, "workerinput")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """One POD model cache for the whole run (services/learner/model_cache.py): its processes, the
+    xdist workers and the commands they start, share the models they train (a campaign and the
+    ``simulate`` it is compared with train the same one), in a folder of their own, not the user's
+    ~/.cache, removed when the run ends. The cross-machine run's kernels are in the cache's key, so
+    it trains its own. A test about training itself turns the cache off (``RA2VIPAS_POD_CACHE=off``)."""
+    if not hasattr(config, "workerinput") and "RA2VIPAS_POD_CACHE" not in os.environ:
+        folder = tempfile.mkdtemp(prefix="ra2vipas-pod-cache-")
+        os.environ["RA2VIPAS_POD_CACHE"] = folder
+        config.add_cleanup(lambda: shutil.rmtree(folder, ignore_errors=True))
 
 
 def pytest_runtest_logstart(nodeid: str, location) -> None:

@@ -21,7 +21,7 @@ def warm_up() -> None:
     from ra2vipas.services.protocol.scenario import build_scenario
 
     scenario = build_scenario("paper", {"steps": 3, "n_train": 40, "n_targets": 3})
-    pod = train_pod(scenario, 0)
+    pod = train_pod(scenario, 0, cache=False)  # the fit's code warmed too, never a cache hit
     for algorithm in ALGORITHMS:
         run_test(scenario, 0, 0, algorithm, pod.model)
 

@@ -16,8 +16,10 @@ import numpy as np
 from ra2vipas.services.controller import registry
 from ra2vipas.services.controller.contract import episode_context
 from ra2vipas.services.controller.policy import ControllerSettings, sensor_config_from_scenario
+from ra2vipas.services.learner.model_cache import CachedPOD, PODCache
 from ra2vipas.services.learner.pod import LearnedPOD, LearnerSettings, fit_pod, predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, summarize_algorithm
+from ra2vipas.services.protocol.messages import training_job_id
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.protocol.scenario import Scenario, ScenarioError, build_scenario
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode
@@ -30,6 +32,7 @@ class TrainedPOD:
     model: PODModel
     r2: float
     train_seconds: float
+    cached: bool = False  # loaded from the POD model cache (services/learner/model_cache.py), not trained now
 
 
 @dataclass
@@ -64,12 +67,22 @@ class TagOutcome:
     held_confidences: np.ndarray | None = None  # (K, T) float
 
 
-def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = None) -> TrainedPOD:
-    """Run the training episode, fit the POD and score it by eq. (23) against the truth."""
+def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = None, cache: bool = True) -> TrainedPOD:
+    """Run the training episode, fit the POD and score it by eq. (23) against the truth; or, with
+    ``cache``, load the model this machine and this code already trained for (scenario, seed)
+    (``services/learner/model_cache.py``: the same bytes, ``cached`` set)."""
+    store = PODCache.from_environment(settings or LearnerSettings()) if cache else None
+    job = training_job_id(scenario, seed)
+    hit = store.load(job) if store is not None else None
+    if hit is not None:
+        return TrainedPOD(model=hit.model, r2=hit.r2, train_seconds=hit.train_seconds, cached=True)
     episode = TrainingEpisode(scenario, seed)
     learned: LearnedPOD = fit_pod(list(episode.samples()), settings)
     r2 = r2_score(episode.truth.pod, predict(learned.model, episode.truth.rssi_dbm))
-    return TrainedPOD(model=learned.model, r2=round(float(r2), 6), train_seconds=learned.train_seconds)
+    pod = TrainedPOD(model=learned.model, r2=round(float(r2), 6), train_seconds=learned.train_seconds)
+    if store is not None:
+        store.store(job, CachedPOD(model=pod.model, r2=pod.r2, train_seconds=pod.train_seconds))
+    return pod
 
 
 def run_test(scenario: Scenario, seed: int, test_index: int, algorithm: str, pod_model: PODModel,

@@ -51,7 +51,7 @@ def _interrupted(*args: str, after_s: float) -> tuple[int, str, str]:
     (exit code, stdout, stderr). Its tests take the ``compiled`` fixture, so the numerical
     kernels are compiled and cached (a minute on a fresh machine) before the clock starts; a
     plain simulate also says when its episodes start ("POD model trained"), and the Ctrl-C waits
-    for that line. If no test had finished by then (it says so: a loaded machine, where its
+    for that line (or "POD model loaded", from the POD model cache). If no test had finished by then (it says so: a loaded machine, where its
     workers take seconds to start), it runs again and is interrupted after three times as long."""
     for wait_s in (after_s, 3 * after_s):
         code, out, err = _interrupt_once(args, wait_s)
@@ -71,7 +71,7 @@ def _interrupt_once(args: tuple[str, ...], after_s: float) -> tuple[int, str, st
             while time.monotonic() < deadline:
                 line = proc.stderr.readline()
                 said.append(line)
-                if not line or line.startswith("POD model trained"):
+                if not line or line.startswith(("POD model trained", "POD model loaded")):
                     break
         time.sleep(after_s)
         os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole foreground group: the workers too
@@ -104,8 +104,9 @@ def test_simulate_dynamic_says_at_once_that_it_trains_the_pod_model():
     """The first seconds (a minute on a first run: the numerical kernels compile) are not a blank
     terminal (issue 23, point 6): one line before the model trains, another when it is trained.
     "Before" is checked by order, not by a clock (which a busy machine stretches): the second line
-    comes at least half the training time the command reports after the first."""
-    env = _env()
+    comes at least half the training time the command reports after the first. The POD model
+    cache is off: the model is trained."""
+    env = {**_env(), "RA2VIPAS_POD_CACHE": "off"}
     proc = subprocess.Popen([sys.executable, "-m", "ra2vipas.cli.main", "simulate", "--preset", "dynamic", "--tests", "1", "-a", "rapas",
                              "--set", "steps=20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
                             start_new_session=True, preexec_fn=restore_ctrl_c)
@@ -133,3 +134,24 @@ def test_ctrl_c_on_a_study_prints_its_partial_rows_and_exits_130(compiled):
     said = " ".join(out.split())
     assert "— partial" in said and "rapas" in said
     assert "Traceback" not in err and "the rows above are partial" in err
+
+
+def test_a_second_simulate_loads_the_pod_model_from_the_cache_and_prints_the_same_results(tmp_path):
+    """The POD model cache (services/learner/model_cache.py): the second run of a campaign says at
+    once that its model is cached, loads it instead of training, and prints the same results (the
+    pod block's training time is the first run's)."""
+    import json
+
+    env = {**_env(), "RA2VIPAS_POD_CACHE": str(tmp_path / "pods")}
+    args = [sys.executable, "-m", "ra2vipas.cli.main", "simulate", "--tests", "2", "-a", "rapas", "--set", "steps=5", "--seed", "9",
+            "--workers", "1", "--json"]
+    runs = [subprocess.run(args, capture_output=True, text=True, cwd=ROOT, env=env, timeout=300) for _ in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[0].stderr + runs[1].stderr
+    assert runs[0].stderr.startswith("training the POD model") and "POD model trained" in runs[0].stderr
+    assert runs[1].stderr.startswith("the POD model of (paper, seed 9) is in the POD model cache"), runs[1].stderr
+    assert "POD model loaded" in runs[1].stderr and "POD model trained" not in runs[1].stderr
+    first, second = (json.loads(r.stdout.strip().splitlines()[-1]) for r in runs)
+    assert len(list((tmp_path / "pods").glob("pod-*.json"))) == 1
+    for results in (first, second):
+        results.pop("steps_per_second", None)
+    assert first == second

@@ -39,6 +39,9 @@ def test_up_with_rig_acl_runs_campaigns_and_confines_each_identity(procs, tmp_pa
         time.sleep(0.5)
     assert http.get(f"{api}/campaigns/{cid}", timeout=5).json()["status"] == "done"
 
+    # a loaded machine may time an episode out and dispatch it again, its first result then arriving stale
+    # (``not_in_flight``): what this test checks is that the forged result adds no rejection
+    rejected_before = http.get(f"{api}/health", timeout=5).json()["rejected_messages"]
     with zenoh.open(ZenohSettings.from_sources(env=_env(env_file)).to_zenoh()) as session:
         own = session.liveliness().declare_token(keys.alive("sensors", "robot-9"))  # its own name: allowed
         fake = session.liveliness().declare_token(keys.alive("sensors", "rig-7"))  # another rig: refused by the router
@@ -55,7 +58,7 @@ def test_up_with_rig_acl_runs_campaigns_and_confines_each_identity(procs, tmp_pa
         assert rigs["rig-1"]["announced"] == "announced", rigs["rig-1"]  # its controller's own identity may serve its policies
         time.sleep(1.0)
         health = http.get(f"{api}/health", timeout=5).json()
-        assert sum(health["rejected_messages"].values()) == 0, health  # the forged result never reached the orchestrator
+        assert health["rejected_messages"] == rejected_before, health  # the forged result never reached the orchestrator
         for token in (own, fake, fake_ctl):
             token.undeclare()
     stop_stack(procs, state["up"])
