@@ -17,7 +17,7 @@ step it:
    it stops pulling the camera);
 5. chooses one pan for every undecided tag (``pan_rule``): ``neediest`` hands the single-tag
    acquisition (warm-up sweep, probes, GP-UCB) the beliefs of the undecided tag whose "which
-   track carries it" posterior has the largest entropy; ``entropy`` does the same on probe steps
+   person carries it" posterior has the largest entropy; ``entropy`` does the same on probe steps
    and otherwise maximises the sum of the undecided tags' GP-UCB values, each normalised to
    [0, 1] and weighted by its share of the summed entropy (``multitag.pan_weights``). The
    entropy is that of "which person carries tag k", a person the camera has not detected named
