@@ -17,9 +17,12 @@ step it:
    it stops pulling the camera);
 5. chooses one pan for every undecided tag (``pan_rule``): ``neediest`` hands the single-tag
    acquisition (warm-up sweep, probes, GP-UCB) the beliefs of the undecided tag whose "which
-   track carries it" posterior has the largest entropy; ``entropy`` does the same on probe steps
+   person carries it" posterior has the largest entropy; ``entropy`` does the same on probe steps
    and otherwise maximises the sum of the undecided tags' GP-UCB values, each normalised to
-   [0, 1] and weighted by its share of the summed entropy (``multitag.pan_weights``).
+   [0, 1] and weighted by its share of the summed entropy (``multitag.pan_weights``). The
+   entropy is that of "which person carries tag k", a person the camera has not detected named
+   by its bearing (``multitag.which_person_entropy``: "no detected track" is not one certain
+   outcome when the bearing it leaves is wide, as for a walker the camera lost).
 
 The episode ends when every tag is decided (``JointDecision.all_decided``) or at the horizon.
 ``entropy`` is the default: on the paper world with K = 3 and ``stop_confidence`` 0.95 the two
@@ -211,10 +214,16 @@ class JointSearch:
         Whether a track carries at most one tag (then the answers are a joint assignment).
     stop_confidence : float
         A tag whose confidence reaches it is decided (0: never).
+    missed_bearings : bool
+        A tag's entropy in the pan counts where an undetected carrier may be: the entropy of
+        "which person carries tag k", an undetected person named by its bearing
+        (``multitag.which_person_entropy``); False: of "which track, or none" alone, where a tag
+        whose carrier no track explains (a walker the camera lost) weighs nothing however wide
+        its bearing (docs/tags.md, "Measured").
     """
 
     def __init__(self, first_pan_rad: float, tags: list[Parts], rf_period_s: float = 0.1, pan_rule: PanRule = "entropy",
-                 one_tag_per_person: bool = True, stop_confidence: float = 0.0) -> None:
+                 one_tag_per_person: bool = True, stop_confidence: float = 0.0, missed_bearings: bool = True) -> None:
         if not tags:
             raise ValueError("a joint search needs at least one tag")
         if any(p.vision is not tags[0].vision for p in tags):
@@ -232,6 +241,7 @@ class JointSearch:
         self.clocks = [PacketClock(rf_period_s) for _ in tags]
         self.decided: list[TagDecision | None] = [None] * len(tags)
         self._first_pan = float(wrap(first_pan_rad))
+        self.missed_bearings = bool(missed_bearings)
 
     @property
     def n_tags(self) -> int:
@@ -275,7 +285,10 @@ class JointSearch:
                 self.decided[k] = decision
             tags.append(decision)
         open_ = [d is None for d in self.decided]
-        weights = multitag.pan_weights(which, [not o for o in open_], self.pan_rule)
+        where_missed = None
+        if self.missed_bearings and self.vision.sees:  # an undetected carrier is named by its bearing
+            where_missed = np.stack([softmax(l_missed) for _, l_missed in scored])
+        weights = multitag.pan_weights(which, [not o for o in open_], self.pan_rule, where_missed)
         lead = int(np.argmax(weights)) if weights.any() else 0
         per_tag = tuple(Beliefs(t, p.rf, vision, scored[k][0], answers[k][2], self._due(k, t)) for k, p in enumerate(self.parts))
         lead_beliefs = per_tag[lead]

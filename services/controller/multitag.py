@@ -14,7 +14,9 @@ K rows into what the controller reports and where it looks:
   jointly (the Hungarian algorithm on the K x tracks log-likelihoods,
   ``scipy.optimize.linear_sum_assignment``), never greedily tag after tag;
 * ``pan_weights``: how much each tag's acquisition value counts in the one pan chosen for all
-  (a decided tag, confidence above ``stop_confidence``, counts nothing).
+  (a decided tag, confidence above ``stop_confidence``, counts nothing), by the entropy of
+  "which person carries tag k" (``which_person_entropy``: a person the camera never detected is
+  named by its bearing).
 
 Pure numpy/scipy: a unit test drives it without a network or a world.
 """
@@ -199,19 +201,38 @@ def entropy(posteriors) -> np.ndarray:
     return terms.sum(axis=1)
 
 
-def pan_weights(posteriors, decided, rule: PanRule = "entropy") -> np.ndarray:
+def which_person_entropy(posteriors, where_missed=None) -> np.ndarray:
+    """Entropy [nats] of each tag's "which person carries it" posterior, an undetected person
+    named by its bearing: H(tracks, missed) + P(missed) H(bearing | missed) (the chain rule).
+
+    ``posteriors`` (K, M + 1) is each tag's posterior over "track i carries it" and "no detected
+    track does" (column M); ``where_missed`` (K, G), optional, each tag's posterior over the grid
+    bearing of an undetected carrier (``Fusion.beliefs``' l_missed, normalised). Without it, the
+    entropy of ``posteriors`` alone, where "missed" counts as one certain outcome however wide the
+    bearing it leaves open (a walker the camera lost, found only by Rx(dir), then pulls nothing).
+    """
+    p = np.asarray(posteriors, dtype=float)
+    h = entropy(p)
+    if where_missed is None:
+        return h
+    return h + p[:, -1] * entropy(where_missed)
+
+
+def pan_weights(posteriors, decided, rule: PanRule = "entropy", where_missed=None) -> np.ndarray:
     """How much each tag's acquisition value counts in the one pan chosen for all K.
 
     ``entropy``: in proportion to each undecided tag's posterior entropy (the summed entropy of
-    the K "which track carries tag k" posteriors is what a pan should reduce, and a tag's share
+    the K "which person carries tag k" posteriors is what a pan should reduce, and a tag's share
     of it is its entropy); ``neediest``: all weight on the undecided tag with the largest
     entropy. A decided tag weighs 0; with every tag decided all weights are 0 (the episode ends).
+    The entropy is ``which_person_entropy`` (with ``where_missed``: an undetected carrier's
+    bearing counts; without: "which track, or none" alone).
 
     Returns
     -------
     array of shape (K,), summing to 1 (or all 0).
     """
-    h = entropy(posteriors)
+    h = which_person_entropy(posteriors, where_missed)
     open_ = ~np.asarray(decided, dtype=bool)
     if h.shape != open_.shape:
         raise ValueError(f"one decided flag per tag: {open_.shape} for {h.shape[0]} tags")

@@ -199,6 +199,33 @@ def test_bench_step_times_the_joint_search_on_a_preset_with_several_tags(monkeyp
     assert report["n_tags"] == 3 and report["steps"] == 12 and report["median_ms"] > 0
 
 
+def test_the_pan_weighs_each_tag_by_which_person_carries_it_an_undetected_one_by_its_bearing(two_tags, monkeypatch):
+    """The joint search hands ``pan_weights`` each tag's posterior over the bearing of an
+    undetected carrier (``Fusion.beliefs``' l_missed, normalised), so a tag that no track explains
+    is not weighed as if it were decided; ``missed_bearings=False`` gives "which track" alone."""
+    from ra2vipas.services.controller import multitag
+
+    scenario, model = two_tags
+    seen = []
+    real = multitag.pan_weights
+
+    def spy(posteriors, decided, rule="entropy", where_missed=None):
+        seen.append(where_missed)
+        return real(posteriors, decided, rule, where_missed)
+
+    monkeypatch.setattr(multitag, "pan_weights", spy)
+    for missed_bearings in (True, False):
+        search = joint_search("ra2vipas", _context(scenario, model), 2)
+        search.missed_bearings = missed_bearings
+        seen.clear()
+        _drive(search, SimulatedPlatform(scenario, 1, 0), 3)
+        if missed_bearings:
+            assert all(w.shape == (2, search.parts[0].fusion.circle.size) for w in seen)
+            assert np.allclose([w.sum(axis=1) for w in seen], 1.0)
+        else:
+            assert seen == [None] * 3
+
+
 def test_a_tag_whose_person_is_out_of_view_keeps_its_belief_and_is_named_again(two_tags):
     """Tag 1 found, then the camera is held pointing away from its carrier for 2 s: its answer
     stays on the same person (its RF belief and the shared tracks persist), and it is still that

@@ -14,6 +14,7 @@ from ra2vipas.services.controller.multitag import (
     independent_posteriors,
     joint_assignment,
     pan_weights,
+    which_person_entropy,
 )
 
 LOG = math.log
@@ -111,6 +112,26 @@ def test_decided_tags_stop_steering_the_pan():
     assert w[1] / w[2] == pytest.approx(h[1] / h[2])
     assert pan_weights(post, decided=[True, False, False], rule="neediest").tolist() == [0.0, 1.0, 0.0]
     assert pan_weights(post, decided=[True, True, True]).tolist() == [0.0, 0.0, 0.0]
+
+
+def test_an_undetected_carriers_bearing_counts_in_the_entropy_that_steers_the_pan():
+    """The chain rule H(person) = H(track or none) + P(none) H(bearing | none), and what it changes:
+    tag 0 is sure no detected track carries it (a walker the camera lost) but Rx(dir) leaves its
+    bearing spread over 40 grid cells; tag 1 hesitates between two tracks. By "which track, or
+    none" alone tag 0 weighs nothing; by "which person" it leads."""
+    post = np.array([[0.0, 0.0, 1.0], [0.5, 0.5, 0.0]])
+    where = np.zeros((2, 360))
+    where[0, 100:140] = 1.0 / 40  # tag 0's undetected carrier: anywhere in 40 cells
+    where[1, 7] = 1.0  # tag 1's "none" has no mass: its bearing cannot count
+    h = which_person_entropy(post, where)
+    assert h == pytest.approx([math.log(40), math.log(2)])
+    joint = np.full(4, 0.25)  # the chain rule against the entropy of the joint: 2 tracks + 2 bearings
+    assert which_person_entropy(np.array([[0.25, 0.25, 0.5]]), np.array([[0.5, 0.5]]))[0] == pytest.approx(entropy(joint[None])[0])
+    assert which_person_entropy(post).tolist() == entropy(post).tolist()
+    assert pan_weights(post, decided=[False, False]).tolist() == [0.0, 1.0]
+    w = pan_weights(post, decided=[False, False], where_missed=where)
+    assert w[0] > w[1] and w == pytest.approx([math.log(40), math.log(2)] / np.log(80))
+    assert pan_weights(post, decided=[False, False], rule="neediest", where_missed=where).tolist() == [1.0, 0.0]
 
 
 def test_bad_shapes_and_rules_are_refused():
