@@ -27,7 +27,6 @@ import math
 from typing import Literal
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 from scipy.special import logsumexp
 
 #: The inclusion-exclusion sum is trusted when every tag's total is at least this share of its
@@ -89,6 +88,8 @@ def joint_assignment(track_loglik, missed_loglik) -> np.ndarray:
     own_missed = np.full((k, k), IMPOSSIBLE)
     np.fill_diagonal(own_missed, missed)
     gain = np.concatenate([tracks, own_missed], axis=1)
+    from scipy.optimize import linear_sum_assignment  # here: scipy.optimize costs every rig ~0.3 s of CPU at start
+
     rows, cols = linear_sum_assignment(gain, maximize=True)
     out = np.empty(k, dtype=np.int64)
     out[rows] = np.where(cols < m, cols, m)

@@ -201,11 +201,12 @@ def test_controller_and_learner_load_without_the_simulator():
 
 
 
-def test_the_orchestrator_and_a_learner_start_without_the_fitting_and_plotting_libraries():
-    """What only a fit or a figure uses is imported by the fit or the figure: the orchestrator's
-    API and a learner with nothing to fit start without scikit-learn, scipy.optimize/stats and
+def test_the_orchestrator_a_learner_and_a_rig_start_without_the_fitting_and_plotting_libraries():
+    """What only a fit, an assignment or a figure uses is imported by it: the orchestrator's API, a
+    learner with nothing to fit and a rig start without scikit-learn, scipy.optimize/stats and
     matplotlib (~3 s of CPU at every start of a stack's processes)."""
-    code = ("import sys, ra2vipas.services.orchestrator.api.app, ra2vipas.services.learner.node; "
+    code = ("import sys, ra2vipas.services.orchestrator.api.app, ra2vipas.services.learner.node, "
+            "ra2vipas.services.controller.node, ra2vipas.services.sensors.node; "
             "print(sorted({m.split('.')[0] + '.' + m.split('.')[1] if m.startswith('scipy.') else m.split('.')[0] for m in sys.modules "
             "if m.startswith(('sklearn', 'matplotlib', 'scipy.optimize', 'scipy.stats', 'pandas'))}))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SERVICES.parent)
