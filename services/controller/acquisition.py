@@ -134,22 +134,6 @@ class ProbeSchedule(Acquisition):
         return float(grid[arg])
 
 
-class WalkerEndgame(Acquisition):
-    """``then``'s pan, except in the last ``last_steps`` of an episode of ``steps`` on BLE packets
-    (``RFBelief.on_packets``) while the Tx walks (P > 0.5): there the camera looks where l_RF peaks,
-    so that the people walking near the Tx have fresh tracks when the answer is named
-    (``Fusion.packet_walker_track_window_rad``: the most probable walking track near the peak).
-    ``last_steps`` 0: ``then``'s always."""
-
-    def __init__(self, circle: CircleGrid, then: Acquisition, steps: int, last_steps: int = 0) -> None:
-        self.circle, self.then, self.steps, self.last_steps = circle, then, int(steps), int(last_steps)
-
-    def next_pan(self, b: Beliefs) -> tuple[float, bool]:
-        if self.last_steps > 0 and b.t + 1 >= self.steps - self.last_steps and b.rf.on_packets and b.rf.tx_walks > 0.5:
-            return float(self.circle.angles[int(np.argmax(b.rf.log_likelihood))]), False
-        return self.then.next_pan(b)
-
-
 class GPUCB(Acquisition):
     """argmax_s U_D(s) (J_RF(s) + sqrt(beta) sigma(s)) over the grid (eq. 25).
 

@@ -18,7 +18,7 @@ import dataclasses
 import math
 from typing import ClassVar
 
-from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, ProbeSchedule, WalkerEndgame, WarmUpSweep
+from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, ProbeSchedule, WarmUpSweep
 from ra2vipas.services.controller.acquisition import Sweep as EvenSweep
 from ra2vipas.services.controller.circle_gp import RecentLobe
 from ra2vipas.services.controller.composed import Parts
@@ -86,8 +86,6 @@ def active_search(circle: CircleGrid, sensors: SensorConfig, cfg: ControllerSett
     ``probe_every``-th step."""
     warmup = cfg.warmup_steps if cfg.warmup_steps is not None else math.ceil(math.pi / sensors.fov_half_angle_rad)
     ucb = GPUCB(circle, sensors.frames_per_rf, beta=cfg.beta, use_mass=cfg.mass_in_acquisition)
-    if cfg.packet_walker_endgame_steps > 0:
-        ucb = WalkerEndgame(circle, ucb, sensors.steps, cfg.packet_walker_endgame_steps)
     probes = ProbeSchedule(circle, ucb, every=cfg.probe_every, start=warmup, lobe_width_rad=cfg.lobe_width_rad,
                            informative=cfg.informative_probe, rf_peaks=cfg.probe_rf_peaks, due_every=cfg.due_probe_every)
     return WarmUpSweep(sensors.initial_pan_rad, warmup, then=probes)
@@ -96,8 +94,7 @@ def active_search(circle: CircleGrid, sensors: SensorConfig, cfg: ControllerSett
 def _parts(circle, sensors, pod, cfg, rf: RFBelief, vision: VisionBelief, acquisition: Acquisition) -> Parts:
     return Parts(iso=IsoLevel(pod.rf_noise_db), rf=rf, vision=vision,
                  fusion=Fusion(circle, rf_weight=cfg.rf_weight, missed_prior_per_rad=cfg.missed_prior_per_rad,
-                               answer_window_rad=cfg.answer_window_rad, walker_answer_from_rf=cfg.walker_answer_from_rf,
-                               packet_walker_track_window_rad=math.radians(cfg.packet_walker_track_window_deg)),
+                               answer_window_rad=cfg.answer_window_rad, walker_answer_from_rf=cfg.walker_answer_from_rf),
                  acquisition=acquisition, confidence=Confidence(cfg.confidence_calibration, walk_prior=cfg.tx_walk_prior))
 
 

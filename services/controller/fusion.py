@@ -64,11 +64,6 @@ class Fusion:
         The posterior mass within this of the answer is its raw confidence.
     walker_answer_from_rf : bool
         A Tx that walks (P > 0.5) is named where l_RF peaks (its track may lag or be lost).
-    packet_walker_track_window_rad : float
-        On BLE packets (``RFBelief.on_packets``), such a walker is named instead by the walking
-        camera track (IMM walking probability > 0.5) of largest posterior within this of l_RF's
-        peak, if there is one (0: never). Between Rx(dir) packets ~0.45 s apart l_RF's peak lags a
-        walker by 8-15 degrees; a track's bearing is where a person is now.
 
     Attributes
     ----------
@@ -78,11 +73,8 @@ class Fusion:
     """
 
     def __init__(self, circle: CircleGrid, rf_weight: float = 1.0, missed_prior_per_rad: float = 5.0,
-                 answer_window_rad: float = math.radians(2.0), walker_answer_from_rf: bool = True,
-                 packet_walker_track_window_rad: float = 0.0) -> None:
+                 answer_window_rad: float = math.radians(2.0), walker_answer_from_rf: bool = True) -> None:
         self.circle = circle
-        self.packet_walker_track_window_rad = float(packet_walker_track_window_rad)
-        self._track_bearing = self._track_walking = np.empty(0)
         self.rf_weight, self.missed_prior_per_rad = rf_weight, missed_prior_per_rad
         self.answer_window_rad, self.walker_answer_from_rf = answer_window_rad, walker_answer_from_rf
         self.where = np.empty(0)
@@ -97,8 +89,6 @@ class Fusion:
         alpha, beta = vision.tx_pod(iso)
         a0, b0 = vision.null_pod_prior
         n = len(tracks)
-        if self.packet_walker_track_window_rad > 0.0:
-            self._track_bearing, self._track_walking = tracks.bearing, tracks.walking
         l_tracks = np.empty(n)
         self.where = np.empty(n)
         if n and rf.exact:  # the filter's trajectory evidence plus the POD evidence (``_kernels.pod_evidence``)
@@ -152,18 +142,6 @@ class Fusion:
             estimate = float(self.where[i])
             if rf.listens and self.walker_answer_from_rf and rf.tx_walks > 0.5:
                 # a walker: the tracks are where the camera last saw people, l_RF where the Tx is now
-                estimate = self._walker_answer(rf, post)
+                estimate = refined_argmax(self.circle, l_rf)
             return estimate, float(post[i]) + arc_mass(post_missed, self.circle.nearest(estimate), half), post
         return refined_argmax(self.circle, l_missed), missed_mass, post
-
-    def _walker_answer(self, rf: RFBelief, post: np.ndarray) -> float:
-        """Where a walking Tx is named: l_RF's peak, or on packets (``packet_walker_track_window_rad``
-        > 0) the most probable walking track within the window of it."""
-        peak = refined_argmax(self.circle, rf.log_likelihood)
-        window = self.packet_walker_track_window_rad
-        if window <= 0.0 or not rf.on_packets or self._track_bearing.size != post.size or not post.size:
-            return peak
-        near = (np.abs((self._track_bearing - peak + math.pi) % (2.0 * math.pi) - math.pi) <= window) & (self._track_walking > 0.5)
-        if not near.any():
-            return peak
-        return float(self._track_bearing[int(np.argmax(np.where(near, post, -1.0)))])

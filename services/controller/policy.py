@@ -103,12 +103,6 @@ class ControllerSettings:
     walk_penalty: float = 2.0  # nats the recent lobe must gain to count as motion
     probe_rf_peaks: bool = False  # probe between the two best RF peaks, not the two best tracks (always when the Tx walks)
     walker_answer_from_rf: bool = True  # a Tx that walks is named where l_RF peaks (its track may lag or be lost)
-    # on packets (rf_filter.PacketBearingFilter), such a walker is named by the most probable walking camera track within
-    # this of l_RF's peak (the peak lags a walker between sparse Rx(dir) packets; a track is a person), else the peak (0: off)
-    packet_walker_track_window_deg: float = 0.0
-    # on packets, in the episode's last this many steps while the Tx walks, the camera's (non-probe) steps look where l_RF
-    # peaks (acquisition.WalkerEndgame), so the walkers near it have fresh tracks when the answer is named (0: off)
-    packet_walker_endgame_steps: int = 0
     mass_in_acquisition: bool = True
     # -- the Rx(dir) response known from the rig: a grid Bayes filter over the Tx bearing (rf_filter.py)
     rf_filter: bool = True

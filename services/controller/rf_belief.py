@@ -194,7 +194,6 @@ class RFBelief:
 
     listens = False
     exact = False
-    on_packets = False  # whether it has read BLE advertisements (protocol 1.3), not the 1.0 pair
 
     def __init__(self, circle: CircleGrid) -> None:
         self.circle = circle
@@ -460,11 +459,6 @@ class RFFilterBelief(RFBelief):
             return
         self.samples += 1
         self._after_sample(tracks)
-
-    @property
-    def on_packets(self) -> bool:
-        """Whether the filter has read Rx(iso) advertisements (the packet path), not the 1.0 pair."""
-        return getattr(self.rff, "packets", 0) > 0
 
     def track_loglik(self, tracks) -> np.ndarray:
         """Each track's trajectory evidence, on the footing of ``log_likelihood`` (the normalised

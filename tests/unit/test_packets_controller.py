@@ -290,39 +290,3 @@ def test_the_rate_model_engages_once_the_camera_has_seen_people_walk(preset, eng
     rff = controller.parts.rf.rff
     assert rff.rates_engaged is engaged
     assert (max(seen) >= controller.settings.packet_rate_walkers) is engaged
-
-
-class _WalkingRF(RFBelief):
-    """A walking Tx's RF belief as the fusion reads it: l_RF peaked at ``peak`` (rad)."""
-
-    listens = exact = True
-
-    def __init__(self, circle: CircleGrid, peak: float, on_packets: bool) -> None:
-        super().__init__(circle)
-        self.log_likelihood = -0.5 * (((circle.angles - peak + math.pi) % (2 * math.pi) - math.pi) / 0.1) ** 2
-        self.tx_walks, self.samples, self._on_packets = 0.9, 10, on_packets
-
-    @property
-    def on_packets(self) -> bool:
-        return self._on_packets
-
-
-@pytest.mark.parametrize("on_packets, window_deg, named_deg", [(True, 25.0, 20.0), (True, 0.0, 0.0), (False, 25.0, 0.0),
-                                                                 (True, 10.0, 0.0)])
-def test_a_walker_on_packets_is_named_by_the_best_walking_track_near_the_rf_peak(on_packets, window_deg, named_deg):
-    """A walking Tx, l_RF peaked at 0 (it lags the walker between sparse packets). Tracks: one
-    standing at 3 deg (the most probable), a walker at 20 deg, a more probable walker at 60 deg
-    (outside the window). On packets with a 25 deg window the walker at 20 deg is named; without
-    the window, on the 1.0 pair, or with a window that reaches no walking track, l_RF's peak."""
-    from ra2vipas.services.controller.fusion import Fusion
-
-    circle = CircleGrid(360)
-    fusion = Fusion(circle, packet_walker_track_window_rad=math.radians(window_deg))
-    fusion._track_bearing = np.radians([3.0, 20.0, 60.0])
-    fusion._track_walking = np.array([0.1, 0.9, 0.95])
-    fusion.where = fusion._track_bearing.copy()
-    l_tracks = np.array([0.0, -1.0, -0.5])
-    l_missed = np.full(circle.size, -50.0)
-    rf = _WalkingRF(circle, 0.0, on_packets)
-    estimate, _, _ = fusion.answer(rf, l_tracks, l_missed, 0.0)
-    assert math.degrees(estimate) == pytest.approx(named_deg, abs=0.3)
