@@ -331,7 +331,8 @@ class PacketBearingFilter(RFBearingFilter):
       then throws away most of the evidence (ble-dynamic, 100 tests: DR 0.66 / 0.45 with it,
       0.73 / 0.62 without, seeds 1 / 2).
     * **Innovation law.** ``packet_tail_dof`` (0: Gaussian, the built-in's) sets the packets' own,
-      apart from the pair path's Student-t (``tail_dof``): heavy tails bound what one packet can
+      apart from the pair path's Student-t (``tail_dof``), once the walking model has its rate
+      (``engage_rates``: people walk; always without a rate model): heavy tails bound what one packet can
       say, so when a walker starts to cross the packets that put it ahead of the estimate count as
       outliers and the estimate lags behind it (ble-dynamic, docs/radio.md).
     * sigma_e, the white per-packet spread, is the pooled within-channel spread of Rx(iso),
@@ -562,9 +563,9 @@ class PacketBearingFilter(RFBearingFilter):
         self._static += self.ll_stand
 
     def _packet_loglik(self, resid: np.ndarray, var: np.ndarray) -> np.ndarray:
-        if self.packet_tail_dof is None:
+        nu = self.packet_tail_dof if self._rate_joint is not None or self._rates is None else self.tail_dof
+        if nu is None:
             return -0.5 * (resid * resid / var + np.log(2.0 * math.pi * var))
-        nu = self.packet_tail_dof
         return -0.5 * (nu + 1.0) * np.log1p(resid * resid / (nu * var)) - 0.5 * np.log(var) + _t_const(nu)
 
 

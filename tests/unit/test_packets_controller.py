@@ -294,7 +294,8 @@ def test_the_rate_model_engages_once_the_camera_has_seen_people_walk(preset, eng
 
 
 def test_packets_have_their_own_innovation_tails_and_the_pair_path_keeps_its():
-    """``packet_tail_dof`` sets the packets' innovation law alone: 0 is Gaussian (a 5-sigma
+    """``packet_tail_dof`` sets the packets' innovation law alone, once the walking model has its
+    rate (people walk; always without a rate model): 0 is Gaussian (a 5-sigma
     packet costs 12.5 nats more than a central one, not the Student-t's ~3), negative the filter's
     ``tail_dof``; the 1.0 pair's Student-t (``tail_dof``) is the same either way. The built-in
     Ra2ViPAS on packets is Gaussian, on the pair Student-t with ``rf_tail_dof``."""
@@ -306,5 +307,10 @@ def test_packets_have_their_own_innovation_tails_and_the_pair_path_keeps_its():
     assert g == pytest.approx(-0.5 * (resid**2 / var + np.log(2.0 * math.pi * var)))
     assert g[0] - g[1] == pytest.approx(12.5) and 2.0 < t[0] - t[1] < 5.0
     assert gaussian.tail_dof == heavy.tail_dof == 2.0
+    walking = PacketBearingFilter(circle, response, noise_db=2.0, rf_period_s=0.1, tail_dof=2.0, packet_tail_dof=0.0,
+                                  walk_rate_std_rad_s=0.5)
+    assert walking._packet_loglik(resid, var) == pytest.approx(t)  # nobody seen walking yet: the Student-t
+    walking.engage_rates()
+    assert walking._packet_loglik(resid, var) == pytest.approx(g)  # people walk: Gaussian
     settings = tuned_settings("ra2vipas")
     assert settings.packet_tail_dof == 0.0 and settings.rf_tail_dof == 2.0
