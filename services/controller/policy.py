@@ -111,6 +111,10 @@ class ControllerSettings:
     walk_std_deg: float = 2.0  # a walking Tx's bearing change per step
     level_memory_s: float = 0.5  # memory of a walking Tx's level (range and shadowing change)
     rf_tail_dof: float = 2.0  # Student-t degrees of freedom of an RF sample's innovation (0: Gaussian)
+    # the same for BLE packets once the walking model has its rate (packet_rate_walkers seen; before: rf_tail_dof) (rf_filter.
+    # PacketBearingFilter; negative: rf_tail_dof): Gaussian, heavy tails bound what one packet says and a walker's estimate
+    # then lags it between sparse packets (docs/radio.md, measured)
+    packet_tail_dof: float = 0.0
     # -- BLE advertisements (protocol 1.3; rf_filter.PacketBearingFilter): the pair path ignores these
     channel_offset_db: float = 3.0  # prior spread of a receiver's per-advertising-channel offset (the CC0 dataset's, docs/radio.md)
     rssi_step_db: float = 1.0  # the receivers' RSSI step (whole dBm): its rounding adds step^2 / 12 to a packet's variance

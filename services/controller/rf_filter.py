@@ -330,6 +330,11 @@ class PacketBearingFilter(RFBearingFilter):
       brings. Off by default: a walker's level changes read as correlation and the tempering
       then throws away most of the evidence (ble-dynamic, 100 tests: DR 0.66 / 0.45 with it,
       0.73 / 0.62 without, seeds 1 / 2).
+    * **Innovation law.** ``packet_tail_dof`` (0: Gaussian, the built-in's) sets the packets' own,
+      apart from the pair path's Student-t (``tail_dof``), once the walking model has its rate
+      (``engage_rates``: people walk; always without a rate model): heavy tails bound what one packet can
+      say, so when a walker starts to cross the packets that put it ahead of the estimate count as
+      outliers and the estimate lags behind it (ble-dynamic, docs/radio.md).
     * sigma_e, the white per-packet spread, is the pooled within-channel spread of Rx(iso),
       shrunk to the learner's estimate with ``prior_dof`` pseudo-samples.
     * **A walking Tx between packets.** The walking model diffuses for every step of T_RF since
@@ -356,8 +361,11 @@ class PacketBearingFilter(RFBearingFilter):
                  walk_std_rad: float = math.radians(2.0), level_memory_s: float = 0.5, walk_prior: float = 0.3,
                  tail_dof: float | None = 4.0, channel_offset_db: float = 3.0, rssi_step_db: float = 1.0,
                  prior_dof: float = 5.0, receiver_offset_db: float = 8.0, temper_fading: bool = False,
-                 walk_rate_std_rad_s: float = 0.0, walk_rate_change_rad_s: float = 0.2, walk_rate_cells: int = 21) -> None:
+                 walk_rate_std_rad_s: float = 0.0, walk_rate_change_rad_s: float = 0.2, walk_rate_cells: int = 21,
+                 packet_tail_dof: float = -1.0) -> None:
         super().__init__(circle, response, noise_db, rf_period_s, walk_std_rad, level_memory_s, walk_prior, tail_dof)
+        # the packets' innovations: Student-t with this many degrees of freedom (negative: ``tail_dof``, 0: Gaussian)
+        self.packet_tail_dof = tail_dof if packet_tail_dof < 0.0 else (float(packet_tail_dof) or None)
         self.rf_period_s = float(rf_period_s)
         self.level_memory_s = float(level_memory_s)
         self.offset_var = float(channel_offset_db) ** 2
@@ -555,9 +563,9 @@ class PacketBearingFilter(RFBearingFilter):
         self._static += self.ll_stand
 
     def _packet_loglik(self, resid: np.ndarray, var: np.ndarray) -> np.ndarray:
-        if self.tail_dof is None:
+        nu = self.packet_tail_dof if self._rate_joint is not None or self._rates is None else self.tail_dof
+        if nu is None:
             return -0.5 * (resid * resid / var + np.log(2.0 * math.pi * var))
-        nu = self.tail_dof
         return -0.5 * (nu + 1.0) * np.log1p(resid * resid / (nu * var)) - 0.5 * np.log(var) + _t_const(nu)
 
 

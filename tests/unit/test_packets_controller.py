@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ra2vipas.services.controller.grid import CircleGrid
-from ra2vipas.services.controller.policy import ALGORITHMS, Controller, sensor_config_from_scenario
+from ra2vipas.services.controller.policy import ALGORITHMS, Controller, sensor_config_from_scenario, tuned_settings
 from ra2vipas.services.controller.rf_belief import Packets, RFBelief
 from ra2vipas.services.controller.rf_filter import PacketBearingFilter, RxDirModel
 from ra2vipas.services.orchestrator.simulate import train_pod
@@ -290,3 +290,27 @@ def test_the_rate_model_engages_once_the_camera_has_seen_people_walk(preset, eng
     rff = controller.parts.rf.rff
     assert rff.rates_engaged is engaged
     assert (max(seen) >= controller.settings.packet_rate_walkers) is engaged
+
+
+
+def test_packets_have_their_own_innovation_tails_and_the_pair_path_keeps_its():
+    """``packet_tail_dof`` sets the packets' innovation law alone, once the walking model has its
+    rate (people walk; always without a rate model): 0 is Gaussian (a 5-sigma
+    packet costs 12.5 nats more than a central one, not the Student-t's ~3), negative the filter's
+    ``tail_dof``; the 1.0 pair's Student-t (``tail_dof``) is the same either way. The built-in
+    Ra2ViPAS on packets is Gaussian, on the pair Student-t with ``rf_tail_dof``."""
+    circle, response = CircleGrid(90), RxDirModel("db-gain", 0.5)
+    resid, var = np.array([0.0, 10.0]), np.array([4.0, 4.0])
+    gaussian = PacketBearingFilter(circle, response, noise_db=2.0, rf_period_s=0.1, tail_dof=2.0, packet_tail_dof=0.0)
+    heavy = PacketBearingFilter(circle, response, noise_db=2.0, rf_period_s=0.1, tail_dof=2.0)
+    g, t = gaussian._packet_loglik(resid, var), heavy._packet_loglik(resid, var)
+    assert g == pytest.approx(-0.5 * (resid**2 / var + np.log(2.0 * math.pi * var)))
+    assert g[0] - g[1] == pytest.approx(12.5) and 2.0 < t[0] - t[1] < 5.0
+    assert gaussian.tail_dof == heavy.tail_dof == 2.0
+    walking = PacketBearingFilter(circle, response, noise_db=2.0, rf_period_s=0.1, tail_dof=2.0, packet_tail_dof=0.0,
+                                  walk_rate_std_rad_s=0.5)
+    assert walking._packet_loglik(resid, var) == pytest.approx(t)  # nobody seen walking yet: the Student-t
+    walking.engage_rates()
+    assert walking._packet_loglik(resid, var) == pytest.approx(g)  # people walk: Gaussian
+    settings = tuned_settings("ra2vipas")
+    assert settings.packet_tail_dof == 0.0 and settings.rf_tail_dof == 2.0
