@@ -99,6 +99,11 @@ EPISODE_TIMEOUT_S = 60.0  # plus twice the test's duration in realtime mode
 TIMEOUT_CHECK_S = 2.0
 HEAL_BACKOFF_S = (1.0, 30.0)  # first and longest wait between retries of a failed database write
 DESCRIPTOR_TIMEOUT_S = 3.0  # a v1 sensors node serves no descriptor: the query ends with no reply
+DESCRIPTOR_REASK_S = (1.0, 2.0)
+"""A descriptor or policies query that no node answered at all is asked again after these waits
+before the rig is taken for a v1 node: right after a rig's liveliness token arrives (a restart,
+a link back after a cut) the router may not route the query to its queryable yet, and one empty
+answer would score its campaigns as an undescribed rig's."""
 
 REJECTIONS = ("malformed", "not_in_flight", "wrong_rig")
 """Why a result-plane or truth-plane message was dropped: it did not validate; its episode id
@@ -153,6 +158,7 @@ class _Rig:
     described: str = "unknown"  # unknown (sensors down) | asking | described | undescribed (a v1 node)
     controller_info: ControllerInfo | None = None
     announced: str = "unknown"  # unknown (controller down) | asking | announced | silent (a 1.0/1.1 controller)
+    asks: dict = field(default_factory=dict)  # "descriptor" | "policies" -> (generation, empty answers so far)
 
     @property
     def live(self) -> bool:
@@ -800,8 +806,7 @@ class Scheduler:
             self._forget_descriptor(name)
             if up:  # the token is declared after the queryables (docs/protocol.md): ask what the rig is
                 rig.described = "asking"
-                self.bus.query(keys.rig_info(name), b"", DESCRIPTOR_TIMEOUT_S,
-                               lambda replies: self.loop.post(self._on_descriptor, name, replies))
+                self._ask(name, "descriptor", new=True)
                 for run in list(self.runs.values()):  # campaigns waiting for sensors to train on: ask again now
                     if run.awaiting_sensors and run.pod is None and run.model_retry_at is not None:
                         self._request_model(run)
@@ -809,8 +814,7 @@ class Scheduler:
             rig.controller_info, rig.announced = None, "unknown"
             if up:  # its token is declared after its queryable: ask which policies it serves
                 rig.announced = "asking"
-                self.bus.query(keys.rig_policies(name), b"", DESCRIPTOR_TIMEOUT_S,
-                               lambda replies: self.loop.post(self._on_controller_info, name, replies))
+                self._ask(name, "policies", new=True)
         if rig.live != was_live or not rig.since:
             rig.since = time.time()
         if was_live and not rig.live:
@@ -836,9 +840,47 @@ class Scheduler:
         for run in self.runs.values():
             run.eligible.pop(name, None)
 
-    def _on_descriptor(self, name: str, replies: list[Reply]) -> None:
+    def _ask(self, name: str, what: str, new: bool = False, generation: int | None = None) -> None:
+        """Query rig ``name``'s descriptor (``what`` = "descriptor") or its controller's policies
+        ("policies"); ``new``: a fresh round of asking (its node just came up). A re-ask
+        (``generation``: the round it belongs to) is dropped if the node went down or came up
+        again since, or was answered."""
+        rig = self.rigs.get(name)
+        if rig is None:
+            return
+        if new:
+            rig.asks[what] = (rig.asks.get(what, (0, 0))[0] + 1, 0)
+        elif generation != rig.asks.get(what, (None, 0))[0]:
+            return
+        up, state = (rig.sensors, rig.described) if what == "descriptor" else (rig.controller, rig.announced)
+        if not up or state != "asking":
+            return
+        round_ = rig.asks[what][0]
+        key, handler = ((keys.rig_info(name), self._on_descriptor) if what == "descriptor"
+                        else (keys.rig_policies(name), self._on_controller_info))
+        self.bus.query(key, b"", DESCRIPTOR_TIMEOUT_S, lambda replies: self.loop.post(handler, name, replies, round_))
+
+    def _asked_again(self, name: str, what: str, replies: list[Reply], generation: int | None) -> bool:
+        """Whether an answer with no reply at all is asked again later (``DESCRIPTOR_REASK_S``)
+        rather than taken as the node's silence; True also for an answer to an old round."""
+        rig = self.rigs[name]
+        current, empty = rig.asks.get(what, (None, 0))
+        if generation is not None and generation != current:
+            return True
+        if replies or empty >= len(DESCRIPTOR_REASK_S):
+            return False
+        rig.asks[what] = (current, empty + 1)
+        timer = threading.Timer(DESCRIPTOR_REASK_S[empty], self.loop.post, (self._ask, name, what, False, current))
+        timer.daemon = True
+        timer.start()
+        log.info("no node answered the %s query of rig %s; asking again in %.0f s", what, name, DESCRIPTOR_REASK_S[empty])
+        return True
+
+    def _on_descriptor(self, name: str, replies: list[Reply], generation: int | None = None) -> None:
         rig = self.rigs.get(name)
         if rig is None or not rig.sensors or rig.described != "asking":
+            return
+        if self._asked_again(name, "descriptor", replies, generation):
             return
         descriptor, passed_over = first_valid_reply(replies, RigDescriptor, "RigDescriptor")
         if descriptor is not None and descriptor.rig != name:
@@ -853,9 +895,11 @@ class Scheduler:
             run.eligible.pop(name, None)
         self._dispatch()
 
-    def _on_controller_info(self, name: str, replies: list[Reply]) -> None:
+    def _on_controller_info(self, name: str, replies: list[Reply], generation: int | None = None) -> None:
         rig = self.rigs.get(name)
         if rig is None or not rig.controller or rig.announced != "asking":
+            return
+        if self._asked_again(name, "policies", replies, generation):
             return
         info, passed_over = first_valid_reply(replies, ControllerInfo, "ControllerInfo")
         if info is not None and info.rig != name:

@@ -76,6 +76,14 @@ class LiveAPI:
             self.bus.wait_idle()
             for loop in loops:
                 assert loop.wait_idle(), "a node's event loop did not drain"
+        # a v1 node's silence is taken as such once the scheduler asked again (DESCRIPTOR_REASK_S)
+        deadline = time.monotonic() + 10.0
+        while any("asking" in (rig.described, rig.announced) for rig in list(self.scheduler.rigs.values())):
+            assert time.monotonic() < deadline, "the scheduler still asks a rig what it is"
+            time.sleep(0.05)
+        self.bus.wait_idle()
+        for loop in loops:
+            assert loop.wait_idle(), "a node's event loop did not drain"
 
     @property
     def scheduler(self):
