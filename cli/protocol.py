@@ -36,6 +36,7 @@ def check(
     timeout: Annotated[float, typer.Option(min=0.5, max=600.0, help="How long to wait for any one answer [s].")] = 5.0,
     wait: Annotated[Optional[float], typer.Option(min=0.5, max=3600.0, help="How long to wait for the node to come up (its liveliness token) [s; default: --timeout]. Start the kit, then the node: the kit probes it the moment its token appears, which checks that the token is declared last.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the report as one JSON line.")] = False,
+    grid_tolerance: Annotated[Optional[float], typer.Option("--grid-tolerance", min=1.0, max=1000.0, metavar="MS", help="With --rig: how far a realtime sample may arrive from t0 + k T_RF [ms; default: the larger of 30 ms and T_RF/4]. The kit's own receipt counts too: widen it on a loaded machine.")] = None,
     mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None, zenoh_config: ConfigOpt = None,
 ) -> None:
     """Drive a live node through scripted episodes and print a pass/fail report per protocol
@@ -57,6 +58,8 @@ def check(
         fail("give either --rig NAME (check its sensors node) or --controller NAME (check its controller)", 2)
     if policy is not None and controller is None:
         fail("--policy goes with --controller", 2)
+    if grid_tolerance is not None and rig is None:
+        fail("--grid-tolerance goes with --rig", 2)
     if policy is not None:
         import re
 
@@ -79,7 +82,7 @@ def check(
         if rig is not None:
             from ra2vipas.services.rigs.conformance import ConformanceKit, report
 
-            kit = ConformanceKit(bus, rig, timeout)
+            kit = ConformanceKit(bus, rig, timeout, grid_tolerance_s=None if grid_tolerance is None else grid_tolerance / 1e3)
             what, role = f"rig {rig}", "sensors"
         else:
             from ra2vipas.services.rigs.controller_conformance import ControllerKit, report
