@@ -19,9 +19,9 @@ Where: ``$RA2VIPAS_POD_CACHE`` if set (``off`` turns the cache off), else
 ``$XDG_CACHE_HOME/ra2vipas/pod-models`` (``~/.cache/ra2vipas/pod-models``). A file is written
 whole or not at all (a temporary file renamed into place), an unreadable or malformed one is
 trained again, and a folder that cannot be written only costs the training: the cache never
-fails a run. Used by the in-process engine (``simulate``, studies, benchmarks, calibration);
-the learner service keeps its own ``--cache-dir`` (off by default), so a stack trains what
-its sensors stream.
+fails a run. Used by the in-process engine (``simulate``, studies, benchmarks, calibration),
+and by the learner service for its ``--cache-dir`` (off by default, so a stack trains what its
+sensors stream; a model it keeps has no R², and the in-process engine never takes one of those).
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ class CachedPOD:
     its training took when it was trained."""
 
     model: PODModel
-    r2: float
+    r2: float | None  # None: trained by the learner service from a rig's stream (no truth to score it)
     train_seconds: float
 
 
@@ -128,7 +128,7 @@ class PODCache:
         path = self.path(job_id)
         try:
             data = json.loads(path.read_bytes())
-            return CachedPOD(model=PODModel.model_validate(data["model"]), r2=float(data["r2"]),
+            return CachedPOD(model=PODModel.model_validate(data["model"]), r2=None if data["r2"] is None else float(data["r2"]),
                              train_seconds=float(data["train_seconds"]))
         except FileNotFoundError:
             return None

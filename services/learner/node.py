@@ -11,12 +11,10 @@ deterministic in (scenario, seed), so a restarted learner retrains the identical
 from __future__ import annotations
 
 import logging
-import os
 import threading
 from pathlib import Path
 
-from pydantic import ValidationError
-
+from ra2vipas.services.learner.model_cache import CachedPOD, PODCache, fingerprint
 from ra2vipas.services.learner.pod import LearnerSettings, fit_pod
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
@@ -50,6 +48,10 @@ class LearnerNode:
         self.cache_dir = Path(cache_dir) if cache_dir else None
         if self.cache_dir:
             self.cache_dir.mkdir(parents=True, exist_ok=True)
+        # the models kept there are named by what decides them besides (scenario, seed): this
+        # code, these settings, the numerical libraries and their kernels (model_cache.py), so a
+        # changed learner trains again instead of serving a stale model
+        self._disk = PODCache(self.cache_dir, fingerprint(self.settings)) if self.cache_dir else None
         self._cache: dict[str, PODResponse] = {}
         self._locks: dict[str, threading.Lock] = {}
         self._guard = threading.Lock()
@@ -100,26 +102,13 @@ class LearnerNode:
         return stream
 
     # -- optional disk cache ----------------------------------------------------------------
-    def _path(self, job: str) -> Path | None:
-        return self.cache_dir / f"{job}.json" if self.cache_dir else None
-
     def _load(self, job: str) -> PODResponse | None:
-        path = self._path(job)
-        if path is None or not path.is_file():
-            return None
-        try:
-            return PODResponse.model_validate_json(path.read_bytes())
-        except (OSError, ValidationError):
-            log.warning("ignoring unreadable cached model %s", path)
-            return None
+        hit = self._disk.load(job) if self._disk is not None else None
+        return None if hit is None else PODResponse(job_id=job, model=hit.model, train_seconds=hit.train_seconds)
 
     def _store(self, job: str, response: PODResponse) -> None:
-        path = self._path(job)
-        if path is None:
-            return
-        tmp = path.with_suffix(f".tmp-{os.getpid()}")
-        tmp.write_bytes(dump(response))
-        os.replace(tmp, path)
+        if self._disk is not None:
+            self._disk.store(job, CachedPOD(model=response.model, r2=None, train_seconds=response.train_seconds))
 
     def close(self) -> None:
         undeclare_all(self._handles)

@@ -74,7 +74,7 @@ def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = 
     store = PODCache.from_environment(settings or LearnerSettings()) if cache else None
     job = training_job_id(scenario, seed)
     hit = store.load(job) if store is not None else None
-    if hit is not None:
+    if hit is not None and hit.r2 is not None:  # (a learner service's model, unscored, is trained here again)
         return TrainedPOD(model=hit.model, r2=hit.r2, train_seconds=hit.train_seconds, cached=True)
     episode = TrainingEpisode(scenario, seed)
     learned: LearnedPOD = fit_pod(list(episode.samples()), settings)

@@ -57,3 +57,44 @@ def test_a_malformed_file_is_trained_again_and_an_unwritable_folder_only_costs_t
     assert not train_pod(SCENARIO, 5).cached and not train_pod(SCENARIO, 5).cached
     assert not [p for p in (tmp_path / "pods").iterdir() if p.name.endswith(".tmp")]
     assert os.listdir(tmp_path / "pods") == [path.name]
+
+
+def test_the_learner_services_cache_dir_is_keyed_by_the_code_and_never_feeds_simulate(tmp_path, monkeypatch):
+    """``ra2vipas learner --cache-dir``: a second learner on the folder serves the model without a
+    training stream (no sensors on its bus); a changed learner (another fingerprint) trains again
+    instead of serving a stale model; the in-process engine does not take a model it kept (no R²)."""
+    from ra2vipas.services.learner import node as learner_node
+    from ra2vipas.services.learner.node import LearnerNode
+    from ra2vipas.services.protocol.messages import PODRequest
+    from ra2vipas.services.sensors.node import SensorsNode
+    from ra2vipas.services.transport.bus import MemoryBus, QueryError
+
+    request = PODRequest(scenario=SCENARIO, seed=5)
+    bus = MemoryBus()
+    sensors = SensorsNode(bus, "rig-1")
+    first = LearnerNode(bus, "l1", cache_dir=str(tmp_path))
+    try:
+        trained = first.model_for(request)
+    finally:
+        first.close()
+        sensors.close()
+    alone = MemoryBus()  # no sensors: a model can only come from the folder
+    second = LearnerNode(alone, "l2", cache_dir=str(tmp_path))
+    try:
+        assert second.model_for(request) == trained
+    finally:
+        second.close()
+    monkeypatch.setattr(learner_node, "fingerprint", lambda settings: "0123456789abcdef")  # another learner's code
+    changed = LearnerNode(alone, "l3", cache_dir=str(tmp_path))
+    try:
+        try:
+            changed.model_for(request)
+            raise AssertionError("a model kept by another code was served")
+        except QueryError as err:
+            assert "no training stream" in str(err) or "sensors" in str(err)
+    finally:
+        changed.close()
+        bus.close()
+        alone.close()
+    monkeypatch.setenv("RA2VIPAS_POD_CACHE", str(tmp_path))
+    assert not train_pod(SCENARIO, 5).cached
