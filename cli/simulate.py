@@ -70,6 +70,8 @@ def simulate(
         _study(preset, tests, seed, names, overrides, stop_confidence, as_json, plot, reliability_plot, vary, workers)
         return
 
+    from ra2vipas.services.orchestrator.simulate import pod_is_cached
+
     total = tests * len(names)
     if pod_is_cached(scenario, seed):
         print(f"the POD model of ({preset}, seed {seed}) is in the POD model cache (RA2VIPAS_POD_CACHE=off trains it again); "
@@ -109,17 +111,6 @@ def simulate(
         except OSError as err:
             fail(f"cannot write {reliability_plot}: {err.strerror or err}")
     emit_results(results, plot, as_json)
-
-
-def pod_is_cached(scenario, seed: int) -> bool:
-    """Whether the in-process run will load (scenario, seed)'s POD model from the cache rather than
-    train it (``services/learner/model_cache.py``)."""
-    from ra2vipas.services.learner.model_cache import PODCache
-    from ra2vipas.services.learner.pod import LearnerSettings
-    from ra2vipas.services.protocol.messages import training_job_id
-
-    cache = PODCache.from_environment(LearnerSettings())
-    return cache is not None and cache.path(training_job_id(scenario, seed)).is_file()
 
 
 def say_training(what: str) -> None:
