@@ -17,10 +17,21 @@ setup: $(STAMP)
 EDITABLE_QUIET := PYTHONWARNINGS="ignore:Editable installation"
 
 # A set-up interrupted while the venv was being made leaves one without pip: make it again.
+# The pinned set is installed with uv (Astral's installer: pip's job, resolving and unpacking in
+# parallel; ~25 s here where pip takes ~65 s, a minute less for every fresh clone and CI run), itself
+# pinned in constraints.txt and fetched with pip. It compiles the libraries' bytecode as pip does.
+# uv does not read pip's configuration: where it cannot install (an index only pip.conf knows, no
+# uv wheel for the platform), pip does, as before.
 $(STAMP): pyproject.toml constraints.txt
 	@if [ ! -x $(BIN)/pip ]; then rm -rf $(VENV) && echo "$(PYTHON) -m venv $(VENV)" && $(PYTHON) -m venv $(VENV); fi
-	$(BIN)/pip install --quiet --upgrade pip
-	$(EDITABLE_QUIET) $(BIN)/pip install --quiet -c constraints.txt -e '.[test]'
+	@if $(BIN)/pip install --quiet -c constraints.txt uv 2>/dev/null && \
+	    $(BIN)/uv pip install --quiet --compile-bytecode --python $(BIN)/python -c constraints.txt -e '.[test]'; then \
+	    echo "installed the pinned set with uv"; \
+	else \
+	    echo "uv could not install the pinned set: installing it with pip"; \
+	    $(BIN)/pip install --quiet --upgrade pip && \
+	    $(EDITABLE_QUIET) $(BIN)/pip install --quiet -c constraints.txt -e '.[test]'; \
+	fi
 	touch $(STAMP)
 
 campaign: setup
