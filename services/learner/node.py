@@ -16,6 +16,7 @@ from pathlib import Path
 
 from ra2vipas.services.learner.model_cache import CachedPOD, PODCache, fingerprint
 from ra2vipas.services.learner.pod import LearnerSettings, fit_pod
+from ra2vipas.services.learner.trained import NO_SENSORS
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
     ErrorReply,
@@ -33,9 +34,6 @@ from ra2vipas.services.transport.runtime import first_valid_reply
 log = logging.getLogger(__name__)
 
 TRAINING_TIMEOUT_S = 600.0
-NO_SENSORS = "no training stream: no sensors answered"
-"""The error reply when the training query reached no sensors (none live, or none reachable from
-this learner): the orchestrator asks again, with backoff, rather than failing the campaign."""
 
 
 class LearnerNode:

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from ra2vipas.services.learner.trained import predict, r2_score  # noqa: F401  (re-exported: scoring lives there)
 from ra2vipas.services.protocol.measurements import TrainingSample
 from ra2vipas.services.protocol.pod import PODModel
 
@@ -634,20 +635,6 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
     )
     return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R), fading=phi,
                       channel_offsets=offsets or None)
-
-
-def r2_score(truth: np.ndarray, prediction: np.ndarray) -> float:
-    """The coefficient of determination of paper eq. (23)."""
-    truth = np.asarray(truth, dtype=float)
-    ss_tot = float(np.sum((truth - truth.mean()) ** 2))
-    if ss_tot == 0.0:
-        return 0.0
-    return 1.0 - float(np.sum((truth - np.asarray(prediction)) ** 2)) / ss_tot
-
-
-def predict(model: PODModel, rssi_dbm: np.ndarray | float) -> np.ndarray:
-    """p_hat_D at ``rssi_dbm`` by linear interpolation of the model's grid (clamped at the ends)."""
-    return np.interp(rssi_dbm, model.rssi_grid_dbm, model.mean)
 
 
 # -- scoring the learner honestly (issue 20) -----------------------------------------------------

@@ -50,6 +50,11 @@ BINS = 10  # the calibration bins of metrics.expected_calibration_error
 _ULP_EXP = 1074  # every finite double is a whole multiple of 2**-1074
 
 
+def held(values: list[float], steps: int) -> list[float]:
+    """A per-step series of an episode that may have ended early, its last value held to ``steps``."""
+    return list(values) + [values[-1]] * (steps - len(values)) if values else list(values)
+
+
 def _exact_units(value: float) -> int:
     """``value`` as an integer count of 2**-1074 (exact for every finite double)."""
     num, den = value.as_integer_ratio()  # den is a power of two, at most 2**1074

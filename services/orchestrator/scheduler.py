@@ -52,12 +52,10 @@ from typing import Any, Callable, Iterable
 import numpy as np
 
 from ra2vipas.services.controller.registry import SHIPPED_BASELINES
-from ra2vipas.services.learner.node import NO_SENSORS
-from ra2vipas.services.learner.pod import predict, r2_score
+from ra2vipas.services.learner.trained import NO_SENSORS, TrainedPOD, predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
-from ra2vipas.services.orchestrator.reduce import AlgorithmTally, LatencyTally, results_object
+from ra2vipas.services.orchestrator.reduce import AlgorithmTally, LatencyTally, held, results_object
 from ra2vipas.services.orchestrator.rigcheck import RigChecks
-from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
 from ra2vipas.services.orchestrator.storage import EpisodeKey, StorageFault, Store
 from ra2vipas.services.orchestrator.study_store import StudyStore
 from ra2vipas.services.protocol import keys

@@ -17,22 +17,14 @@ from ra2vipas.services.controller import registry
 from ra2vipas.services.controller.contract import episode_context
 from ra2vipas.services.controller.policy import ControllerSettings, sensor_config_from_scenario
 from ra2vipas.services.learner.model_cache import CachedPOD, PODCache
-from ra2vipas.services.learner.pod import LearnedPOD, LearnerSettings, fit_pod, predict, r2_score
+from ra2vipas.services.learner.pod import LearnedPOD, LearnerSettings, fit_pod
+from ra2vipas.services.learner.trained import TrainedPOD, predict, r2_score
 from ra2vipas.services.orchestrator.metrics import score_episode, summarize_algorithm
+from ra2vipas.services.orchestrator.reduce import held
 from ra2vipas.services.protocol.messages import training_job_id
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.protocol.scenario import Scenario, ScenarioError, build_scenario
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode
-
-
-@dataclass(frozen=True)
-class TrainedPOD:
-    """The learned model and how it scores against the truth of its training episode."""
-
-    model: PODModel
-    r2: float
-    train_seconds: float
-    cached: bool = False  # loaded from the POD model cache (services/learner/model_cache.py), not trained now
 
 
 @dataclass
@@ -168,11 +160,6 @@ def new_policy(algorithm: str, scenario: Scenario, seed: int, test_index: int, p
     the campaign's early-decision level."""
     context = episode_context(sensor_config_from_scenario(scenario), pod_model, scenario, seed, test_index, stop_confidence)
     return registry.create(algorithm, context, settings)
-
-
-def held(values: list[float], steps: int) -> list[float]:
-    """A per-step series of an episode that may have ended early, its last value held to ``steps``."""
-    return list(values) + [values[-1]] * (steps - len(values)) if values else list(values)
 
 
 def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: TrainedPOD,

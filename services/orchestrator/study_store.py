@@ -195,8 +195,8 @@ def point_results(store: Store, campaign: dict[str, Any]) -> tuple[dict[str, Any
     """A point's results object, the tests each algorithm's row rests on, and whether it is
     partial: the stored results of a done point; otherwise the episodes recorded so far,
     reduced the same way (``reduce.AlgorithmTally``, a page at a time), or None if there are none."""
-    from ra2vipas.services.orchestrator.reduce import AlgorithmTally, results_object
-    from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
+    from ra2vipas.services.learner.trained import TrainedPOD
+    from ra2vipas.services.orchestrator.reduce import AlgorithmTally, held, results_object
     from ra2vipas.services.protocol.scenario import Scenario
 
     algorithms = campaign["algorithms"]

@@ -308,11 +308,11 @@ def replay_scores(rec: Recording) -> dict[str, Any]:
     RecordingError
         A test of the campaign has no recorded episode.
     """
+    from ra2vipas.services.learner.trained import TrainedPOD
     from ra2vipas.services.orchestrator.metrics import score_episode, truth_bearings
-    from ra2vipas.services.orchestrator.reduce import AlgorithmTally, LatencyTally, results_object
+    from ra2vipas.services.orchestrator.reduce import AlgorithmTally, LatencyTally, held, results_object
     from ra2vipas.services.orchestrator.rigcheck import RigChecks
     from ra2vipas.services.orchestrator.scheduler import score_tags
-    from ra2vipas.services.orchestrator.simulate import TrainedPOD, held
     from ra2vipas.services.protocol.scenario import Scenario
 
     c = rec.campaign

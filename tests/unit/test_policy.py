@@ -200,6 +200,18 @@ def test_controller_and_learner_load_without_the_simulator():
     assert out.stdout.strip() == "[]"
 
 
+def test_the_orchestrator_starts_without_the_controllers_the_learners_fit_or_numba():
+    """The orchestrator scores a learner's model (``learner/trained.py``) and reduces episodes; it
+    runs no policy and fits nothing, so its start imports neither the controllers' code, nor the
+    learner's fit, nor numba or SciPy (~0.3 s of CPU at every start)."""
+    code = ("import sys, ra2vipas.services.orchestrator.api.app; "
+            "print(sorted({m for m in sys.modules if m.split('.')[0] in ('numba', 'scipy', 'sklearn') "
+            "or m in ('ra2vipas.services.controller.policy', 'ra2vipas.services.learner.pod', "
+            "'ra2vipas.services.orchestrator.simulate', 'ra2vipas.services.sensors.world')}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SERVICES.parent)
+    assert out.stdout.strip() == "[]"
+
+
 
 def test_the_orchestrator_a_learner_and_a_rig_start_without_the_fitting_and_plotting_libraries():
     """What only a fit, an assignment or a figure uses is imported by it: the orchestrator's API, a
