@@ -96,7 +96,13 @@ NEGLIGIBLE_DENSITY = 1e-12
 
 @njit(cache=True, inline="always")
 def _wrap(x: float) -> float:
-    return (x + math.pi) % TWO_PI - math.pi
+    # (x + pi) % 2 pi - pi, with the common case taken without the modulo (fmod is ~20 ns): for y = x + pi
+    # in [0, 2 pi) Python's float modulo (numba's the same) returns y itself (-0.0 gives +0.0, and
+    # either minus pi is -pi), so the result is the same double
+    y = x + math.pi
+    if y >= 0.0 and y < TWO_PI:
+        return y - math.pi
+    return y % TWO_PI - math.pi
 
 
 @njit(cache=True, inline="always")
