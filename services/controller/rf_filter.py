@@ -46,6 +46,40 @@ def antenna_gain(misalignment_rad: np.ndarray, curvature: float) -> np.ndarray:
     return np.clip(1.0 - curvature * d * d, 0.0, 1.0)
 
 
+_GAIN_ROWS: dict[tuple[float, int, float], np.ndarray] = {}
+_GAIN_TABLES: dict[tuple[float, int], np.ndarray] = {}
+
+
+def _gain_row(curvature: float, circle: CircleGrid, pan_rad: float) -> np.ndarray:
+    """antenna_gain(pan_rad - circle.angles, curvature), read-only, kept per (curvature, grid, pan):
+    the pans a controller commands repeat (grid points), and each sample, the answer's J_RF and the
+    posterior's expected gain read this row (the same doubles as computing it again)."""
+    key = (curvature, circle.size, pan_rad)
+    row = _GAIN_ROWS.get(key)
+    if row is None:
+        if len(_GAIN_ROWS) >= 4096:
+            _GAIN_ROWS.clear()
+        row = antenna_gain(pan_rad - circle.angles, curvature)
+        row.flags.writeable = False
+        _GAIN_ROWS[key] = row
+    return row
+
+
+def _gain_table(curvature: float, circle: CircleGrid) -> np.ndarray:
+    """antenna_gain(angles[:, None] - angles[None, :], curvature), (M, M), read-only: element (i, j)
+    is the gain at grid pan i of a Tx at grid bearing j, computed once per (curvature, grid)
+    (elementwise, so any (pans x cells) block of it is what computing that block gives)."""
+    key = (curvature, circle.size)
+    table = _GAIN_TABLES.get(key)
+    if table is None:
+        if len(_GAIN_TABLES) >= 16:
+            _GAIN_TABLES.clear()
+        table = antenna_gain(circle.angles[:, None] - circle.angles[None, :], curvature)
+        table.flags.writeable = False
+        _GAIN_TABLES[key] = table
+    return table
+
+
 class RxDirModel:
     """The mean of Rx(dir) given the level L and the misalignment: the rig's response."""
 
@@ -58,6 +92,14 @@ class RxDirModel:
 
     def gain(self, misalignment_rad: np.ndarray) -> np.ndarray:
         return antenna_gain(misalignment_rad, self.curvature)
+
+    def gain_over(self, pan_rad: float, circle: CircleGrid) -> np.ndarray:
+        """``gain(pan_rad - circle.angles)``, read-only (kept per pan: ``_gain_row``)."""
+        return _gain_row(self.curvature, circle, pan_rad)
+
+    def gain_table(self, circle: CircleGrid) -> np.ndarray:
+        """``gain(angles[:, None] - angles[None, :])``, (M, M), read-only (``_gain_table``)."""
+        return _gain_table(self.curvature, circle)
 
     def mean(self, level: float, gain: np.ndarray) -> np.ndarray:
         """E[z_dir] for the level L (dBm) and the antenna gain rho (eq. 6 or its dB form)."""
@@ -117,7 +159,7 @@ class RFBearingFilter:
         self.ll_stand = np.zeros(M)  # this step's sample log-likelihood (relative), standing level
         self.ll_walk = np.zeros(M)  # ... walking level
         self._evidence: dict[int, float] = {}  # track id -> trajectory evidence (relative to the baseline)
-        self._posterior: np.ndarray | None = None  # log_posterior() as of (samples, walk prior) = _posterior_key
+        self._read: dict = {}  # what the step's readers share (``_reading``), as of (samples, walk prior) = _posterior_key
         self._posterior_key: tuple[int, float] | None = None
 
     # -- updating -------------------------------------------------------------------------------
@@ -133,7 +175,7 @@ class RFBearingFilter:
         self._level_walk = iso_dbm if n == 1 else self._lam * self._level_walk + (1.0 - self._lam) * iso_dbm
         level_stand = self._iso_sum / n
         self.rho = self._noise_correlation()
-        gain = self.response.gain(pan_rad - self.circle.angles)
+        gain = self.response.gain_over(pan_rad, self.circle)
         ll_stand = self._sample_loglik(dir_dbm, gain, level_stand, self._level_var(False))
         ll_walk = self._sample_loglik(dir_dbm, gain, self._level_walk, self._level_var(True))
         self._prev = (gain, dir_dbm)
@@ -242,30 +284,66 @@ class RFBearingFilter:
         """log P(walks, gamma_t = cell) + the same const."""
         return self._walk + math.log(self.walk_prior)
 
+    def _reading(self) -> dict:
+        """What the readers of one step share, computed once per sample and walk prior however many
+        readers ask (the answer, J_RF, the probe, the tracks' scores): each entry is computed
+        lazily, by the same expression as before it was kept."""
+        key = (self.n, self.walk_prior)
+        if self._posterior_key != key:
+            self._read = {}
+            self._posterior_key = key
+        return self._read
+
+    def _joint(self) -> tuple[np.ndarray, float]:
+        """logaddexp(log_joint_stand, log_joint_walk) and its logsumexp (kept: ``_reading``)."""
+        read = self._reading()
+        joint = read.get("joint")
+        if joint is None:
+            joint = read["joint"] = np.logaddexp(self.log_joint_stand, self.log_joint_walk)
+            read["joint_lse"] = logsumexp(joint)
+        return joint, read["joint_lse"]
+
     def log_posterior(self) -> np.ndarray:
         """log P(gamma_t = cell | samples), normalised over the grid: read-only, computed once per
         sample and walk prior however many readers ask in a step (the answer, J_RF, the probe)."""
-        key = (self.n, self.walk_prior)
-        if self._posterior_key != key:
-            joint = np.logaddexp(self.log_joint_stand, self.log_joint_walk)
-            posterior = joint - logsumexp(joint)
+        read = self._reading()
+        posterior = read.get("posterior")
+        if posterior is None:
+            joint, lse = self._joint()
+            posterior = read["posterior"] = joint - lse
             posterior.flags.writeable = False
-            self._posterior, self._posterior_key = posterior, key
-        return self._posterior
+        return posterior
+
+    def posterior(self) -> np.ndarray:
+        """exp(log_posterior()), read-only (kept: ``_reading``)."""
+        read = self._reading()
+        post = read.get("post")
+        if post is None:
+            post = read["post"] = np.exp(self.log_posterior())
+            post.flags.writeable = False
+        return post
 
     def _posterior_support(self, mass: float) -> tuple[np.ndarray, np.ndarray]:
         """(cells, their probabilities renormalised) of the posterior of gamma where it is at least
         ``mass`` of its largest: the cells worth a column in a (pans x cells) product."""
-        post = np.exp(self.log_posterior())
-        keep = np.flatnonzero(post >= mass * post.max())
-        return keep, post[keep] / post[keep].sum()
+        read = self._reading()
+        support = read.get(("support", mass))
+        if support is None:
+            post = self.posterior()
+            keep = np.flatnonzero(post >= mass * post.max())
+            support = read[("support", mass)] = (keep, post[keep] / post[keep].sum())
+        return support
 
     @property
     def p_walk(self) -> float:
         """P(the Tx walks | samples)."""
-        s = logsumexp(self.log_joint_stand)
-        w = logsumexp(self.log_joint_walk)
-        return 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
+        read = self._reading()
+        p = read.get("p_walk")
+        if p is None:
+            s = logsumexp(self.log_joint_stand)
+            w = logsumexp(self.log_joint_walk)
+            p = read["p_walk"] = 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
+        return p
 
     def most_informative_pan(self, stride: int = 2, mass: float = 1e-3) -> float:
         """The pan whose next Rx(dir) sample the current posterior is least sure of: the largest
@@ -275,7 +353,8 @@ class RFBearingFilter:
         keep, p = self._posterior_support(mass)
         pans = self.circle.angles[::stride]
         level = self._level_now(self.p_walk > 0.5)
-        mean = self.response.mean(level, self.response.gain(pans[:, None] - self.circle.angles[keep][None, :]))  # (S, K)
+        # gain(pans[:, None] - angles[keep][None, :]): those rows and columns of the grid's table
+        mean = self.response.mean(level, np.take(self.response.gain_table(self.circle)[::stride], keep, axis=1))  # (S, K)
         first = mean @ p
         var = (mean * mean) @ p - first * first
         return float(pans[int(np.argmax(var))])
@@ -289,7 +368,7 @@ class RFBearingFilter:
         rho(s - gamma) at every grid pan s: the normalised lobe J_RF(s) the fused objective's
         GP-UCB reads (paper eq. 24-25), and how unsure the filter is of it there."""
         keep, p = self._posterior_support(mass)
-        gain = self.response.gain(self.circle.angles[:, None] - self.circle.angles[keep][None, :])  # (M, K)
+        gain = np.take(self.response.gain_table(self.circle), keep, axis=1)  # gain(angles[:, None] - angles[keep][None, :]), (M, K)
         first = gain @ p
         return first, np.sqrt(np.maximum((gain * gain) @ p - first * first, 0.0))
 
@@ -477,7 +556,7 @@ class PacketBearingFilter(RFBearingFilter):
         self.n += 1
         white = self.white_var()
         resp = self.response
-        gain = resp.gain(pan_rad - self.circle.angles)
+        gain = resp.gain_over(pan_rad, self.circle)
         slope = resp.level_slope(gain)
         means = (resp.mean(self._level_now(False), gain), resp.mean(self._level_walk, gain))
         level_vars = (self._packet_level_var(False, white), self._packet_level_var(True, white))
