@@ -77,6 +77,31 @@ def pod_evidence(k, n, alpha, beta, alpha0, beta0, outlier):
     return math.log((1.0 - outlier) * math.exp(log_bf) + outlier)
 
 
+@njit(cache=True)
+def add_pod_evidence(out, detections, frames, alpha, beta, alpha0, beta0, outlier):
+    """out[i] += pod_evidence(detections[i], frames[i], ...) for every track (one call, not one
+    per track)."""
+    for i in range(out.size):
+        out[i] += pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
+    return out
+
+
+@njit(cache=True)
+def second_gap(bearings, estimate):
+    """The second smallest |wrap(bearing - estimate)| (what sorting them and taking [1] gives;
+    at least two bearings)."""
+    first = np.inf
+    second = np.inf
+    for i in range(bearings.size):
+        g = abs(_wrap(bearings[i] - estimate))
+        if g < first:
+            second = first
+            first = g
+        elif g < second:
+            second = g
+    return second
+
+
 @njit(cache=True, inline="always")
 def _smeared(l_rf, grid_step, rf_weight, mean, sd):
     """log of sum_g N(g; mean, sd^2) exp(rf_weight l_RF(g)) dg and the g maximising the integrand."""

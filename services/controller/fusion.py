@@ -94,9 +94,7 @@ class Fusion:
         if n and rf.exact:  # the filter's trajectory evidence plus the POD evidence (``_kernels.pod_evidence``)
             l_tracks[:] = rf.track_loglik(tracks)
             means, sds, weights = tracks.components()
-            det, frames = tracks.detections, tracks.frames_in_view
-            for i in range(n):
-                l_tracks[i] += _kernels.pod_evidence(det[i], frames[i], alpha, beta, a0, b0, vision.pod_outlier)
+            _kernels.add_pod_evidence(l_tracks, tracks.detections, tracks.frames_in_view, alpha, beta, a0, b0, vision.pod_outlier)
             _kernels.track_where(l_rf, np.ascontiguousarray(means), np.ascontiguousarray(sds), np.ascontiguousarray(weights), step,
                                  3.0 * step, self.where)
         elif n:

@@ -46,12 +46,11 @@ import numpy as np
 
 from ra2vipas.services.controller import multitag
 from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, Beliefs
-from ra2vipas.services.controller.composed import Composition, Decision, Parts, take_iso, update_rf
+from ra2vipas.services.controller.composed import Composition, Decision, Parts, take_iso, update_rf, wrapped
 from ra2vipas.services.controller.confidence import Covariates
 from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softmax
 from ra2vipas.services.controller.rf_belief import PacketClock
 from ra2vipas.services.controller.rf_filter import logsumexp
-from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
 
 PanRule = Literal["entropy", "neediest"]
@@ -240,7 +239,7 @@ class JointSearch:
         self.acquisition = with_summed_gpucb(acquisition) if pan_rule == "entropy" else acquisition
         self.clocks = [PacketClock(rf_period_s) for _ in tags]
         self.decided: list[TagDecision | None] = [None] * len(tags)
-        self._first_pan = float(wrap(first_pan_rad))
+        self._first_pan = wrapped(first_pan_rad)
         self.missed_bearings = bool(missed_bearings)
 
     @property
@@ -278,7 +277,7 @@ class JointSearch:
                 continue
             cov = p.confidence.covariates(estimate, p.rf, vision, p.iso)
             confidence = round(p.confidence(raw, cov), 6)
-            decision = TagDecision(tag=k, estimate_rad=float(wrap(estimate)), confidence=confidence, raw_confidence=float(raw),
+            decision = TagDecision(tag=k, estimate_rad=wrapped(estimate), confidence=confidence, raw_confidence=float(raw),
                                    covariates=cov)
             if self.stop_confidence > 0.0 and confidence >= self.stop_confidence:
                 decision = replace(decision, decided_step=t)
@@ -300,7 +299,7 @@ class JointSearch:
         first = tags[0]
         p0 = self.parts[0]
         cov0 = p0.confidence.covariates(first.estimate_rad, p0.rf, vision, p0.iso)
-        return JointDecision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=first.estimate_rad, reward=reward, probe=probe,
+        return JointDecision(step=t, next_pan_rad=wrapped(next_pan), estimate_rad=first.estimate_rad, reward=reward, probe=probe,
                              confidence=first.confidence, raw_confidence=first.raw_confidence, tx_walks=cov0.tx_walks,
                              noise_correlation=cov0.noise_correlation, clutter_density=cov0.clutter_density,
                              crowding=cov0.crowding, tags=tuple(tags), all_decided=not any(open_), lead_tag=lead)
@@ -393,7 +392,7 @@ class SequentialSearch:
                  stop_confidence: float = 0.0) -> None:
         self.new_parts, self.n_tags, self.steps = new_parts, int(n_tags), int(steps)
         self.rf_period_s, self.stop_confidence = float(rf_period_s), float(stop_confidence)
-        self._first_pan = float(wrap(first_pan_rad))
+        self._first_pan = wrapped(first_pan_rad)
         self.answers: list[TagDecision] = [TagDecision(tag=k, estimate_rad=self._first_pan, confidence=0.0, raw_confidence=0.0)
                                            for k in range(self.n_tags)]
         self.active = 0
@@ -428,7 +427,7 @@ class SequentialSearch:
                 self._search = None
         zero = self.answers[0]
         all_decided = all(a.decided_step is not None for a in self.answers)
-        return JointDecision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=zero.estimate_rad, reward=reward, probe=probe,
+        return JointDecision(step=t, next_pan_rad=wrapped(next_pan), estimate_rad=zero.estimate_rad, reward=reward, probe=probe,
                              confidence=zero.confidence, raw_confidence=zero.raw_confidence,
                              tags=tuple(self.answers), all_decided=all_decided, lead_tag=min(k, self.n_tags - 1))
 

@@ -212,5 +212,5 @@ class CameraBelief(VisionBelief):
     def crowding(self, estimate_rad, scale_rad) -> float:
         if len(self.tracks) < 2:
             return 0.0
-        gaps = np.sort(np.abs(wrap(self.tracks.bearing - estimate_rad)))
-        return math.exp(-float(gaps[1]) / scale_rad)  # gaps[0]: the track named
+        # the second smallest gap (the smallest: the track named), as np.sort(np.abs(wrap(bearing - estimate)))[1]
+        return math.exp(-float(_kernels.second_gap(self.tracks.bearing, float(estimate_rad))) / scale_rad)
