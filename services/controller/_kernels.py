@@ -26,6 +26,16 @@ def _wrap(x: float) -> float:
     return y % TWO_PI - math.pi
 
 
+@njit(cache=True, inline="always")
+def _cell(k: int, M: int) -> int:
+    """k % M for k in [-M, 2 M) (a grid index one turn either side), without the integer division."""
+    if k < 0:
+        return k + M
+    if k >= M:
+        return k - M
+    return k
+
+
 @njit(cache=True)
 def lobe_profile(hh, ho, hu, oo, ou, uu, sign, loglik, amplitude, offset):
     """Generalised least squares of (A, c) for every lobe centre (see ``LobeGP.lobe_fit``),
@@ -114,14 +124,14 @@ def _smeared(l_rf, grid_step, rf_weight, mean, sd):
     arg = centre
     for d in range(-half, half + 1):
         off = (d - shift) * grid_step
-        v = rf_weight * l_rf[(centre + d) % M] - 0.5 * off * off / (sd * sd)
+        v = rf_weight * l_rf[_cell(centre + d, M)] - 0.5 * off * off / (sd * sd)
         if v > best:
             best = v
-            arg = (centre + d) % M
+            arg = _cell(centre + d, M)
     total = 0.0
     for d in range(-half, half + 1):
         off = (d - shift) * grid_step
-        total += math.exp(rf_weight * l_rf[(centre + d) % M] - 0.5 * off * off / (sd * sd) - best)
+        total += math.exp(rf_weight * l_rf[_cell(centre + d, M)] - 0.5 * off * off / (sd * sd) - best)
     return best + math.log(total * grid_step / (math.sqrt(TWO_PI) * sd)), -math.pi + arg * grid_step
 
 
@@ -297,7 +307,8 @@ def _interp_periodic(values, angle, step):
 
 @njit(cache=True, inline="always")
 def _arc(mean, half_width, step, M):
-    """(first cell, cells) of the grid arc within ``half_width`` of ``mean``, at most the circle."""
+    """(first cell, cells) of the grid arc within ``half_width`` of ``mean``, at most the circle (first in
+    [-M / 2, M): first + j for j < cells is one turn either side at most, ``_cell``)."""
     h = min(int(half_width / step), M // 2)
     centre = int(round((mean + math.pi) / step)) % M
     return centre - h, (2 * h + 1 if 2 * h + 1 <= M else M)
@@ -313,13 +324,13 @@ def _smeared_loglik(ll, mean, sd, step):
     first, n = _arc(mean, 4.0 * sd, step, M)
     top = -1e300
     for j in range(n):
-        k = (first + j) % M
+        k = _cell(first + j, M)
         if ll[k] > top:
             top = ll[k]
     num = 0.0
     den = 0.0
     for j in range(n):
-        k = (first + j) % M
+        k = _cell(first + j, M)
         d = _wrap(-math.pi + k * step - mean)
         w = math.exp(-0.5 * (d / sd) ** 2)
         den += w
@@ -367,7 +378,7 @@ def track_where(l_rf, means, sds, weights, step, sharp, out):
         first, n = _arc(mean, 3.0 * sd, step, M)
         best = -1e300
         for j in range(n):
-            k = (first + j) % M
+            k = _cell(first + j, M)
             g = -math.pi + k * step
             d = _wrap(g - mean)
             score = l_rf[k] - 0.5 * (d / sd) ** 2

@@ -52,6 +52,7 @@ from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softma
 from ra2vipas.services.controller.rf_belief import PacketClock
 from ra2vipas.services.controller.rf_filter import logsumexp
 from ra2vipas.services.protocol.measurements import StepMeasurement
+from ra2vipas.services.sensors._construct import builder
 
 PanRule = Literal["entropy", "neediest"]
 PAN_RULES: tuple[str, ...] = ("entropy", "neediest")
@@ -80,9 +81,13 @@ def tag_view(m: StepMeasurement, tag: int, step: int | None = None) -> StepMeasu
     if m.rf is not None:
         pair = next((p for p in m.pairs() if p.tag == tag), None)
         rf = None if pair is None else (pair if pair.tag == 0 else pair.model_copy(update={"tag": 0}))
-        return StepMeasurement.model_construct(step=t, pan_rad=m.pan_rad, rf=rf, frames=m.frames, adverts=(), rf_tags=())
+        return _new_view(t, m.pan_rad, rf, m.frames, (), ())
     ads = tuple(a if a.tag == 0 else a.model_copy(update={"tag": 0}) for a in m.adverts if a.tag == tag)
-    return StepMeasurement.model_construct(step=t, pan_rad=m.pan_rad, rf=None, frames=m.frames, adverts=ads, rf_tags=())
+    return _new_view(t, m.pan_rad, None, m.frames, ads, ())
+
+
+# StepMeasurement.model_construct with every field given, cheaper (the same object: ``sensors._construct``)
+_new_view = builder(StepMeasurement, "step", "pan_rad", "rf", "frames", "adverts", "rf_tags")
 
 
 @dataclass(frozen=True)
@@ -286,7 +291,7 @@ class JointSearch:
         open_ = [d is None for d in self.decided]
         where_missed = None
         if self.missed_bearings and self.vision.sees:  # an undetected carrier is named by its bearing
-            where_missed = np.stack([softmax(l_missed) for _, l_missed in scored])
+            where_missed = np.stack(self._missed_reads(scored)[0])
         weights = multitag.pan_weights(which, [not o for o in open_], self.pan_rule, where_missed)
         lead = int(np.argmax(weights)) if weights.any() else 0
         per_tag = tuple(Beliefs(t, p.rf, vision, scored[k][0], answers[k][2], self._due(k, t)) for k, p in enumerate(self.parts))
@@ -304,6 +309,15 @@ class JointSearch:
                              noise_correlation=cov0.noise_correlation, clutter_density=cov0.clutter_density,
                              crowding=cov0.crowding, tags=tuple(tags), all_decided=not any(open_), lead_tag=lead)
 
+    def _missed_reads(self, scored) -> tuple[list[np.ndarray], list[float]]:
+        """Per tag, softmax(l_missed) and logsumexp(l_missed) of a step's ``scored`` (the pan's
+        entropy, the joint posteriors and the answers each read them), computed once per ``scored``."""
+        kept = getattr(self, "_missed_kept", None)
+        if kept is None or kept[0] is not scored:
+            kept = self._missed_kept = (scored, [softmax(l_missed) for _, l_missed in scored],
+                                        [logsumexp(l_missed) for _, l_missed in scored])
+        return kept[1], kept[2]
+
     def _due(self, k: int, t: int) -> bool | None:
         clock = self.clocks[k]
         return clock.due(t + 1) if clock.last is not None else None
@@ -314,7 +328,7 @@ class JointSearch:
         if not self.vision.sees:
             return np.stack([softmax((1.0 if p.rf.exact else p.fusion.rf_weight) * p.rf.log_likelihood) for p in self.parts])
         tracks = np.stack([s[0] for s in scored])
-        missed = np.array([logsumexp(s[1]) for s in scored])
+        missed = np.array(self._missed_reads(scored)[1])
         if self._jointly():
             return multitag.exclusive_posteriors(tracks, missed)
         return multitag.independent_posteriors(tracks, missed)
@@ -335,9 +349,9 @@ class JointSearch:
         half = [max(1, int(round(p.fusion.answer_window_rad / p.fusion.circle.step))) for p in self.parts]
         # the assignment weighs "missed" as the answer would: the mass of its best arc, not all of it
         missed_arc = []
-        where_missed = [softmax(l_missed) for _, l_missed in scored]  # where an undetected carrier of tag k would be
-        for (_, l_missed), post, h in zip(scored, where_missed, half):
-            missed_arc.append(logsumexp(l_missed) + math.log(max(arc_mass(post, int(np.argmax(post)), h), 1e-300)))
+        where_missed, missed_lse = self._missed_reads(scored)  # where an undetected carrier of tag k would be
+        for lse, post, h in zip(missed_lse, where_missed, half):
+            missed_arc.append(lse + math.log(max(arc_mass(post, int(np.argmax(post)), h), 1e-300)))
         assignment = multitag.joint_assignment(tracks, np.array(missed_arc))
         out = []
         for k, (p, (_, l_missed), a) in enumerate(zip(self.parts, scored, assignment)):

@@ -120,7 +120,18 @@ def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
     unnormalised = np.zeros_like(w)
     largest_term = 0.0
     totals = w.sum(axis=1)
-    for blocks in _partitions(list(range(k))):
+    products: dict[tuple[int, ...], np.ndarray] = {}  # tags -> np.prod(w[tags, :m], axis=0), once per call
+    ones = np.ones(m + 1)
+
+    def product_of(tags: list[int]) -> np.ndarray:
+        key = tuple(tags)
+        product = products.get(key)
+        if product is None:
+            product = products[key] = np.prod(w[tags, :m], axis=0)
+        return product
+
+    rests: dict[tuple[int, ...], np.ndarray] = {}  # the same, padded with 0 for column M
+    for blocks in _partitions_of(k):
         mu = 1.0
         shared: dict[int, np.ndarray] = {}  # tag -> per column c: the rest of its block's product at c
         values: list[float] = []
@@ -129,13 +140,16 @@ def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
             mu *= (-1.0) ** (size - 1) * math.factorial(size - 1)
             if size == 1:
                 values.append(float(totals[block[0]]))
-                shared[block[0]] = np.ones(m + 1)
+                shared[block[0]] = ones
                 continue
-            product = np.prod(w[block, :m], axis=0)
+            product = product_of(block)
             values.append(float(product.sum()))
             for tag in block:
-                rest = np.zeros(m + 1)
-                rest[:m] = np.prod(w[[t for t in block if t != tag], :m], axis=0)
+                others_in_block = [t for t in block if t != tag]
+                rest = rests.get(tuple(others_in_block))
+                if rest is None:
+                    rest = rests[tuple(others_in_block)] = np.zeros(m + 1)
+                    rest[:m] = product_of(others_in_block)
                 shared[tag] = rest
         term = mu * math.prod(values)
         largest_term = max(largest_term, abs(term))
@@ -148,6 +162,17 @@ def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
     if (unnormalised < -RELIABLE_SHARE * largest_term).any() or (z <= RELIABLE_SHARE * largest_term).any():
         return _enumerated(w, m)
     return np.clip(unnormalised, 0.0, None) / z[:, None]
+
+
+_PARTITIONS: dict[int, list] = {}
+
+
+def _partitions_of(k: int) -> list:
+    """``list(_partitions(list(range(k))))``, made once per K."""
+    partitions = _PARTITIONS.get(k)
+    if partitions is None:
+        partitions = _PARTITIONS[k] = list(_partitions(list(range(k))))
+    return partitions
 
 
 def _partitions(items: list[int]):

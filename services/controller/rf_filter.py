@@ -32,6 +32,7 @@ posterior of the Tx's bearing now.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -176,8 +177,9 @@ class RFBearingFilter:
         level_stand = self._iso_sum / n
         self.rho = self._noise_correlation()
         gain = self.response.gain_over(pan_rad, self.circle)
-        ll_stand = self._sample_loglik(dir_dbm, gain, level_stand, self._level_var(False))
-        ll_walk = self._sample_loglik(dir_dbm, gain, self._level_walk, self._level_var(True))
+        shared = self._slope_term(gain)  # the same for both levels
+        ll_stand = self._sample_loglik(dir_dbm, gain, level_stand, self._level_var(False), shared)
+        ll_walk = self._sample_loglik(dir_dbm, gain, self._level_walk, self._level_var(True), shared)
         self._prev = (gain, dir_dbm)
         self._absorb(ll_stand, ll_walk)
 
@@ -220,18 +222,29 @@ class RFBearingFilter:
             return min(self.noise_var * (1.0 - lam) / (1.0 + lam) * inflate, self.noise_var)
         return min(self.noise_var * inflate / self.n, self.noise_var)
 
-    def _sample_loglik(self, z: float, gain: np.ndarray, level: float, level_var: float) -> np.ndarray:
+    def _slope_term(self, gain: np.ndarray) -> np.ndarray:
+        """What ``_sample_loglik``'s variance adds per unit of level variance, (dE z / dL)^2
+        quasi-differenced: the same for the standing and the walking level (computed once a sample)."""
+        resp = self.response
+        slope = resp.level_slope(gain)
+        if self._prev is not None and self.rho > 0.0:
+            return (slope - self.rho * resp.level_slope(self._prev[0])) ** 2
+        return slope * slope
+
+    def _sample_loglik(self, z: float, gain: np.ndarray, level: float, level_var: float,
+                       slope_term: np.ndarray | None = None) -> np.ndarray:
         resp = self.response
         mean = resp.mean(level, gain)
-        slope = resp.level_slope(gain)
+        if slope_term is None:
+            slope_term = self._slope_term(gain)
         rho = self.rho
         if self._prev is not None and rho > 0.0:
             gain0, z0 = self._prev  # the previous sample's antenna gain over the grid, and its reading
             resid = (z - rho * z0) - (mean - rho * resp.mean(level, gain0))
-            var = self.noise_var * (1.0 - rho * rho) + (slope - rho * resp.level_slope(gain0)) ** 2 * level_var
+            var = self.noise_var * (1.0 - rho * rho) + slope_term * level_var
         else:
             resid = z - mean
-            var = self.noise_var + slope * slope * level_var
+            var = self.noise_var + slope_term * level_var
         if self.tail_dof is None:
             return -0.5 * (resid * resid / var + np.log(2.0 * math.pi * var))
         nu = self.tail_dof  # Student-t: a rare large innovation (fading, a body passing) is not a reason to move gamma
@@ -558,6 +571,7 @@ class PacketBearingFilter(RFBearingFilter):
         resp = self.response
         gain = resp.gain_over(pan_rad, self.circle)
         slope = resp.level_slope(gain)
+        slope2 = slope * slope  # (in every packet's variance)
         means = (resp.mean(self._level_now(False), gain), resp.mean(self._level_walk, gain))
         level_vars = (self._packet_level_var(False, white), self._packet_level_var(True, white))
         total = [np.zeros(self.circle.size), np.zeros(self.circle.size)]
@@ -580,7 +594,7 @@ class PacketBearingFilter(RFBearingFilter):
             for j in (0, 1):
                 resid = z - means[j]
                 pred = resid - shrink * group[1 + j]
-                var = white + offset_var + slope * slope * level_vars[j]
+                var = white + offset_var + slope2 * level_vars[j]
                 total[j] += weight * self._packet_loglik(pred, var)
                 group[1 + j] += resid
             group[0] = n_c + 1
@@ -648,6 +662,7 @@ class PacketBearingFilter(RFBearingFilter):
         return -0.5 * (nu + 1.0) * np.log1p(resid * resid / (nu * var)) - 0.5 * np.log(var) + _t_const(nu)
 
 
+@functools.lru_cache(maxsize=64)
 def _t_const(nu: float) -> float:
     return math.lgamma(0.5 * (nu + 1.0)) - math.lgamma(0.5 * nu) - 0.5 * math.log(nu * math.pi)
 
