@@ -197,15 +197,50 @@ def missed_logdensity(l_rf, rf_weight, miss_stand, miss_walk, walks, log_prior, 
     (``miss_walk``): mixed with probability ``walks``; with probability ``outlier[j]`` the miss
     says nothing (hidden behind someone, most likely just behind a detected target, or the POD
     model is off)."""
+    # neighbouring cells were mostly looked at in the same frames: a cell whose (stand, walk, outlier)
+    # equal the previous cell's has its miss term (the same function of the same doubles) reused
+    last_stand = last_walk = last_e = math.nan
+    miss = 0.0
     for j in range(l_rf.size):
         stand = miss_stand[j]
         walk = miss_walk[j]
-        top = max(stand, walk)
-        miss = top + math.log((1.0 - walks) * math.exp(stand - top) + walks * math.exp(walk - top))
         e = outlier[j]
-        if e > 0.0:
-            miss = math.log((1.0 - e) * math.exp(miss) + e)
+        if not (stand == last_stand and walk == last_walk and e == last_e):
+            top = max(stand, walk)
+            miss = top + math.log((1.0 - walks) * math.exp(stand - top) + walks * math.exp(walk - top))
+            if e > 0.0:
+                miss = math.log((1.0 - e) * math.exp(miss) + e)
+            last_stand, last_walk, last_e = stand, walk, e
         out[j] = rf_weight * l_rf[j] + miss + log_prior
+    return out
+
+
+@njit(cache=True)
+def runs(values):
+    """(first index, length) of each run of equal consecutive values (a NaN is a run of its own)."""
+    n = values.size
+    starts = np.empty(n, dtype=np.int64)
+    lengths = np.empty(n, dtype=np.int64)
+    r = 0
+    for j in range(n):
+        if j == 0 or values[j] != values[j - 1]:
+            starts[r] = j
+            lengths[r] = 1
+            r += 1
+        else:
+            lengths[r - 1] += 1
+    return starts[:r], lengths[:r]
+
+
+@njit(cache=True)
+def mark_arcs(out, bearings, step, h, value):
+    """out[(c + d) % M] = value for d in [-h, h], c each bearing's nearest grid cell (as
+    np.rint((wrap(bearing) + pi) / step) % M)."""
+    M = out.size
+    for i in range(bearings.size):
+        c = int(np.rint((_wrap(bearings[i]) + math.pi) / step)) % M
+        for d in range(-h, h + 1):
+            out[(c + d) % M] = value
     return out
 
 
