@@ -66,19 +66,28 @@ def _gain_row(curvature: float, circle: CircleGrid, pan_rad: float) -> np.ndarra
     return row
 
 
-def _gain_table(curvature: float, circle: CircleGrid) -> np.ndarray:
-    """antenna_gain(angles[:, None] - angles[None, :], curvature), (M, M), read-only: element (i, j)
-    is the gain at grid pan i of a Tx at grid bearing j, computed once per (curvature, grid)
-    (elementwise, so any (pans x cells) block of it is what computing that block gives)."""
-    key = (curvature, circle.size)
+def _gain_table(curvature: float, circle: CircleGrid, stride: int = 1) -> np.ndarray:
+    """antenna_gain(angles[::stride, None] - angles[None, :], curvature), (M / stride, M), C-contiguous
+    and read-only: element (i, j) is the gain at grid pan i * stride of a Tx at grid bearing j,
+    computed once per (curvature, grid, stride) (elementwise, so any (pans x cells) block of it is
+    what computing that block gives)."""
+    key = (curvature, circle.size, stride)
     table = _GAIN_TABLES.get(key)
     if table is None:
         if len(_GAIN_TABLES) >= 16:
             _GAIN_TABLES.clear()
-        table = antenna_gain(circle.angles[:, None] - circle.angles[None, :], curvature)
+        table = antenna_gain(circle.angles[::stride, None] - circle.angles[None, :], curvature)
         table.flags.writeable = False
         _GAIN_TABLES[key] = table
     return table
+
+
+def _columns(table: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """table[:, keep] as a new C-contiguous array (a slice's copy when ``keep`` is a run of cells,
+    the posterior's support mostly is; ``np.take`` otherwise)."""
+    if keep.size and keep[-1] - keep[0] + 1 == keep.size:
+        return np.ascontiguousarray(table[:, keep[0]:keep[-1] + 1])
+    return np.take(table, keep, axis=1)
 
 
 class RxDirModel:
@@ -98,9 +107,9 @@ class RxDirModel:
         """``gain(pan_rad - circle.angles)``, read-only (kept per pan: ``_gain_row``)."""
         return _gain_row(self.curvature, circle, pan_rad)
 
-    def gain_table(self, circle: CircleGrid) -> np.ndarray:
-        """``gain(angles[:, None] - angles[None, :])``, (M, M), read-only (``_gain_table``)."""
-        return _gain_table(self.curvature, circle)
+    def gain_table(self, circle: CircleGrid, stride: int = 1) -> np.ndarray:
+        """``gain(angles[::stride, None] - angles[None, :])``, (M / stride, M), read-only (``_gain_table``)."""
+        return _gain_table(self.curvature, circle, stride)
 
     def mean(self, level: float, gain: np.ndarray) -> np.ndarray:
         """E[z_dir] for the level L (dBm) and the antenna gain rho (eq. 6 or its dB form)."""
@@ -367,7 +376,7 @@ class RFBearingFilter:
         pans = self.circle.angles[::stride]
         level = self._level_now(self.p_walk > 0.5)
         # gain(pans[:, None] - angles[keep][None, :]): those rows and columns of the grid's table
-        mean = self.response.mean(level, np.take(self.response.gain_table(self.circle)[::stride], keep, axis=1))  # (S, K)
+        mean = self.response.mean(level, _columns(self.response.gain_table(self.circle, stride), keep))  # (S, K)
         first = mean @ p
         var = (mean * mean) @ p - first * first
         return float(pans[int(np.argmax(var))])
@@ -381,7 +390,7 @@ class RFBearingFilter:
         rho(s - gamma) at every grid pan s: the normalised lobe J_RF(s) the fused objective's
         GP-UCB reads (paper eq. 24-25), and how unsure the filter is of it there."""
         keep, p = self._posterior_support(mass)
-        gain = np.take(self.response.gain_table(self.circle), keep, axis=1)  # gain(angles[:, None] - angles[keep][None, :]), (M, K)
+        gain = _columns(self.response.gain_table(self.circle), keep)  # gain(angles[:, None] - angles[keep][None, :]), (M, K)
         first = gain @ p
         return first, np.sqrt(np.maximum((gain * gain) @ p - first * first, 0.0))
 
