@@ -138,8 +138,8 @@ class BearingTracker:
     def components(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each track's bearing as its IMM mixture: means, standard deviations and weights of the
         (standing, walking) models, each of shape (n, 2)."""
-        v = self._view
-        return self._read("components", lambda: (self._x[v, :, 0], np.sqrt(np.maximum(self._P[v, :, 0, 0], 0.0)), self._mu[v]))
+        # = (self._x[v, :, 0], np.sqrt(np.maximum(self._P[v, :, 0, 0], 0.0)), self._mu[v]) for v = self._view
+        return self._read("components", lambda: _tracker.components(self._tab, self._view))
 
     @property
     def walking(self) -> np.ndarray:
@@ -210,9 +210,8 @@ class BearingTracker:
     def _settled(self) -> tuple[int, int]:
         """(walkers, tracks) among the tracks detected in at least three steps (kept: ``_read``)."""
         def count() -> tuple[int, int]:
-            n = self._n
-            settled = self._det_steps[:n] >= 3.0
-            return int(np.count_nonzero(self._mu[:n, 1][settled] > 0.5)), int(settled.sum())
+            walkers, settled = _tracker.settled_walkers(self._tab, self._n)
+            return int(walkers), int(settled)
         return self._read("settled", count)
 
     def detection_rate(self) -> tuple[np.ndarray, np.ndarray]:
