@@ -216,6 +216,19 @@ def missed_logdensity(l_rf, rf_weight, miss_stand, miss_walk, walks, log_prior, 
 
 
 @njit(cache=True)
+def mass_grid(bearings, post, step, w, M):
+    """mass[c] = the summed max(post_i, 0) of the tracks whose nearest cell (np.rint((bearing + pi) /
+    step) % M) is within w cells of c, added track by track, cell by cell (as np.add.at does)."""
+    mass = np.zeros(M)
+    for i in range(bearings.size):
+        p = post[i] if post[i] > 0.0 else 0.0
+        c = int(np.rint((bearings[i] + math.pi) / step)) % M
+        for d in range(-w, w + 1):
+            mass[(c + d) % M] += p
+    return mass
+
+
+@njit(cache=True)
 def runs(values):
     """(first index, length) of each run of equal consecutive values (a NaN is a run of its own)."""
     n = values.size

@@ -44,7 +44,7 @@ from typing import Callable, Literal
 
 import numpy as np
 
-from ra2vipas.services.controller import multitag
+from ra2vipas.services.controller import _kernels, multitag
 from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, Beliefs
 from ra2vipas.services.controller.composed import Composition, Decision, Parts, take_iso, update_rf, wrapped
 from ra2vipas.services.controller.confidence import Covariates
@@ -146,9 +146,9 @@ def gpucb_values(b: Beliefs, gpucb: GPUCB) -> np.ndarray:
         mass = np.zeros(circle.size)
         if b.post.size:
             w = int(math.floor(vision.tracks.count_limit / circle.step + 1e-9))
-            centres = np.rint((np.asarray(vision.tracks.bearing) + math.pi) / circle.step).astype(np.int64) % circle.size
-            idx = (centres[:, None] + np.arange(-w, w + 1)[None, :]) % circle.size
-            np.add.at(mass, idx, np.where(b.post > 0.0, b.post, 0.0)[:, None] * np.ones((1, 2 * w + 1)))
+            # np.add.at(mass, (rint((bearing + pi) / step) % M)[:, None] + arange(-w, w + 1)) % M, max(post, 0)), compiled
+            mass = _kernels.mass_grid(np.asarray(vision.tracks.bearing, dtype=float), np.asarray(b.post, dtype=float), circle.step, w,
+                                      circle.size)
         unseen = (vision.view_frames < 2.0 * gpucb.frames_per_rf) & (mass < 1.0)
         value = value * np.where(unseen, 1.0, mass)
     return value

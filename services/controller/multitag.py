@@ -72,6 +72,20 @@ def independent_posteriors(track_loglik, missed_loglik) -> np.ndarray:
     return np.exp(full - logsumexp(full, axis=1, keepdims=True))
 
 
+_LSA = None
+
+
+def _linear_sum_assignment():
+    """scipy's ``linear_sum_assignment``, imported on first use (scipy.optimize costs every rig ~0.3 s
+    of CPU at start) and kept (an import statement per call costs ~20 us: scipy's lazy loader)."""
+    global _LSA
+    if _LSA is None:
+        from scipy.optimize import linear_sum_assignment
+
+        _LSA = linear_sum_assignment
+    return _LSA
+
+
 def joint_assignment(track_loglik, missed_loglik) -> np.ndarray:
     """The MAP assignment of tags to tracks when a track carries at most one tag.
 
@@ -88,9 +102,7 @@ def joint_assignment(track_loglik, missed_loglik) -> np.ndarray:
     own_missed = np.full((k, k), IMPOSSIBLE)
     np.fill_diagonal(own_missed, missed)
     gain = np.concatenate([tracks, own_missed], axis=1)
-    from scipy.optimize import linear_sum_assignment  # here: scipy.optimize costs every rig ~0.3 s of CPU at start
-
-    rows, cols = linear_sum_assignment(gain, maximize=True)
+    rows, cols = _linear_sum_assignment()(gain, maximize=True)
     out = np.empty(k, dtype=np.int64)
     out[rows] = np.where(cols < m, cols, m)
     return out
