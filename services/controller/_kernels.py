@@ -216,6 +216,36 @@ def missed_logdensity(l_rf, rf_weight, miss_stand, miss_walk, walks, log_prior, 
 
 
 @njit(cache=True)
+def t_innovation(gain, gain0, z, z0, level, rho, noise_var, slope_term, level_var, nu, differenced, var, q):
+    """The arithmetic of ``RFBearingFilter._sample_loglik`` for the paper response (mean = level
+    gain) and Student-t innovations, elementwise in its order: var = noise_var (1 - rho^2) +
+    slope_term level_var and resid = (z - rho z0) - (level gain - rho (level gain0)) when
+    ``differenced`` (else noise_var + ..., z - level gain), q = resid^2 / (nu var)."""
+    if differenced:
+        a = z - rho * z0
+        b = noise_var * (1.0 - rho * rho)
+        for i in range(gain.size):
+            resid = a - (level * gain[i] - rho * (level * gain0[i]))
+            v = b + slope_term[i] * level_var
+            var[i] = v
+            q[i] = resid * resid / (nu * v)
+    else:
+        for i in range(gain.size):
+            resid = z - level * gain[i]
+            v = noise_var + slope_term[i] * level_var
+            var[i] = v
+            q[i] = resid * resid / (nu * v)
+
+
+@njit(cache=True)
+def t_combine(log1p_q, log_var, a, c, out):
+    """out = a log1p_q - 0.5 log_var + c, elementwise in that order."""
+    for i in range(out.size):
+        out[i] = a * log1p_q[i] - 0.5 * log_var[i] + c
+    return out
+
+
+@njit(cache=True)
 def mass_grid(bearings, post, step, w, M):
     """mass[c] = the summed max(post_i, 0) of the tracks whose nearest cell (np.rint((bearing + pi) /
     step) % M) is within w cells of c, added track by track, cell by cell (as np.add.at does)."""

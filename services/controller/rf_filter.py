@@ -243,10 +243,18 @@ class RFBearingFilter:
     def _sample_loglik(self, z: float, gain: np.ndarray, level: float, level_var: float,
                        slope_term: np.ndarray | None = None) -> np.ndarray:
         resp = self.response
-        mean = resp.mean(level, gain)
         if slope_term is None:
             slope_term = self._slope_term(gain)
         rho = self.rho
+        if resp.model == "paper" and self.tail_dof is not None:  # the arithmetic below in two compiled passes, the logs numpy's
+            nu = self.tail_dof
+            differenced = self._prev is not None and rho > 0.0
+            gain0, z0 = self._prev if differenced else (gain, 0.0)
+            var, q = np.empty(gain.size), np.empty(gain.size)
+            _kernels.t_innovation(gain, gain0, float(z), float(z0), float(level), float(rho), float(self.noise_var), slope_term,
+                                  float(level_var), float(nu), differenced, var, q)
+            return _kernels.t_combine(np.log1p(q), np.log(var), -0.5 * (nu + 1.0), _t_const(nu), q)
+        mean = resp.mean(level, gain)
         if self._prev is not None and rho > 0.0:
             gain0, z0 = self._prev  # the previous sample's antenna gain over the grid, and its reading
             resid = (z - rho * z0) - (mean - rho * resp.mean(level, gain0))

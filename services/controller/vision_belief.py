@@ -199,6 +199,9 @@ class CameraBelief(VisionBelief):
         of a confirmed track (in a crowd the target the camera cannot see is most often right
         behind one it sees)."""
         out = self._outlier
+        if getattr(self, "_outlier_for", None) is self.tracks._view:  # the same tracks (K tags read it once each)
+            return out
+        self._outlier_for = self.tracks._view
         out.fill(self.pod_outlier)
         if self.occluded_probability > self.pod_outlier and len(self.tracks):
             circle = self.circle
