@@ -246,6 +246,17 @@ def t_combine(log1p_q, log_var, a, c, out):
 
 
 @njit(cache=True)
+def arc_sum(weights, centre, half):
+    """weights[(centre - half .. centre + half) % M] summed left to right from +0.0: what numpy's sum
+    of those (gathered) terms gives when there are fewer than 8 of them (below its pairwise block)."""
+    M = weights.size
+    total = 0.0
+    for d in range(-half, half + 1):
+        total += weights[(centre + d) % M]
+    return total
+
+
+@njit(cache=True)
 def mass_grid(bearings, post, step, w, M):
     """mass[c] = the summed max(post_i, 0) of the tracks whose nearest cell (np.rint((bearing + pi) /
     step) % M) is within w cells of c, added track by track, cell by cell (as np.add.at does)."""
