@@ -138,8 +138,11 @@ def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
     def product_of(tags: list[int]) -> np.ndarray:
         key = tuple(tags)
         product = products.get(key)
-        if product is None:
-            product = products[key] = np.prod(w[tags, :m], axis=0)
+        if product is None:  # np.prod(w[tags, :m], axis=0): the rows multiplied in order (one row: itself)
+            product = w[tags[0], :m]
+            for t in tags[1:]:
+                product = product * w[t, :m]
+            products[key] = product
         return product
 
     rests: dict[tuple[int, ...], np.ndarray] = {}  # the same, padded with 0 for column M

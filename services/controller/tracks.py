@@ -115,9 +115,7 @@ class BearingTracker:
         """``read()``, kept (read-only) until the tracks change: a step's readers (the fusion, the RF
         belief, the acquisition, the confidence) ask for the same columns many times. ``update`` sets
         a new ``_view``, which drops what was kept."""
-        if getattr(self, "_kept_for", None) is not self._view:  # (getattr: a tracker made without __init__)
-            self._kept, self._kept_for = {}, self._view
-        value = self._kept.get(name)
+        value = self._kept_value(name)
         if value is None:
             value = self._kept[name] = read()
             for array in value if isinstance(value, tuple) else (value,):
@@ -125,10 +123,22 @@ class BearingTracker:
                     array.flags.writeable = False
         return value
 
+    def _kept_value(self, name: str):
+        """What ``_read`` kept of ``name`` for the current tracks, or None (dropping what was kept for
+        others)."""
+        try:
+            if self._kept_for is self._view:
+                return self._kept.get(name)
+        except AttributeError:  # a tracker made without __init__
+            pass
+        self._kept, self._kept_for = {}, self._view
+        return None
+
     # read-only views of the confirmed tracks
     @property
     def bearing(self) -> np.ndarray:
-        return self._read("bearing", lambda: self._bearing[self._view])
+        value = self._kept_value("bearing")
+        return value if value is not None else self._read("bearing", lambda: self._bearing[self._view])
 
     @property
     def ids(self) -> np.ndarray:
