@@ -93,7 +93,6 @@ def add_pod_evidence(out, detections, frames, alpha, beta, alpha0, beta0, outlie
     per track)."""
     for i in range(out.size):
         out[i] += pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
-    return out
 
 
 @njit(cache=True)
@@ -212,7 +211,6 @@ def missed_logdensity(l_rf, rf_weight, miss_stand, miss_walk, walks, log_prior, 
                 miss = math.log((1.0 - e) * math.exp(miss) + e)
             last_stand, last_walk, last_e = stand, walk, e
         out[j] = rf_weight * l_rf[j] + miss + log_prior
-    return out
 
 
 @njit(cache=True)
@@ -242,7 +240,6 @@ def t_combine(log1p_q, log_var, a, c, out):
     """out = a log1p_q - 0.5 log_var + c, elementwise in that order."""
     for i in range(out.size):
         out[i] = a * log1p_q[i] - 0.5 * log_var[i] + c
-    return out
 
 
 @njit(cache=True)
@@ -270,11 +267,10 @@ def mass_grid(bearings, post, step, w, M):
 
 
 @njit(cache=True)
-def runs(values):
-    """(first index, length) of each run of equal consecutive values (a NaN is a run of its own)."""
+def runs(values, starts, lengths):
+    """The first index and the length of each run of equal consecutive values (a NaN is a run of its
+    own) into ``starts`` and ``lengths`` (room for ``values.size``); returns the number of runs."""
     n = values.size
-    starts = np.empty(n, dtype=np.int64)
-    lengths = np.empty(n, dtype=np.int64)
     r = 0
     for j in range(n):
         if j == 0 or values[j] != values[j - 1]:
@@ -283,7 +279,7 @@ def runs(values):
             r += 1
         else:
             lengths[r - 1] += 1
-    return starts[:r], lengths[:r]
+    return r
 
 
 @njit(cache=True)
@@ -295,7 +291,6 @@ def mark_arcs(out, bearings, step, h, value):
         c = int(np.rint((_wrap(bearings[i]) + math.pi) / step)) % M
         for d in range(-h, h + 1):
             out[(c + d) % M] = value
-    return out
 
 
 @njit(cache=True)
@@ -448,7 +443,6 @@ def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, out):
             if comp[a] > -1e299:
                 acc += math.exp(comp[a] - top)
         out[i] = top + math.log(acc) if acc > 0.0 else -1e300
-    return out
 
 
 @njit(cache=True)
@@ -474,4 +468,3 @@ def track_where(l_rf, means, sds, weights, step, sharp, out):
             if score > best:
                 best = score
                 out[i] = g
-    return out

@@ -637,22 +637,17 @@ def tracker_step(pan, boxes_rel, counts, n, prm, tab, together, pans, frames_per
 
 
 @njit(cache=True)
-def components(tab, view):
-    """The tracks ``view``'s IMM components: means x[a, 0], standard deviations sqrt(max(P[a, 0, 0], 0))
-    (as np.sqrt(np.maximum(., 0.0))) and weights mu[a], each (n, 2): the table's columns gathered
+def components(tab, view, means, sds, weights):
+    """The tracks ``view``'s IMM components into ``means`` (x[a, 0]), ``sds`` (sqrt(max(P[a, 0, 0], 0)),
+    as np.sqrt(np.maximum(., 0.0))) and ``weights`` (mu[a]), each (n, 2): the table's columns gathered
     in one pass (numpy's fancy indexing of the packed, unaligned record columns is slow)."""
-    n = view.size
-    means = np.empty((n, 2))
-    sds = np.empty((n, 2))
-    weights = np.empty((n, 2))
-    for i in range(n):
+    for i in range(view.size):
         tr = tab[view[i]]
         for a in range(2):
             means[i, a] = tr.x[a, 0]
             p = tr.P[a, 0, 0]
             sds[i, a] = math.sqrt(p if (p >= 0.0 or p != p) else 0.0)
             weights[i, a] = tr.mu[a]
-    return means, sds, weights
 
 
 @njit(cache=True)

@@ -108,9 +108,9 @@ class Fusion:
             if l_range is not None:
                 l_tracks += l_range
         miss_stand, miss_walk = vision.miss_loglik(alpha, beta)
-        l_missed = _kernels.missed_logdensity(l_rf, self.rf_weight, miss_stand, miss_walk, rf.tx_walks,
-                                              math.log(self.missed_prior_per_rad * step), vision.miss_outlier(), self._missed)
-        return l_tracks, l_missed
+        _kernels.missed_logdensity(l_rf, self.rf_weight, miss_stand, miss_walk, rf.tx_walks, math.log(self.missed_prior_per_rad * step),
+                                   vision.miss_outlier(), self._missed)
+        return l_tracks, self._missed
 
     def answer(self, rf: RFBelief, l_tracks: np.ndarray, l_missed: np.ndarray | None,
                default_rad: float) -> tuple[float, float, np.ndarray]:

@@ -253,7 +253,8 @@ class RFBearingFilter:
             var, q = np.empty(gain.size), np.empty(gain.size)
             _kernels.t_innovation(gain, gain0, float(z), float(z0), float(level), float(rho), float(self.noise_var), slope_term,
                                   float(level_var), float(nu), differenced, var, q)
-            return _kernels.t_combine(np.log1p(q), np.log(var), -0.5 * (nu + 1.0), _t_const(nu), q)
+            _kernels.t_combine(np.log1p(q), np.log(var), -0.5 * (nu + 1.0), _t_const(nu), q)
+            return q
         mean = resp.mean(level, gain)
         if self._prev is not None and rho > 0.0:
             gain0, z0 = self._prev  # the previous sample's antenna gain over the grid, and its reading
@@ -278,9 +279,9 @@ class RFBearingFilter:
         evidence: dict[int, float] = {}
         circle = self.circle
         n = len(ids)
-        step = _kernels.track_sample_loglik(self.ll_stand, self.ll_walk, np.ascontiguousarray(means, dtype=float),
-                                            np.ascontiguousarray(sds, dtype=float), np.ascontiguousarray(weights, dtype=float),
-                                            circle.step, np.empty(n))
+        step = np.empty(n)
+        _kernels.track_sample_loglik(self.ll_stand, self.ll_walk, np.ascontiguousarray(means, dtype=float),
+                                     np.ascontiguousarray(sds, dtype=float), np.ascontiguousarray(weights, dtype=float), circle.step, step)
         for i, tid in enumerate(ids):
             if tid in self._evidence:
                 evidence[tid] = self._evidence[tid] + float(step[i])

@@ -149,7 +149,13 @@ class BearingTracker:
         """Each track's bearing as its IMM mixture: means, standard deviations and weights of the
         (standing, walking) models, each of shape (n, 2)."""
         # = (self._x[v, :, 0], np.sqrt(np.maximum(self._P[v, :, 0, 0], 0.0)), self._mu[v]) for v = self._view
-        return self._read("components", lambda: _tracker.components(self._tab, self._view))
+        return self._read("components", self._components)
+
+    def _components(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = self._view.size
+        means, sds, weights = np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2))
+        _tracker.components(self._tab, self._view, means, sds, weights)
+        return means, sds, weights
 
     @property
     def walking(self) -> np.ndarray:

@@ -63,9 +63,10 @@ def _per_run(frames: np.ndarray, alpha: float, beta: float, base: float) -> np.n
     """gammaln(frames + beta) - gammaln(frames + alpha + beta) + base, evaluated once per run of
     equal neighbouring values (cells the camera saw in the same frames: a few dozen runs of 360
     cells) and repeated over the run: the same doubles, a tenth of the gammaln calls."""
-    starts, lengths = _kernels.runs(frames)
-    v = frames[starts]
-    return np.repeat(gammaln(v + beta) - gammaln(v + alpha + beta) + base, lengths)
+    starts, lengths = np.empty(frames.size, dtype=np.int64), np.empty(frames.size, dtype=np.int64)
+    r = _kernels.runs(frames, starts, lengths)
+    v = frames[starts[:r]]
+    return np.repeat(gammaln(v + beta) - gammaln(v + alpha + beta) + base, lengths[:r])
 
 
 def beta_of(mean: float, var: float) -> tuple[float, float]:
