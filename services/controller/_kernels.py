@@ -254,6 +254,24 @@ def arc_sum(weights, centre, half):
 
 
 @njit(cache=True)
+def floored_ratio(values, c, floor, out):
+    """out = np.maximum(values / c, floor) (NaN kept, as np.maximum does)."""
+    for i in range(values.size):
+        v = values[i] / c
+        out[i] = v if (v >= floor or v != v) else floor
+
+
+@njit(cache=True)
+def rebase(ll_stand, ll_walk, log_c, static, out_stand, out_walk):
+    """out_stand = ll_stand - log_c, out_walk = ll_walk - log_c, static += out_stand."""
+    for i in range(ll_stand.size):
+        s = ll_stand[i] - log_c
+        out_stand[i] = s
+        out_walk[i] = ll_walk[i] - log_c
+        static[i] += s
+
+
+@njit(cache=True)
 def mass_grid(bearings, post, step, w, M):
     """mass[c] = the summed max(post_i, 0) of the tracks whose nearest cell (np.rint((bearing + pi) /
     step) % M) is within w cells of c, added track by track, cell by cell (as np.add.at does)."""

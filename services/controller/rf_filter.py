@@ -206,10 +206,11 @@ class RFBearingFilter:
         joint = predicted * np.exp(ll_walk - top)
         c = float(joint.sum())
         log_c = top + math.log(max(c, 1e-300))
-        self._walk = np.log(np.maximum(joint / c, 1e-300))
-        self.ll_stand = ll_stand - log_c
-        self.ll_walk = ll_walk - log_c
-        self._static += self.ll_stand
+        _kernels.floored_ratio(joint, c, 1e-300, joint)  # np.maximum(joint / c, 1e-300), in place
+        self._walk = np.log(joint)
+        # ll_stand - log_c, ll_walk - log_c, and the first added to _static (one compiled pass)
+        self.ll_stand, self.ll_walk = np.empty(ll_stand.size), np.empty(ll_walk.size)
+        _kernels.rebase(ll_stand, ll_walk, float(log_c), self._static, self.ll_stand, self.ll_walk)
 
     def _noise_correlation(self) -> float:
         """rho from Rx(iso): for AR(1) noise Var(z_t - z_{t-1}) = 2 sigma^2 (1 - rho) (a walking
@@ -330,9 +331,17 @@ class RFBearingFilter:
         read = self._reading()
         joint = read.get("joint")
         if joint is None:
-            joint = read["joint"] = np.logaddexp(self.log_joint_stand, self.log_joint_walk)
+            joint = read["joint"] = np.logaddexp(*self._joints())
             read["joint_lse"] = logsumexp(joint)
         return joint, read["joint_lse"]
+
+    def _joints(self) -> tuple[np.ndarray, np.ndarray]:
+        """(log_joint_stand, log_joint_walk), kept (``_reading``)."""
+        read = self._reading()
+        joints = read.get("joints")
+        if joints is None:
+            joints = read["joints"] = (self.log_joint_stand, self.log_joint_walk)
+        return joints
 
     def log_posterior(self) -> np.ndarray:
         """log P(gamma_t = cell | samples), normalised over the grid: read-only, computed once per
@@ -371,8 +380,9 @@ class RFBearingFilter:
         read = self._reading()
         p = read.get("p_walk")
         if p is None:
-            s = logsumexp(self.log_joint_stand)
-            w = logsumexp(self.log_joint_walk)
+            stand, walk = self._joints()
+            s = logsumexp(stand)
+            w = logsumexp(walk)
             p = read["p_walk"] = 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
         return p
 
