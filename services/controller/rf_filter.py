@@ -283,9 +283,9 @@ class RFBearingFilter:
         step = np.empty(n)
         _kernels.track_sample_loglik(self.ll_stand, self.ll_walk, np.ascontiguousarray(means, dtype=float),
                                      np.ascontiguousarray(sds, dtype=float), np.ascontiguousarray(weights, dtype=float), circle.step, step)
-        for i, tid in enumerate(ids):
+        for i, (tid, s) in enumerate(zip(ids, step.tolist())):
             if tid in self._evidence:
-                evidence[tid] = self._evidence[tid] + float(step[i])
+                evidence[tid] = self._evidence[tid] + s
             else:
                 evidence[tid] = self._first_evidence(means[i], weights[i])
         self._evidence = evidence
@@ -299,9 +299,9 @@ class RFBearingFilter:
     def _first_evidence(self, means: np.ndarray, weights: np.ndarray) -> float:
         """A track met for the first time: its past is unknown, it stood where it is (the standing
         filter) or walked here (the walking filter), by its IMM weights."""
-        circle = self.circle
-        stood = float(circle.interp(self._static, np.array([means[0]]))[0])
-        walked = float(circle.interp(self._walk, np.array([means[1]]))[0]) + self._log_m
+        circle = self.circle  # circle.interp at one angle, compiled (the same arithmetic)
+        stood = float(_kernels._interp_periodic(self._static, float(means[0]), circle.step))
+        walked = float(_kernels._interp_periodic(self._walk, float(means[1]), circle.step)) + self._log_m
         w0 = min(max(float(weights[0]), 1e-6), 1.0 - 1e-6)
         return _logsumexp_list([math.log(w0) + stood, math.log(1.0 - w0) + walked])
 
