@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass, field, replace
+from itertools import compress
 
 import numpy as np
 
@@ -331,9 +332,9 @@ def _frames(sc: Scenario, rng: np.random.Generator, rel_bearings: np.ndarray, p_
         return tuple(_frame(c) for c in clutter)
     hits = (rng.random((nu, n)) < p_detect).tolist()
     boxes = (rel_bearings + rng.normal(0.0, sc.box_bearing_noise_rad, size=(nu, n))).tolist()
-    if clutter is None:
-        return tuple(_frame([b for b, h in zip(row, hit) if h]) for row, hit in zip(boxes, hits))
-    return tuple(_frame([b for b, h in zip(row, hit) if h] + extra) for row, hit, extra in zip(boxes, hits, clutter))
+    if clutter is None:  # compress(row, hit): the boxes detected, in order
+        return tuple(_frame(list(compress(row, hit))) for row, hit in zip(boxes, hits))
+    return tuple(_frame(list(compress(row, hit)) + extra) for row, hit, extra in zip(boxes, hits, clutter))
 
 
 def _frames_with_heights(sc: Scenario, rng: np.random.Generator, heights_rng: np.random.Generator, rel_bearings: np.ndarray,
