@@ -17,7 +17,23 @@ TWO_PI = 2.0 * math.pi
 
 @njit(cache=True, inline="always")
 def _wrap(x: float) -> float:
-    return (x + math.pi) % TWO_PI - math.pi
+    # (x + pi) % 2 pi - pi, with the common case taken without the modulo (fmod is ~20 ns): for y = x + pi
+    # in [0, 2 pi) Python's float modulo (numba's the same) returns y itself (-0.0 gives +0.0, and
+    # either minus pi is -pi), so the result is the same double
+    y = x + math.pi
+    if y >= 0.0 and y < TWO_PI:
+        return y - math.pi
+    return y % TWO_PI - math.pi
+
+
+@njit(cache=True, inline="always")
+def _cell(k: int, M: int) -> int:
+    """k % M for k in [-M, 2 M) (a grid index one turn either side), without the integer division."""
+    if k < 0:
+        return k + M
+    if k >= M:
+        return k - M
+    return k
 
 
 @njit(cache=True)
@@ -71,6 +87,30 @@ def pod_evidence(k, n, alpha, beta, alpha0, beta0, outlier):
     return math.log((1.0 - outlier) * math.exp(log_bf) + outlier)
 
 
+@njit(cache=True)
+def add_pod_evidence(out, detections, frames, alpha, beta, alpha0, beta0, outlier):
+    """out[i] += pod_evidence(detections[i], frames[i], ...) for every track (one call, not one
+    per track)."""
+    for i in range(out.size):
+        out[i] += pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
+
+
+@njit(cache=True)
+def second_gap(bearings, estimate):
+    """The second smallest |wrap(bearing - estimate)| (what sorting them and taking [1] gives;
+    at least two bearings)."""
+    first = np.inf
+    second = np.inf
+    for i in range(bearings.size):
+        g = abs(_wrap(bearings[i] - estimate))
+        if g < first:
+            second = first
+            first = g
+        elif g < second:
+            second = g
+    return second
+
+
 @njit(cache=True, inline="always")
 def _smeared(l_rf, grid_step, rf_weight, mean, sd):
     """log of sum_g N(g; mean, sd^2) exp(rf_weight l_RF(g)) dg and the g maximising the integrand."""
@@ -83,14 +123,14 @@ def _smeared(l_rf, grid_step, rf_weight, mean, sd):
     arg = centre
     for d in range(-half, half + 1):
         off = (d - shift) * grid_step
-        v = rf_weight * l_rf[(centre + d) % M] - 0.5 * off * off / (sd * sd)
+        v = rf_weight * l_rf[_cell(centre + d, M)] - 0.5 * off * off / (sd * sd)
         if v > best:
             best = v
-            arg = (centre + d) % M
+            arg = _cell(centre + d, M)
     total = 0.0
     for d in range(-half, half + 1):
         off = (d - shift) * grid_step
-        total += math.exp(rf_weight * l_rf[(centre + d) % M] - 0.5 * off * off / (sd * sd) - best)
+        total += math.exp(rf_weight * l_rf[_cell(centre + d, M)] - 0.5 * off * off / (sd * sd) - best)
     return best + math.log(total * grid_step / (math.sqrt(TWO_PI) * sd)), -math.pi + arg * grid_step
 
 
@@ -156,16 +196,119 @@ def missed_logdensity(l_rf, rf_weight, miss_stand, miss_walk, walks, log_prior, 
     (``miss_walk``): mixed with probability ``walks``; with probability ``outlier[j]`` the miss
     says nothing (hidden behind someone, most likely just behind a detected target, or the POD
     model is off)."""
+    # neighbouring cells were mostly looked at in the same frames: a cell whose (stand, walk, outlier)
+    # equal the previous cell's has its miss term (the same function of the same doubles) reused
+    last_stand = last_walk = last_e = math.nan
+    miss = 0.0
     for j in range(l_rf.size):
         stand = miss_stand[j]
         walk = miss_walk[j]
-        top = max(stand, walk)
-        miss = top + math.log((1.0 - walks) * math.exp(stand - top) + walks * math.exp(walk - top))
         e = outlier[j]
-        if e > 0.0:
-            miss = math.log((1.0 - e) * math.exp(miss) + e)
+        if not (stand == last_stand and walk == last_walk and e == last_e):
+            top = max(stand, walk)
+            miss = top + math.log((1.0 - walks) * math.exp(stand - top) + walks * math.exp(walk - top))
+            if e > 0.0:
+                miss = math.log((1.0 - e) * math.exp(miss) + e)
+            last_stand, last_walk, last_e = stand, walk, e
         out[j] = rf_weight * l_rf[j] + miss + log_prior
-    return out
+
+
+@njit(cache=True)
+def t_innovation(gain, gain0, z, z0, level, rho, noise_var, slope_term, level_var, nu, differenced, var, q):
+    """The arithmetic of ``RFBearingFilter._sample_loglik`` for the paper response (mean = level
+    gain) and Student-t innovations, elementwise in its order: var = noise_var (1 - rho^2) +
+    slope_term level_var and resid = (z - rho z0) - (level gain - rho (level gain0)) when
+    ``differenced`` (else noise_var + ..., z - level gain), q = resid^2 / (nu var)."""
+    if differenced:
+        a = z - rho * z0
+        b = noise_var * (1.0 - rho * rho)
+        for i in range(gain.size):
+            resid = a - (level * gain[i] - rho * (level * gain0[i]))
+            v = b + slope_term[i] * level_var
+            var[i] = v
+            q[i] = resid * resid / (nu * v)
+    else:
+        for i in range(gain.size):
+            resid = z - level * gain[i]
+            v = noise_var + slope_term[i] * level_var
+            var[i] = v
+            q[i] = resid * resid / (nu * v)
+
+
+@njit(cache=True)
+def t_combine(log1p_q, log_var, a, c, out):
+    """out = a log1p_q - 0.5 log_var + c, elementwise in that order."""
+    for i in range(out.size):
+        out[i] = a * log1p_q[i] - 0.5 * log_var[i] + c
+
+
+@njit(cache=True)
+def arc_sum(weights, centre, half):
+    """weights[(centre - half .. centre + half) % M] summed left to right from +0.0: what numpy's sum
+    of those (gathered) terms gives when there are fewer than 8 of them (below its pairwise block)."""
+    M = weights.size
+    total = 0.0
+    for d in range(-half, half + 1):
+        total += weights[(centre + d) % M]
+    return total
+
+
+@njit(cache=True)
+def floored_ratio(values, c, floor, out):
+    """out = np.maximum(values / c, floor) (NaN kept, as np.maximum does)."""
+    for i in range(values.size):
+        v = values[i] / c
+        out[i] = v if (v >= floor or v != v) else floor
+
+
+@njit(cache=True)
+def rebase(ll_stand, ll_walk, log_c, static, out_stand, out_walk):
+    """out_stand = ll_stand - log_c, out_walk = ll_walk - log_c, static += out_stand."""
+    for i in range(ll_stand.size):
+        s = ll_stand[i] - log_c
+        out_stand[i] = s
+        out_walk[i] = ll_walk[i] - log_c
+        static[i] += s
+
+
+@njit(cache=True)
+def mass_grid(bearings, post, step, w, M):
+    """mass[c] = the summed max(post_i, 0) of the tracks whose nearest cell (np.rint((bearing + pi) /
+    step) % M) is within w cells of c, added track by track, cell by cell (as np.add.at does)."""
+    mass = np.zeros(M)
+    for i in range(bearings.size):
+        p = post[i] if post[i] > 0.0 else 0.0
+        c = int(np.rint((bearings[i] + math.pi) / step)) % M
+        for d in range(-w, w + 1):
+            mass[(c + d) % M] += p
+    return mass
+
+
+@njit(cache=True)
+def runs(values, starts, lengths):
+    """The first index and the length of each run of equal consecutive values (a NaN is a run of its
+    own) into ``starts`` and ``lengths`` (room for ``values.size``); returns the number of runs."""
+    n = values.size
+    r = 0
+    for j in range(n):
+        if j == 0 or values[j] != values[j - 1]:
+            starts[r] = j
+            lengths[r] = 1
+            r += 1
+        else:
+            lengths[r - 1] += 1
+    return r
+
+
+@njit(cache=True)
+def mark_arcs(out, bearings, step, h, value):
+    """out[(c + d) % M] = value for d in [-h, h], c each bearing's nearest grid cell (as
+    np.rint((wrap(bearing) + pi) / step) % M)."""
+    M = out.size
+    for i in range(bearings.size):
+        c = int(np.rint((_wrap(bearings[i]) + math.pi) / step)) % M
+        for d in range(-h, h + 1):
+            out[(c + d) % M] = value
 
 
 @njit(cache=True)
@@ -266,7 +409,8 @@ def _interp_periodic(values, angle, step):
 
 @njit(cache=True, inline="always")
 def _arc(mean, half_width, step, M):
-    """(first cell, cells) of the grid arc within ``half_width`` of ``mean``, at most the circle."""
+    """(first cell, cells) of the grid arc within ``half_width`` of ``mean``, at most the circle (first in
+    [-M / 2, M): first + j for j < cells is one turn either side at most, ``_cell``)."""
     h = min(int(half_width / step), M // 2)
     centre = int(round((mean + math.pi) / step)) % M
     return centre - h, (2 * h + 1 if 2 * h + 1 <= M else M)
@@ -282,13 +426,13 @@ def _smeared_loglik(ll, mean, sd, step):
     first, n = _arc(mean, 4.0 * sd, step, M)
     top = -1e300
     for j in range(n):
-        k = (first + j) % M
+        k = _cell(first + j, M)
         if ll[k] > top:
             top = ll[k]
     num = 0.0
     den = 0.0
     for j in range(n):
-        k = (first + j) % M
+        k = _cell(first + j, M)
         d = _wrap(-math.pi + k * step - mean)
         w = math.exp(-0.5 * (d / sd) ** 2)
         den += w
@@ -317,7 +461,6 @@ def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, out):
             if comp[a] > -1e299:
                 acc += math.exp(comp[a] - top)
         out[i] = top + math.log(acc) if acc > 0.0 else -1e300
-    return out
 
 
 @njit(cache=True)
@@ -336,11 +479,10 @@ def track_where(l_rf, means, sds, weights, step, sharp, out):
         first, n = _arc(mean, 3.0 * sd, step, M)
         best = -1e300
         for j in range(n):
-            k = (first + j) % M
+            k = _cell(first + j, M)
             g = -math.pi + k * step
             d = _wrap(g - mean)
             score = l_rf[k] - 0.5 * (d / sd) ** 2
             if score > best:
                 best = score
                 out[i] = g
-    return out

@@ -21,6 +21,7 @@ It never sees ranges, identities or the true POD. The four built-ins are four su
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from ra2vipas.services.controller.acquisition import Acquisition, Beliefs
@@ -28,8 +29,16 @@ from ra2vipas.services.controller.confidence import Confidence
 from ra2vipas.services.controller.fusion import Fusion
 from ra2vipas.services.controller.rf_belief import IsoLevel, PacketClock, Packets, RFBelief
 from ra2vipas.services.controller.vision_belief import VisionBelief
-from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
+
+_TWO_PI = 2.0 * math.pi
+
+
+def wrapped(angle) -> float:
+    """``float(wrap(angle))`` for one angle, in Python floats: the same double (numpy's float
+    remainder and Python's are both fmod with the divisor's sign, +0.0 for a zero remainder)
+    without the arrays."""
+    return (float(angle) + math.pi) % _TWO_PI - math.pi
 
 
 @dataclass(frozen=True)
@@ -121,7 +130,7 @@ class Composition:
         self.parts = parts
         self.rf_period_s = float(rf_period_s)
         self.clock = PacketClock(rf_period_s)  # when the next BLE advertisement is due (packets only)
-        self._first_pan = float(wrap(first_pan_rad))
+        self._first_pan = wrapped(first_pan_rad)
 
     def first_pan(self) -> float:
         """s_0, the pan angle of the first sample."""
@@ -147,7 +156,7 @@ class Composition:
         due = self.clock.due(t + 1) if self.clock.last is not None else None
         next_pan, probe = p.acquisition.next_pan(Beliefs(t, p.rf, p.vision, l_tracks, post, due))
         cov = p.confidence.covariates(estimate, p.rf, p.vision, p.iso)
-        return Decision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=float(wrap(estimate)), reward=reward, probe=probe,
+        return Decision(step=t, next_pan_rad=wrapped(next_pan), estimate_rad=wrapped(estimate), reward=reward, probe=probe,
                         confidence=round(p.confidence(raw, cov), 6), raw_confidence=float(raw), tx_walks=cov.tx_walks,
                         noise_correlation=cov.noise_correlation, clutter_density=cov.clutter_density, crowding=cov.crowding)
 

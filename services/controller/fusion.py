@@ -36,6 +36,8 @@ def refined_argmax(circle: CircleGrid, values: np.ndarray) -> float:
 
 def arc_mass(weights: np.ndarray, centre: int, half: int) -> float:
     """Sum of grid ``weights`` within ``half`` cells of ``centre`` (periodic)."""
+    if 2 * half + 1 < 8:  # numpy sums so few terms left to right: compiled, the same double
+        return float(_kernels.arc_sum(weights, int(centre), int(half)))
     M = weights.size
     idx = np.arange(centre - half, centre + half + 1) % M
     return float(weights[idx].sum())
@@ -94,9 +96,7 @@ class Fusion:
         if n and rf.exact:  # the filter's trajectory evidence plus the POD evidence (``_kernels.pod_evidence``)
             l_tracks[:] = rf.track_loglik(tracks)
             means, sds, weights = tracks.components()
-            det, frames = tracks.detections, tracks.frames_in_view
-            for i in range(n):
-                l_tracks[i] += _kernels.pod_evidence(det[i], frames[i], alpha, beta, a0, b0, vision.pod_outlier)
+            _kernels.add_pod_evidence(l_tracks, tracks.detections, tracks.frames_in_view, alpha, beta, a0, b0, vision.pod_outlier)
             _kernels.track_where(l_rf, np.ascontiguousarray(means), np.ascontiguousarray(sds), np.ascontiguousarray(weights), step,
                                  3.0 * step, self.where)
         elif n:
@@ -108,9 +108,9 @@ class Fusion:
             if l_range is not None:
                 l_tracks += l_range
         miss_stand, miss_walk = vision.miss_loglik(alpha, beta)
-        l_missed = _kernels.missed_logdensity(l_rf, self.rf_weight, miss_stand, miss_walk, rf.tx_walks,
-                                              math.log(self.missed_prior_per_rad * step), vision.miss_outlier(), self._missed)
-        return l_tracks, l_missed
+        _kernels.missed_logdensity(l_rf, self.rf_weight, miss_stand, miss_walk, rf.tx_walks, math.log(self.missed_prior_per_rad * step),
+                                   vision.miss_outlier(), self._missed)
+        return l_tracks, self._missed
 
     def answer(self, rf: RFBelief, l_tracks: np.ndarray, l_missed: np.ndarray | None,
                default_rad: float) -> tuple[float, float, np.ndarray]:

@@ -44,14 +44,13 @@ from typing import Callable, Literal
 
 import numpy as np
 
-from ra2vipas.services.controller import multitag
+from ra2vipas.services.controller import _kernels, multitag
 from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, Beliefs
-from ra2vipas.services.controller.composed import Composition, Decision, Parts, take_iso, update_rf
+from ra2vipas.services.controller.composed import Composition, Decision, Parts, take_iso, update_rf, wrapped
 from ra2vipas.services.controller.confidence import Covariates
 from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softmax
 from ra2vipas.services.controller.rf_belief import PacketClock
 from ra2vipas.services.controller.rf_filter import logsumexp
-from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.measurements import StepMeasurement
 
 PanRule = Literal["entropy", "neediest"]
@@ -147,9 +146,9 @@ def gpucb_values(b: Beliefs, gpucb: GPUCB) -> np.ndarray:
         mass = np.zeros(circle.size)
         if b.post.size:
             w = int(math.floor(vision.tracks.count_limit / circle.step + 1e-9))
-            centres = np.rint((np.asarray(vision.tracks.bearing) + math.pi) / circle.step).astype(np.int64) % circle.size
-            idx = (centres[:, None] + np.arange(-w, w + 1)[None, :]) % circle.size
-            np.add.at(mass, idx, np.where(b.post > 0.0, b.post, 0.0)[:, None] * np.ones((1, 2 * w + 1)))
+            # np.add.at(mass, (rint((bearing + pi) / step) % M)[:, None] + arange(-w, w + 1)) % M, max(post, 0)), compiled
+            mass = _kernels.mass_grid(np.asarray(vision.tracks.bearing, dtype=float), np.asarray(b.post, dtype=float), circle.step, w,
+                                      circle.size)
         unseen = (vision.view_frames < 2.0 * gpucb.frames_per_rf) & (mass < 1.0)
         value = value * np.where(unseen, 1.0, mass)
     return value
@@ -240,7 +239,7 @@ class JointSearch:
         self.acquisition = with_summed_gpucb(acquisition) if pan_rule == "entropy" else acquisition
         self.clocks = [PacketClock(rf_period_s) for _ in tags]
         self.decided: list[TagDecision | None] = [None] * len(tags)
-        self._first_pan = float(wrap(first_pan_rad))
+        self._first_pan = wrapped(first_pan_rad)
         self.missed_bearings = bool(missed_bearings)
 
     @property
@@ -278,7 +277,7 @@ class JointSearch:
                 continue
             cov = p.confidence.covariates(estimate, p.rf, vision, p.iso)
             confidence = round(p.confidence(raw, cov), 6)
-            decision = TagDecision(tag=k, estimate_rad=float(wrap(estimate)), confidence=confidence, raw_confidence=float(raw),
+            decision = TagDecision(tag=k, estimate_rad=wrapped(estimate), confidence=confidence, raw_confidence=float(raw),
                                    covariates=cov)
             if self.stop_confidence > 0.0 and confidence >= self.stop_confidence:
                 decision = replace(decision, decided_step=t)
@@ -287,7 +286,7 @@ class JointSearch:
         open_ = [d is None for d in self.decided]
         where_missed = None
         if self.missed_bearings and self.vision.sees:  # an undetected carrier is named by its bearing
-            where_missed = np.stack([softmax(l_missed) for _, l_missed in scored])
+            where_missed = np.stack(self._missed_reads(scored)[0])
         weights = multitag.pan_weights(which, [not o for o in open_], self.pan_rule, where_missed)
         lead = int(np.argmax(weights)) if weights.any() else 0
         per_tag = tuple(Beliefs(t, p.rf, vision, scored[k][0], answers[k][2], self._due(k, t)) for k, p in enumerate(self.parts))
@@ -300,10 +299,19 @@ class JointSearch:
         first = tags[0]
         p0 = self.parts[0]
         cov0 = p0.confidence.covariates(first.estimate_rad, p0.rf, vision, p0.iso)
-        return JointDecision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=first.estimate_rad, reward=reward, probe=probe,
+        return JointDecision(step=t, next_pan_rad=wrapped(next_pan), estimate_rad=first.estimate_rad, reward=reward, probe=probe,
                              confidence=first.confidence, raw_confidence=first.raw_confidence, tx_walks=cov0.tx_walks,
                              noise_correlation=cov0.noise_correlation, clutter_density=cov0.clutter_density,
                              crowding=cov0.crowding, tags=tuple(tags), all_decided=not any(open_), lead_tag=lead)
+
+    def _missed_reads(self, scored) -> tuple[list[np.ndarray], list[float]]:
+        """Per tag, softmax(l_missed) and logsumexp(l_missed) of a step's ``scored`` (the pan's
+        entropy, the joint posteriors and the answers each read them), computed once per ``scored``."""
+        kept = getattr(self, "_missed_kept", None)
+        if kept is None or kept[0] is not scored:
+            kept = self._missed_kept = (scored, [softmax(l_missed) for _, l_missed in scored],
+                                        [logsumexp(l_missed) for _, l_missed in scored])
+        return kept[1], kept[2]
 
     def _due(self, k: int, t: int) -> bool | None:
         clock = self.clocks[k]
@@ -315,7 +323,7 @@ class JointSearch:
         if not self.vision.sees:
             return np.stack([softmax((1.0 if p.rf.exact else p.fusion.rf_weight) * p.rf.log_likelihood) for p in self.parts])
         tracks = np.stack([s[0] for s in scored])
-        missed = np.array([logsumexp(s[1]) for s in scored])
+        missed = np.array(self._missed_reads(scored)[1])
         if self._jointly():
             return multitag.exclusive_posteriors(tracks, missed)
         return multitag.independent_posteriors(tracks, missed)
@@ -336,9 +344,9 @@ class JointSearch:
         half = [max(1, int(round(p.fusion.answer_window_rad / p.fusion.circle.step))) for p in self.parts]
         # the assignment weighs "missed" as the answer would: the mass of its best arc, not all of it
         missed_arc = []
-        where_missed = [softmax(l_missed) for _, l_missed in scored]  # where an undetected carrier of tag k would be
-        for (_, l_missed), post, h in zip(scored, where_missed, half):
-            missed_arc.append(logsumexp(l_missed) + math.log(max(arc_mass(post, int(np.argmax(post)), h), 1e-300)))
+        where_missed, missed_lse = self._missed_reads(scored)  # where an undetected carrier of tag k would be
+        for lse, post, h in zip(missed_lse, where_missed, half):
+            missed_arc.append(lse + math.log(max(arc_mass(post, int(np.argmax(post)), h), 1e-300)))
         assignment = multitag.joint_assignment(tracks, np.array(missed_arc))
         out = []
         for k, (p, (_, l_missed), a) in enumerate(zip(self.parts, scored, assignment)):
@@ -393,7 +401,7 @@ class SequentialSearch:
                  stop_confidence: float = 0.0) -> None:
         self.new_parts, self.n_tags, self.steps = new_parts, int(n_tags), int(steps)
         self.rf_period_s, self.stop_confidence = float(rf_period_s), float(stop_confidence)
-        self._first_pan = float(wrap(first_pan_rad))
+        self._first_pan = wrapped(first_pan_rad)
         self.answers: list[TagDecision] = [TagDecision(tag=k, estimate_rad=self._first_pan, confidence=0.0, raw_confidence=0.0)
                                            for k in range(self.n_tags)]
         self.active = 0
@@ -428,7 +436,7 @@ class SequentialSearch:
                 self._search = None
         zero = self.answers[0]
         all_decided = all(a.decided_step is not None for a in self.answers)
-        return JointDecision(step=t, next_pan_rad=float(wrap(next_pan)), estimate_rad=zero.estimate_rad, reward=reward, probe=probe,
+        return JointDecision(step=t, next_pan_rad=wrapped(next_pan), estimate_rad=zero.estimate_rad, reward=reward, probe=probe,
                              confidence=zero.confidence, raw_confidence=zero.raw_confidence,
                              tags=tuple(self.answers), all_decided=all_decided, lead_tag=min(k, self.n_tags - 1))
 

@@ -72,6 +72,20 @@ def independent_posteriors(track_loglik, missed_loglik) -> np.ndarray:
     return np.exp(full - logsumexp(full, axis=1, keepdims=True))
 
 
+_LSA = None
+
+
+def _linear_sum_assignment():
+    """scipy's ``linear_sum_assignment``, imported on first use (scipy.optimize costs every rig ~0.3 s
+    of CPU at start) and kept (an import statement per call costs ~20 us: scipy's lazy loader)."""
+    global _LSA
+    if _LSA is None:
+        from scipy.optimize import linear_sum_assignment
+
+        _LSA = linear_sum_assignment
+    return _LSA
+
+
 def joint_assignment(track_loglik, missed_loglik) -> np.ndarray:
     """The MAP assignment of tags to tracks when a track carries at most one tag.
 
@@ -88,9 +102,7 @@ def joint_assignment(track_loglik, missed_loglik) -> np.ndarray:
     own_missed = np.full((k, k), IMPOSSIBLE)
     np.fill_diagonal(own_missed, missed)
     gain = np.concatenate([tracks, own_missed], axis=1)
-    from scipy.optimize import linear_sum_assignment  # here: scipy.optimize costs every rig ~0.3 s of CPU at start
-
-    rows, cols = linear_sum_assignment(gain, maximize=True)
+    rows, cols = _linear_sum_assignment()(gain, maximize=True)
     out = np.empty(k, dtype=np.int64)
     out[rows] = np.where(cols < m, cols, m)
     return out
@@ -120,7 +132,21 @@ def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
     unnormalised = np.zeros_like(w)
     largest_term = 0.0
     totals = w.sum(axis=1)
-    for blocks in _partitions(list(range(k))):
+    products: dict[tuple[int, ...], np.ndarray] = {}  # tags -> np.prod(w[tags, :m], axis=0), once per call
+    ones = np.ones(m + 1)
+
+    def product_of(tags: list[int]) -> np.ndarray:
+        key = tuple(tags)
+        product = products.get(key)
+        if product is None:  # np.prod(w[tags, :m], axis=0): the rows multiplied in order (one row: itself)
+            product = w[tags[0], :m]
+            for t in tags[1:]:
+                product = product * w[t, :m]
+            products[key] = product
+        return product
+
+    rests: dict[tuple[int, ...], np.ndarray] = {}  # the same, padded with 0 for column M
+    for blocks in _partitions_of(k):
         mu = 1.0
         shared: dict[int, np.ndarray] = {}  # tag -> per column c: the rest of its block's product at c
         values: list[float] = []
@@ -129,13 +155,16 @@ def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
             mu *= (-1.0) ** (size - 1) * math.factorial(size - 1)
             if size == 1:
                 values.append(float(totals[block[0]]))
-                shared[block[0]] = np.ones(m + 1)
+                shared[block[0]] = ones
                 continue
-            product = np.prod(w[block, :m], axis=0)
+            product = product_of(block)
             values.append(float(product.sum()))
             for tag in block:
-                rest = np.zeros(m + 1)
-                rest[:m] = np.prod(w[[t for t in block if t != tag], :m], axis=0)
+                others_in_block = [t for t in block if t != tag]
+                rest = rests.get(tuple(others_in_block))
+                if rest is None:
+                    rest = rests[tuple(others_in_block)] = np.zeros(m + 1)
+                    rest[:m] = product_of(others_in_block)
                 shared[tag] = rest
         term = mu * math.prod(values)
         largest_term = max(largest_term, abs(term))
@@ -148,6 +177,17 @@ def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
     if (unnormalised < -RELIABLE_SHARE * largest_term).any() or (z <= RELIABLE_SHARE * largest_term).any():
         return _enumerated(w, m)
     return np.clip(unnormalised, 0.0, None) / z[:, None]
+
+
+_PARTITIONS: dict[int, list] = {}
+
+
+def _partitions_of(k: int) -> list:
+    """``list(_partitions(list(range(k))))``, made once per K."""
+    partitions = _PARTITIONS.get(k)
+    if partitions is None:
+        partitions = _PARTITIONS[k] = list(_partitions(list(range(k))))
+    return partitions
 
 
 def _partitions(items: list[int]):

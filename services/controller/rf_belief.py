@@ -463,13 +463,11 @@ class RFFilterBelief(RFBelief):
     def track_loglik(self, tracks) -> np.ndarray:
         """Each track's trajectory evidence, on the footing of ``log_likelihood`` (the normalised
         posterior of the Tx's bearing)."""
-        joint = np.logaddexp(self.rff.log_joint_stand, self.rff.log_joint_walk)
-        return self.rff.track_evidence(tracks.ids.tolist()) - logsumexp(joint)
+        return self.rff.track_evidence(tracks.ids.tolist()) - self.rff._joint()[1]
 
     def gain_at(self, pan_rad: float) -> float:
         """The antenna gain expected at s under the filter's posterior of gamma."""
-        post = np.exp(self.rff.log_posterior())
-        return float(self.rff.response.gain(pan_rad - self.circle.angles) @ post)
+        return float(self.rff.response.gain_over(pan_rad, self.circle) @ self.rff.posterior())
 
     def gain_prediction(self):
         mean, sd = self.rff.predicted_gain()

@@ -32,6 +32,7 @@ posterior of the Tx's bearing now.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -46,6 +47,49 @@ def antenna_gain(misalignment_rad: np.ndarray, curvature: float) -> np.ndarray:
     return np.clip(1.0 - curvature * d * d, 0.0, 1.0)
 
 
+_GAIN_ROWS: dict[tuple[float, int, float], np.ndarray] = {}
+_GAIN_TABLES: dict[tuple[float, int], np.ndarray] = {}
+
+
+def _gain_row(curvature: float, circle: CircleGrid, pan_rad: float) -> np.ndarray:
+    """antenna_gain(pan_rad - circle.angles, curvature), read-only, kept per (curvature, grid, pan):
+    the pans a controller commands repeat (grid points), and each sample, the answer's J_RF and the
+    posterior's expected gain read this row (the same doubles as computing it again)."""
+    key = (curvature, circle.size, pan_rad)
+    row = _GAIN_ROWS.get(key)
+    if row is None:
+        if len(_GAIN_ROWS) >= 4096:
+            _GAIN_ROWS.clear()
+        row = antenna_gain(pan_rad - circle.angles, curvature)
+        row.flags.writeable = False
+        _GAIN_ROWS[key] = row
+    return row
+
+
+def _gain_table(curvature: float, circle: CircleGrid, stride: int = 1) -> np.ndarray:
+    """antenna_gain(angles[::stride, None] - angles[None, :], curvature), (M / stride, M), C-contiguous
+    and read-only: element (i, j) is the gain at grid pan i * stride of a Tx at grid bearing j,
+    computed once per (curvature, grid, stride) (elementwise, so any (pans x cells) block of it is
+    what computing that block gives)."""
+    key = (curvature, circle.size, stride)
+    table = _GAIN_TABLES.get(key)
+    if table is None:
+        if len(_GAIN_TABLES) >= 16:
+            _GAIN_TABLES.clear()
+        table = antenna_gain(circle.angles[::stride, None] - circle.angles[None, :], curvature)
+        table.flags.writeable = False
+        _GAIN_TABLES[key] = table
+    return table
+
+
+def _columns(table: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """table[:, keep] as a new C-contiguous array (a slice's copy when ``keep`` is a run of cells,
+    the posterior's support mostly is; ``np.take`` otherwise)."""
+    if keep.size and keep[-1] - keep[0] + 1 == keep.size:
+        return np.ascontiguousarray(table[:, keep[0]:keep[-1] + 1])
+    return np.take(table, keep, axis=1)
+
+
 class RxDirModel:
     """The mean of Rx(dir) given the level L and the misalignment: the rig's response."""
 
@@ -58,6 +102,14 @@ class RxDirModel:
 
     def gain(self, misalignment_rad: np.ndarray) -> np.ndarray:
         return antenna_gain(misalignment_rad, self.curvature)
+
+    def gain_over(self, pan_rad: float, circle: CircleGrid) -> np.ndarray:
+        """``gain(pan_rad - circle.angles)``, read-only (kept per pan: ``_gain_row``)."""
+        return _gain_row(self.curvature, circle, pan_rad)
+
+    def gain_table(self, circle: CircleGrid, stride: int = 1) -> np.ndarray:
+        """``gain(angles[::stride, None] - angles[None, :])``, (M / stride, M), read-only (``_gain_table``)."""
+        return _gain_table(self.curvature, circle, stride)
 
     def mean(self, level: float, gain: np.ndarray) -> np.ndarray:
         """E[z_dir] for the level L (dBm) and the antenna gain rho (eq. 6 or its dB form)."""
@@ -117,7 +169,7 @@ class RFBearingFilter:
         self.ll_stand = np.zeros(M)  # this step's sample log-likelihood (relative), standing level
         self.ll_walk = np.zeros(M)  # ... walking level
         self._evidence: dict[int, float] = {}  # track id -> trajectory evidence (relative to the baseline)
-        self._posterior: np.ndarray | None = None  # log_posterior() as of (samples, walk prior) = _posterior_key
+        self._read: dict = {}  # what the step's readers share (``_reading``), as of (samples, walk prior) = _posterior_key
         self._posterior_key: tuple[int, float] | None = None
 
     # -- updating -------------------------------------------------------------------------------
@@ -133,9 +185,10 @@ class RFBearingFilter:
         self._level_walk = iso_dbm if n == 1 else self._lam * self._level_walk + (1.0 - self._lam) * iso_dbm
         level_stand = self._iso_sum / n
         self.rho = self._noise_correlation()
-        gain = self.response.gain(pan_rad - self.circle.angles)
-        ll_stand = self._sample_loglik(dir_dbm, gain, level_stand, self._level_var(False))
-        ll_walk = self._sample_loglik(dir_dbm, gain, self._level_walk, self._level_var(True))
+        gain = self.response.gain_over(pan_rad, self.circle)
+        shared = self._slope_term(gain)  # the same for both levels
+        ll_stand = self._sample_loglik(dir_dbm, gain, level_stand, self._level_var(False), shared)
+        ll_walk = self._sample_loglik(dir_dbm, gain, self._level_walk, self._level_var(True), shared)
         self._prev = (gain, dir_dbm)
         self._absorb(ll_stand, ll_walk)
 
@@ -153,10 +206,11 @@ class RFBearingFilter:
         joint = predicted * np.exp(ll_walk - top)
         c = float(joint.sum())
         log_c = top + math.log(max(c, 1e-300))
-        self._walk = np.log(np.maximum(joint / c, 1e-300))
-        self.ll_stand = ll_stand - log_c
-        self.ll_walk = ll_walk - log_c
-        self._static += self.ll_stand
+        _kernels.floored_ratio(joint, c, 1e-300, joint)  # np.maximum(joint / c, 1e-300), in place
+        self._walk = np.log(joint)
+        # ll_stand - log_c, ll_walk - log_c, and the first added to _static (one compiled pass)
+        self.ll_stand, self.ll_walk = np.empty(ll_stand.size), np.empty(ll_walk.size)
+        _kernels.rebase(ll_stand, ll_walk, float(log_c), self._static, self.ll_stand, self.ll_walk)
 
     def _noise_correlation(self) -> float:
         """rho from Rx(iso): for AR(1) noise Var(z_t - z_{t-1}) = 2 sigma^2 (1 - rho) (a walking
@@ -178,18 +232,38 @@ class RFBearingFilter:
             return min(self.noise_var * (1.0 - lam) / (1.0 + lam) * inflate, self.noise_var)
         return min(self.noise_var * inflate / self.n, self.noise_var)
 
-    def _sample_loglik(self, z: float, gain: np.ndarray, level: float, level_var: float) -> np.ndarray:
+    def _slope_term(self, gain: np.ndarray) -> np.ndarray:
+        """What ``_sample_loglik``'s variance adds per unit of level variance, (dE z / dL)^2
+        quasi-differenced: the same for the standing and the walking level (computed once a sample)."""
         resp = self.response
-        mean = resp.mean(level, gain)
         slope = resp.level_slope(gain)
+        if self._prev is not None and self.rho > 0.0:
+            return (slope - self.rho * resp.level_slope(self._prev[0])) ** 2
+        return slope * slope
+
+    def _sample_loglik(self, z: float, gain: np.ndarray, level: float, level_var: float,
+                       slope_term: np.ndarray | None = None) -> np.ndarray:
+        resp = self.response
+        if slope_term is None:
+            slope_term = self._slope_term(gain)
         rho = self.rho
+        if resp.model == "paper" and self.tail_dof is not None:  # the arithmetic below in two compiled passes, the logs numpy's
+            nu = self.tail_dof
+            differenced = self._prev is not None and rho > 0.0
+            gain0, z0 = self._prev if differenced else (gain, 0.0)
+            var, q = np.empty(gain.size), np.empty(gain.size)
+            _kernels.t_innovation(gain, gain0, float(z), float(z0), float(level), float(rho), float(self.noise_var), slope_term,
+                                  float(level_var), float(nu), differenced, var, q)
+            _kernels.t_combine(np.log1p(q), np.log(var), -0.5 * (nu + 1.0), _t_const(nu), q)
+            return q
+        mean = resp.mean(level, gain)
         if self._prev is not None and rho > 0.0:
             gain0, z0 = self._prev  # the previous sample's antenna gain over the grid, and its reading
             resid = (z - rho * z0) - (mean - rho * resp.mean(level, gain0))
-            var = self.noise_var * (1.0 - rho * rho) + (slope - rho * resp.level_slope(gain0)) ** 2 * level_var
+            var = self.noise_var * (1.0 - rho * rho) + slope_term * level_var
         else:
             resid = z - mean
-            var = self.noise_var + slope * slope * level_var
+            var = self.noise_var + slope_term * level_var
         if self.tail_dof is None:
             return -0.5 * (resid * resid / var + np.log(2.0 * math.pi * var))
         nu = self.tail_dof  # Student-t: a rare large innovation (fading, a body passing) is not a reason to move gamma
@@ -206,12 +280,12 @@ class RFBearingFilter:
         evidence: dict[int, float] = {}
         circle = self.circle
         n = len(ids)
-        step = _kernels.track_sample_loglik(self.ll_stand, self.ll_walk, np.ascontiguousarray(means, dtype=float),
-                                            np.ascontiguousarray(sds, dtype=float), np.ascontiguousarray(weights, dtype=float),
-                                            circle.step, np.empty(n))
-        for i, tid in enumerate(ids):
+        step = np.empty(n)
+        _kernels.track_sample_loglik(self.ll_stand, self.ll_walk, np.ascontiguousarray(means, dtype=float),
+                                     np.ascontiguousarray(sds, dtype=float), np.ascontiguousarray(weights, dtype=float), circle.step, step)
+        for i, (tid, s) in enumerate(zip(ids, step.tolist())):
             if tid in self._evidence:
-                evidence[tid] = self._evidence[tid] + float(step[i])
+                evidence[tid] = self._evidence[tid] + s
             else:
                 evidence[tid] = self._first_evidence(means[i], weights[i])
         self._evidence = evidence
@@ -225,9 +299,9 @@ class RFBearingFilter:
     def _first_evidence(self, means: np.ndarray, weights: np.ndarray) -> float:
         """A track met for the first time: its past is unknown, it stood where it is (the standing
         filter) or walked here (the walking filter), by its IMM weights."""
-        circle = self.circle
-        stood = float(circle.interp(self._static, np.array([means[0]]))[0])
-        walked = float(circle.interp(self._walk, np.array([means[1]]))[0]) + self._log_m
+        circle = self.circle  # circle.interp at one angle, compiled (the same arithmetic)
+        stood = float(_kernels._interp_periodic(self._static, float(means[0]), circle.step))
+        walked = float(_kernels._interp_periodic(self._walk, float(means[1]), circle.step)) + self._log_m
         w0 = min(max(float(weights[0]), 1e-6), 1.0 - 1e-6)
         return _logsumexp_list([math.log(w0) + stood, math.log(1.0 - w0) + walked])
 
@@ -242,30 +316,75 @@ class RFBearingFilter:
         """log P(walks, gamma_t = cell) + the same const."""
         return self._walk + math.log(self.walk_prior)
 
+    def _reading(self) -> dict:
+        """What the readers of one step share, computed once per sample and walk prior however many
+        readers ask (the answer, J_RF, the probe, the tracks' scores): each entry is computed
+        lazily, by the same expression as before it was kept."""
+        key = (self.n, self.walk_prior)
+        if self._posterior_key != key:
+            self._read = {}
+            self._posterior_key = key
+        return self._read
+
+    def _joint(self) -> tuple[np.ndarray, float]:
+        """logaddexp(log_joint_stand, log_joint_walk) and its logsumexp (kept: ``_reading``)."""
+        read = self._reading()
+        joint = read.get("joint")
+        if joint is None:
+            joint = read["joint"] = np.logaddexp(*self._joints())
+            read["joint_lse"] = logsumexp(joint)
+        return joint, read["joint_lse"]
+
+    def _joints(self) -> tuple[np.ndarray, np.ndarray]:
+        """(log_joint_stand, log_joint_walk), kept (``_reading``)."""
+        read = self._reading()
+        joints = read.get("joints")
+        if joints is None:
+            joints = read["joints"] = (self.log_joint_stand, self.log_joint_walk)
+        return joints
+
     def log_posterior(self) -> np.ndarray:
         """log P(gamma_t = cell | samples), normalised over the grid: read-only, computed once per
         sample and walk prior however many readers ask in a step (the answer, J_RF, the probe)."""
-        key = (self.n, self.walk_prior)
-        if self._posterior_key != key:
-            joint = np.logaddexp(self.log_joint_stand, self.log_joint_walk)
-            posterior = joint - logsumexp(joint)
+        read = self._reading()
+        posterior = read.get("posterior")
+        if posterior is None:
+            joint, lse = self._joint()
+            posterior = read["posterior"] = joint - lse
             posterior.flags.writeable = False
-            self._posterior, self._posterior_key = posterior, key
-        return self._posterior
+        return posterior
+
+    def posterior(self) -> np.ndarray:
+        """exp(log_posterior()), read-only (kept: ``_reading``)."""
+        read = self._reading()
+        post = read.get("post")
+        if post is None:
+            post = read["post"] = np.exp(self.log_posterior())
+            post.flags.writeable = False
+        return post
 
     def _posterior_support(self, mass: float) -> tuple[np.ndarray, np.ndarray]:
         """(cells, their probabilities renormalised) of the posterior of gamma where it is at least
         ``mass`` of its largest: the cells worth a column in a (pans x cells) product."""
-        post = np.exp(self.log_posterior())
-        keep = np.flatnonzero(post >= mass * post.max())
-        return keep, post[keep] / post[keep].sum()
+        read = self._reading()
+        support = read.get(("support", mass))
+        if support is None:
+            post = self.posterior()
+            keep = np.flatnonzero(post >= mass * post.max())
+            support = read[("support", mass)] = (keep, post[keep] / post[keep].sum())
+        return support
 
     @property
     def p_walk(self) -> float:
         """P(the Tx walks | samples)."""
-        s = logsumexp(self.log_joint_stand)
-        w = logsumexp(self.log_joint_walk)
-        return 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
+        read = self._reading()
+        p = read.get("p_walk")
+        if p is None:
+            stand, walk = self._joints()
+            s = logsumexp(stand)
+            w = logsumexp(walk)
+            p = read["p_walk"] = 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
+        return p
 
     def most_informative_pan(self, stride: int = 2, mass: float = 1e-3) -> float:
         """The pan whose next Rx(dir) sample the current posterior is least sure of: the largest
@@ -275,7 +394,8 @@ class RFBearingFilter:
         keep, p = self._posterior_support(mass)
         pans = self.circle.angles[::stride]
         level = self._level_now(self.p_walk > 0.5)
-        mean = self.response.mean(level, self.response.gain(pans[:, None] - self.circle.angles[keep][None, :]))  # (S, K)
+        # gain(pans[:, None] - angles[keep][None, :]): those rows and columns of the grid's table
+        mean = self.response.mean(level, _columns(self.response.gain_table(self.circle, stride), keep))  # (S, K)
         first = mean @ p
         var = (mean * mean) @ p - first * first
         return float(pans[int(np.argmax(var))])
@@ -289,7 +409,7 @@ class RFBearingFilter:
         rho(s - gamma) at every grid pan s: the normalised lobe J_RF(s) the fused objective's
         GP-UCB reads (paper eq. 24-25), and how unsure the filter is of it there."""
         keep, p = self._posterior_support(mass)
-        gain = self.response.gain(self.circle.angles[:, None] - self.circle.angles[keep][None, :])  # (M, K)
+        gain = _columns(self.response.gain_table(self.circle), keep)  # gain(angles[:, None] - angles[keep][None, :]), (M, K)
         first = gain @ p
         return first, np.sqrt(np.maximum((gain * gain) @ p - first * first, 0.0))
 
@@ -477,8 +597,9 @@ class PacketBearingFilter(RFBearingFilter):
         self.n += 1
         white = self.white_var()
         resp = self.response
-        gain = resp.gain(pan_rad - self.circle.angles)
+        gain = resp.gain_over(pan_rad, self.circle)
         slope = resp.level_slope(gain)
+        slope2 = slope * slope  # (in every packet's variance)
         means = (resp.mean(self._level_now(False), gain), resp.mean(self._level_walk, gain))
         level_vars = (self._packet_level_var(False, white), self._packet_level_var(True, white))
         total = [np.zeros(self.circle.size), np.zeros(self.circle.size)]
@@ -501,7 +622,7 @@ class PacketBearingFilter(RFBearingFilter):
             for j in (0, 1):
                 resid = z - means[j]
                 pred = resid - shrink * group[1 + j]
-                var = white + offset_var + slope * slope * level_vars[j]
+                var = white + offset_var + slope2 * level_vars[j]
                 total[j] += weight * self._packet_loglik(pred, var)
                 group[1 + j] += resid
             group[0] = n_c + 1
@@ -569,6 +690,7 @@ class PacketBearingFilter(RFBearingFilter):
         return -0.5 * (nu + 1.0) * np.log1p(resid * resid / (nu * var)) - 0.5 * np.log(var) + _t_const(nu)
 
 
+@functools.lru_cache(maxsize=64)
 def _t_const(nu: float) -> float:
     return math.lgamma(0.5 * (nu + 1.0)) - math.lgamma(0.5 * nu) - 0.5 * math.log(nu * math.pi)
 

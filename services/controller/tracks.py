@@ -105,42 +105,74 @@ class BearingTracker:
         self._n_pans = 0
         self._n = 0
         self._view = np.arange(0)
+        self._kept: dict = {}  # the confirmed tracks' columns as of _kept_for (``_read``)
+        self._kept_for: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self._view.size
 
+    def _read(self, name: str, read):
+        """``read()``, kept (read-only) until the tracks change: a step's readers (the fusion, the RF
+        belief, the acquisition, the confidence) ask for the same columns many times. ``update`` sets
+        a new ``_view``, which drops what was kept."""
+        value = self._kept_value(name)
+        if value is None:
+            value = self._kept[name] = read()
+            for array in value if isinstance(value, tuple) else (value,):
+                if isinstance(array, np.ndarray):
+                    array.flags.writeable = False
+        return value
+
+    def _kept_value(self, name: str):
+        """What ``_read`` kept of ``name`` for the current tracks, or None (dropping what was kept for
+        others)."""
+        try:
+            if self._kept_for is self._view:
+                return self._kept.get(name)
+        except AttributeError:  # a tracker made without __init__
+            pass
+        self._kept, self._kept_for = {}, self._view
+        return None
+
     # read-only views of the confirmed tracks
     @property
     def bearing(self) -> np.ndarray:
-        return self._bearing[self._view]
+        value = self._kept_value("bearing")
+        return value if value is not None else self._read("bearing", lambda: self._bearing[self._view])
 
     @property
     def ids(self) -> np.ndarray:
         """A stable id per track (kept while the track lives, never reused)."""
-        return self._ids[self._view]
+        return self._read("ids", lambda: self._ids[self._view])
 
     def components(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each track's bearing as its IMM mixture: means, standard deviations and weights of the
         (standing, walking) models, each of shape (n, 2)."""
-        v = self._view
-        return self._x[v, :, 0], np.sqrt(np.maximum(self._P[v, :, 0, 0], 0.0)), self._mu[v]
+        # = (self._x[v, :, 0], np.sqrt(np.maximum(self._P[v, :, 0, 0], 0.0)), self._mu[v]) for v = self._view
+        return self._read("components", self._components)
+
+    def _components(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = self._view.size
+        means, sds, weights = np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2))
+        _tracker.components(self._tab, self._view, means, sds, weights)
+        return means, sds, weights
 
     @property
     def walking(self) -> np.ndarray:
         """Probability that each track walks (the IMM's walking-model probability)."""
-        return self._mu[self._view, 1]
+        return self._read("walking", lambda: self._mu[self._view, 1])
 
     @property
     def boxes(self) -> np.ndarray:
-        return self._nbox[self._view]
+        return self._read("boxes", lambda: self._nbox[self._view])
 
     @property
     def detections(self) -> np.ndarray:
-        return self._k[self._view]
+        return self._read("detections", lambda: self._k[self._view])
 
     @property
     def frames_in_view(self) -> np.ndarray:
-        return self._n_frames[self._view]
+        return self._read("frames_in_view", lambda: self._n_frames[self._view])
 
     @property
     def clutter_density(self) -> float:
@@ -184,16 +216,19 @@ class BearingTracker:
         three steps whose IMM says walking, over all such tracks, shrunk towards ``prior`` by
         ``strength`` pseudo-tracks (a Beta prior). The prior probability that the Tx, one of
         them, walks."""
-        n = self._n
-        settled = self._det_steps[:n] >= 3.0
-        walkers = int(np.count_nonzero(self._mu[:n, 1][settled] > 0.5))
-        return (prior * strength + walkers) / (strength + int(settled.sum()))
+        walkers, settled = self._settled()
+        return (prior * strength + walkers) / (strength + settled)
 
     def walkers_seen(self) -> int:
         """How many tracks detected in at least three steps the IMM says walk."""
-        n = self._n
-        settled = self._det_steps[:n] >= 3.0
-        return int(np.count_nonzero(self._mu[:n, 1][settled] > 0.5))
+        return self._settled()[0]
+
+    def _settled(self) -> tuple[int, int]:
+        """(walkers, tracks) among the tracks detected in at least three steps (kept: ``_read``)."""
+        def count() -> tuple[int, int]:
+            walkers, settled = _tracker.settled_walkers(self._tab, self._n)
+            return int(walkers), int(settled)
+        return self._read("settled", count)
 
     def detection_rate(self) -> tuple[np.ndarray, np.ndarray]:
         """(p~_i, n_i): each track's empirical POD and the (discounted) frames it rests on."""

@@ -28,6 +28,9 @@ import numpy as np
 from ra2vipas.services.protocol.measurements import Advertisement
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors import physics
+from ra2vipas.services.sensors._construct import builder
+
+_new_advert = builder(Advertisement, "receiver", "rssi_dbm", "channel", "offset_s", "tag", "address")  # model_construct, cheaper
 
 RECEIVERS = ("iso", "dir")
 CHANNELS = (37, 38, 39)
@@ -123,10 +126,8 @@ class PacketSchedule:
                 rssi = float(quantise(sc, level + self.offset_db[r, k]))
                 if rssi < sc.rx_sensitivity_dbm:
                     continue
-                out.append(Advertisement.model_construct(receiver=RECEIVERS[r], rssi_dbm=min(max(rssi, -200.0), 50.0),
-                                                         channel=int(self.channel[r, k]),
-                                                         offset_s=max(0.0, float(self.times_s[k] - start)),
-                                                         tag=self.tag, address=self.address))
+                out.append(_new_advert(RECEIVERS[r], min(max(rssi, -200.0), 50.0), int(self.channel[r, k]),
+                                       max(0.0, float(self.times_s[k] - start)), self.tag, self.address))
         return tuple(out)
 
 

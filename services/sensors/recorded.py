@@ -23,7 +23,7 @@ import numpy as np
 from ra2vipas.services.protocol.measurements import Advertisement
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors import channel_file
-from ra2vipas.services.sensors.radio import RECEIVERS, quantise
+from ra2vipas.services.sensors.radio import RECEIVERS, _new_advert, quantise
 
 POSITION_WEIGHT = 0.25
 """Metres of distance mismatch one metre of position mismatch costs when a recording is chosen."""
@@ -86,6 +86,4 @@ class RecordedSchedule:
                         continue
                     out.append((times[k] + shift - lo, RECEIVERS[r], value))
         out.sort()
-        return tuple(Advertisement.model_construct(receiver=rx, rssi_dbm=min(max(v, -200.0), 50.0), channel=None,
-                                                   offset_s=max(0.0, float(off)), tag=self.tag, address=self.address)
-                     for off, rx, v in out)
+        return tuple(_new_advert(rx, min(max(v, -200.0), 50.0), None, max(0.0, float(off)), self.tag, self.address) for off, rx, v in out)

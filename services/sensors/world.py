@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass, field, replace
+from itertools import compress
 
 import numpy as np
 
@@ -27,6 +28,7 @@ from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepM
 from ra2vipas.services.protocol.messages import EpisodeTruth, TargetTrajectory
 from ra2vipas.services.protocol.scenario import Placement, RadioMode, Scenario, ScenarioError
 from ra2vipas.services.sensors import physics, radio
+from ra2vipas.services.sensors._construct import builder
 
 _TEST_STREAM = 0
 _TRAINING_STREAM = 1
@@ -300,8 +302,18 @@ _EMPTY_FRAME = CameraFrame.model_construct(box_bearings_rad=())
 _NO_HEIGHTS_FRAME = CameraFrame.model_construct(box_bearings_rad=(), box_heights_rad=())
 
 
+# model_construct of the measurement models the inner loop builds, cheaper (``_construct``: the same objects)
+_new_frame = builder(CameraFrame, "box_bearings_rad")
+_new_frame_with_heights = builder(CameraFrame, "box_bearings_rad", "box_heights_rad")
+_new_pair = builder(RFSample, "iso_rssi_dbm", "dir_rssi_dbm")
+_new_tag_pair = builder(RFSample, "iso_rssi_dbm", "dir_rssi_dbm", "tag")
+_new_step = builder(StepMeasurement, "step", "pan_rad", "rf", "frames")
+_new_step_tags = builder(StepMeasurement, "step", "pan_rad", "rf", "frames", "rf_tags")
+_new_step_adverts = builder(StepMeasurement, "step", "pan_rad", "rf", "frames", "adverts")
+
+
 def _frame(boxes: list[float]) -> CameraFrame:
-    return CameraFrame.model_construct(box_bearings_rad=tuple(sorted(boxes))) if boxes else _EMPTY_FRAME
+    return _new_frame(tuple(sorted(boxes))) if boxes else _EMPTY_FRAME
 
 
 def _frames(sc: Scenario, rng: np.random.Generator, rel_bearings: np.ndarray, p_detect: np.ndarray,
@@ -320,9 +332,9 @@ def _frames(sc: Scenario, rng: np.random.Generator, rel_bearings: np.ndarray, p_
         return tuple(_frame(c) for c in clutter)
     hits = (rng.random((nu, n)) < p_detect).tolist()
     boxes = (rel_bearings + rng.normal(0.0, sc.box_bearing_noise_rad, size=(nu, n))).tolist()
-    if clutter is None:
-        return tuple(_frame([b for b, h in zip(row, hit) if h]) for row, hit in zip(boxes, hits))
-    return tuple(_frame([b for b, h in zip(row, hit) if h] + extra) for row, hit, extra in zip(boxes, hits, clutter))
+    if clutter is None:  # compress(row, hit): the boxes detected, in order
+        return tuple(_frame(list(compress(row, hit))) for row, hit in zip(boxes, hits))
+    return tuple(_frame(list(compress(row, hit)) + extra) for row, hit, extra in zip(boxes, hits, clutter))
 
 
 def _frames_with_heights(sc: Scenario, rng: np.random.Generator, heights_rng: np.random.Generator, rel_bearings: np.ndarray,
@@ -351,7 +363,7 @@ def _frames_with_heights(sc: Scenario, rng: np.random.Generator, heights_rng: np
             out.append(_NO_HEIGHTS_FRAME)
             continue
         pairs.sort()
-        out.append(CameraFrame.model_construct(box_bearings_rad=tuple(b for b, _ in pairs), box_heights_rad=tuple(h for _, h in pairs)))
+        out.append(_new_frame_with_heights(tuple(b for b, _ in pairs), tuple(h for _, h in pairs)))
     return tuple(out)
 
 
@@ -473,7 +485,7 @@ class SimulatedPlatform:
         if self._tags:  # protocol 1.4: tag 0's pair drawn as always, then the others' from their own streams
             m = self._sense_pair(step, pan_rad, iso_mean, tx_bearing)
             rf_tags = tuple(tag.pair(step, pan_rad) for tag in self._tags)
-            return StepMeasurement.model_construct(step=m.step, pan_rad=m.pan_rad, rf=m.rf, frames=m.frames, rf_tags=rf_tags)
+            return _new_step_tags(m.step, m.pan_rad, m.rf, m.frames, rf_tags)
         return self._sense_pair(step, pan_rad, iso_mean, tx_bearing)
 
     def _sense_pair(self, step: int, pan_rad: float, iso_mean: float, tx_bearing: float) -> StepMeasurement:
@@ -493,12 +505,7 @@ class SimulatedPlatform:
                 n_dir = self._phi * self._noise[1] + self._innovation * e_dir
             self._noise = (n_iso, n_dir)
             iso, dir_ = iso_mean + n_iso, dir_mean + n_dir
-        return StepMeasurement.model_construct(
-            step=step,
-            pan_rad=float(pan_rad),
-            rf=RFSample.model_construct(iso_rssi_dbm=float(iso), dir_rssi_dbm=float(dir_)),
-            frames=self._frames_at(step, pan_rad),
-        )
+        return _new_step(step, float(pan_rad), _new_pair(float(iso), float(dir_)), self._frames_at(step, pan_rad))
 
     def _frames_at(self, step: int, pan_rad: float) -> tuple[CameraFrame, ...]:
         sc = self.scenario
@@ -531,8 +538,7 @@ class SimulatedPlatform:
             for tag in self._tags:
                 every += tag.packets(step, pan_rad)
             adverts = tuple(sorted(every, key=lambda a: (a.offset_s, a.tag)))
-        return StepMeasurement.model_construct(step=step, pan_rad=float(pan_rad), rf=None, frames=self._frames_at(step, pan_rad),
-                                               adverts=adverts)
+        return _new_step_adverts(step, float(pan_rad), None, self._frames_at(step, pan_rad), adverts)
 
 
 class _TagLink:
@@ -582,7 +588,7 @@ class _TagLink:
             e_iso = self.phi * self.noise[0] + self.innovation * e_iso
             e_dir = self.phi * self.noise[1] + self.innovation * e_dir
         self.noise = (e_iso, e_dir)
-        return RFSample.model_construct(iso_rssi_dbm=float(iso_mean + e_iso), dir_rssi_dbm=float(dir_mean + e_dir), tag=self.tag)
+        return _new_tag_pair(float(iso_mean + e_iso), float(dir_mean + e_dir), self.tag)
 
     def packets(self, step: int, pan_rad: float):
         iso_mean, bearing = self._level(step)

@@ -1,0 +1,90 @@
+"""The compiled shortcuts of the controller's step give the same doubles as the numpy expressions
+they replaced (services/controller/_kernels.py, _tracker.py: speed without changing a result)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.special import gammaln
+
+from ra2vipas.services.controller import _kernels, _tracker
+from ra2vipas.services.controller.fusion import arc_mass
+from ra2vipas.services.controller.grid import CircleGrid
+from ra2vipas.services.controller.rf_filter import RxDirModel, antenna_gain
+from ra2vipas.services.controller.tracks import BearingTracker
+from ra2vipas.services.controller.vision_belief import _per_run
+from ra2vipas.services.protocol.angles import wrap
+
+
+def _same(a, b) -> bool:
+    return np.asarray(a, dtype=float).tobytes() == np.asarray(b, dtype=float).tobytes()
+
+
+def test_wrap_and_grid_shortcuts():
+    rng = np.random.default_rng(0)
+    x = np.concatenate([rng.uniform(-20.0, 20.0, 2000), [math.pi, -math.pi, 0.0, -0.0, 2 * math.pi, -2 * math.pi]])
+    assert all(_kernels._wrap(v) == float(wrap(v)) for v in x)
+    circle = CircleGrid(360)
+    values = rng.normal(size=360) * 50.0
+    assert all(_kernels._interp_periodic(values, float(a), circle.step) == float(circle.interp(values, np.array([a]))[0]) for a in x)
+    for _ in range(200):
+        b = rng.uniform(-4.0, 4.0, int(rng.integers(2, 40)))
+        e = float(rng.uniform(-4.0, 4.0))
+        assert _kernels.second_gap(b, e) == np.sort(np.abs(wrap(b - e)))[1]
+    for _ in range(500):  # below numpy's pairwise block a sum is left to right
+        w = rng.uniform(0.0, 1.0, 360) * 10.0 ** rng.integers(-30, 3, 360)
+        c, h = int(rng.integers(0, 360)), int(rng.integers(1, 4))
+        assert arc_mass(w, c, h) == float(w[np.arange(c - h, c + h + 1) % 360].sum())
+
+
+def test_mass_and_arcs_as_numpy_indexing():
+    rng = np.random.default_rng(1)
+    M, step = 360, 2 * math.pi / 360
+    for n in (1, 7, 40):
+        b = rng.uniform(-math.pi, math.pi, n)
+        post = rng.uniform(-0.1, 1.0, n)
+        for w in (2, 25):
+            want = np.zeros(M)
+            idx = (np.rint((b + math.pi) / step).astype(np.int64) % M)[:, None] + np.arange(-w, w + 1)[None, :]
+            np.add.at(want, idx % M, np.where(post > 0.0, post, 0.0)[:, None] * np.ones((1, 2 * w + 1)))
+            assert _same(_kernels.mass_grid(b, post, step, w, M), want)
+            marked = np.full(M, 0.2)
+            _kernels.mark_arcs(marked, b, step, w, 0.9)
+            want = np.full(M, 0.2)
+            want[((np.rint((wrap(b) + math.pi) / step).astype(np.int64) % M)[:, None] + np.arange(-w, w + 1)[None, :]) % M] = 0.9
+            assert _same(marked, want)
+
+
+def test_per_run_gammaln_and_table_columns():
+    rng = np.random.default_rng(2)
+    frames = np.repeat(rng.choice(np.arange(20) * 8.0, 30), rng.integers(1, 25, 30))[:360]
+    alpha, beta = 2.3, 5.1
+    base = gammaln(alpha + beta) - gammaln(beta)
+    assert _same(_per_run(frames, alpha, beta, base), gammaln(frames + beta) - gammaln(frames + alpha + beta) + base)
+    circle = CircleGrid(360)
+    response = RxDirModel("paper", 0.5)
+    for stride in (1, 2):
+        table = response.gain_table(circle, stride)
+        for keep in (np.arange(100, 130), np.array([0, 5, 359])):
+            assert _same(table[:, keep], antenna_gain(circle.angles[::stride, None] - circle.angles[keep][None, :], 0.5))
+    pan = float(circle.angles[17]) + 1e-13
+    assert _same(response.gain_over(pan, circle), antenna_gain(pan - circle.angles, 0.5))
+
+
+def test_track_table_gathers():
+    tracker = BearingTracker(0.5, 0.01)
+    rng = np.random.default_rng(3)
+    tab = tracker._tab
+    tab["x"] = rng.normal(size=tab["x"].shape)
+    tab["P"] = rng.normal(size=tab["P"].shape)
+    tab["mu"] = rng.uniform(size=tab["mu"].shape)
+    tab["det_steps"] = rng.uniform(0.0, 6.0, tab.size)
+    view = np.flatnonzero(rng.uniform(size=tab.size) < 0.5)
+    n = view.size
+    means, sds, weights = np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2))
+    _tracker.components(tab, view, means, sds, weights)
+    assert _same(means, tracker._x[view, :, 0]) and _same(weights, tracker._mu[view])
+    assert _same(sds, np.sqrt(np.maximum(tracker._P[view, :, 0, 0], 0.0)))
+    settled = tracker._det_steps[:200] >= 3.0
+    assert _tracker.settled_walkers(tab, 200) == (int(np.count_nonzero(tracker._mu[:200, 1][settled] > 0.5)), int(settled.sum()))
