@@ -51,9 +51,13 @@ $(CHROMIUM):
 # editable install's own source; with PYTHONDONTWRITEBYTECODE set (as in many containers and CI
 # images) every process would compile the project's modules again (~0.3 s of CPU each):
 # compileall writes them once (it skips what is up to date).
+# The numba kernels are compiled once into their on-disk cache before the suite (tools/warm_kernels.py:
+# for this CPU and, side by side, for the generic CPU of tests/docs/test_other_cpus.py), rather than
+# by every process of the suite's first minutes that calls one before the cache holds it.
 test: setup browser
 	$(BIN)/ruff check .
 	$(BIN)/python -m compileall -q -j 0 ra2vipas services cli
+	$(BIN)/python tools/warm_kernels.py & NUMBA_CPU_NAME=generic $(BIN)/python tools/warm_kernels.py; s=$$?; wait $$! && exit $$s
 	$(BIN)/pytest -q -n 2 --dist loadfile
 
 # The README's result tables and figure from what the code prints (minutes): reruns the documented
