@@ -18,7 +18,7 @@ EDITABLE_QUIET := PYTHONWARNINGS="ignore:Editable installation"
 
 # A set-up interrupted while the venv was being made leaves one without pip: make it again.
 # The pinned set is installed with uv (Astral's installer: pip's job, resolving and unpacking in
-# parallel; ~25 s here where pip takes ~65 s, a minute less for every fresh clone and CI run), itself
+# parallel; 25-47 s here where pip took 59-66 s, for every fresh clone and CI run), itself
 # pinned in constraints.txt and fetched with pip. It compiles the libraries' bytecode as pip does.
 # uv does not read pip's configuration: where it cannot install (an index only pip.conf knows, no
 # uv wheel for the platform), pip does, as before.

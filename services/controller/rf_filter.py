@@ -242,10 +242,9 @@ class RFBearingFilter:
         return slope * slope
 
     def _sample_loglik(self, z: float, gain: np.ndarray, level: float, level_var: float,
-                       slope_term: np.ndarray | None = None) -> np.ndarray:
+                       slope_term: np.ndarray) -> np.ndarray:
+        """One sample's log-likelihood over the grid at ``level``; ``slope_term``: ``_slope_term(gain)``."""
         resp = self.response
-        if slope_term is None:
-            slope_term = self._slope_term(gain)
         rho = self.rho
         if resp.model == "paper" and self.tail_dof is not None:  # the arithmetic below in two compiled passes, the logs numpy's
             nu = self.tail_dof

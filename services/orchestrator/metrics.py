@@ -228,7 +228,7 @@ def mcnemar_exact(only_a: int, only_b: int) -> float:
     likelier than the one seen) is twice the tail up to min(only_a, only_b), at most 1: summed in
     integers, C(n, 0) + ... + C(n, k), and divided by 2^n once (Python rounds an int / int
     correctly). Equal to scipy.stats.binomtest's to its rounding (``_rounded``: 6 decimals, checked
-    in tests/unit/test_metrics.py), without importing scipy.stats (~1 s of CPU) in every process
+    in tests/unit/test_paired.py), without importing scipy.stats (~1 s of CPU) in every process
     that scores a campaign."""
     a, b = int(only_a), int(only_b)
     n, k = a + b, min(a, b)

@@ -858,12 +858,12 @@ class Scheduler:
                         else (keys.rig_policies(name), self._on_controller_info))
         self.bus.query(key, b"", DESCRIPTOR_TIMEOUT_S, lambda replies: self.loop.post(handler, name, replies, round_))
 
-    def _asked_again(self, name: str, what: str, replies: list[Reply], generation: int | None) -> bool:
+    def _asked_again(self, name: str, what: str, replies: list[Reply], generation: int) -> bool:
         """Whether an answer with no reply at all is asked again later (``DESCRIPTOR_REASK_S``)
         rather than taken as the node's silence; True also for an answer to an old round."""
         rig = self.rigs[name]
         current, empty = rig.asks.get(what, (None, 0))
-        if generation is not None and generation != current:
+        if generation != current:
             return True
         if replies or empty >= len(DESCRIPTOR_REASK_S):
             return False
@@ -874,7 +874,7 @@ class Scheduler:
         log.info("no node answered the %s query of rig %s; asking again in %.0f s", what, name, DESCRIPTOR_REASK_S[empty])
         return True
 
-    def _on_descriptor(self, name: str, replies: list[Reply], generation: int | None = None) -> None:
+    def _on_descriptor(self, name: str, replies: list[Reply], generation: int) -> None:
         rig = self.rigs.get(name)
         if rig is None or not rig.sensors or rig.described != "asking":
             return
@@ -893,7 +893,7 @@ class Scheduler:
             run.eligible.pop(name, None)
         self._dispatch()
 
-    def _on_controller_info(self, name: str, replies: list[Reply], generation: int | None = None) -> None:
+    def _on_controller_info(self, name: str, replies: list[Reply], generation: int) -> None:
         rig = self.rigs.get(name)
         if rig is None or not rig.controller or rig.announced != "asking":
             return

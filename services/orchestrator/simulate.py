@@ -59,25 +59,25 @@ class TagOutcome:
     held_confidences: np.ndarray | None = None  # (K, T) float
 
 
-def _cache_of(scenario: Scenario, seed: int, settings: LearnerSettings | None) -> tuple[PODCache | None, str]:
-    """The POD model cache in force (None: off) and the training job id of (scenario, seed)."""
-    return PODCache.from_environment(settings or LearnerSettings()), training_job_id(scenario, seed)
+def _from_cache(scenario: Scenario, seed: int, settings: LearnerSettings | None) -> tuple[PODCache | None, str, CachedPOD | None]:
+    """The POD model cache in force (None: off), the training job id of (scenario, seed), and the
+    scored model the cache holds for it (None: none; a learner service's model, unscored, is not one)."""
+    store, job = PODCache.from_environment(settings or LearnerSettings()), training_job_id(scenario, seed)
+    hit = store.load(job) if store is not None else None
+    return store, job, (hit if hit is not None and hit.r2 is not None else None)
 
 
 def pod_is_cached(scenario: Scenario, seed: int, settings: LearnerSettings | None = None) -> bool:
     """Whether ``train_pod(scenario, seed)`` will load the model from the cache rather than train it."""
-    store, job = _cache_of(scenario, seed, settings)
-    hit = store.load(job) if store is not None and store.path(job).is_file() else None
-    return hit is not None and hit.r2 is not None
+    return _from_cache(scenario, seed, settings)[2] is not None
 
 
 def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = None, cache: bool = True) -> TrainedPOD:
     """Run the training episode, fit the POD and score it by eq. (23) against the truth; or, with
     ``cache``, load the model this machine and this code already trained for (scenario, seed)
     (``services/learner/model_cache.py``: the same bytes, ``cached`` set)."""
-    store, job = _cache_of(scenario, seed, settings) if cache else (None, training_job_id(scenario, seed))
-    hit = store.load(job) if store is not None else None
-    if hit is not None and hit.r2 is not None:  # (a learner service's model, unscored, is trained here again)
+    store, job, hit = _from_cache(scenario, seed, settings) if cache else (None, training_job_id(scenario, seed), None)
+    if hit is not None:
         return TrainedPOD(model=hit.model, r2=hit.r2, train_seconds=hit.train_seconds, cached=True)
     episode = TrainingEpisode(scenario, seed)
     learned: LearnedPOD = fit_pod(list(episode.samples()), settings)

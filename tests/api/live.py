@@ -72,18 +72,20 @@ class LiveAPI:
     def settle(self, rounds: int = 3) -> None:
         """Wait until the bus, every node and the scheduler have handled what was sent so far."""
         loops = [node.loop for node in self.nodes if hasattr(node, "loop")] + [self.scheduler.loop]
-        for _ in range(rounds):
+
+        def drain() -> None:
             self.bus.wait_idle()
             for loop in loops:
                 assert loop.wait_idle(), "a node's event loop did not drain"
+
+        for _ in range(rounds):
+            drain()
         # a v1 node's silence is taken as such once the scheduler asked again (DESCRIPTOR_REASK_S)
         deadline = time.monotonic() + 10.0
         while any("asking" in (rig.described, rig.announced) for rig in list(self.scheduler.rigs.values())):
             assert time.monotonic() < deadline, "the scheduler still asks a rig what it is"
             time.sleep(0.05)
-        self.bus.wait_idle()
-        for loop in loops:
-            assert loop.wait_idle(), "a node's event loop did not drain"
+        drain()
 
     @property
     def scheduler(self):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import json
 import math
 import pathlib
 import subprocess
@@ -193,36 +194,37 @@ def test_the_services_never_import_the_cli():
             assert "ra2vipas.cli" not in text, f"{rel} names the CLI in {text!r}"
 
 
-def test_controller_and_learner_load_without_the_simulator():
-    code = ("import sys, ra2vipas.services.controller.policy, ra2vipas.services.learner.pod; "
-            "print(sorted(m for m in sys.modules if m.startswith(('ra2vipas.services.sensors', 'ra2vipas.services.orchestrator'))))")
+def _imported_by(modules: str, which: str) -> list[str]:
+    """The modules (``which``: a condition on a module name ``m``) that importing ``modules`` (a
+    comma-separated list) loads, in a fresh interpreter."""
+    code = f"import json, sys, {modules}; print(json.dumps(sorted(m for m in sys.modules if {which})))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SERVICES.parent)
-    assert out.stdout.strip() == "[]"
+    return json.loads(out.stdout)
+
+
+def test_controller_and_learner_load_without_the_simulator():
+    assert _imported_by("ra2vipas.services.controller.policy, ra2vipas.services.learner.pod",
+                        "m.startswith(('ra2vipas.services.sensors', 'ra2vipas.services.orchestrator'))") == []
 
 
 def test_the_orchestrator_starts_without_the_controllers_the_learners_fit_or_numba():
     """The orchestrator scores a learner's model (``learner/trained.py``) and reduces episodes; it
     runs no policy and fits nothing, so its start imports neither the controllers' code, nor the
     learner's fit, nor numba or SciPy (~0.3 s of CPU at every start)."""
-    code = ("import sys, ra2vipas.services.orchestrator.api.app; "
-            "print(sorted({m for m in sys.modules if m.split('.')[0] in ('numba', 'scipy', 'sklearn') "
-            "or m in ('ra2vipas.services.controller.policy', 'ra2vipas.services.learner.pod', "
-            "'ra2vipas.services.orchestrator.simulate', 'ra2vipas.services.sensors.world')}))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SERVICES.parent)
-    assert out.stdout.strip() == "[]"
-
+    assert _imported_by("ra2vipas.services.orchestrator.api.app",
+                        "m.split('.')[0] in ('numba', 'scipy', 'sklearn') or m in ('ra2vipas.services.controller.policy', "
+                        "'ra2vipas.services.learner.pod', 'ra2vipas.services.orchestrator.simulate', "
+                        "'ra2vipas.services.sensors.world')") == []
 
 
 def test_the_orchestrator_a_learner_and_a_rig_start_without_the_fitting_and_plotting_libraries():
     """What only a fit, an assignment or a figure uses is imported by it: the orchestrator's API, a
     learner with nothing to fit and a rig start without scikit-learn, scipy.optimize/stats and
     matplotlib (~3 s of CPU at every start of a stack's processes)."""
-    code = ("import sys, ra2vipas.services.orchestrator.api.app, ra2vipas.services.learner.node, "
-            "ra2vipas.services.controller.node, ra2vipas.services.sensors.node; "
-            "print(sorted({m.split('.')[0] + '.' + m.split('.')[1] if m.startswith('scipy.') else m.split('.')[0] for m in sys.modules "
-            "if m.startswith(('sklearn', 'matplotlib', 'scipy.optimize', 'scipy.stats', 'pandas'))}))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SERVICES.parent)
-    assert out.stdout.strip() == "[]"
+    assert _imported_by("ra2vipas.services.orchestrator.api.app, ra2vipas.services.learner.node, "
+                        "ra2vipas.services.controller.node, ra2vipas.services.sensors.node",
+                        "m.startswith(('sklearn', 'matplotlib', 'scipy.optimize', 'scipy.stats', 'pandas'))") == []
+
 
 # -- interface ----------------------------------------------------------------------------------------
 
