@@ -7,10 +7,12 @@ trained once per session and shared.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import shutil
 import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -156,12 +158,58 @@ def xdist_unit(nodeid: str) -> str:
     return nodeid.split("::", 1)[0]
 
 
+# The order units are handed to the workers: the longest first (longest-processing-time-first), so a
+# run does not end with one worker on a long file while the other idles. xdist sorts units by their
+# number of tests, which put a 40-second, one-test file among the last ones. A unit's seconds come
+# from ``unit_seconds.json`` (measured: ``pytest -n 2 --dist loadfile --record-unit-seconds``); a unit
+# it does not name counts ``SECONDS_PER_UNKNOWN_TEST`` per test.
+UNIT_SECONDS = Path(__file__).with_name("unit_seconds.json")
+SECONDS_PER_UNKNOWN_TEST = 0.5
+
+
+def longest_units_first(nodeids: list[str], seconds: dict[str, float]) -> list[str]:
+    """The node ids regrouped by unit (``xdist_unit``), the units in decreasing expected seconds (ties
+    in collection order), each unit's tests in collection order."""
+    units: dict[str, list[str]] = {}
+    for nodeid in nodeids:
+        units.setdefault(xdist_unit(nodeid), []).append(nodeid)
+    expected = {unit: seconds.get(unit, SECONDS_PER_UNKNOWN_TEST * len(ids)) for unit, ids in units.items()}
+    order = sorted(units, key=lambda unit: -expected[unit])  # stable: ties keep their collection order
+    return [nodeid for unit in order for nodeid in units[unit]]
+
+
+def _unit_seconds() -> dict[str, float]:
+    try:
+        return {str(k): float(v) for k, v in json.loads(UNIT_SECONDS.read_text()).items()}
+    except (OSError, ValueError, AttributeError):
+        return {}
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--record-unit-seconds",
+        action="store_true",
+        help="write the measured seconds (set-up, call and tear-down of its tests) of each unit this "
+        "run ran to tests/unit_seconds.json (which orders how make test hands units to its workers)",
+    )
+
+
+_measured: dict[str, float] = {}
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    _measured[xdist_unit(report.nodeid)] = _measured.get(xdist_unit(report.nodeid), 0.0) + report.duration
+
+
 @pytest.hookimpl(optionalhook=True, tryfirst=True)
 def pytest_xdist_make_scheduler(config: pytest.Config, log):
-    """``--dist loadfile`` with the machine's shared tests as one unit (``xdist_unit``)."""
+    """``--dist loadfile`` with the machine's shared tests as one unit (``xdist_unit``), handed out in
+    the workers' collection order (``longest_units_first``, not xdist's count of tests)."""
     if config.getvalue("dist") != "loadfile":
         return None
     from xdist.scheduler import LoadScopeScheduling
+
+    config.option.loadscopereorder = False
 
     class FilesAndTheMachine(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
@@ -175,9 +223,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     confidence-map check (``ONLY_ON_OTHER_KERNELS``) to that run: refitting the four maps is the
     suite's dearest computation (~190 s of CPU), and the check on kernels other than this CPU's
     best is the harder of the two (further from the machine that fitted the shipped maps).
-    ``pytest tests/docs/test_confidence_maps.py`` runs it on this CPU's kernels."""
+    ``pytest tests/docs/test_confidence_maps.py`` runs it on this CPU's kernels.
+
+    On an xdist worker the tests are put in the order their units are handed out (``longest_units_first``)."""
     from tests.docs.test_other_cpus import CROSS_MACHINE_TEST, ONLY_ON_OTHER_KERNELS
 
+    if hasattr(config, "workerinput"):  # an xdist worker: its collection order is the order units are handed out
+        position = {nodeid: i for i, nodeid in enumerate(longest_units_first([it.nodeid for it in items], _unit_seconds()))}
+        items.sort(key=lambda item: position[item.nodeid])
     if not any(item.nodeid == CROSS_MACHINE_TEST for item in items):
         return
     left = [item for item in items if item.nodeid.startswith(ONLY_ON_OTHER_KERNELS)]
@@ -222,3 +275,9 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
     from tests.docs.test_other_cpus import stop_started
 
     stop_started()
+    if session.config.getoption("record_unit_seconds") and not hasattr(session.config, "workerinput"):
+        merged = {**_unit_seconds(), **_measured}  # the units this run did not run keep their last measurement
+        seconds = {unit: round(s, 1) for unit, s in sorted(merged.items(), key=lambda kv: -kv[1])}
+        partial = UNIT_SECONDS.with_suffix(".partial")
+        partial.write_text(json.dumps(seconds, indent=1) + "\n")
+        partial.replace(UNIT_SECONDS)
