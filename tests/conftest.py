@@ -220,10 +220,11 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """A session that runs the cross-machine checks (tests/docs/test_other_cpus.py) leaves the
-    confidence-map check (``ONLY_ON_OTHER_KERNELS``) to that run: refitting the four maps is the
-    suite's dearest computation (~190 s of CPU), and the check on kernels other than this CPU's
-    best is the harder of the two (further from the machine that fitted the shipped maps).
-    ``pytest tests/docs/test_confidence_maps.py`` runs it on this CPU's kernels.
+    confidence-map check and the documented campaigns' first tests (``ONLY_ON_OTHER_KERNELS``) to
+    that run: refitting the four maps is the suite's dearest computation (~190 s of CPU), and the
+    check on kernels other than this CPU's best is the harder of the two, with the same tolerances
+    (further from the machine that recorded the numbers). ``pytest tests/docs`` runs them on this
+    CPU's kernels.
 
     On an xdist worker the tests are put in the order their units are handed out (``longest_units_first``)."""
     from tests.docs.test_other_cpus import CROSS_MACHINE_TEST, ONLY_ON_OTHER_KERNELS
