@@ -417,44 +417,83 @@ def _arc(mean, half_width, step, M):
 
 
 @njit(cache=True)
-def _smeared_loglik(ll, mean, sd, step):
-    """log of exp(ll) averaged over N(mean, sd^2) on the periodic grid (interpolated at the mean
-    when sd is below a grid step; windows of at most half the circle each side)."""
-    if sd < step:
-        return _interp_periodic(ll, mean, step)
-    M = ll.size
-    first, n = _arc(mean, 4.0 * sd, step, M)
+def smear_windows(means, sds, weights, step, M, first, count, offset, den):
+    """The Gaussian windows ``track_sample_loglik`` averages each track's IMM component's sample
+    likelihood over (``rf_filter.follow``): for a component of weight above 1e-3 and sd of at least a
+    grid step, the arc within 4 sd of its mean (at most the circle: ``_arc``) into ``first[i, a]`` and
+    ``count[i, a]`` (0: no window, the component is skipped or interpolated), its weights
+    exp(-(d / sd)^2 / 2) at the cells' wrapped offsets d returned end to end (``offset[i, a]``: where
+    its run starts) and summed in order into ``den[i, a]``. They depend on the tracks only, so the K
+    tags' filters of a step share them."""
+    n = means.shape[0]
+    total = 0
+    for i in range(n):
+        for a in range(2):
+            count[i, a] = 0
+            if weights[i, a] <= 1e-3 or sds[i, a] < step:
+                continue
+            f, c = _arc(means[i, a], 4.0 * sds[i, a], step, M)
+            first[i, a] = f
+            count[i, a] = c
+            offset[i, a] = total
+            total += c
+    w = np.empty(total)
+    for i in range(n):
+        for a in range(2):
+            c = count[i, a]
+            if c == 0:
+                continue
+            mean = means[i, a]
+            sd = sds[i, a]
+            f = first[i, a]
+            o = offset[i, a]
+            acc = 0.0
+            for j in range(c):
+                k = _cell(f + j, M)
+                d = _wrap(-math.pi + k * step - mean)
+                v = math.exp(-0.5 * (d / sd) ** 2)
+                w[o + j] = v
+                acc += v
+            den[i, a] = acc
+    return w
+
+
+@njit(cache=True, inline="always")
+def _smeared_loglik(ll, first, count, w, offset, den, M):
+    """log of exp(ll) averaged over a component's Gaussian window (``smear_windows``):
+    top + log(max(sum_j w_j exp(ll_j - top) / den, 1e-300)), the sum in the window's order."""
     top = -1e300
-    for j in range(n):
+    for j in range(count):
         k = _cell(first + j, M)
         if ll[k] > top:
             top = ll[k]
     num = 0.0
-    den = 0.0
-    for j in range(n):
-        k = _cell(first + j, M)
-        d = _wrap(-math.pi + k * step - mean)
-        w = math.exp(-0.5 * (d / sd) ** 2)
-        den += w
-        num += w * math.exp(ll[k] - top)
+    for j in range(count):
+        num += w[offset + j] * math.exp(ll[_cell(first + j, M)] - top)
     return top + math.log(max(num / den, 1e-300))
 
 
 @njit(cache=True)
-def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, out):
+def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, first, count, offset, w, den, out):
     """Each track's likelihood of this RF sample if it were the Tx (rf_filter.follow): its IMM
-    components (standing with the standing level, walking with the walking one), each smeared
-    over its uncertainty, mixed by their weights."""
+    components (standing with the standing level, walking with the walking one), each averaged over
+    its Gaussian window (``smear_windows``; interpolated at its mean when its sd is below a grid
+    step), mixed by their weights."""
+    M = ll_stand.size
+    comp = np.empty(2)
     for i in range(means.shape[0]):
         top = -1e300
-        comp = np.empty(2)
         for a in range(2):
-            w = weights[i, a]
-            if w <= 1e-3:  # a model this unlikely moves nothing (and costs a window of work)
+            wt = weights[i, a]
+            if wt <= 1e-3:  # a model this unlikely moves nothing (and costs a window of work)
                 comp[a] = -1e300
                 continue
             ll = ll_stand if a == 0 else ll_walk
-            comp[a] = math.log(w) + _smeared_loglik(ll, means[i, a], sds[i, a], step)
+            if count[i, a] == 0:  # sd below a grid step
+                s = _interp_periodic(ll, means[i, a], step)
+            else:
+                s = _smeared_loglik(ll, first[i, a], count[i, a], w, offset[i, a], den[i, a], M)
+            comp[a] = math.log(wt) + s
             top = max(top, comp[a])
         acc = 0.0
         for a in range(2):
@@ -486,3 +525,4 @@ def track_where(l_rf, means, sds, weights, step, sharp, out):
             if score > best:
                 best = score
                 out[i] = g
+

@@ -90,6 +90,31 @@ def _columns(table: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return np.take(table, keep, axis=1)
 
 
+_WINDOWS: list = [None]  # the last tracks' windows: (means, sds, weights as given, step, M, what smear_windows returned)
+
+
+def smear_windows(means, sds, weights, circle: CircleGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple]:
+    """(means, sds, weights) as C-contiguous doubles and the Gaussian windows ``follow`` averages
+    each IMM component's sample likelihood over (``_kernels.smear_windows``: they depend on the
+    tracks only). Kept for the last tracks when their arrays are read-only and own their data (the
+    tracker's ``components()``: one set of objects a step, which the K tags' filters all follow)."""
+    kept = _WINDOWS[0]
+    if kept is not None and kept[0] is means and kept[1] is sds and kept[2] is weights and kept[3] == circle.step \
+            and kept[4] == circle.size:
+        return kept[5]
+    frozen = all(isinstance(a, np.ndarray) and not a.flags.writeable and a.base is None for a in (means, sds, weights))
+    given = (means, sds, weights)
+    means, sds, weights = (np.ascontiguousarray(a, dtype=float) for a in given)
+    n = means.shape[0]
+    first, count, offset = np.empty((n, 2), dtype=np.int64), np.empty((n, 2), dtype=np.int64), np.empty((n, 2), dtype=np.int64)
+    den = np.empty((n, 2))
+    w = _kernels.smear_windows(means, sds, weights, circle.step, circle.size, first, count, offset, den)
+    out = (means, sds, weights, (first, count, offset, w, den))
+    if frozen:
+        _WINDOWS[0] = (*given, circle.step, circle.size, out)
+    return out
+
+
 class RxDirModel:
     """The mean of Rx(dir) given the level L and the misalignment: the rig's response."""
 
@@ -278,10 +303,9 @@ class RFBearingFilter:
         before it (it may have stood there all along) or none (it walked in), by its weights."""
         evidence: dict[int, float] = {}
         circle = self.circle
-        n = len(ids)
-        step = np.empty(n)
-        _kernels.track_sample_loglik(self.ll_stand, self.ll_walk, np.ascontiguousarray(means, dtype=float),
-                                     np.ascontiguousarray(sds, dtype=float), np.ascontiguousarray(weights, dtype=float), circle.step, step)
+        step = np.empty(len(ids))
+        means, sds, weights, windows = smear_windows(means, sds, weights, circle)
+        _kernels.track_sample_loglik(self.ll_stand, self.ll_walk, means, sds, weights, circle.step, *windows, step)
         for i, (tid, s) in enumerate(zip(ids, step.tolist())):
             if tid in self._evidence:
                 evidence[tid] = self._evidence[tid] + s

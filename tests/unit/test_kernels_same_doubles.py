@@ -6,9 +6,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 from scipy.special import gammaln
 
-from ra2vipas.services.controller import _kernels, _tracker
+from ra2vipas.services.controller import _kernels, _tracker, rf_filter
 from ra2vipas.services.controller.fusion import arc_mass
 from ra2vipas.services.controller.grid import CircleGrid
 from ra2vipas.services.controller.rf_filter import RxDirModel, antenna_gain
@@ -88,3 +89,72 @@ def test_track_table_gathers():
     assert _same(sds, np.sqrt(np.maximum(tracker._P[view, :, 0, 0], 0.0)))
     settled = tracker._det_steps[:200] >= 3.0
     assert _tracker.settled_walkers(tab, 200) == (int(np.count_nonzero(tracker._mu[:200, 1][settled] > 0.5)), int(settled.sum()))
+
+
+@njit
+def _smeared_loglik_before(ll, mean, sd, step):
+    if sd < step:
+        return _kernels._interp_periodic(ll, mean, step)
+    M = ll.size
+    first, n = _kernels._arc(mean, 4.0 * sd, step, M)
+    top = -1e300
+    for j in range(n):
+        k = _kernels._cell(first + j, M)
+        if ll[k] > top:
+            top = ll[k]
+    num = 0.0
+    den = 0.0
+    for j in range(n):
+        k = _kernels._cell(first + j, M)
+        d = _kernels._wrap(-math.pi + k * step - mean)
+        w = math.exp(-0.5 * (d / sd) ** 2)
+        den += w
+        num += w * math.exp(ll[k] - top)
+    return top + math.log(max(num / den, 1e-300))
+
+
+@njit
+def _sample_loglik_before(ll_stand, ll_walk, means, sds, weights, step, out):
+    """rf_filter.follow's kernel before the K tags shared the Gaussian windows (each component's
+    weights computed in the tag's own pass), verbatim."""
+    for i in range(means.shape[0]):
+        top = -1e300
+        comp = np.empty(2)
+        for a in range(2):
+            w = weights[i, a]
+            if w <= 1e-3:
+                comp[a] = -1e300
+                continue
+            ll = ll_stand if a == 0 else ll_walk
+            comp[a] = math.log(w) + _smeared_loglik_before(ll, means[i, a], sds[i, a], step)
+            top = max(top, comp[a])
+        acc = 0.0
+        for a in range(2):
+            if comp[a] > -1e299:
+                acc += math.exp(comp[a] - top)
+        out[i] = top + math.log(acc) if acc > 0.0 else -1e300
+
+
+def test_shared_smear_windows_give_each_tags_sample_loglik():
+    rng = np.random.default_rng(6)
+    circle = CircleGrid(360)
+    for _ in range(40):
+        n = int(rng.integers(1, 30))
+        means = rng.uniform(-4.0, 4.0, (n, 2))
+        sds = np.abs(rng.normal(size=(n, 2))) * 10.0 ** rng.uniform(-3.0, 0.5, (n, 2))
+        weights = rng.dirichlet([1.0, 1.0], n)
+        weights[rng.uniform(size=n) < 0.2, 1] = 1e-4
+        assert rf_filter.smear_windows(means, sds, weights, circle)[3] is not rf_filter.smear_windows(means, sds, weights, circle)[3]
+        for array in (means, sds, weights):  # the tracker's components: read-only, kept for the step
+            array.flags.writeable = False
+        kept = None
+        for tag in range(3):  # the K tags of a step: the windows computed once (kept), each tag's own likelihoods
+            ll_stand, ll_walk = rng.normal(size=360) * 5.0, rng.normal(size=360) * 5.0
+            m, s, w, windows = rf_filter.smear_windows(means, sds, weights, circle)
+            assert tag == 0 or windows is kept
+            kept = windows
+            out = np.empty(n)
+            _kernels.track_sample_loglik(ll_stand, ll_walk, m, s, w, circle.step, *windows, out)
+            want = np.empty(n)
+            _sample_loglik_before(ll_stand, ll_walk, means, sds, weights, circle.step, want)
+            assert _same(out, want)
