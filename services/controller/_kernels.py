@@ -526,3 +526,166 @@ def track_where(l_rf, means, sds, weights, step, sharp, out):
                 best = score
                 out[i] = g
 
+
+@njit(cache=True, inline="always")
+def _block_sum(a, lo, n):
+    """numpy's pairwise summation of a[lo:lo + n] for n <= 128: left to right from +0.0 below 8 terms,
+    else eight interleaved partial sums, combined pairwise, then the terms past the last multiple of 8."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        j = lo + i
+        r0 += a[j]
+        r1 += a[j + 1]
+        r2 += a[j + 2]
+        r3 += a[j + 3]
+        r4 += a[j + 4]
+        r5 += a[j + 5]
+        r6 += a[j + 6]
+        r7 += a[j + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@njit(cache=True)
+def pairwise_sum(a, lo, n):
+    """a[lo:lo + n].sum() as numpy sums a contiguous run of doubles (its pairwise summation): up to
+    128 terms ``_block_sum``; above, the left part (n // 2 less its remainder mod 8) summed, then the
+    right, added. numpy recurses; this walks the same tree with a stack (numba's cached recursion is
+    not safe to call from other kernels): the same double."""
+    if n <= 128:
+        return _block_sum(a, lo, n)
+    los = np.empty(64, dtype=np.int64)
+    ns = np.empty(64, dtype=np.int64)
+    left = np.empty(64)
+    right_pending = np.zeros(64, dtype=np.bool_)
+    top = 0
+    los[0] = lo
+    ns[0] = n
+    result = 0.0
+    while top >= 0:
+        if ns[top] > 128:  # descend into the left part
+            half = ns[top] // 2
+            half -= half % 8
+            los[top + 1] = los[top]
+            ns[top + 1] = half
+            right_pending[top + 1] = False
+            top += 1
+            continue
+        v = _block_sum(a, los[top], ns[top])
+        top -= 1
+        while top >= 0:  # hand v up: a left part opens its right sibling, a right part completes its parent
+            if not right_pending[top]:
+                left[top] = v
+                right_pending[top] = True
+                half = ns[top] // 2
+                half -= half % 8
+                los[top + 1] = los[top] + half
+                ns[top + 1] = ns[top] - half
+                right_pending[top + 1] = False
+                top += 1
+                break
+            v = left[top] + v
+            top -= 1
+        if top < 0:
+            result = v
+    return result
+
+
+@njit(cache=True)
+def exclusive_marginals(w, m, part_start, block_start, block_tags, reliable_share, out):
+    """The inclusion-exclusion sum of ``multitag.exclusive_posteriors`` (each tag's unnormalised
+    marginal when no two tags share one of the m tracks), over the partitions of the tags given as
+    runs: partition p's blocks are ``block_start[part_start[p]:part_start[p + 1] + 1]`` into
+    ``block_tags``. w (K, m + 1) holds each tag's weights, column m "missed". Writes the marginals
+    normalised (negatives clipped to +0.0) into ``out`` and returns 1, or returns 0 when the sum
+    cancels too much to trust (a negative below, or a total at most, ``reliable_share`` of its largest
+    term). Every product, sum and accumulation in the order of the numpy expression it replaced."""
+    k = w.shape[0]
+    cols = w.shape[1]
+    totals = np.empty(k)
+    for t in range(k):
+        totals[t] = pairwise_sum(w[t], 0, cols)
+    out[:, :] = 0.0
+    largest_term = 0.0
+    values = np.empty(k)
+    product = np.empty(m)
+    for p in range(part_start.size - 1):
+        b0, b1 = part_start[p], part_start[p + 1]
+        mu = 1.0
+        for b in range(b0, b1):
+            size = block_start[b + 1] - block_start[b]
+            factorial = 1.0
+            for f in range(2, size):
+                factorial *= f
+            mu *= (-1.0 if size % 2 == 0 else 1.0) * factorial
+            if size == 1:
+                values[b - b0] = totals[block_tags[block_start[b]]]
+            else:  # the block's rows multiplied in order, summed
+                for c in range(m):
+                    product[c] = w[block_tags[block_start[b]], c]
+                for r in range(block_start[b] + 1, block_start[b + 1]):
+                    for c in range(m):
+                        product[c] = product[c] * w[block_tags[r], c]
+                values[b - b0] = pairwise_sum(product, 0, m)
+        prod_all = 1.0
+        for b in range(b1 - b0):
+            prod_all *= values[b]
+        term = mu * prod_all
+        largest_term = max(largest_term, abs(term))
+        for b in range(b0, b1):
+            others = 1.0
+            for j in range(b1 - b0):
+                if j != b - b0:
+                    others *= values[j]
+            scale = mu * others
+            size = block_start[b + 1] - block_start[b]
+            for r in range(block_start[b], block_start[b + 1]):
+                tag = block_tags[r]
+                if size == 1:
+                    for c in range(cols):
+                        out[tag, c] += scale * 1.0
+                    continue
+                first = True  # the rest of the block's product at each track (the other tags' rows in order), 0 at "missed"
+                for q in range(block_start[b], block_start[b + 1]):
+                    other = block_tags[q]
+                    if other == tag:
+                        continue
+                    if first:
+                        for c in range(m):
+                            product[c] = w[other, c]
+                        first = False
+                    else:
+                        for c in range(m):
+                            product[c] = product[c] * w[other, c]
+                for c in range(m):
+                    out[tag, c] += scale * product[c]
+                out[tag, m] += scale * 0.0
+    for t in range(k):
+        for c in range(cols):
+            out[t, c] *= w[t, c]
+    z = np.empty(k)
+    for t in range(k):
+        z[t] = pairwise_sum(out[t], 0, cols)
+    floor = reliable_share * largest_term
+    for t in range(k):
+        if z[t] <= floor:
+            return 0
+        for c in range(cols):
+            if out[t, c] < -floor:
+                return 0
+    for t in range(k):
+        for c in range(cols):
+            u = out[t, c]
+            out[t, c] = (u if (u > 0.0 or u != u) else 0.0) / z[t]
+    return 1

@@ -9,7 +9,7 @@ import numpy as np
 from numba import njit
 from scipy.special import gammaln
 
-from ra2vipas.services.controller import _kernels, _tracker, rf_filter
+from ra2vipas.services.controller import _kernels, _tracker, multitag, rf_filter
 from ra2vipas.services.controller.fusion import arc_mass
 from ra2vipas.services.controller.grid import CircleGrid
 from ra2vipas.services.controller.rf_filter import RxDirModel, antenna_gain
@@ -89,6 +89,78 @@ def test_track_table_gathers():
     assert _same(sds, np.sqrt(np.maximum(tracker._P[view, :, 0, 0], 0.0)))
     settled = tracker._det_steps[:200] >= 3.0
     assert _tracker.settled_walkers(tab, 200) == (int(np.count_nonzero(tracker._mu[:200, 1][settled] > 0.5)), int(settled.sum()))
+
+
+def test_pairwise_sum_is_numpys():
+    rng = np.random.default_rng(4)
+    for n in [*range(0, 300), 360, 361, 1000, 1024, 4099, 20000]:
+        x = rng.standard_normal(n) * 10.0 ** rng.integers(-8, 8, n)
+        assert _kernels.pairwise_sum(x, 0, n) == x.sum()
+        assert n < 3 or _kernels.pairwise_sum(x, 2, n - 2) == x[2:].sum()
+
+
+def _exclusive_numpy(track_loglik, missed_loglik):
+    """multitag.exclusive_posteriors as it was before its sum was compiled (numpy and Python floats)."""
+    tracks, missed = np.asarray(track_loglik, dtype=float), np.asarray(missed_loglik, dtype=float)
+    k, m = tracks.shape
+    full = np.concatenate([tracks, missed[:, None]], axis=1)
+    w = np.exp(full - full.max(axis=1, keepdims=True))
+    unnormalised = np.zeros_like(w)
+    largest_term = 0.0
+    totals = w.sum(axis=1)
+    ones = np.ones(m + 1)
+
+    def product_of(tags):
+        product = w[tags[0], :m]
+        for t in tags[1:]:
+            product = product * w[t, :m]
+        return product
+
+    for blocks in multitag._partitions_of(k):
+        mu = 1.0
+        shared, values = {}, []
+        for block in blocks:
+            size = len(block)
+            mu *= (-1.0) ** (size - 1) * math.factorial(size - 1)
+            if size == 1:
+                values.append(float(totals[block[0]]))
+                shared[block[0]] = ones
+                continue
+            values.append(float(product_of(block).sum()))
+            for tag in block:
+                rest = np.zeros(m + 1)
+                rest[:m] = product_of([t for t in block if t != tag])
+                shared[tag] = rest
+        term = mu * math.prod(values)
+        largest_term = max(largest_term, abs(term))
+        for i, block in enumerate(blocks):
+            others = math.prod(v for j, v in enumerate(values) if j != i)
+            for tag in block:
+                unnormalised[tag] += mu * others * shared[tag]
+    unnormalised *= w
+    z = unnormalised.sum(axis=1)
+    share = multitag.RELIABLE_SHARE
+    if (unnormalised < -share * largest_term).any() or (z <= share * largest_term).any():
+        return multitag._enumerated(w, m)
+    return np.clip(unnormalised, 0.0, None) / z[:, None]
+
+
+def test_exclusive_marginals_as_the_numpy_sum():
+    rng = np.random.default_rng(5)
+    enumerated = 0
+    for trial in range(3000):
+        k, m = int(rng.integers(2, 5)), int(rng.integers(1, 140 if trial % 10 == 0 else 30))
+        scale = 10.0 ** rng.uniform(-1.0, 3.0)  # up to tags all but certain of one track each
+        tracks, missed = rng.normal(size=(k, m)) * scale, rng.normal(size=k) * scale
+        if trial % 7 == 0:  # two tags after one track
+            tracks[1, 0] = tracks[0, 0] = tracks.max() + 5.0
+        with np.errstate(invalid="ignore"):  # _enumerated's 0 / 0 where every weight but the largest underflows
+            want, got = _exclusive_numpy(tracks, missed), multitag.exclusive_posteriors(tracks, missed)
+        assert _same(got, want)
+        full = np.concatenate([tracks, missed[:, None]], axis=1)
+        w = np.exp(full - full.max(axis=1, keepdims=True))
+        enumerated += not _kernels.exclusive_marginals(w, m, *multitag._partition_runs(k), multitag.RELIABLE_SHARE, np.empty_like(w))
+    assert enumerated > 30  # the cancelling case is exercised too
 
 
 @njit
