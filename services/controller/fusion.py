@@ -50,6 +50,15 @@ def softmax(log_weights: np.ndarray) -> np.ndarray:
     return w / w.sum()
 
 
+def softmax_and_logsumexp(log_weights: np.ndarray) -> tuple[np.ndarray, float]:
+    """(softmax(l), rf_filter.logsumexp(l)) of a non-empty array from one exp: the same doubles as
+    the two apart (both subtract the same max, exponentiate and sum the same array)."""
+    top = log_weights.max()
+    w = np.exp(log_weights - top)
+    total = w.sum()
+    return w / total, float(top) + math.log(float(total))
+
+
 class Fusion:
     """Posterior over "the Tx is track i" and "the Tx is an undetected target at gamma", and
     the answer it gives.

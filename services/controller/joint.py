@@ -48,9 +48,8 @@ from ra2vipas.services.controller import _kernels, multitag
 from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, Beliefs
 from ra2vipas.services.controller.composed import Composition, Decision, Parts, take_iso, update_rf, wrapped
 from ra2vipas.services.controller.confidence import Covariates
-from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softmax
+from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softmax, softmax_and_logsumexp
 from ra2vipas.services.controller.rf_belief import PacketClock
-from ra2vipas.services.controller.rf_filter import logsumexp
 from ra2vipas.services.protocol.measurements import StepMeasurement
 
 PanRule = Literal["entropy", "neediest"]
@@ -309,8 +308,8 @@ class JointSearch:
         entropy, the joint posteriors and the answers each read them), computed once per ``scored``."""
         kept = getattr(self, "_missed_kept", None)
         if kept is None or kept[0] is not scored:
-            kept = self._missed_kept = (scored, [softmax(l_missed) for _, l_missed in scored],
-                                        [logsumexp(l_missed) for _, l_missed in scored])
+            reads = [softmax_and_logsumexp(l_missed) for _, l_missed in scored]
+            kept = self._missed_kept = (scored, [r[0] for r in reads], [r[1] for r in reads])
         return kept[1], kept[2]
 
     def _due(self, k: int, t: int) -> bool | None:

@@ -10,11 +10,11 @@ from numba import njit
 from scipy.special import gammaln
 
 from ra2vipas.services.controller import _kernels, _tracker, multitag, rf_filter
-from ra2vipas.services.controller.fusion import arc_mass
+from ra2vipas.services.controller.fusion import arc_mass, softmax, softmax_and_logsumexp
 from ra2vipas.services.controller.grid import CircleGrid
-from ra2vipas.services.controller.rf_filter import RxDirModel, antenna_gain
+from ra2vipas.services.controller.rf_filter import RxDirModel, antenna_gain, logsumexp
 from ra2vipas.services.controller.tracks import BearingTracker
-from ra2vipas.services.controller.vision_belief import _per_run
+from ra2vipas.services.controller.vision_belief import CameraBelief, _per_run
 from ra2vipas.services.protocol.angles import wrap
 
 
@@ -230,3 +230,22 @@ def test_shared_smear_windows_give_each_tags_sample_loglik():
             want = np.empty(n)
             _sample_loglik_before(ll_stand, ll_walk, means, sds, weights, circle.step, want)
             assert _same(out, want)
+
+
+def test_one_exp_for_softmax_and_logsumexp_and_the_views_runs_once():
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        x = rng.normal(size=int(rng.integers(1, 400))) * 10.0 ** rng.uniform(-2.0, 3.0)
+        post, lse = softmax_and_logsumexp(x)
+        assert _same(post, softmax(x)) and lse == logsumexp(x)
+    camera = CameraBelief(CircleGrid(360), 0.39, 0.01, 0.1, 10, None)
+    for step in range(30):  # the K tags of a step share the runs of the view counts; each its own POD
+        camera.view_frames[rng.integers(0, 300):][: rng.integers(1, 60)] += 10.0
+        camera.view_recent *= 0.88
+        camera.view_recent[rng.integers(0, 300):][: rng.integers(1, 60)] += 10.0
+        camera._steps = step
+        for alpha, beta in rng.uniform(0.3, 9.0, (3, 2)):
+            base = gammaln(alpha + beta) - gammaln(beta)
+            stand, walk = camera.miss_loglik(alpha, beta)
+            assert _same(stand, _per_run(camera.view_frames, alpha, beta, base))
+            assert _same(walk, _per_run(camera.view_recent, alpha, beta, base))
