@@ -689,3 +689,48 @@ def exclusive_marginals(w, m, part_start, block_start, block_tags, reliable_shar
             u = out[t, c]
             out[t, c] = (u if (u > 0.0 or u != u) else 0.0) / z[t]
     return 1
+
+
+@njit(cache=True, inline="always")
+def _max(values):
+    """values.max() as numpy gives it (NaN when any value is NaN)."""
+    top = -np.inf
+    for i in range(values.size):
+        v = values[i]
+        if v != v:
+            return v
+        if v > top:
+            top = v
+    return top
+
+
+@njit(cache=True)
+def less_max(values, out):
+    """out = values - values.max(); returns the max."""
+    top = _max(values)
+    for i in range(values.size):
+        out[i] = values[i] - top
+    return top
+
+
+@njit(cache=True)
+def clip_normalise(predicted, ll, shifted):
+    """The walking filter's prediction and the sample's log-likelihood made ready to multiply
+    (``RFBearingFilter._absorb``): predicted = np.maximum(predicted, 0.0) (NaN kept, -0.0 to +0.0),
+    then predicted /= its numpy sum, in place; shifted = ll - ll.max(); returns ll.max()."""
+    n = predicted.size
+    for i in range(n):
+        v = predicted[i]
+        predicted[i] = v if (v > 0.0 or v != v) else 0.0
+    total = pairwise_sum(predicted, 0, n)
+    for i in range(n):
+        predicted[i] = predicted[i] / total
+    return less_max(ll, shifted)
+
+
+@njit(cache=True)
+def times_sum(weights, values):
+    """values = weights * values in place; returns their numpy sum."""
+    for i in range(values.size):
+        values[i] = weights[i] * values[i]
+    return pairwise_sum(values, 0, values.size)

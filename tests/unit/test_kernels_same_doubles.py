@@ -249,3 +249,33 @@ def test_one_exp_for_softmax_and_logsumexp_and_the_views_runs_once():
             stand, walk = camera.miss_loglik(alpha, beta)
             assert _same(stand, _per_run(camera.view_frames, alpha, beta, base))
             assert _same(walk, _per_run(camera.view_recent, alpha, beta, base))
+
+
+def test_walking_filter_update_as_the_numpy_expressions():
+    rng = np.random.default_rng(8)
+    for n in (360, 359, 64):
+        x, k = rng.random(n), np.fft.rfft(rng.random(n))
+        assert _same(rf_filter.convolve_periodic(x, k), np.fft.irfft(np.fft.rfft(x) * k, n=n))
+    p = rng.normal(size=360) * 1e-17
+    p[[3, 70, 200]] = [-0.0, np.nan, 0.0]
+    ll = rng.normal(size=360)
+    want_p = np.maximum(p, 0.0)
+    want_p /= want_p.sum()
+    shifted = np.empty(360)
+    assert _kernels.clip_normalise(p, ll, shifted) == ll.max() and _same(p, want_p) and _same(shifted, ll - ll.max())
+    rff = rf_filter.RFBearingFilter(CircleGrid(360), RxDirModel("paper", 0.5), 3.0, 0.1)
+    for _ in range(50):
+        rff._walk = np.log(rng.dirichlet(np.full(360, 0.3)) + 1e-300)
+        ll_stand, ll_walk = rng.normal(size=360) * 4.0, rng.normal(size=360) * 4.0
+        static = rff._static.copy()
+        walk, steps = rff._walk, int(rng.integers(1, 4))
+        prior = np.exp(walk - walk.max())  # _absorb as it was, in numpy
+        predicted = np.maximum(np.fft.irfft(np.fft.rfft(prior) * rff._kernel_fft**steps, n=360), 0.0)
+        predicted /= predicted.sum()
+        top = ll_walk.max()
+        joint = predicted * np.exp(ll_walk - top)
+        c = float(joint.sum())
+        log_c = float(top + math.log(max(c, 1e-300)))
+        rff._absorb(ll_stand, ll_walk, steps)
+        assert _same(rff._walk, np.log(np.maximum(joint / c, 1e-300)))
+        assert _same(rff.ll_walk, ll_walk - log_c) and _same(rff._static, static + (ll_stand - log_c))
