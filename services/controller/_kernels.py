@@ -458,48 +458,75 @@ def smear_windows(means, sds, weights, step, M, first, count, offset, den):
     return w
 
 
-@njit(cache=True, inline="always")
-def _smeared_loglik(ll, first, count, w, offset, den, M):
-    """log of exp(ll) averaged over a component's Gaussian window (``smear_windows``):
-    top + log(max(sum_j w_j exp(ll_j - top) / den, 1e-300)), the sum in the window's order."""
-    top = -1e300
-    for j in range(count):
-        k = _cell(first + j, M)
-        if ll[k] > top:
-            top = ll[k]
-    num = 0.0
-    for j in range(count):
-        num += w[offset + j] * math.exp(ll[_cell(first + j, M)] - top)
-    return top + math.log(max(num / den, 1e-300))
-
-
 @njit(cache=True)
 def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, first, count, offset, w, den, out):
     """Each track's likelihood of this RF sample if it were the Tx (rf_filter.follow): its IMM
     components (standing with the standing level, walking with the walking one), each averaged over
-    its Gaussian window (``smear_windows``; interpolated at its mean when its sd is below a grid
-    step), mixed by their weights."""
+    its Gaussian window (``smear_windows``: top + log(max(sum_j w_j exp(ll_j - top) / den, 1e-300)),
+    top the window's largest ll, the sum in the window's order; interpolated at its mean when its sd
+    is below a grid step), mixed by their weights. Windows that share their top (overlapping ones
+    mostly do) share each cell's exp(ll_j - top): computed once, the same double."""
     M = ll_stand.size
+    n = means.shape[0]
+    tops = np.empty((n, 2))
+    slot = np.empty((n, 2), dtype=np.int64)
+    slot_model = np.empty(2 * n, dtype=np.int64)
+    slot_top = np.empty(2 * n)
+    slots = 0
+    for i in range(n):  # each window's top, and one slot of exps per (model, top)
+        for a in range(2):
+            c = count[i, a]
+            if c == 0 or weights[i, a] <= 1e-3:
+                continue
+            ll = ll_stand if a == 0 else ll_walk
+            top = -1e300
+            for j in range(c):
+                k = _cell(first[i, a] + j, M)
+                if ll[k] > top:
+                    top = ll[k]
+            tops[i, a] = top
+            s = 0
+            while s < slots and not (slot_model[s] == a and slot_top[s] == top):
+                s += 1
+            if s == slots:
+                slot_model[s] = a
+                slot_top[s] = top
+                slots += 1
+            slot[i, a] = s
+    exps = np.full((slots, M), np.nan)  # exp(ll_k - top) of each slot, computed when first asked
     comp = np.empty(2)
-    for i in range(means.shape[0]):
-        top = -1e300
+    for i in range(n):
+        top_i = -1e300
         for a in range(2):
             wt = weights[i, a]
             if wt <= 1e-3:  # a model this unlikely moves nothing (and costs a window of work)
                 comp[a] = -1e300
                 continue
             ll = ll_stand if a == 0 else ll_walk
-            if count[i, a] == 0:  # sd below a grid step
-                s = _interp_periodic(ll, means[i, a], step)
+            c = count[i, a]
+            if c == 0:  # sd below a grid step
+                s_ll = _interp_periodic(ll, means[i, a], step)
             else:
-                s = _smeared_loglik(ll, first[i, a], count[i, a], w, offset[i, a], den[i, a], M)
-            comp[a] = math.log(wt) + s
-            top = max(top, comp[a])
+                top = tops[i, a]
+                row = exps[slot[i, a]]
+                f = first[i, a]
+                o = offset[i, a]
+                num = 0.0
+                for j in range(c):
+                    k = _cell(f + j, M)
+                    e = row[k]
+                    if e != e:
+                        e = math.exp(ll[k] - top)
+                        row[k] = e
+                    num += w[o + j] * e
+                s_ll = top + math.log(max(num / den[i, a], 1e-300))
+            comp[a] = math.log(wt) + s_ll
+            top_i = max(top_i, comp[a])
         acc = 0.0
         for a in range(2):
             if comp[a] > -1e299:
-                acc += math.exp(comp[a] - top)
-        out[i] = top + math.log(acc) if acc > 0.0 else -1e300
+                acc += math.exp(comp[a] - top_i)
+        out[i] = top_i + math.log(acc) if acc > 0.0 else -1e300
 
 
 @njit(cache=True)

@@ -222,6 +222,8 @@ def test_shared_smear_windows_give_each_tags_sample_loglik():
         kept = None
         for tag in range(3):  # the K tags of a step: the windows computed once (kept), each tag's own likelihoods
             ll_stand, ll_walk = rng.normal(size=360) * 5.0, rng.normal(size=360) * 5.0
+            if tag:  # smooth, as a sample's likelihood over the grid is: overlapping windows share their top
+                ll_stand, ll_walk = (-3.0 * (1.0 - np.cos(circle.angles - rng.uniform(-3.0, 3.0))) for _ in range(2))
             m, s, w, windows = rf_filter.smear_windows(means, sds, weights, circle)
             assert tag == 0 or windows is kept
             kept = windows
@@ -279,3 +281,23 @@ def test_walking_filter_update_as_the_numpy_expressions():
         rff._absorb(ll_stand, ll_walk, steps)
         assert _same(rff._walk, np.log(np.maximum(joint / c, 1e-300)))
         assert _same(rff.ll_walk, ll_walk - log_c) and _same(rff._static, static + (ll_stand - log_c))
+
+
+def test_gain_table_columns_without_a_copy_give_the_same_products():
+    rng = np.random.default_rng(9)
+    circle, response = CircleGrid(360), RxDirModel("paper", 0.5)
+    for stride in (1, 2):
+        table, squared = response.gain_table(circle, stride), response.gain_table(circle, stride, squared=True)
+        assert _same(squared, table * table)
+        for _ in range(1500):
+            if rng.uniform() < 0.7:  # a run of cells (the posterior's support mostly is), else scattered cells
+                a = int(rng.integers(0, 359))
+                keep = np.arange(a, int(rng.integers(a + 1, 361)))
+            else:
+                keep = np.sort(rng.choice(360, int(rng.integers(1, 200)), replace=False))
+            p = rng.random(keep.size)
+            p /= p.sum()
+            copy = np.ascontiguousarray(table[:, keep])  # what rf_filter multiplied before: a C-contiguous copy
+            first = rf_filter._columns(table, keep) @ p
+            assert _same(first, copy @ p) and _same(rf_filter._columns(squared, keep) @ p, (copy * copy) @ p)
+            assert _same(response.mean(-40.0, rf_filter._columns(table, keep)) @ p, response.mean(-40.0, copy) @ p)
