@@ -761,3 +761,14 @@ def times_sum(weights, values):
     for i in range(values.size):
         values[i] = weights[i] * values[i]
     return pairwise_sum(values, 0, values.size)
+
+
+@njit(cache=True)
+def joint_logs(static, log_m, c_stand, walk, c_walk, joints, shifted):
+    """The filter's joint log-densities (``RFBearingFilter._joints``): joints[0] = (static - log_m) +
+    c_stand (stands, gamma), joints[1] = walk + c_walk (walks, gamma), and shifted[r] = joints[r] -
+    joints[r].max(); returns the two maxima (what their logsumexps start from)."""
+    for i in range(static.size):
+        joints[0, i] = (static[i] - log_m) + c_stand
+        joints[1, i] = walk[i] + c_walk
+    return less_max(joints[0], shifted[0]), less_max(joints[1], shifted[1])

@@ -363,12 +363,12 @@ class RFBearingFilter:
     @property
     def log_joint_stand(self) -> np.ndarray:
         """log P(stands, gamma = cell) + const (the standing model's evidence included)."""
-        return self._static - self._log_m + math.log(1.0 - self.walk_prior)
+        return self._joints()[0].copy()
 
     @property
     def log_joint_walk(self) -> np.ndarray:
         """log P(walks, gamma_t = cell) + the same const."""
-        return self._walk + math.log(self.walk_prior)
+        return self._joints()[1].copy()
 
     def _reading(self) -> dict:
         """What the readers of one step share, computed once per sample and walk prior however many
@@ -386,15 +386,24 @@ class RFBearingFilter:
         joint = read.get("joint")
         if joint is None:
             joint = read["joint"] = np.logaddexp(*self._joints())
-            read["joint_lse"] = logsumexp(joint)
+            shifted = np.empty(joint.size)
+            top = _kernels.less_max(joint, shifted)  # logsumexp(joint), its subtraction compiled
+            read["joint_lse"] = top + math.log(float(np.exp(shifted).sum()))
         return joint, read["joint_lse"]
 
-    def _joints(self) -> tuple[np.ndarray, np.ndarray]:
-        """(log_joint_stand, log_joint_walk), kept (``_reading``)."""
+    def _joints(self) -> np.ndarray:
+        """(log_joint_stand, log_joint_walk) as the rows of one (2, M) array, read-only: (_static -
+        log M) + log(1 - walk prior) and _walk + log(walk prior), with each row less its max for the
+        logsumexps of ``p_walk`` (kept: ``_reading``; compiled, ``_kernels.joint_logs``)."""
         read = self._reading()
         joints = read.get("joints")
         if joints is None:
-            joints = read["joints"] = (self.log_joint_stand, self.log_joint_walk)
+            M = self._static.size
+            joints, shifted = np.empty((2, M)), np.empty((2, M))
+            read["tops"] = _kernels.joint_logs(self._static, self._log_m, math.log(1.0 - self.walk_prior), self._walk,
+                                               math.log(self.walk_prior), joints, shifted)
+            joints.flags.writeable = False
+            read["joints"], read["joints_shifted"] = joints, shifted
         return joints
 
     def log_posterior(self) -> np.ndarray:
@@ -434,9 +443,9 @@ class RFBearingFilter:
         read = self._reading()
         p = read.get("p_walk")
         if p is None:
-            stand, walk = self._joints()
-            s = logsumexp(stand)
-            w = logsumexp(walk)
+            self._joints()  # logsumexp of each row: its max plus the log of its shifted row's exps summed
+            totals = np.exp(read["joints_shifted"]).sum(axis=1)
+            s, w = (top + math.log(float(total)) for top, total in zip(read["tops"], totals))
             p = read["p_walk"] = 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
         return p
 

@@ -301,3 +301,18 @@ def test_gain_table_columns_without_a_copy_give_the_same_products():
             first = rf_filter._columns(table, keep) @ p
             assert _same(first, copy @ p) and _same(rf_filter._columns(squared, keep) @ p, (copy * copy) @ p)
             assert _same(response.mean(-40.0, rf_filter._columns(table, keep)) @ p, response.mean(-40.0, copy) @ p)
+
+
+def test_joint_reads_as_the_numpy_expressions():
+    rng = np.random.default_rng(10)
+    rff = rf_filter.RFBearingFilter(CircleGrid(360), RxDirModel("paper", 0.5), 3.0, 0.1)
+    for sample in range(100):
+        rff._static, rff._walk = rng.normal(size=360) * 20.0, np.log(rng.dirichlet(np.full(360, 0.3)) + 1e-300)
+        rff.walk_prior, rff.n = float(rng.uniform(0.01, 0.99)), sample
+        stand = rff._static - rff._log_m + math.log(1.0 - rff.walk_prior)  # as the filter computed them in numpy
+        walk = rff._walk + math.log(rff.walk_prior)
+        joint = np.logaddexp(stand, walk)
+        s, w = logsumexp(stand), logsumexp(walk)
+        assert _same(rff.log_joint_stand, stand) and _same(rff.log_joint_walk, walk)
+        assert _same(rff.log_posterior(), joint - logsumexp(joint))
+        assert rff.p_walk == 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
