@@ -731,6 +731,19 @@ def _max(values):
     return top
 
 
+@njit(cache=True, inline="always")
+def _min(values):
+    """values.min() as numpy gives it (NaN when any value is NaN)."""
+    low = np.inf
+    for i in range(values.size):
+        v = values[i]
+        if v != v:
+            return v
+        if v < low:
+            low = v
+    return low
+
+
 @njit(cache=True)
 def less_max(values, out):
     """out = values - values.max(); returns the max."""
@@ -772,3 +785,37 @@ def joint_logs(static, log_m, c_stand, walk, c_walk, joints, shifted):
         joints[0, i] = (static[i] - log_m) + c_stand
         joints[1, i] = walk[i] + c_walk
     return less_max(joints[0], shifted[0]), less_max(joints[1], shifted[1])
+
+
+@njit(cache=True)
+def ucb_grid(mean, sd, offset, amplitude, sqrt_beta, mass, view_frames, unseen_below, use_mass, out):
+    """a(s) = U_D(s) ((J_RF(s) - offset) / A + sqrt(beta) sigma(s) / |A|) over the grid
+    (``joint.gpucb_values``; ``acquire``'s objective as an array): 1 for the RF part when A = 0;
+    U_D the tracks' mass in view, 1 where the camera has looked at a bearing in fewer than
+    ``unseen_below`` frames and the mass there is below 1 (``use_mass``; else no factor)."""
+    for i in range(mean.size):
+        if amplitude != 0.0:
+            value = (mean[i] - offset) / amplitude + sqrt_beta * sd[i] / abs(amplitude)
+        else:
+            value = 1.0
+        if use_mass:
+            u = mass[i]
+            if view_frames[i] < unseen_below and u < 1.0:
+                u = 1.0
+            value = value * u
+        out[i] = value
+
+
+@njit(cache=True)
+def add_normalised(values, weight, total):
+    """total += weight * (values - min) / (max - min) (weight * 0 when max <= min; NaN as numpy's min
+    and max give it)."""
+    hi = _max(values)
+    lo = _min(values)
+    span = hi - lo
+    if hi > lo:
+        for i in range(values.size):
+            total[i] += weight * ((values[i] - lo) / span)
+    else:
+        for i in range(values.size):
+            total[i] += weight * 0.0

@@ -4,14 +4,17 @@ they replaced (services/controller/_kernels.py, _tracker.py: speed without chang
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 from numba import njit
 from scipy.special import gammaln
 
 from ra2vipas.services.controller import _kernels, _tracker, multitag, rf_filter
+from ra2vipas.services.controller.acquisition import GPUCB
 from ra2vipas.services.controller.fusion import arc_mass, softmax, softmax_and_logsumexp
 from ra2vipas.services.controller.grid import CircleGrid
+from ra2vipas.services.controller.joint import SummedGPUCB, gpucb_values
 from ra2vipas.services.controller.rf_filter import RxDirModel, antenna_gain, logsumexp
 from ra2vipas.services.controller.tracks import BearingTracker
 from ra2vipas.services.controller.vision_belief import CameraBelief, _per_run
@@ -316,3 +319,55 @@ def test_joint_reads_as_the_numpy_expressions():
         assert _same(rff.log_joint_stand, stand) and _same(rff.log_joint_walk, walk)
         assert _same(rff.log_posterior(), joint - logsumexp(joint))
         assert rff.p_walk == 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
+
+
+def _gpucb_values_numpy(b, gpucb):
+    """joint.gpucb_values as it was, in numpy."""
+    circle = gpucb.circle
+    mean, sd, amplitude, offset = b.rf.gain_prediction()
+    if amplitude != 0.0:
+        value = (np.asarray(mean) - offset) / amplitude + math.sqrt(gpucb.beta) * np.asarray(sd) / abs(amplitude)
+    else:
+        value = np.ones(circle.size)
+    vision = b.vision
+    if vision.sees and gpucb.use_mass:
+        mass = np.zeros(circle.size)
+        if b.post.size:
+            w = int(math.floor(vision.tracks.count_limit / circle.step + 1e-9))
+            mass = _kernels.mass_grid(np.asarray(vision.tracks.bearing, dtype=float), np.asarray(b.post, dtype=float), circle.step, w,
+                                      circle.size)
+        unseen = (vision.view_frames < 2.0 * gpucb.frames_per_rf) & (mass < 1.0)
+        value = value * np.where(unseen, 1.0, mass)
+    return value
+
+
+def test_summed_gpucb_as_the_numpy_expressions():
+    rng = np.random.default_rng(11)
+    circle = CircleGrid(360)
+    for trial in range(300):
+        gpucb = GPUCB(circle, 10, beta=float(rng.uniform(0.5, 9.0)), use_mass=trial % 5 != 0)
+        per_tag = []
+        for _ in range(3):
+            amplitude = 0.0 if trial % 11 == 0 else float(rng.normal()) * 3.0
+            prediction = (rng.uniform(size=360), rng.uniform(size=360) * 0.3, amplitude, float(rng.normal()))
+            n = int(rng.integers(0, 25))
+            tracks = SimpleNamespace(count_limit=0.36, bearing=rng.uniform(-math.pi, math.pi, n))
+            vision = SimpleNamespace(sees=trial % 7 != 0, tracks=tracks, view_frames=rng.integers(0, 4, 360) * 10.0)
+            rf = SimpleNamespace(gain_prediction=lambda prediction=prediction: prediction)
+            per_tag.append(SimpleNamespace(rf=rf, vision=vision, post=rng.dirichlet(np.ones(n)) if n else np.empty(0)))
+        weights = rng.dirichlet(np.ones(3))
+        weights[rng.uniform(size=3) < 0.2] = 0.0
+        want = np.zeros(360)
+        for w, b in zip(weights, per_tag):
+            want_b = _gpucb_values_numpy(b, gpucb)
+            assert _same(gpucb_values(b, gpucb), want_b)
+            if w > 0.0:
+                lo, hi = float(want_b.min()), float(want_b.max())
+                want += w * ((want_b - lo) / (hi - lo) if hi > lo else np.zeros_like(want_b))
+        got = SummedGPUCB(gpucb).next_pan(SimpleNamespace(weights=weights, per_tag=per_tag))
+        assert got == (float(circle.angles[int(np.argmax(want))]), False)
+        total = np.zeros(360)
+        for w, b in zip(weights, per_tag):
+            if w > 0.0:
+                _kernels.add_normalised(gpucb_values(b, gpucb), float(w), total)
+        assert _same(total, want)
