@@ -214,25 +214,32 @@ def missed_logdensity(l_rf, rf_weight, miss_stand, miss_walk, walks, log_prior, 
 
 
 @njit(cache=True)
-def t_innovation(gain, gain0, z, z0, level, rho, noise_var, slope_term, level_var, nu, differenced, var, q):
-    """The arithmetic of ``RFBearingFilter._sample_loglik`` for the paper response (mean = level
-    gain) and Student-t innovations, elementwise in its order: var = noise_var (1 - rho^2) +
-    slope_term level_var and resid = (z - rho z0) - (level gain - rho (level gain0)) when
-    ``differenced`` (else noise_var + ..., z - level gain), q = resid^2 / (nu var)."""
-    if differenced:
-        a = z - rho * z0
-        b = noise_var * (1.0 - rho * rho)
-        for i in range(gain.size):
-            resid = a - (level * gain[i] - rho * (level * gain0[i]))
-            v = b + slope_term[i] * level_var
-            var[i] = v
-            q[i] = resid * resid / (nu * v)
-    else:
-        for i in range(gain.size):
-            resid = z - level * gain[i]
-            v = noise_var + slope_term[i] * level_var
-            var[i] = v
-            q[i] = resid * resid / (nu * v)
+def t_innovations(gain, gain0, z, z0, level_stand, level_walk, rho, noise_var, level_var_stand, level_var_walk, nu, differenced,
+                  var, q):
+    """The arithmetic of ``RFBearingFilter._slope_term`` and ``_sample_loglik`` for the paper response
+    (mean = level gain, dE z / dL = gain) and Student-t innovations, at the standing level (cells
+    0..M-1 of ``var`` and ``q``) and the walking one (M..2M-1), elementwise in their order:
+    slope_term = (gain - rho gain0)^2 when ``differenced`` (else gain^2), var = noise_var (1 - rho^2)
+    + slope_term level_var and resid = (z - rho z0) - (level gain - rho (level gain0)) (else
+    noise_var + ..., z - level gain), q = resid^2 / (nu var)."""
+    M = gain.size
+    a = z - rho * z0
+    b = noise_var * (1.0 - rho * rho)
+    for j in range(2):
+        level = level_stand if j == 0 else level_walk
+        level_var = level_var_stand if j == 0 else level_var_walk
+        for i in range(M):
+            if differenced:
+                d = gain[i] - rho * gain0[i]
+                slope_term = d * d
+                resid = a - (level * gain[i] - rho * (level * gain0[i]))
+                v = b + slope_term * level_var
+            else:
+                slope_term = gain[i] * gain[i]
+                resid = z - level * gain[i]
+                v = noise_var + slope_term * level_var
+            var[j * M + i] = v
+            q[j * M + i] = resid * resid / (nu * v)
 
 
 @njit(cache=True)

@@ -240,9 +240,7 @@ class RFBearingFilter:
         level_stand = self._iso_sum / n
         self.rho = self._noise_correlation()
         gain = self.response.gain_over(pan_rad, self.circle)
-        shared = self._slope_term(gain)  # the same for both levels
-        ll_stand = self._sample_loglik(dir_dbm, gain, level_stand, self._level_var(False), shared)
-        ll_walk = self._sample_loglik(dir_dbm, gain, self._level_walk, self._level_var(True), shared)
+        ll_stand, ll_walk = self._sample_logliks(dir_dbm, gain, (level_stand, self._level_walk), (self._level_var(False), self._level_var(True)))
         self._prev = (gain, dir_dbm)
         self._absorb(ll_stand, ll_walk)
 
@@ -297,20 +295,32 @@ class RFBearingFilter:
             return (slope - self.rho * resp.level_slope(self._prev[0])) ** 2
         return slope * slope
 
-    def _sample_loglik(self, z: float, gain: np.ndarray, level: float, level_var: float,
-                       slope_term: np.ndarray) -> np.ndarray:
-        """One sample's log-likelihood over the grid at ``level``; ``slope_term``: ``_slope_term(gain)``."""
-        resp = self.response
+    def _sample_logliks(self, z: float, gain: np.ndarray, levels: tuple[float, float],
+                        level_vars: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+        """The sample's log-likelihood over the grid at the standing and at the walking level. For the
+        paper response with Student-t innovations the arithmetic of ``_slope_term`` and
+        ``_sample_loglik`` for both levels in compiled passes (``_kernels.t_innovations``,
+        ``t_combine``) with one numpy log1p and one log over both: the same doubles."""
         rho = self.rho
-        if resp.model == "paper" and self.tail_dof is not None:  # the arithmetic below in two compiled passes, the logs numpy's
+        if self.response.model == "paper" and self.tail_dof is not None:
             nu = self.tail_dof
             differenced = self._prev is not None and rho > 0.0
             gain0, z0 = self._prev if differenced else (gain, 0.0)
-            var, q = np.empty(gain.size), np.empty(gain.size)
-            _kernels.t_innovation(gain, gain0, float(z), float(z0), float(level), float(rho), float(self.noise_var), slope_term,
-                                  float(level_var), float(nu), differenced, var, q)
+            M = gain.size
+            var, q = np.empty(2 * M), np.empty(2 * M)  # the standing level's cells, then the walking one's
+            _kernels.t_innovations(gain, gain0, float(z), float(z0), float(levels[0]), float(levels[1]), float(rho),
+                                   float(self.noise_var), float(level_vars[0]), float(level_vars[1]), float(nu), differenced, var, q)
             _kernels.t_combine(np.log1p(q), np.log(var), -0.5 * (nu + 1.0), _t_const(nu), q)
-            return q
+            return q[:M], q[M:]
+        shared = self._slope_term(gain)  # the same for both levels
+        return tuple(self._sample_loglik(z, gain, level, level_var, shared) for level, level_var in zip(levels, level_vars))
+
+    def _sample_loglik(self, z: float, gain: np.ndarray, level: float, level_var: float,
+                       slope_term: np.ndarray) -> np.ndarray:
+        """One sample's log-likelihood over the grid at ``level`` (the responses and innovations
+        ``_sample_logliks`` does not compile); ``slope_term``: ``_slope_term(gain)``."""
+        resp = self.response
+        rho = self.rho
         mean = resp.mean(level, gain)
         if self._prev is not None and rho > 0.0:
             gain0, z0 = self._prev  # the previous sample's antenna gain over the grid, and its reading
