@@ -12,7 +12,7 @@ from scipy.special import gammaln
 
 from ra2vipas.services.controller import _kernels, _tracker, multitag, rf_filter
 from ra2vipas.services.controller.acquisition import GPUCB
-from ra2vipas.services.controller.fusion import arc_mass, softmax, softmax_and_logsumexp
+from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softmax, softmax_and_logsumexp
 from ra2vipas.services.controller.grid import CircleGrid
 from ra2vipas.services.controller.joint import SummedGPUCB, gpucb_values
 from ra2vipas.services.controller.rf_filter import RxDirModel, antenna_gain, logsumexp
@@ -371,3 +371,30 @@ def test_summed_gpucb_as_the_numpy_expressions():
             if w > 0.0:
                 _kernels.add_normalised(gpucb_values(b, gpucb), float(w), total)
         assert _same(total, want)
+
+
+def test_both_levels_sample_loglik_as_the_numpy_expression():
+    rng = np.random.default_rng(12)
+    circle = CircleGrid(360)
+    rff = rf_filter.RFBearingFilter(circle, RxDirModel("paper", 0.5), 3.0, 0.1)
+    for trial in range(300):
+        gain = rff.response.gain_over(float(rng.uniform(-math.pi, math.pi)), circle)
+        rff.rho = 0.0 if trial % 4 == 0 else float(rng.uniform(0.0, 0.95))
+        rff._prev = None if trial % 3 == 0 else (rff.response.gain_over(float(rng.uniform(-3.0, 3.0)), circle), float(rng.normal(-40, 5)))
+        z, levels, level_vars = float(rng.normal(-30.0, 8.0)), tuple(rng.normal(-45.0, 6.0, 2)), tuple(rng.uniform(0.01, 9.0, 2))
+        got = rff._sample_logliks(z, gain, levels, level_vars)
+        slope_term = rff._slope_term(gain)  # the numpy expression, both levels apart
+        for level, level_var, ll in zip(levels, level_vars, got):
+            assert _same(ll, rff._sample_loglik(z, gain, float(level), float(level_var), slope_term))
+
+
+def test_refined_argmax_clips_as_numpy():
+    rng = np.random.default_rng(13)
+    circle = CircleGrid(360)
+    for _ in range(3000):
+        values = rng.normal(size=360) * 10.0 ** rng.uniform(-3.0, 3.0)
+        j = int(np.argmax(values))
+        a, b, c = values[(j - 1) % 360], values[j], values[(j + 1) % 360]
+        den = a - 2.0 * b + c
+        shift = 0.5 * (a - c) / den if den < 0 else 0.0
+        assert refined_argmax(circle, values) == float(circle.angles[j] + np.clip(shift, -0.5, 0.5) * (2 * math.pi / 360))
