@@ -826,3 +826,16 @@ def add_normalised(values, weight, total):
     else:
         for i in range(values.size):
             total[i] += weight * 0.0
+
+
+@njit(cache=True)
+def row_entropies(p, log_p, out):
+    """out[r] = sum over row r of -p log p (0 where p is not positive: np.where(p > 0, -p * log_p, 0)),
+    each row's terms summed as numpy sums them (pairwise)."""
+    cols = p.shape[1]
+    terms = np.empty(cols)
+    for r in range(p.shape[0]):
+        for c in range(cols):
+            v = p[r, c]
+            terms[c] = -v * log_p[r, c] if v > 0 else 0.0
+        out[r] = pairwise_sum(terms, 0, cols)

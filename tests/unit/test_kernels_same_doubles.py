@@ -398,3 +398,14 @@ def test_refined_argmax_clips_as_numpy():
         den = a - 2.0 * b + c
         shift = 0.5 * (a - c) / den if den < 0 else 0.0
         assert refined_argmax(circle, values) == float(circle.angles[j] + np.clip(shift, -0.5, 0.5) * (2 * math.pi / 360))
+
+
+def test_entropy_rows_as_the_numpy_expression():
+    rng = np.random.default_rng(14)
+    for _ in range(500):
+        k, c = int(rng.integers(1, 5)), int(rng.integers(1, 400))
+        p = rng.dirichlet(np.full(c, 0.2), k)
+        p[rng.uniform(size=p.shape) < 0.1] = 0.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            want = np.where(p > 0, -p * np.log(p), 0.0).sum(axis=1)
+        assert _same(multitag.entropy(p), want)
