@@ -328,6 +328,23 @@ def mass_at(bearings, post, s, limit):
     return total
 
 
+@njit(cache=True, inline="always")
+def _ucb_value(mean, sd, offset, amplitude, sqrt_beta, mass, view_frames, unseen_below, use_mass):
+    """a(s) at one grid pan: U_D(s) ((J_RF(s) - offset) / A + sqrt(beta) sigma(s) / |A|), 1 for the RF
+    part when A = 0, U_D = 1 where the camera has looked in fewer than ``unseen_below`` frames and the
+    mass is below 1 (``use_mass``; else no factor)."""
+    if amplitude != 0.0:
+        value = (mean - offset) / amplitude + sqrt_beta * sd / abs(amplitude)
+    else:
+        value = 1.0
+    if use_mass:
+        u = mass
+        if view_frames < unseen_below and u < 1.0:
+            u = 1.0
+        value = value * u
+    return value
+
+
 @njit(cache=True)
 def acquire(mean, offset, amplitude, sd, sqrt_beta, bearings, post, view_frames, unseen_below, grid_step, limit, use_mass):
     """argmax over the grid of a(s) = U_D(s) (J_RF(s) + sqrt(beta) sigma(s)) (paper eq. 25 on the
@@ -346,15 +363,7 @@ def acquire(mean, offset, amplitude, sd, sqrt_beta, bearings, post, view_frames,
     best = -1e300
     arg = 0
     for j in range(M):
-        if amplitude != 0.0:
-            value = (mean[j] - offset) / amplitude + sqrt_beta * sd[j] / abs(amplitude)
-        else:
-            value = 1.0
-        if use_mass:
-            u = mass[j]
-            if view_frames[j] < unseen_below and u < 1.0:
-                u = 1.0
-            value *= u
+        value = _ucb_value(mean[j], sd[j], offset, amplitude, sqrt_beta, mass[j], view_frames[j], unseen_below, use_mass)
         if value > best:
             best = value
             arg = j
@@ -801,16 +810,7 @@ def ucb_grid(mean, sd, offset, amplitude, sqrt_beta, mass, view_frames, unseen_b
     U_D the tracks' mass in view, 1 where the camera has looked at a bearing in fewer than
     ``unseen_below`` frames and the mass there is below 1 (``use_mass``; else no factor)."""
     for i in range(mean.size):
-        if amplitude != 0.0:
-            value = (mean[i] - offset) / amplitude + sqrt_beta * sd[i] / abs(amplitude)
-        else:
-            value = 1.0
-        if use_mass:
-            u = mass[i]
-            if view_frames[i] < unseen_below and u < 1.0:
-                u = 1.0
-            value = value * u
-        out[i] = value
+        out[i] = _ucb_value(mean[i], sd[i], offset, amplitude, sqrt_beta, mass[i], view_frames[i], unseen_below, use_mass)
 
 
 @njit(cache=True)
