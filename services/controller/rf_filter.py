@@ -490,7 +490,7 @@ class RFBearingFilter:
     def track_evidence(self, ids) -> np.ndarray:
         """log P(the Tx is track id, its trajectory) + the same const as ``log_joint_*``: the
         track's trajectory evidence per grid cell (less log M, like an untracked bearing)."""
-        return np.fromiter((self._evidence[t] for t in ids), dtype=float, count=len(ids)) - self._log_m
+        return np.fromiter(map(self._evidence.__getitem__, ids), dtype=float, count=len(ids)) - self._log_m
 
 
 class PacketBearingFilter(RFBearingFilter):

@@ -14,6 +14,7 @@ with y_RF prefers misalignment).
 
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
@@ -38,6 +39,7 @@ class PODLookup:
         self.rf_noise_db = float(model.rf_noise_db)
         self.rf_noise_correlation = float(model.rf_noise_correlation)
         self._rows = list(zip(self.r.tolist(), self.mean.tolist(), self.std.tolist(), self.slope.tolist()))
+        self._r = self.r.tolist()
         self._last: tuple[float, tuple[float, float, float]] | None = None
 
     def __call__(self, rssi: float) -> tuple[float, float, float]:
@@ -50,7 +52,7 @@ class PODLookup:
         elif rssi >= rows[-1][0]:
             out = rows[-1][1:]
         else:
-            i = int(np.searchsorted(self.r, rssi)) - 1
+            i = bisect.bisect_left(self._r, rssi) - 1  # np.searchsorted(self.r, rssi) - 1, on a list (no numpy call)
             r0, m0, s0, g0 = rows[i]
             r1, m1, s1, g1 = rows[i + 1]
             w = (rssi - r0) / (r1 - r0)

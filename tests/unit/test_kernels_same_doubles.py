@@ -17,8 +17,9 @@ from ra2vipas.services.controller.grid import CircleGrid
 from ra2vipas.services.controller.joint import SummedGPUCB, gpucb_values
 from ra2vipas.services.controller.rf_filter import RxDirModel, antenna_gain, logsumexp
 from ra2vipas.services.controller.tracks import BearingTracker
-from ra2vipas.services.controller.vision_belief import CameraBelief, _per_run
+from ra2vipas.services.controller.vision_belief import CameraBelief, PODLookup, _per_run
 from ra2vipas.services.protocol.angles import wrap
+from ra2vipas.services.protocol.pod import PODModel
 
 
 def _same(a, b) -> bool:
@@ -409,3 +410,18 @@ def test_entropy_rows_as_the_numpy_expression():
         with np.errstate(divide="ignore", invalid="ignore"):
             want = np.where(p > 0, -p * np.log(p), 0.0).sum(axis=1)
         assert _same(multitag.entropy(p), want)
+
+
+def test_pod_lookup_finds_the_cell_as_searchsorted():
+    rng = np.random.default_rng(15)
+    grid = np.sort(rng.uniform(-90.0, -20.0, 60))
+    model = PODModel(rssi_grid_dbm=tuple(grid), mean=tuple(rng.uniform(0.0, 1.0, 60)), std=tuple(rng.uniform(0.0, 0.2, 60)),
+                     rf_noise_db=3.0, n_train=900, frames_per_rf=10)
+    lookup = PODLookup(model, 0.02)
+    for rssi in [*rng.uniform(-95.0, -15.0, 3000), *grid]:
+        got = lookup(float(rssi))
+        if grid[0] < rssi < grid[-1]:  # what __call__ computed with numpy's searchsorted
+            i = int(np.searchsorted(lookup.r, rssi)) - 1
+            w = (rssi - lookup.r[i]) / (lookup.r[i + 1] - lookup.r[i])
+            want = tuple(float(a[i] + w * (a[i + 1] - a[i])) for a in (lookup.mean, lookup.std, lookup.slope))
+            assert got == want
