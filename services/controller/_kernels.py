@@ -805,8 +805,8 @@ def joint_logs(static, log_m, c_stand, walk, c_walk, joints, shifted):
 
 @njit(cache=True)
 def ucb_grid(mean, sd, offset, amplitude, sqrt_beta, mass, view_frames, unseen_below, use_mass, out):
-    """a(s) = U_D(s) ((J_RF(s) - offset) / A + sqrt(beta) sigma(s) / |A|) over the grid
-    (``joint.gpucb_values``; ``acquire``'s objective as an array): 1 for the RF part when A = 0;
+    """a(s) = U_D(s) ((J_RF(s) - offset) / A + sqrt(beta) sigma(s) / |A|) over the grid (paper eq. 25
+    on the fused objective; ``joint.gpucb_values``: ``acquire``'s objective as an array): 1 for the RF part when A = 0;
     U_D the tracks' mass in view, 1 where the camera has looked at a bearing in fewer than
     ``unseen_below`` frames and the mass there is below 1 (``use_mass``; else no factor)."""
     for i in range(mean.size):

@@ -138,14 +138,13 @@ def gpucb_values(b: Beliefs, gpucb: GPUCB) -> np.ndarray:
     mean, sd, amplitude, offset = b.rf.gain_prediction()
     vision = b.vision
     use_mass = vision.sees and gpucb.use_mass
-    mass = view = gpucb._none
-    if use_mass:
-        mass, view = np.zeros(circle.size), vision.view_frames
-        if b.post.size:
-            w = int(math.floor(vision.tracks.count_limit / circle.step + 1e-9))
-            # np.add.at(mass, (rint((bearing + pi) / step) % M)[:, None] + arange(-w, w + 1)) % M, max(post, 0)), compiled
-            mass = _kernels.mass_grid(np.asarray(vision.tracks.bearing, dtype=float), np.asarray(b.post, dtype=float), circle.step, w,
-                                      circle.size)
+    mass = np.zeros(circle.size)
+    view = vision.view_frames if use_mass else mass
+    if use_mass and b.post.size:
+        w = int(math.floor(vision.tracks.count_limit / circle.step + 1e-9))
+        # np.add.at(mass, (rint((bearing + pi) / step) % M)[:, None] + arange(-w, w + 1)) % M, max(post, 0)), compiled
+        mass = _kernels.mass_grid(np.asarray(vision.tracks.bearing, dtype=float), np.asarray(b.post, dtype=float), circle.step, w,
+                                  circle.size)
     value = np.empty(circle.size)
     _kernels.ucb_grid(np.asarray(mean, dtype=float), np.asarray(sd, dtype=float), float(offset), float(amplitude),
                       math.sqrt(gpucb.beta), mass, view, 2.0 * gpucb.frames_per_rf, use_mass, value)
