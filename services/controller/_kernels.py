@@ -214,25 +214,32 @@ def missed_logdensity(l_rf, rf_weight, miss_stand, miss_walk, walks, log_prior, 
 
 
 @njit(cache=True)
-def t_innovation(gain, gain0, z, z0, level, rho, noise_var, slope_term, level_var, nu, differenced, var, q):
-    """The arithmetic of ``RFBearingFilter._sample_loglik`` for the paper response (mean = level
-    gain) and Student-t innovations, elementwise in its order: var = noise_var (1 - rho^2) +
-    slope_term level_var and resid = (z - rho z0) - (level gain - rho (level gain0)) when
-    ``differenced`` (else noise_var + ..., z - level gain), q = resid^2 / (nu var)."""
-    if differenced:
-        a = z - rho * z0
-        b = noise_var * (1.0 - rho * rho)
-        for i in range(gain.size):
-            resid = a - (level * gain[i] - rho * (level * gain0[i]))
-            v = b + slope_term[i] * level_var
-            var[i] = v
-            q[i] = resid * resid / (nu * v)
-    else:
-        for i in range(gain.size):
-            resid = z - level * gain[i]
-            v = noise_var + slope_term[i] * level_var
-            var[i] = v
-            q[i] = resid * resid / (nu * v)
+def t_innovations(gain, gain0, z, z0, level_stand, level_walk, rho, noise_var, level_var_stand, level_var_walk, nu, differenced,
+                  var, q):
+    """The arithmetic of ``RFBearingFilter._slope_term`` and ``_sample_loglik`` for the paper response
+    (mean = level gain, dE z / dL = gain) and Student-t innovations, at the standing level (cells
+    0..M-1 of ``var`` and ``q``) and the walking one (M..2M-1), elementwise in their order:
+    slope_term = (gain - rho gain0)^2 when ``differenced`` (else gain^2), var = noise_var (1 - rho^2)
+    + slope_term level_var and resid = (z - rho z0) - (level gain - rho (level gain0)) (else
+    noise_var + ..., z - level gain), q = resid^2 / (nu var)."""
+    M = gain.size
+    a = z - rho * z0
+    b = noise_var * (1.0 - rho * rho)
+    for j in range(2):
+        level = level_stand if j == 0 else level_walk
+        level_var = level_var_stand if j == 0 else level_var_walk
+        for i in range(M):
+            if differenced:
+                d = gain[i] - rho * gain0[i]
+                slope_term = d * d
+                resid = a - (level * gain[i] - rho * (level * gain0[i]))
+                v = b + slope_term * level_var
+            else:
+                slope_term = gain[i] * gain[i]
+                resid = z - level * gain[i]
+                v = noise_var + slope_term * level_var
+            var[j * M + i] = v
+            q[j * M + i] = resid * resid / (nu * v)
 
 
 @njit(cache=True)
@@ -321,6 +328,23 @@ def mass_at(bearings, post, s, limit):
     return total
 
 
+@njit(cache=True, inline="always")
+def _ucb_value(mean, sd, offset, amplitude, sqrt_beta, mass, view_frames, unseen_below, use_mass):
+    """a(s) at one grid pan: U_D(s) ((J_RF(s) - offset) / A + sqrt(beta) sigma(s) / |A|), 1 for the RF
+    part when A = 0, U_D = 1 where the camera has looked in fewer than ``unseen_below`` frames and the
+    mass is below 1 (``use_mass``; else no factor)."""
+    if amplitude != 0.0:
+        value = (mean - offset) / amplitude + sqrt_beta * sd / abs(amplitude)
+    else:
+        value = 1.0
+    if use_mass:
+        u = mass
+        if view_frames < unseen_below and u < 1.0:
+            u = 1.0
+        value = value * u
+    return value
+
+
 @njit(cache=True)
 def acquire(mean, offset, amplitude, sd, sqrt_beta, bearings, post, view_frames, unseen_below, grid_step, limit, use_mass):
     """argmax over the grid of a(s) = U_D(s) (J_RF(s) + sqrt(beta) sigma(s)) (paper eq. 25 on the
@@ -339,15 +363,7 @@ def acquire(mean, offset, amplitude, sd, sqrt_beta, bearings, post, view_frames,
     best = -1e300
     arg = 0
     for j in range(M):
-        if amplitude != 0.0:
-            value = (mean[j] - offset) / amplitude + sqrt_beta * sd[j] / abs(amplitude)
-        else:
-            value = 1.0
-        if use_mass:
-            u = mass[j]
-            if view_frames[j] < unseen_below and u < 1.0:
-                u = 1.0
-            value *= u
+        value = _ucb_value(mean[j], sd[j], offset, amplitude, sqrt_beta, mass[j], view_frames[j], unseen_below, use_mass)
         if value > best:
             best = value
             arg = j
@@ -417,50 +433,116 @@ def _arc(mean, half_width, step, M):
 
 
 @njit(cache=True)
-def _smeared_loglik(ll, mean, sd, step):
-    """log of exp(ll) averaged over N(mean, sd^2) on the periodic grid (interpolated at the mean
-    when sd is below a grid step; windows of at most half the circle each side)."""
-    if sd < step:
-        return _interp_periodic(ll, mean, step)
-    M = ll.size
-    first, n = _arc(mean, 4.0 * sd, step, M)
-    top = -1e300
-    for j in range(n):
-        k = _cell(first + j, M)
-        if ll[k] > top:
-            top = ll[k]
-    num = 0.0
-    den = 0.0
-    for j in range(n):
-        k = _cell(first + j, M)
-        d = _wrap(-math.pi + k * step - mean)
-        w = math.exp(-0.5 * (d / sd) ** 2)
-        den += w
-        num += w * math.exp(ll[k] - top)
-    return top + math.log(max(num / den, 1e-300))
+def smear_windows(means, sds, weights, step, M, first, count, offset, den):
+    """The Gaussian windows ``track_sample_loglik`` averages each track's IMM component's sample
+    likelihood over (``rf_filter.follow``): for a component of weight above 1e-3 and sd of at least a
+    grid step, the arc within 4 sd of its mean (at most the circle: ``_arc``) into ``first[i, a]`` and
+    ``count[i, a]`` (0: no window, the component is skipped or interpolated), its weights
+    exp(-(d / sd)^2 / 2) at the cells' wrapped offsets d returned end to end (``offset[i, a]``: where
+    its run starts) and summed in order into ``den[i, a]``. They depend on the tracks only, so the K
+    tags' filters of a step share them."""
+    n = means.shape[0]
+    total = 0
+    for i in range(n):
+        for a in range(2):
+            count[i, a] = 0
+            if weights[i, a] <= 1e-3 or sds[i, a] < step:
+                continue
+            f, c = _arc(means[i, a], 4.0 * sds[i, a], step, M)
+            first[i, a] = f
+            count[i, a] = c
+            offset[i, a] = total
+            total += c
+    w = np.empty(total)
+    for i in range(n):
+        for a in range(2):
+            c = count[i, a]
+            if c == 0:
+                continue
+            mean = means[i, a]
+            sd = sds[i, a]
+            f = first[i, a]
+            o = offset[i, a]
+            acc = 0.0
+            for j in range(c):
+                k = _cell(f + j, M)
+                d = _wrap(-math.pi + k * step - mean)
+                v = math.exp(-0.5 * (d / sd) ** 2)
+                w[o + j] = v
+                acc += v
+            den[i, a] = acc
+    return w
 
 
 @njit(cache=True)
-def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, out):
+def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, first, count, offset, w, den, out):
     """Each track's likelihood of this RF sample if it were the Tx (rf_filter.follow): its IMM
-    components (standing with the standing level, walking with the walking one), each smeared
-    over its uncertainty, mixed by their weights."""
-    for i in range(means.shape[0]):
-        top = -1e300
-        comp = np.empty(2)
+    components (standing with the standing level, walking with the walking one), each averaged over
+    its Gaussian window (``smear_windows``: top + log(max(sum_j w_j exp(ll_j - top) / den, 1e-300)),
+    top the window's largest ll, the sum in the window's order; interpolated at its mean when its sd
+    is below a grid step), mixed by their weights. Windows that share their top (overlapping ones
+    mostly do) share each cell's exp(ll_j - top): computed once, the same double."""
+    M = ll_stand.size
+    n = means.shape[0]
+    tops = np.empty((n, 2))
+    slot = np.empty((n, 2), dtype=np.int64)
+    slot_model = np.empty(2 * n, dtype=np.int64)
+    slot_top = np.empty(2 * n)
+    slots = 0
+    for i in range(n):  # each window's top, and one slot of exps per (model, top)
         for a in range(2):
-            w = weights[i, a]
-            if w <= 1e-3:  # a model this unlikely moves nothing (and costs a window of work)
+            c = count[i, a]
+            if c == 0 or weights[i, a] <= 1e-3:
+                continue
+            ll = ll_stand if a == 0 else ll_walk
+            top = -1e300
+            for j in range(c):
+                k = _cell(first[i, a] + j, M)
+                if ll[k] > top:
+                    top = ll[k]
+            tops[i, a] = top
+            s = 0
+            while s < slots and not (slot_model[s] == a and slot_top[s] == top):
+                s += 1
+            if s == slots:
+                slot_model[s] = a
+                slot_top[s] = top
+                slots += 1
+            slot[i, a] = s
+    exps = np.full((slots, M), np.nan)  # exp(ll_k - top) of each slot, computed when first asked
+    comp = np.empty(2)
+    for i in range(n):
+        top_i = -1e300
+        for a in range(2):
+            wt = weights[i, a]
+            if wt <= 1e-3:  # a model this unlikely moves nothing (and costs a window of work)
                 comp[a] = -1e300
                 continue
             ll = ll_stand if a == 0 else ll_walk
-            comp[a] = math.log(w) + _smeared_loglik(ll, means[i, a], sds[i, a], step)
-            top = max(top, comp[a])
+            c = count[i, a]
+            if c == 0:  # sd below a grid step
+                s_ll = _interp_periodic(ll, means[i, a], step)
+            else:
+                top = tops[i, a]
+                row = exps[slot[i, a]]
+                f = first[i, a]
+                o = offset[i, a]
+                num = 0.0
+                for j in range(c):
+                    k = _cell(f + j, M)
+                    e = row[k]
+                    if e != e:
+                        e = math.exp(ll[k] - top)
+                        row[k] = e
+                    num += w[o + j] * e
+                s_ll = top + math.log(max(num / den[i, a], 1e-300))
+            comp[a] = math.log(wt) + s_ll
+            top_i = max(top_i, comp[a])
         acc = 0.0
         for a in range(2):
             if comp[a] > -1e299:
-                acc += math.exp(comp[a] - top)
-        out[i] = top + math.log(acc) if acc > 0.0 else -1e300
+                acc += math.exp(comp[a] - top_i)
+        out[i] = top_i + math.log(acc) if acc > 0.0 else -1e300
 
 
 @njit(cache=True)
@@ -486,3 +568,274 @@ def track_where(l_rf, means, sds, weights, step, sharp, out):
             if score > best:
                 best = score
                 out[i] = g
+
+
+@njit(cache=True, inline="always")
+def _block_sum(a, lo, n):
+    """numpy's pairwise summation of a[lo:lo + n] for n <= 128: left to right from +0.0 below 8 terms,
+    else eight interleaved partial sums, combined pairwise, then the terms past the last multiple of 8."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        j = lo + i
+        r0 += a[j]
+        r1 += a[j + 1]
+        r2 += a[j + 2]
+        r3 += a[j + 3]
+        r4 += a[j + 4]
+        r5 += a[j + 5]
+        r6 += a[j + 6]
+        r7 += a[j + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@njit(cache=True)
+def pairwise_sum(a, lo, n):
+    """a[lo:lo + n].sum() as numpy sums a contiguous run of doubles (its pairwise summation): up to
+    128 terms ``_block_sum``; above, the left part (n // 2 less its remainder mod 8) summed, then the
+    right, added. numpy recurses; this walks the same tree with a stack (numba's cached recursion is
+    not safe to call from other kernels): the same double."""
+    if n <= 128:
+        return _block_sum(a, lo, n)
+    los = np.empty(64, dtype=np.int64)
+    ns = np.empty(64, dtype=np.int64)
+    left = np.empty(64)
+    right_pending = np.zeros(64, dtype=np.bool_)
+    top = 0
+    los[0] = lo
+    ns[0] = n
+    result = 0.0
+    while top >= 0:
+        if ns[top] > 128:  # descend into the left part
+            half = ns[top] // 2
+            half -= half % 8
+            los[top + 1] = los[top]
+            ns[top + 1] = half
+            right_pending[top + 1] = False
+            top += 1
+            continue
+        v = _block_sum(a, los[top], ns[top])
+        top -= 1
+        while top >= 0:  # hand v up: a left part opens its right sibling, a right part completes its parent
+            if not right_pending[top]:
+                left[top] = v
+                right_pending[top] = True
+                half = ns[top] // 2
+                half -= half % 8
+                los[top + 1] = los[top] + half
+                ns[top + 1] = ns[top] - half
+                right_pending[top + 1] = False
+                top += 1
+                break
+            v = left[top] + v
+            top -= 1
+        if top < 0:
+            result = v
+    return result
+
+
+@njit(cache=True)
+def exclusive_marginals(w, m, part_start, block_start, block_tags, reliable_share, out):
+    """The inclusion-exclusion sum of ``multitag.exclusive_posteriors`` (each tag's unnormalised
+    marginal when no two tags share one of the m tracks), over the partitions of the tags given as
+    runs: partition p's blocks are ``block_start[part_start[p]:part_start[p + 1] + 1]`` into
+    ``block_tags``. w (K, m + 1) holds each tag's weights, column m "missed". Writes the marginals
+    normalised (negatives clipped to +0.0) into ``out`` and returns 1, or returns 0 when the sum
+    cancels too much to trust (a negative below, or a total at most, ``reliable_share`` of its largest
+    term). Every product, sum and accumulation in the order of the numpy expression it replaced."""
+    k = w.shape[0]
+    cols = w.shape[1]
+    totals = np.empty(k)
+    for t in range(k):
+        totals[t] = pairwise_sum(w[t], 0, cols)
+    out[:, :] = 0.0
+    largest_term = 0.0
+    values = np.empty(k)
+    product = np.empty(m)
+    for p in range(part_start.size - 1):
+        b0, b1 = part_start[p], part_start[p + 1]
+        mu = 1.0
+        for b in range(b0, b1):
+            size = block_start[b + 1] - block_start[b]
+            factorial = 1.0
+            for f in range(2, size):
+                factorial *= f
+            mu *= (-1.0 if size % 2 == 0 else 1.0) * factorial
+            if size == 1:
+                values[b - b0] = totals[block_tags[block_start[b]]]
+            else:  # the block's rows multiplied in order, summed
+                for c in range(m):
+                    product[c] = w[block_tags[block_start[b]], c]
+                for r in range(block_start[b] + 1, block_start[b + 1]):
+                    for c in range(m):
+                        product[c] = product[c] * w[block_tags[r], c]
+                values[b - b0] = pairwise_sum(product, 0, m)
+        prod_all = 1.0
+        for b in range(b1 - b0):
+            prod_all *= values[b]
+        term = mu * prod_all
+        largest_term = max(largest_term, abs(term))
+        for b in range(b0, b1):
+            others = 1.0
+            for j in range(b1 - b0):
+                if j != b - b0:
+                    others *= values[j]
+            scale = mu * others
+            size = block_start[b + 1] - block_start[b]
+            for r in range(block_start[b], block_start[b + 1]):
+                tag = block_tags[r]
+                if size == 1:
+                    for c in range(cols):
+                        out[tag, c] += scale * 1.0
+                    continue
+                first = True  # the rest of the block's product at each track (the other tags' rows in order), 0 at "missed"
+                for q in range(block_start[b], block_start[b + 1]):
+                    other = block_tags[q]
+                    if other == tag:
+                        continue
+                    if first:
+                        for c in range(m):
+                            product[c] = w[other, c]
+                        first = False
+                    else:
+                        for c in range(m):
+                            product[c] = product[c] * w[other, c]
+                for c in range(m):
+                    out[tag, c] += scale * product[c]
+                out[tag, m] += scale * 0.0
+    for t in range(k):
+        for c in range(cols):
+            out[t, c] *= w[t, c]
+    z = np.empty(k)
+    for t in range(k):
+        z[t] = pairwise_sum(out[t], 0, cols)
+    floor = reliable_share * largest_term
+    for t in range(k):
+        if z[t] <= floor:
+            return 0
+        for c in range(cols):
+            if out[t, c] < -floor:
+                return 0
+    for t in range(k):
+        for c in range(cols):
+            u = out[t, c]
+            out[t, c] = (u if (u > 0.0 or u != u) else 0.0) / z[t]
+    return 1
+
+
+@njit(cache=True, inline="always")
+def _max(values):
+    """values.max() as numpy gives it (NaN when any value is NaN)."""
+    top = -np.inf
+    for i in range(values.size):
+        v = values[i]
+        if v != v:
+            return v
+        if v > top:
+            top = v
+    return top
+
+
+@njit(cache=True, inline="always")
+def _min(values):
+    """values.min() as numpy gives it (NaN when any value is NaN)."""
+    low = np.inf
+    for i in range(values.size):
+        v = values[i]
+        if v != v:
+            return v
+        if v < low:
+            low = v
+    return low
+
+
+@njit(cache=True)
+def less_max(values, out):
+    """out = values - values.max(); returns the max."""
+    top = _max(values)
+    for i in range(values.size):
+        out[i] = values[i] - top
+    return top
+
+
+@njit(cache=True)
+def clip_normalise(predicted, ll, shifted):
+    """The walking filter's prediction and the sample's log-likelihood made ready to multiply
+    (``RFBearingFilter._absorb``): predicted = np.maximum(predicted, 0.0) (NaN kept, -0.0 to +0.0),
+    then predicted /= its numpy sum, in place; shifted = ll - ll.max(); returns ll.max()."""
+    n = predicted.size
+    for i in range(n):
+        v = predicted[i]
+        predicted[i] = v if (v > 0.0 or v != v) else 0.0
+    total = pairwise_sum(predicted, 0, n)
+    for i in range(n):
+        predicted[i] = predicted[i] / total
+    return less_max(ll, shifted)
+
+
+@njit(cache=True)
+def times_sum(weights, values):
+    """values = weights * values in place; returns their numpy sum."""
+    for i in range(values.size):
+        values[i] = weights[i] * values[i]
+    return pairwise_sum(values, 0, values.size)
+
+
+@njit(cache=True)
+def joint_logs(static, log_m, c_stand, walk, c_walk, joints, shifted):
+    """The filter's joint log-densities (``RFBearingFilter._joints``): joints[0] = (static - log_m) +
+    c_stand (stands, gamma), joints[1] = walk + c_walk (walks, gamma), and shifted[r] = joints[r] -
+    joints[r].max(); returns the two maxima (what their logsumexps start from)."""
+    for i in range(static.size):
+        joints[0, i] = (static[i] - log_m) + c_stand
+        joints[1, i] = walk[i] + c_walk
+    return less_max(joints[0], shifted[0]), less_max(joints[1], shifted[1])
+
+
+@njit(cache=True)
+def ucb_grid(mean, sd, offset, amplitude, sqrt_beta, mass, view_frames, unseen_below, use_mass, out):
+    """a(s) = U_D(s) ((J_RF(s) - offset) / A + sqrt(beta) sigma(s) / |A|) over the grid (paper eq. 25
+    on the fused objective; ``joint.gpucb_values``: ``acquire``'s objective as an array): 1 for the RF part when A = 0;
+    U_D the tracks' mass in view, 1 where the camera has looked at a bearing in fewer than
+    ``unseen_below`` frames and the mass there is below 1 (``use_mass``; else no factor)."""
+    for i in range(mean.size):
+        out[i] = _ucb_value(mean[i], sd[i], offset, amplitude, sqrt_beta, mass[i], view_frames[i], unseen_below, use_mass)
+
+
+@njit(cache=True)
+def add_normalised(values, weight, total):
+    """total += weight * (values - min) / (max - min) (weight * 0 when max <= min; NaN as numpy's min
+    and max give it)."""
+    hi = _max(values)
+    lo = _min(values)
+    span = hi - lo
+    if hi > lo:
+        for i in range(values.size):
+            total[i] += weight * ((values[i] - lo) / span)
+    else:
+        for i in range(values.size):
+            total[i] += weight * 0.0
+
+
+@njit(cache=True)
+def row_entropies(p, log_p, out):
+    """out[r] = sum over row r of -p log p (0 where p is not positive: np.where(p > 0, -p * log_p, 0)),
+    each row's terms summed as numpy sums them (pairwise)."""
+    cols = p.shape[1]
+    terms = np.empty(cols)
+    for r in range(p.shape[0]):
+        for c in range(cols):
+            v = p[r, c]
+            terms[c] = -v * log_p[r, c] if v > 0 else 0.0
+        out[r] = pairwise_sum(terms, 0, cols)

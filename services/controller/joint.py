@@ -48,9 +48,8 @@ from ra2vipas.services.controller import _kernels, multitag
 from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, Beliefs
 from ra2vipas.services.controller.composed import Composition, Decision, Parts, take_iso, update_rf, wrapped
 from ra2vipas.services.controller.confidence import Covariates
-from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softmax
+from ra2vipas.services.controller.fusion import arc_mass, refined_argmax, softmax, softmax_and_logsumexp
 from ra2vipas.services.controller.rf_belief import PacketClock
-from ra2vipas.services.controller.rf_filter import logsumexp
 from ra2vipas.services.protocol.measurements import StepMeasurement
 
 PanRule = Literal["entropy", "neediest"]
@@ -134,23 +133,21 @@ class JointBeliefs(Beliefs):
 
 def gpucb_values(b: Beliefs, gpucb: GPUCB) -> np.ndarray:
     """a(s) = U_D(s) (J_RF(s) + sqrt(beta) sigma(s)) over the whole grid for one tag's beliefs
-    (what ``GPUCB.next_pan`` maximises, ``_kernels.acquire``), as an array."""
+    (what ``GPUCB.next_pan`` maximises, ``_kernels.acquire``), as an array (``_kernels.ucb_grid``)."""
     circle = gpucb.circle
     mean, sd, amplitude, offset = b.rf.gain_prediction()
-    if amplitude != 0.0:
-        value = (np.asarray(mean) - offset) / amplitude + math.sqrt(gpucb.beta) * np.asarray(sd) / abs(amplitude)
-    else:
-        value = np.ones(circle.size)
     vision = b.vision
-    if vision.sees and gpucb.use_mass:
-        mass = np.zeros(circle.size)
-        if b.post.size:
-            w = int(math.floor(vision.tracks.count_limit / circle.step + 1e-9))
-            # np.add.at(mass, (rint((bearing + pi) / step) % M)[:, None] + arange(-w, w + 1)) % M, max(post, 0)), compiled
-            mass = _kernels.mass_grid(np.asarray(vision.tracks.bearing, dtype=float), np.asarray(b.post, dtype=float), circle.step, w,
-                                      circle.size)
-        unseen = (vision.view_frames < 2.0 * gpucb.frames_per_rf) & (mass < 1.0)
-        value = value * np.where(unseen, 1.0, mass)
+    use_mass = vision.sees and gpucb.use_mass
+    mass = np.zeros(circle.size)
+    view = vision.view_frames if use_mass else mass
+    if use_mass and b.post.size:
+        w = int(math.floor(vision.tracks.count_limit / circle.step + 1e-9))
+        # np.add.at(mass, (rint((bearing + pi) / step) % M)[:, None] + arange(-w, w + 1)) % M, max(post, 0)), compiled
+        mass = _kernels.mass_grid(np.asarray(vision.tracks.bearing, dtype=float), np.asarray(b.post, dtype=float), circle.step, w,
+                                  circle.size)
+    value = np.empty(circle.size)
+    _kernels.ucb_grid(np.asarray(mean, dtype=float), np.asarray(sd, dtype=float), float(offset), float(amplitude),
+                      math.sqrt(gpucb.beta), mass, view, 2.0 * gpucb.frames_per_rf, use_mass, value)
     return value
 
 
@@ -177,9 +174,7 @@ class SummedGPUCB(Acquisition):
         for w, tag_beliefs in zip(weights, b.per_tag):
             if w <= 0.0:
                 continue
-            v = gpucb_values(tag_beliefs, self.gpucb)
-            lo, hi = float(v.min()), float(v.max())
-            total += w * ((v - lo) / (hi - lo) if hi > lo else np.zeros_like(v))
+            _kernels.add_normalised(gpucb_values(tag_beliefs, self.gpucb), float(w), total)  # total += w (a - min a) / (max a - min a)
         return float(self.circle.angles[int(np.argmax(total))]), False
 
 
@@ -309,8 +304,8 @@ class JointSearch:
         entropy, the joint posteriors and the answers each read them), computed once per ``scored``."""
         kept = getattr(self, "_missed_kept", None)
         if kept is None or kept[0] is not scored:
-            kept = self._missed_kept = (scored, [softmax(l_missed) for _, l_missed in scored],
-                                        [logsumexp(l_missed) for _, l_missed in scored])
+            reads = [softmax_and_logsumexp(l_missed) for _, l_missed in scored]
+            kept = self._missed_kept = (scored, [r[0] for r in reads], [r[1] for r in reads])
         return kept[1], kept[2]
 
     def _due(self, k: int, t: int) -> bool | None:

@@ -18,16 +18,18 @@ K rows into what the controller reports and where it looks:
   "which person carries tag k" (``which_person_entropy``: a person the camera never detected is
   named by its bearing).
 
-Pure numpy/scipy: a unit test drives it without a network or a world.
+numpy/scipy and one compiled kernel (the inclusion-exclusion sum, ``_kernels.exclusive_marginals``):
+a unit test drives it without a network or a world.
 """
 
 from __future__ import annotations
 
-import math
 from typing import Literal
 
 import numpy as np
 from scipy.special import logsumexp
+
+from ra2vipas.services.controller import _kernels
 
 #: The inclusion-exclusion sum is trusted when every tag's total is at least this share of its
 #: largest term (double precision keeps ~16 digits; below 1e-9 the cancellation could eat 7).
@@ -117,7 +119,8 @@ def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
     function of the partition lattice: mu = prod over blocks of (-1)^(|B|-1) (|B|-1)!), which
     costs Bell(K) x K x M (5 partitions for 3 tags) instead of (M + 1) ** K; where that sum
     cancels too much to trust in double precision (tags all but certain of one track), it is
-    enumerated over the tracks that carry any weight (``_enumerated``).
+    enumerated over the tracks that carry any weight (``_enumerated``). The sum is compiled
+    (``_kernels.exclusive_marginals``), the weights exp(l_k - max l_k) numpy's.
 
     Returns
     -------
@@ -129,57 +132,30 @@ def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
         return independent_posteriors(tracks, missed)
     full = np.concatenate([tracks, missed[:, None]], axis=1)
     w = np.exp(full - full.max(axis=1, keepdims=True))  # (K, M + 1), each row's largest 1
-    unnormalised = np.zeros_like(w)
-    largest_term = 0.0
-    totals = w.sum(axis=1)
-    products: dict[tuple[int, ...], np.ndarray] = {}  # tags -> np.prod(w[tags, :m], axis=0), once per call
-    ones = np.ones(m + 1)
-
-    def product_of(tags: list[int]) -> np.ndarray:
-        key = tuple(tags)
-        product = products.get(key)
-        if product is None:  # np.prod(w[tags, :m], axis=0): the rows multiplied in order (one row: itself)
-            product = w[tags[0], :m]
-            for t in tags[1:]:
-                product = product * w[t, :m]
-            products[key] = product
-        return product
-
-    rests: dict[tuple[int, ...], np.ndarray] = {}  # the same, padded with 0 for column M
-    for blocks in _partitions_of(k):
-        mu = 1.0
-        shared: dict[int, np.ndarray] = {}  # tag -> per column c: the rest of its block's product at c
-        values: list[float] = []
-        for block in blocks:
-            size = len(block)
-            mu *= (-1.0) ** (size - 1) * math.factorial(size - 1)
-            if size == 1:
-                values.append(float(totals[block[0]]))
-                shared[block[0]] = ones
-                continue
-            product = product_of(block)
-            values.append(float(product.sum()))
-            for tag in block:
-                others_in_block = [t for t in block if t != tag]
-                rest = rests.get(tuple(others_in_block))
-                if rest is None:
-                    rest = rests[tuple(others_in_block)] = np.zeros(m + 1)
-                    rest[:m] = product_of(others_in_block)
-                shared[tag] = rest
-        term = mu * math.prod(values)
-        largest_term = max(largest_term, abs(term))
-        for i, block in enumerate(blocks):
-            others = math.prod(v for j, v in enumerate(values) if j != i)
-            for tag in block:
-                unnormalised[tag] += mu * others * shared[tag]
-    unnormalised *= w
-    z = unnormalised.sum(axis=1)
-    if (unnormalised < -RELIABLE_SHARE * largest_term).any() or (z <= RELIABLE_SHARE * largest_term).any():
-        return _enumerated(w, m)
-    return np.clip(unnormalised, 0.0, None) / z[:, None]
+    out = np.empty_like(w)
+    if _kernels.exclusive_marginals(w, m, *_partition_runs(k), RELIABLE_SHARE, out):
+        return out
+    return _enumerated(w, m)
 
 
 _PARTITIONS: dict[int, list] = {}
+_RUNS: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
+def _partition_runs(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``_partitions_of(k)`` as the runs ``_kernels.exclusive_marginals`` reads: partition p's blocks
+    are ``part_start[p]:part_start[p + 1]``, block b's tags ``block_tags[block_start[b]:block_start[b + 1]]``
+    (in ``_partitions``' order, which fixes the order of every product and sum), made once per K."""
+    runs = _RUNS.get(k)
+    if runs is None:
+        part_start, block_start, block_tags = [0], [0], []
+        for blocks in _partitions_of(k):
+            for block in blocks:
+                block_tags.extend(block)
+                block_start.append(len(block_tags))
+            part_start.append(len(block_start) - 1)
+        runs = _RUNS[k] = tuple(np.array(a, dtype=np.int64) for a in (part_start, block_start, block_tags))
+    return runs
 
 
 def _partitions_of(k: int) -> list:
@@ -236,10 +212,12 @@ def _enumerated(w: np.ndarray, m: int) -> np.ndarray:
 
 def entropy(posteriors) -> np.ndarray:
     """Shannon entropy [nats] of each row of a (K, C) array of posteriors."""
-    p = np.asarray(posteriors, dtype=float)
+    p = np.ascontiguousarray(posteriors, dtype=float)
     with np.errstate(divide="ignore", invalid="ignore"):
-        terms = np.where(p > 0, -p * np.log(p), 0.0)
-    return terms.sum(axis=1)
+        log_p = np.log(p)
+    out = np.empty(p.shape[0])
+    _kernels.row_entropies(p, log_p, out)  # np.where(p > 0, -p * log_p, 0.0).sum(axis=1), compiled
+    return out
 
 
 def which_person_entropy(posteriors, where_missed=None) -> np.ndarray:

@@ -14,6 +14,7 @@ with y_RF prefers misalignment).
 
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
@@ -38,6 +39,7 @@ class PODLookup:
         self.rf_noise_db = float(model.rf_noise_db)
         self.rf_noise_correlation = float(model.rf_noise_correlation)
         self._rows = list(zip(self.r.tolist(), self.mean.tolist(), self.std.tolist(), self.slope.tolist()))
+        self._r = self.r.tolist()
         self._last: tuple[float, tuple[float, float, float]] | None = None
 
     def __call__(self, rssi: float) -> tuple[float, float, float]:
@@ -50,7 +52,7 @@ class PODLookup:
         elif rssi >= rows[-1][0]:
             out = rows[-1][1:]
         else:
-            i = int(np.searchsorted(self.r, rssi)) - 1
+            i = bisect.bisect_left(self._r, rssi) - 1  # np.searchsorted(self.r, rssi) - 1, on a list (no numpy call)
             r0, m0, s0, g0 = rows[i]
             r1, m1, s1, g1 = rows[i + 1]
             w = (rssi - r0) / (r1 - r0)
@@ -59,14 +61,23 @@ class PODLookup:
         return out
 
 
+def _runs_of(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the value, the length) of each run of equal neighbouring values of ``frames``."""
+    starts, lengths = np.empty(frames.size, dtype=np.int64), np.empty(frames.size, dtype=np.int64)
+    r = _kernels.runs(frames, starts, lengths)
+    return frames[starts[:r]], lengths[:r]
+
+
+def _repeated_miss(values: np.ndarray, lengths: np.ndarray, alpha: float, beta: float, base: float) -> np.ndarray:
+    """gammaln(v + beta) - gammaln(v + alpha + beta) + base for each run's value v, repeated over its run."""
+    return np.repeat(gammaln(values + beta) - gammaln(values + alpha + beta) + base, lengths)
+
+
 def _per_run(frames: np.ndarray, alpha: float, beta: float, base: float) -> np.ndarray:
     """gammaln(frames + beta) - gammaln(frames + alpha + beta) + base, evaluated once per run of
     equal neighbouring values (cells the camera saw in the same frames: a few dozen runs of 360
     cells) and repeated over the run: the same doubles, a tenth of the gammaln calls."""
-    starts, lengths = np.empty(frames.size, dtype=np.int64), np.empty(frames.size, dtype=np.int64)
-    r = _kernels.runs(frames, starts, lengths)
-    v = frames[starts[:r]]
-    return np.repeat(gammaln(v + beta) - gammaln(v + alpha + beta) + base, lengths[:r])
+    return _repeated_miss(*_runs_of(frames), alpha, beta, base)
 
 
 def beta_of(mean: float, var: float) -> tuple[float, float]:
@@ -192,7 +203,20 @@ class CameraBelief(VisionBelief):
         Beta(alpha, beta)) = log B(alpha, n + beta) - log B(alpha, beta): over every frame (a
         standing Tx) and over the recent ones (a walking Tx)."""
         base = gammaln(alpha + beta) - gammaln(beta)
-        return _per_run(self.view_frames, alpha, beta, base), _per_run(self.view_recent, alpha, beta, base)
+        values, lengths = self._view_runs()
+        per_cell = _repeated_miss(values, lengths, alpha, beta, base)  # every frame's cells, then the recent ones'
+        M = self.view_frames.size
+        return per_cell[:M], per_cell[M:]
+
+    def _view_runs(self) -> tuple[np.ndarray, np.ndarray]:
+        """The runs (``_runs_of``) of ``view_frames`` followed by those of ``view_recent``, kept
+        until the next ``update`` (the K tags of a step each ask, with their own POD): gammaln is
+        elementwise, so one call over both gives each's doubles (``_per_run``)."""
+        kept = getattr(self, "_runs_kept", None)
+        if kept is None or kept[0] != self._steps:
+            (v1, n1), (v2, n2) = _runs_of(self.view_frames), _runs_of(self.view_recent)
+            kept = self._runs_kept = (self._steps, np.concatenate([v1, v2]), np.concatenate([n1, n2]))
+        return kept[1], kept[2]
 
     def miss_outlier(self) -> np.ndarray:
         """Per grid bearing, the probability that an undetected Tx there was never visible:
