@@ -7,7 +7,9 @@ import time
 
 from ra2vipas.services.benchmarks.common import percentile
 
-TARGET_MEDIAN_MS = 1.0
+# The median step the issues ask for, by the number of tags searched: 1 ms for one tag (the paper's
+# worlds and the radio's, issue 20), 1.5 ms for the joint search over K = 3 (issue 21); none stated otherwise.
+TARGET_MEDIAN_MS = {1: 1.0, 3: 1.5}
 
 
 def controller_step(algorithm: str, tests: int, seed: int, preset: str) -> dict:
@@ -50,5 +52,5 @@ def controller_step(algorithm: str, tests: int, seed: int, preset: str) -> dict:
         "p99_ms": round(percentile(all_ms, 99), 4),
         "median_ms_at_n_test": round(statistics.median(last_ms), 4),
         "pod_train_seconds": round(pod.train_seconds, 4),
-        "target_median_ms": TARGET_MEDIAN_MS,
+        "target_median_ms": TARGET_MEDIAN_MS.get(scenario.n_tags),
     }

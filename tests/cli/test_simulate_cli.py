@@ -97,7 +97,7 @@ def test_bench_step_prints_timings_as_json():
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["benchmark"] == "controller-step" and report["steps"] == 120
-    assert 0 < report["median_ms"] <= report["p99_ms"]
+    assert 0 < report["median_ms"] <= report["p99_ms"] and report["target_median_ms"] == 1.0
 
 
 def test_bench_calibrate_refits_only_the_maps_asked_for_and_names_a_bad_algorithm():

@@ -197,6 +197,7 @@ def test_bench_step_times_the_joint_search_on_a_preset_with_several_tags(monkeyp
     monkeypatch.setattr(scenarios, "build_scenario", lambda preset, overrides=None: real(preset, {"steps": 12, "n_train": 200}))
     report = controller_step("ra2vipas", 1, 1, "ward")
     assert report["n_tags"] == 3 and report["steps"] == 12 and report["median_ms"] > 0
+    assert report["target_median_ms"] == 1.5  # issue 21's target for K = 3, not the single tag's 1 ms
 
 
 def test_the_pan_weighs_each_tag_by_which_person_carries_it_an_undetected_one_by_its_bearing(two_tags, monkeypatch):
