@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.angles import wrap
+from ra2vipas.services.protocol.construct import builder
 from ra2vipas.services.protocol.messages import (
     Command,
     EpisodeStart,
@@ -53,6 +54,8 @@ from ra2vipas.services.transport.costs import CostClock, now_ns
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_reject
 
 log = logging.getLogger(__name__)
+
+_measurement = builder(Measurement, "episode_id", "step", "pan_rad", "rf", "frames", "adverts", "rf_tags")
 
 
 @dataclass
@@ -124,9 +127,11 @@ class SensorsNode:
         for early in self._early.pop(msg.episode_id, []):
             self._on_command(early)
 
-    def _on_command(self, payload: bytes) -> None:
+    def _on_command(self, payload: "bytes | Command") -> None:
+        """A command: its JSON from the network, or the message itself from the rig's own
+        controller on this loop (``EventLoop.send``)."""
         posted, started = self.loop.posted_ns, self.loop.started_ns
-        cmd = decode_or_reject(Command, payload, "command", log, self.bus, self.rig, "sensors")
+        cmd = payload if isinstance(payload, Command) else decode_or_reject(Command, payload, "command", log, self.bus, self.rig, "sensors")
         if cmd is None:
             return
         ep = self.episodes.get(cmd.episode_id)
@@ -145,7 +150,7 @@ class SensorsNode:
             return
         steps = ep.start.scenario.steps
         if ep.last is not None and cmd.step == ep.last.step:
-            self.bus.publish(self._measurement_key, dump(ep.last))  # a repeated command: same sample again
+            self.loop.send(self.bus, self._measurement_key, ep.last)  # a repeated command: same sample again
             return
         expected = 0 if ep.last is None else ep.last.step + 1
         if cmd.step != expected or cmd.step >= steps:
@@ -156,16 +161,14 @@ class SensorsNode:
         costs.lap("decode")
         ep.last = self._sense(ep, cmd.step, cmd.pan_rad)
         costs.lap("compute")
-        payload = dump(ep.last)
-        costs.lap("encode")
         if cmd.step == steps - 1:
             if self.report_costs:  # just before the last sample, so they reach the orchestrator before the result
                 costs.replied()
                 self.bus.publish(keys.episode_timing(self.rig), dump(EpisodeTiming(episode_id=cmd.episode_id, costs=costs.report())))
-            self.bus.publish(self._measurement_key, payload)
+            self.loop.send(self.bus, self._measurement_key, ep.last)
             self._end(cmd.episode_id)
             return
-        self.bus.publish(self._measurement_key, payload)
+        self.loop.send(self.bus, self._measurement_key, ep.last, costs=costs)
         costs.lap("publish")
         costs.replied()
 
@@ -173,8 +176,7 @@ class SensorsNode:
         if not -math.pi <= pan < math.pi:  # the pan unit reaches the commanded angle, reported wrapped (docs/protocol.md)
             pan = float(wrap(pan))
         m = ep.platform.sense(step, pan)
-        return Measurement.model_construct(episode_id=ep.start.episode_id, step=m.step, pan_rad=m.pan_rad, rf=m.rf, frames=m.frames,
-                                           adverts=m.adverts, rf_tags=m.rf_tags)
+        return _measurement(ep.start.episode_id, m.step, m.pan_rad, m.rf, m.frames, m.adverts, m.rf_tags)
 
     # -- realtime pacing --------------------------------------------------------------------
     def _realtime_command(self, ep: _Episode, cmd: Command) -> None:
@@ -201,10 +203,8 @@ class SensorsNode:
         ep.costs.begin(self.loop.started_ns)
         m = self._sense(ep, step, ep.pan)
         ep.costs.lap("compute")
-        payload = dump(m)
-        ep.costs.lap("encode")
         ep.sent_at[step] = self.clock()
-        self.bus.publish(self._measurement_key, payload, express=True)
+        self.loop.send(self.bus, self._measurement_key, m, express=True, costs=ep.costs)
         ep.costs.lap("publish")
         ep.costs.replied()
         ep.next_step = step + 1
