@@ -93,6 +93,7 @@ class SensorsNode:
         self._finished: dict[str, None] = {}
         self._early: dict[str, list[bytes]] = {}  # commands that overtook their EpisodeStart
         self._timers: list[tuple[float, str, int]] = []
+        self._clocks: dict[str, tuple[float, float, int]] = {}  # realtime episodes' tick grids (``_schedule``)
         self._timer_cv = threading.Condition()
         self._closing = False
         self._timer_thread = threading.Thread(target=self._run_timers, name=f"sensors-timer-{rig}", daemon=True)
@@ -187,6 +188,8 @@ class SensorsNode:
                 return
             ep.ticking = True
             ep.t0 = now
+            sc = ep.start.scenario
+            self._schedule(now + sc.rf_period_s, ep.start.episode_id, 1 if sc.steps > 1 else -1, (now, sc.rf_period_s, sc.steps))
             self._tick(ep.start.episode_id, 0)
             return
         sent = ep.sent_at.pop(cmd.step - 1, None)
@@ -199,7 +202,6 @@ class SensorsNode:
         ep = self.episodes.get(episode_id)
         if ep is None or step != ep.next_step:
             return
-        steps = ep.start.scenario.steps
         ep.costs.begin(self.loop.started_ns)
         m = self._sense(ep, step, ep.pan)
         ep.costs.lap("compute")
@@ -208,11 +210,6 @@ class SensorsNode:
         ep.costs.lap("publish")
         ep.costs.replied()
         ep.next_step = step + 1
-        period = ep.start.scenario.rf_period_s
-        if ep.next_step < steps:
-            self._schedule(ep.t0 + ep.next_step * period, episode_id, ep.next_step)
-        else:
-            self._schedule(ep.t0 + steps * period, episode_id, -1)  # give the last command one period to arrive
 
     def _finish_realtime(self, episode_id: str) -> None:
         ep = self.episodes.get(episode_id)
@@ -223,8 +220,12 @@ class SensorsNode:
             costs=ep.costs.report() if self.report_costs else None)))
         self._end(episode_id)
 
-    def _schedule(self, when: float, episode_id: str, step: int) -> None:
+    def _schedule(self, when: float, episode_id: str, step: int, clock: tuple[float, float, int]) -> None:
+        """Tick ``step`` (-1: the end) of a realtime episode at ``when``; the timer thread schedules
+        every later one itself, on the grid ``clock`` = (t0, T_RF, steps): the worker never wakes
+        it again, so it never takes the GIL from the worker in the middle of a step."""
         with self._timer_cv:
+            self._clocks[episode_id] = clock
             heapq.heappush(self._timers, (when, episode_id, step))
             self._timer_cv.notify()
 
@@ -237,6 +238,11 @@ class SensorsNode:
                 if self._closing:
                     return
                 _, episode_id, step = heapq.heappop(self._timers)
+                clock = self._clocks.get(episode_id) if step >= 0 else self._clocks.pop(episode_id, None)
+                if clock is not None and step >= 0:  # the next tick: sample k at t0 + k T_RF; the end one period after the last
+                    t0, period, steps = clock
+                    nxt = step + 1
+                    heapq.heappush(self._timers, (t0 + nxt * period, episode_id, nxt if nxt < steps else -1))
             if step < 0:
                 self.loop.post(self._finish_realtime, episode_id)
             else:
@@ -244,6 +250,9 @@ class SensorsNode:
 
     def _end(self, episode_id: str) -> None:
         self._early.pop(episode_id, None)
+        if episode_id in self._clocks:
+            with self._timer_cv:  # no more ticks (one already queued runs and finds no episode)
+                self._clocks.pop(episode_id, None)
         if self.episodes.pop(episode_id, None) is not None:
             self._finished[episode_id] = None
             while len(self._finished) > 10000:
