@@ -20,16 +20,26 @@ if TYPE_CHECKING:
     from ra2vipas.services.orchestrator.simulate import TestOutcome
 
 
-def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: TrainedPOD,
-              outcomes: dict[str, list[TestOutcome]], steps_per_second: float | None,
-              stop_confidence: float = 0.0) -> dict[str, Any]:
+def summarize(
+    preset: str,
+    scenario: Scenario,
+    tests: int,
+    seed: int,
+    pod: TrainedPOD,
+    outcomes: dict[str, list[TestOutcome]],
+    steps_per_second: float | None,
+    stop_confidence: float = 0.0,
+) -> dict[str, Any]:
     """The results object (same shape for ``simulate --json`` and the REST API)."""
     algorithms = {}
     for name, runs in outcomes.items():
         runs = sorted(runs, key=lambda o: o.test_index)
         confidences = np.array([o.confidences for o in runs]) if runs and all(o.confidences for o in runs) else None
         algorithms[name] = summarize_algorithm(
-            np.array([o.hits for o in runs]), np.array([o.in_fov for o in runs]), scenario.rf_period_s, confidences,
+            np.array([o.hits for o in runs]),
+            np.array([o.in_fov for o in runs]),
+            scenario.rf_period_s,
+            confidences,
             [o.decided_step for o in runs] if stop_confidence > 0.0 else None,
         )
     resolved = scenario.model_dump(mode="json")
