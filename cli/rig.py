@@ -7,12 +7,11 @@ its name from ``--rig`` / ``RA2VIPAS_RIG`` or, when neither is given, from the h
 container's host name is unique and survives a restart).
 
 The two nodes share one Zenoh session and one worker thread (``EventLoop(inline=True)``): a
-command the controller publishes reaches the sensors, and a measurement the sensors publish
-reaches the controller, through the session's own delivery to its matching subscribers (Zenoh
-1.x delivers a put to the putting session's subscribers as well as to the network), handled on
-the same worker as soon as the publishing handler returns: no router, no socket, no thread hop
-between them. Every message still goes to the network under its documented key, for anyone
-else subscribed (a recorder, a test, the router's access control). Both liveliness tokens are
+command the controller sends reaches the sensors, and a measurement the sensors send reaches the
+controller, as the message object itself (``EventLoop.send``), handled on the same worker as
+soon as the sending handler returns: no router, no socket, no thread hop, no JSON encoding or
+validation between them. Every message goes to the network under its documented key, as JSON,
+whenever anyone else subscribes (``ZenohBus.publish_remote``: a recorder, a test). Both liveliness tokens are
 the session's, so they disappear together if the process dies. ``--listen`` and ``--connect``
 are the session's (``--split`` runs the two nodes as before, each with its own session: the
 controller's connects through ``--connect`` or, without it, to the sensors' listener).

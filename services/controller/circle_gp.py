@@ -160,6 +160,39 @@ class LobeGP:
         self.z_[n] = z
         self.n_ = n + 1
 
+    def extend(self, xs, zs) -> None:
+        """Add the samples ``zs`` taken at pans ``xs``, in order: ``add`` one by one, or, into a
+        GP that holds none yet, the same fit in one pass of matrix products, O(n^2 M) (K = L L^T
+        at once and every row of L^{-1} k(X, grid), L^{-1} h(X - grid), L^{-1} 1, L^{-1} z;
+        equal up to rounding, ~10x faster than n calls of ``add``)."""
+        xs, zs = np.asarray(xs, dtype=float), np.asarray(zs, dtype=float)
+        n = xs.size
+        if self.n_ or n < 2 or n > self.capacity:
+            for s, z in zip(xs.tolist(), zs.tolist()):
+                self.add(s, z)
+            return
+        half = np.sin(0.5 * (xs[:, None] - xs[None, :]))
+        K = self.residual_var * np.exp(-2.0 * half * half / (self.residual_length_scale**2))
+        lag = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])
+        K += self.noise_var * (self.noise_correlation**lag if self.noise_correlation else np.eye(n))
+        try:
+            Li = np.tril(np.linalg.solve(np.linalg.cholesky(K), np.eye(n)))
+        except np.linalg.LinAlgError:  # not positive definite in floating point: add's guarded rows
+            for s, z in zip(xs.tolist(), zs.tolist()):
+                self.add(s, z)
+            return
+        if n > self.x_.size:
+            self._allocate(min(self.capacity, max(n, 2 * self.x_.size)))
+        pans = xs.tolist()  # the rows ``add`` would take (a pan on the grid: a view of one cached row)
+        V = Li @ np.array([self.circle.kernel_row(s, self.residual_length_scale, self.residual_var) for s in pans])
+        H = Li @ np.array([self.circle.kernel_row(s, self.lobe_width) for s in pans])
+        o, u = Li.sum(axis=1), Li @ zs
+        self.x_[:n], self.z_[:n], self._Li[:n, :n], self._V[:n], self._H[:n], self._o[:n], self._u[:n] = xs, zs, Li, V, H, o, u
+        self._res_var = self.residual_var - np.einsum("ij,ij->j", V, V)
+        self._hh, self._ho, self._hu = np.einsum("ij,ij->j", H, H), o @ H, u @ H
+        self._oo, self._ou, self._uu = float(o @ o), float(o @ u), float(u @ u)
+        self.n_ = n
+
     def lobe_fit(self, sign: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For every grid centre gamma: profile log-likelihood -q(gamma)/2, amplitude A, offset c.
 

@@ -39,6 +39,7 @@ from ra2vipas.services.controller.policy import (
     sensor_config_from_scenario,
 )
 from ra2vipas.services.protocol import keys
+from ra2vipas.services.protocol.construct import builder
 from ra2vipas.services.protocol.messages import (
     Command,
     ControllerInfo,
@@ -70,6 +71,17 @@ MODEL_ATTEMPTS = 30  # about a minute of retries while no learner answers
 DESCRIPTOR_TIMEOUT_S = 3.0  # a v1 sensors node serves no descriptor: the query ends with no reply
 DESCRIPTORS_KEPT = 64  # campaigns whose rig descriptor is remembered
 _ASKING = object()
+_new_command = builder(Command, "episode_id", "step", "pan_rad")
+_PAN_LIMIT = Command.model_json_schema()["properties"]["pan_rad"]["maximum"]
+
+
+def _command(episode_id: str, step: int, pan_rad: float) -> Command:
+    """``Command(episode_id, step, pan_rad)`` without validating what this node knows is valid
+    (its episode's id and the step it counts); the policy's pan is checked as ``Command`` would
+    (finite, within its bounds), so a policy's bad pan still fails the step, as it did."""
+    if not -_PAN_LIMIT <= pan_rad <= _PAN_LIMIT:  # NaN too
+        raise ValueError(f"the policy's pan {pan_rad!r} is not a finite angle within +-{_PAN_LIMIT} rad")
+    return _new_command(episode_id, step, pan_rad)
 
 
 @dataclass
@@ -268,7 +280,7 @@ class ControllerNode:
         except registry.UnknownPolicy as err:
             self._fail(episode_id, f"controller of rig {self.rig}: {err}")
             return
-        self.bus.publish(self._command_key, dump(Command(episode_id=episode_id, step=0, pan_rad=float(ep.policy.first_pan()))))
+        self.loop.send(self.bus, self._command_key, _command(episode_id, 0, float(ep.policy.first_pan())))
         ep.costs.start()
 
     def _fail(self, episode_id: str, error: str) -> None:
@@ -278,9 +290,11 @@ class ControllerNode:
         self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(episode_id=episode_id, rig=self.rig, status="failed", error=error[:2000])))
 
     # -- stepping ---------------------------------------------------------------------------
-    def _on_measurement(self, payload: bytes) -> None:
+    def _on_measurement(self, payload: "bytes | Measurement") -> None:
+        """A measurement: its JSON from the network, or the message itself from the rig's own
+        sensors on this loop (``EventLoop.send``)."""
         posted, started = self.loop.posted_ns, self.loop.started_ns
-        m = decode_or_drop(Measurement, payload, "measurement", log)
+        m = payload if isinstance(payload, Measurement) else decode_or_drop(Measurement, payload, "measurement", log)
         if m is None:
             return
         ep = self.episodes.get(m.episode_id)
@@ -312,11 +326,9 @@ class ControllerNode:
         else:
             decided = stop > 0.0 and confidence is not None and confidence >= stop
         if ep.next_step < sc.steps and not decided:
-            command = Command(episode_id=m.episode_id, step=ep.next_step, pan_rad=float(decision.next_pan_rad))
+            command = _command(m.episode_id, ep.next_step, float(decision.next_pan_rad))
             costs.lap("compute")
-            payload = dump(command)
-            costs.lap("encode")
-            self.bus.publish(self._command_key, payload, express=ep.start.mode is Mode.realtime)
+            self.loop.send(self.bus, self._command_key, command, express=ep.start.mode is Mode.realtime, costs=costs)
             costs.lap("publish")
             costs.replied()
             return

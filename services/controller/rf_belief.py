@@ -477,9 +477,8 @@ class RFFilterBelief(RFBelief):
         return self.rff.most_informative_pan()
 
     def lobe_evidence(self) -> float | None:
-        if self._dir_samples:  # fit the generic lobe to the filter's samples now, once
-            for s, z in self._dir_samples:
-                self.check.add(s, z)
+        if self._dir_samples:  # fit the generic lobe to the filter's samples now, once (in one pass)
+            self.check.extend([s for s, _ in self._dir_samples], [z for _, z in self._dir_samples])
             self._dir_samples.clear()
         return _lobe_evidence(self.check)
 

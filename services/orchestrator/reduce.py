@@ -371,8 +371,8 @@ def results_object(preset: str, scenario, tests: int, seed: int, pod, tallies: M
                    steps_per_second: float | None, stop_confidence: float = 0.0) -> dict[str, Any]:
     """The results object (``simulate.summarize``'s envelope: preset, scenario, tests, seed,
     POD fit, speed, and whatever else it carries) with the algorithms' blocks from ``tallies``."""
+    from ra2vipas.services.orchestrator.envelope import add_provenance, summarize
     from ra2vipas.services.orchestrator.rigcheck import dr_warnings
-    from ra2vipas.services.orchestrator.simulate import add_provenance, summarize
 
     out = summarize(preset, scenario, tests, seed, pod, {}, steps_per_second, stop_confidence)
     out["algorithms"] = {name: tally.summary(decisions=stop_confidence > 0.0) for name, tally in tallies.items()}

@@ -19,7 +19,6 @@ from __future__ import annotations
 import statistics
 from array import array
 from collections import Counter
-from functools import lru_cache
 from typing import Any, Iterable
 
 from ra2vipas.services.controller import registry
@@ -34,13 +33,18 @@ def _other_model(rx_dir: str) -> str:
             "db-gain": "the paper's model (a dBm value scaled by rho: its reading dips when aligned)"}.get(rx_dir, "another model")
 
 
-@lru_cache(maxsize=1)
+NO_RX_DIR_BUILTINS = ("ravipas",)
+"""The built-ins whose class says ``reads_rx_dir = False`` (RaViPAS uses the camera and Rx(iso)
+only), named here: asking the classes loads the controllers (numba; ~0.6 s of CPU the first
+time an orchestrator finishes a campaign), which the orchestrator never runs
+(tests/policies/test_everywhere.py checks the two agree)."""
+
+
 def radio_algorithms() -> tuple[str, ...]:
-    """The built-ins that read Rx(dir) (``BuiltinPolicy.reads_rx_dir``; RaViPAS uses the camera
-    and Rx(iso) only). A user's policy is never counted: which cues it reads is not known here,
-    and a below-chance DR of a policy that may ignore Rx(dir), or read it its own way, says
-    nothing of how the rig's antenna was modelled."""
-    return tuple(n for n in registry.BUILTINS if getattr(registry.load(n), "reads_rx_dir", False))
+    """The built-ins that read Rx(dir) (``BuiltinPolicy.reads_rx_dir``). A user's policy is never
+    counted: which cues it reads is not known here, and a below-chance DR of a policy that may
+    ignore Rx(dir), or read it its own way, says nothing of how the rig's antenna was modelled."""
+    return tuple(n for n in registry.BUILTINS if n not in NO_RX_DIR_BUILTINS)
 
 
 def dr_warnings(results: dict[str, Any]) -> list[str]:

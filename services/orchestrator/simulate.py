@@ -19,11 +19,12 @@ from ra2vipas.services.controller.policy import ControllerSettings, sensor_confi
 from ra2vipas.services.learner.model_cache import CachedPOD, PODCache
 from ra2vipas.services.learner.pod import LearnedPOD, LearnerSettings, fit_pod
 from ra2vipas.services.learner.trained import TrainedPOD, predict, r2_score
-from ra2vipas.services.orchestrator.metrics import score_episode, summarize_algorithm
+from ra2vipas.services.orchestrator.envelope import add_provenance, overrides_of, summarize  # noqa: F401  (the results object)
+from ra2vipas.services.orchestrator.metrics import score_episode
 from ra2vipas.services.orchestrator.reduce import held
 from ra2vipas.services.protocol.messages import training_job_id
 from ra2vipas.services.protocol.pod import PODModel
-from ra2vipas.services.protocol.scenario import Scenario, ScenarioError, build_scenario
+from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode
 
 
@@ -160,68 +161,6 @@ def new_policy(algorithm: str, scenario: Scenario, seed: int, test_index: int, p
     the campaign's early-decision level."""
     context = episode_context(sensor_config_from_scenario(scenario), pod_model, scenario, seed, test_index, stop_confidence)
     return registry.create(algorithm, context, settings)
-
-
-def summarize(preset: str, scenario: Scenario, tests: int, seed: int, pod: TrainedPOD,
-              outcomes: dict[str, list[TestOutcome]], steps_per_second: float | None,
-              stop_confidence: float = 0.0) -> dict[str, Any]:
-    """The results object (same shape for ``simulate --json`` and the REST API)."""
-    algorithms = {}
-    for name, runs in outcomes.items():
-        runs = sorted(runs, key=lambda o: o.test_index)
-        confidences = np.array([o.confidences for o in runs]) if runs and all(o.confidences for o in runs) else None
-        algorithms[name] = summarize_algorithm(
-            np.array([o.hits for o in runs]), np.array([o.in_fov for o in runs]), scenario.rf_period_s, confidences,
-            [o.decided_step for o in runs] if stop_confidence > 0.0 else None,
-        )
-    resolved = scenario.model_dump(mode="json")
-    out = {
-        "id": None,  # the campaign's id where one names it (the API's results); None in this process
-        "preset": preset,
-        "overrides": overrides_of(preset, resolved),
-        "scenario": resolved,
-        "tests": tests,
-        "seed": seed,
-        "pod": {"r2": pod.r2, "train_seconds": round(pod.train_seconds, 4)},
-        "algorithms": algorithms,
-        "steps_per_second": None if steps_per_second is None else round(steps_per_second, 1),
-    }
-    if stop_confidence > 0.0:
-        out["stop_confidence"] = stop_confidence
-    if outcomes:
-        from ra2vipas.services.orchestrator.metrics import paired_comparisons
-
-        finals: dict[str, list[int | None]] = {}
-        for name, runs in outcomes.items():
-            finals[name] = [None] * tests
-            for o in runs:
-                if 0 <= o.test_index < tests and o.hits:
-                    finals[name][o.test_index] = int(o.hits[-1])
-        out["outcomes"] = finals
-        out["paired"] = paired_comparisons(finals)
-    add_provenance(out)
-    return out
-
-
-def add_provenance(results: dict[str, Any]) -> None:
-    """Say in ``results["policies"]`` which package and version each policy outside the built-ins
-    came from (absent when every policy is a built-in, so their results are unchanged)."""
-    found = registry.provenance(results["algorithms"])
-    if found:
-        results["policies"] = found
-    else:
-        results.pop("policies", None)
-
-
-def overrides_of(preset: str, scenario: dict[str, Any]) -> dict[str, Any]:
-    """What was run besides the preset: the parameters of ``scenario`` (JSON data) whose value
-    differs from the preset's, with the scenario's types, in the scenario's order; the
-    ``--set NAME=VALUE`` options that rebuild it from the preset. Empty for an unknown preset."""
-    try:
-        base = build_scenario(preset, {}).model_dump(mode="json")
-    except ScenarioError:
-        return {}
-    return {name: value for name, value in scenario.items() if base.get(name) != value}
 
 
 def run_campaign(preset: str, scenario: Scenario, tests: int, seed: int, algorithms: Iterable[str] = registry.BUILTINS,

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.angles import wrap
+from ra2vipas.services.protocol.construct import builder
 from ra2vipas.services.protocol.messages import (
     Command,
     EpisodeStart,
@@ -53,6 +54,8 @@ from ra2vipas.services.transport.costs import CostClock, now_ns
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_reject
 
 log = logging.getLogger(__name__)
+
+_measurement = builder(Measurement, "episode_id", "step", "pan_rad", "rf", "frames", "adverts", "rf_tags")
 
 
 @dataclass
@@ -90,6 +93,7 @@ class SensorsNode:
         self._finished: dict[str, None] = {}
         self._early: dict[str, list[bytes]] = {}  # commands that overtook their EpisodeStart
         self._timers: list[tuple[float, str, int]] = []
+        self._clocks: dict[str, tuple[float, float, int]] = {}  # realtime episodes' tick grids (``_schedule``)
         self._timer_cv = threading.Condition()
         self._closing = False
         self._timer_thread = threading.Thread(target=self._run_timers, name=f"sensors-timer-{rig}", daemon=True)
@@ -124,9 +128,11 @@ class SensorsNode:
         for early in self._early.pop(msg.episode_id, []):
             self._on_command(early)
 
-    def _on_command(self, payload: bytes) -> None:
+    def _on_command(self, payload: "bytes | Command") -> None:
+        """A command: its JSON from the network, or the message itself from the rig's own
+        controller on this loop (``EventLoop.send``)."""
         posted, started = self.loop.posted_ns, self.loop.started_ns
-        cmd = decode_or_reject(Command, payload, "command", log, self.bus, self.rig, "sensors")
+        cmd = payload if isinstance(payload, Command) else decode_or_reject(Command, payload, "command", log, self.bus, self.rig, "sensors")
         if cmd is None:
             return
         ep = self.episodes.get(cmd.episode_id)
@@ -145,7 +151,7 @@ class SensorsNode:
             return
         steps = ep.start.scenario.steps
         if ep.last is not None and cmd.step == ep.last.step:
-            self.bus.publish(self._measurement_key, dump(ep.last))  # a repeated command: same sample again
+            self.loop.send(self.bus, self._measurement_key, ep.last)  # a repeated command: same sample again
             return
         expected = 0 if ep.last is None else ep.last.step + 1
         if cmd.step != expected or cmd.step >= steps:
@@ -156,16 +162,14 @@ class SensorsNode:
         costs.lap("decode")
         ep.last = self._sense(ep, cmd.step, cmd.pan_rad)
         costs.lap("compute")
-        payload = dump(ep.last)
-        costs.lap("encode")
         if cmd.step == steps - 1:
             if self.report_costs:  # just before the last sample, so they reach the orchestrator before the result
                 costs.replied()
                 self.bus.publish(keys.episode_timing(self.rig), dump(EpisodeTiming(episode_id=cmd.episode_id, costs=costs.report())))
-            self.bus.publish(self._measurement_key, payload)
+            self.loop.send(self.bus, self._measurement_key, ep.last)
             self._end(cmd.episode_id)
             return
-        self.bus.publish(self._measurement_key, payload)
+        self.loop.send(self.bus, self._measurement_key, ep.last, costs=costs)
         costs.lap("publish")
         costs.replied()
 
@@ -173,8 +177,7 @@ class SensorsNode:
         if not -math.pi <= pan < math.pi:  # the pan unit reaches the commanded angle, reported wrapped (docs/protocol.md)
             pan = float(wrap(pan))
         m = ep.platform.sense(step, pan)
-        return Measurement.model_construct(episode_id=ep.start.episode_id, step=m.step, pan_rad=m.pan_rad, rf=m.rf, frames=m.frames,
-                                           adverts=m.adverts, rf_tags=m.rf_tags)
+        return _measurement(ep.start.episode_id, m.step, m.pan_rad, m.rf, m.frames, m.adverts, m.rf_tags)
 
     # -- realtime pacing --------------------------------------------------------------------
     def _realtime_command(self, ep: _Episode, cmd: Command) -> None:
@@ -185,6 +188,8 @@ class SensorsNode:
                 return
             ep.ticking = True
             ep.t0 = now
+            sc = ep.start.scenario
+            self._schedule(now + sc.rf_period_s, ep.start.episode_id, 1 if sc.steps > 1 else -1, (now, sc.rf_period_s, sc.steps))
             self._tick(ep.start.episode_id, 0)
             return
         sent = ep.sent_at.pop(cmd.step - 1, None)
@@ -197,22 +202,14 @@ class SensorsNode:
         ep = self.episodes.get(episode_id)
         if ep is None or step != ep.next_step:
             return
-        steps = ep.start.scenario.steps
         ep.costs.begin(self.loop.started_ns)
         m = self._sense(ep, step, ep.pan)
         ep.costs.lap("compute")
-        payload = dump(m)
-        ep.costs.lap("encode")
         ep.sent_at[step] = self.clock()
-        self.bus.publish(self._measurement_key, payload, express=True)
+        self.loop.send(self.bus, self._measurement_key, m, express=True, costs=ep.costs)
         ep.costs.lap("publish")
         ep.costs.replied()
         ep.next_step = step + 1
-        period = ep.start.scenario.rf_period_s
-        if ep.next_step < steps:
-            self._schedule(ep.t0 + ep.next_step * period, episode_id, ep.next_step)
-        else:
-            self._schedule(ep.t0 + steps * period, episode_id, -1)  # give the last command one period to arrive
 
     def _finish_realtime(self, episode_id: str) -> None:
         ep = self.episodes.get(episode_id)
@@ -223,8 +220,12 @@ class SensorsNode:
             costs=ep.costs.report() if self.report_costs else None)))
         self._end(episode_id)
 
-    def _schedule(self, when: float, episode_id: str, step: int) -> None:
+    def _schedule(self, when: float, episode_id: str, step: int, clock: tuple[float, float, int]) -> None:
+        """Tick ``step`` (-1: the end) of a realtime episode at ``when``; the timer thread schedules
+        every later one itself, on the grid ``clock`` = (t0, T_RF, steps): the worker never wakes
+        it again, so it never takes the GIL from the worker in the middle of a step."""
         with self._timer_cv:
+            self._clocks[episode_id] = clock
             heapq.heappush(self._timers, (when, episode_id, step))
             self._timer_cv.notify()
 
@@ -237,6 +238,11 @@ class SensorsNode:
                 if self._closing:
                     return
                 _, episode_id, step = heapq.heappop(self._timers)
+                clock = self._clocks.get(episode_id) if step >= 0 else self._clocks.pop(episode_id, None)
+                if clock is not None and step >= 0:  # the next tick: sample k at t0 + k T_RF; the end one period after the last
+                    t0, period, steps = clock
+                    nxt = step + 1
+                    heapq.heappush(self._timers, (t0 + nxt * period, episode_id, nxt if nxt < steps else -1))
             if step < 0:
                 self.loop.post(self._finish_realtime, episode_id)
             else:
@@ -244,6 +250,9 @@ class SensorsNode:
 
     def _end(self, episode_id: str) -> None:
         self._early.pop(episode_id, None)
+        if episode_id in self._clocks:
+            with self._timer_cv:  # no more ticks (one already queued runs and finds no episode)
+                self._clocks.pop(episode_id, None)
         if self.episodes.pop(episode_id, None) is not None:
             self._finished[episode_id] = None
             while len(self._finished) > 10000:

@@ -25,10 +25,10 @@ import math
 
 import numpy as np
 
+from ra2vipas.services.protocol.construct import builder
 from ra2vipas.services.protocol.measurements import Advertisement
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.sensors import physics
-from ra2vipas.services.sensors._construct import builder
 
 _new_advert = builder(Advertisement, "receiver", "rssi_dbm", "channel", "offset_s", "tag", "address")  # model_construct, cheaper
 

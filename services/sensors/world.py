@@ -24,11 +24,11 @@ from itertools import compress
 
 import numpy as np
 
+from ra2vipas.services.protocol.construct import builder
 from ra2vipas.services.protocol.measurements import CameraFrame, RFSample, StepMeasurement, TrainingSample
 from ra2vipas.services.protocol.messages import EpisodeTruth, TargetTrajectory
 from ra2vipas.services.protocol.scenario import Placement, RadioMode, Scenario, ScenarioError
 from ra2vipas.services.sensors import physics, radio
-from ra2vipas.services.sensors._construct import builder
 
 _TEST_STREAM = 0
 _TRAINING_STREAM = 1

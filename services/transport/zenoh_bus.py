@@ -107,12 +107,38 @@ class _ZenohFeed:
         self._sub.undeclare()
 
 
+class _RemotePublisher:
+    """A publisher to other sessions only, and whether any subscriber there matches it now
+    (kept by a matching listener: reading a flag costs a step nothing, asking Zenoh a call
+    that releases and retakes the GIL)."""
+
+    def __init__(self, session: zenoh.Session, key: str, express: bool) -> None:
+        self.pub = session.declare_publisher(
+            key,
+            encoding=JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            express=express,
+            allowed_destination=zenoh.Locality.REMOTE,
+        )
+        self.matching = True  # until the listener is in place: put rather than miss someone
+        self._listener = self.pub.declare_matching_listener(self._on_status)
+        self.matching = self.pub.matching_status.matching
+
+    def _on_status(self, status: "zenoh.MatchingStatus") -> None:
+        self.matching = status.matching
+
+    def undeclare(self) -> None:
+        self._listener.undeclare()
+        self.pub.undeclare()
+
+
 class ZenohBus:
     """A ``Bus`` bound to one Zenoh session; ``close`` closes the session."""
 
     def __init__(self, settings: ZenohSettings, workers: int = 4) -> None:
         self.session = zenoh.open(settings.to_zenoh())
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._publishers: dict[tuple[str, bool], zenoh.Publisher] = {}
+        self._remote_publishers: dict[tuple[str, bool], _RemotePublisher] = {}  # ``publish_remote``'s
         self._declared: list = []
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="zenoh-query")
         self._lock = threading.Lock()
@@ -130,6 +156,23 @@ class ZenohBus:
                     pub = self.session.declare_publisher(key, encoding=JSON, congestion_control=zenoh.CongestionControl.BLOCK, express=express)
                     self._publishers[(key, express)] = pub
         pub.put(payload)
+
+    def publish_remote(self, key: str, encode: Callable[[], bytes], express: bool = False) -> bool:
+        """Put ``encode()`` on ``key`` for other sessions only (never this session's own
+        subscribers: the caller hands its own process the message itself), and only while a
+        subscriber elsewhere matches ``key`` (Zenoh's matching status, kept by the router's
+        declarations; with none, ``encode`` is not even called: Zenoh would send nothing
+        anyway). Returns whether it was put."""
+        remote = self._remote_publishers.get((key, express))
+        if remote is None:
+            with self._lock:
+                remote = self._remote_publishers.get((key, express))
+                if remote is None:
+                    remote = self._remote_publishers[(key, express)] = _RemotePublisher(self.session, key, express)
+        if not remote.matching:
+            return False
+        remote.pub.put(encode())
+        return True
 
     @staticmethod
     def _on_sample(key: str, callback: Callback) -> Callable[[zenoh.Sample], None]:
@@ -246,7 +289,7 @@ class ZenohBus:
                 obj.undeclare()
             except Exception:
                 pass
-        for pub in self._publishers.values():
+        for pub in (*self._publishers.values(), *self._remote_publishers.values()):
             try:
                 pub.undeclare()
             except Exception:

@@ -1,8 +1,10 @@
 """A rig whose sensors and controller share one process, one Zenoh session and one worker
 (``ra2vipas rig``, ``up``'s default layout; issue 22): a command and a measurement reach the
-other node through the session's own delivery, on the worker, never inside the publisher's
-handler; every one of them still goes on the network under its documented key, once; the
-campaign equals ``simulate`` value for value; both liveliness tokens are the session's."""
+other node on the worker, never inside the publisher's handler, as the message itself
+(``EventLoop.send``: no JSON, no validation again); one lockstep exchange runs depth first;
+every one of them still goes on the network under its documented key, once, while anyone
+there subscribes, and only then is it encoded; the campaign equals ``simulate`` value for value
+either way; both liveliness tokens are the session's."""
 
 from __future__ import annotations
 
@@ -11,13 +13,15 @@ import threading
 import time
 from collections import Counter
 
+import pytest
+
 from ra2vipas.services.controller.node import ControllerNode
 from ra2vipas.services.learner.node import LearnerNode
 from ra2vipas.services.orchestrator.scheduler import Scheduler
 from ra2vipas.services.orchestrator.simulate import run_campaign
 from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol import keys
-from ra2vipas.services.protocol.messages import Command, Measurement
+from ra2vipas.services.protocol.messages import Command, Measurement, dump
 from ra2vipas.services.protocol.scenario import build_scenario
 from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import key_matches
@@ -101,7 +105,125 @@ def test_an_inline_delivery_runs_after_the_publishing_handler_on_the_same_worker
         loop.stop()
 
 
-def test_a_one_session_rig_publishes_every_step_on_the_network_and_equals_simulate(tmp_path):
+class _RemoteBus(_SessionBus):
+    """A ``_SessionBus`` that also puts for other sessions only (``publish_remote``), while
+    ``matching`` (a subscriber elsewhere)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.matching = False
+        self.remote: list[tuple[str, bytes]] = []
+
+    def publish_remote(self, key: str, encode, express: bool = False) -> bool:
+        if self.matching:
+            self.remote.append((key, encode()))
+        return self.matching
+
+
+def test_send_hands_the_other_node_the_message_itself_and_encodes_only_for_a_subscriber_elsewhere():
+    bus, loop = _RemoteBus(), EventLoop("rig-send", inline=True)
+    got: list = []
+    threads: set[str] = set()
+    inside: list[bool] = []
+    sending = threading.local()
+
+    def on_command(payload) -> None:
+        threads.add(threading.current_thread().name)
+        inside.append(getattr(sending, "now", False))
+        got.append(payload)
+
+    def send(message) -> None:
+        sending.now = True
+        loop.send(bus, "data/r/command", message)
+        sending.now = False
+
+    try:
+        loop.feed(bus, "data/r/command", on_command)
+        first = Command(episode_id="e", step=0, pan_rad=0.5)
+        loop.post(send, first)
+        assert loop.wait_idle(5)
+        assert got == [first] and got[0] is first  # the object itself: nothing encoded, nothing decoded
+        assert bus.remote == [] and threads == {"rig-send"} and inside == [False]
+        bus.matching = True  # someone elsewhere subscribes: the JSON goes out too, once
+        second = Command(episode_id="e", step=1, pan_rad=-0.5)
+        loop.post(send, second)
+        assert loop.wait_idle(5)
+        assert got[-1] is second and bus.remote == [("data/r/command", dump(second))]
+        # from another thread (not a handler of the loop), a send is an ordinary publication
+        bus.matching = False
+        send(first)
+        assert loop.wait_idle(5)
+        assert got[-1] == dump(first)
+    finally:
+        loop.stop()
+
+
+def test_an_inline_exchange_runs_depth_first_and_a_new_one_waits_its_turn():
+    """Each message a handler of an inline delivery sends runs next (one episode's steps back to
+    back); what a posted event's handler sends (an episode's first command) queues behind the
+    exchanges already running, so none of them waits behind episodes started after it."""
+    bus, loop = _RemoteBus(), EventLoop("rig-depth", inline=True)
+    trace: list[str] = []
+    done = threading.Event()
+
+    def on_step(message) -> None:
+        name, n = message
+        trace.append(f"{name}{n}")
+        if n < 5:
+            loop.send(bus, "data/r/step", (name, n + 1))
+        elif name == "c":
+            done.set()
+
+    try:
+        loop.feed(bus, "data/r/step", on_step)
+        gate = threading.Event()
+        loop.post(gate.wait, 5)  # the three starts queue while the worker is held
+        for name in "abc":
+            loop.post(loop.send, bus, "data/r/step", (name, 0))
+        gate.set()
+        assert done.wait(5)
+        assert trace == [f"{name}{n}" for name in "abc" for n in range(6)]
+    finally:
+        loop.stop()
+
+
+def test_publish_remote_reaches_other_sessions_only_and_only_while_one_subscribes():
+    port = _free_port()
+    base = {"multicast_scouting": False}
+    a = ZenohBus(ZenohSettings(mode="peer", listen=(f"tcp/127.0.0.1:{port}",), **base))
+    b = ZenohBus(ZenohSettings(mode="peer", connect=(f"tcp/127.0.0.1:{port}",), **base))
+    own: list[bytes] = []
+    other: list[bytes] = []
+    encoded: list[int] = []
+
+    def encode(n: int):
+        def payload() -> bytes:
+            encoded.append(n)
+            return f"{n}".encode()
+
+        return payload
+
+    try:
+        a.subscribe("data/r/measurement", lambda _k, p: own.append(p))
+        assert a.publish_remote("data/r/measurement", encode(1)) is False  # nobody elsewhere: not even encoded
+        b.subscribe("data/r/measurement", lambda _k, p: other.append(p))
+        deadline = time.monotonic() + 5
+        while not a.publish_remote("data/r/measurement", encode(2)) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        deadline = time.monotonic() + 5
+        while not other and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert other == [b"2"] and encoded == [2]
+        assert own == []  # never this session's own subscribers: the caller hands them the message itself
+    finally:
+        a.close()
+        b.close()
+
+
+@pytest.mark.parametrize("observed", [True, False], ids=["observed", "unobserved"])
+def test_a_one_session_rig_publishes_every_step_on_the_network_and_equals_simulate(tmp_path, observed):
+    """Observed (another session subscribes to the rig's step keys), every command and
+    measurement goes out once; unobserved, none is even encoded; the results are the same."""
     port = _free_port()
     base = {"multicast_scouting": False}
     rig_bus = ZenohBus(ZenohSettings(mode="peer", listen=(f"tcp/127.0.0.1:{port}",), **base))
@@ -113,8 +235,18 @@ def test_a_one_session_rig_publishes_every_step_on_the_network_and_equals_simula
     scheduler = None
     try:
         # what anyone else on the network sees of the rig's step traffic
-        hub.subscribe(keys.measurement("rig-7"), lambda _k, p: seen.update([("m", *_step(Measurement, p))]))
-        hub.subscribe(keys.command("rig-7"), lambda _k, p: seen.update([("c", *_step(Command, p))]))
+        if observed:
+            hub.subscribe(keys.measurement("rig-7"), lambda _k, p: seen.update([("m", *_step(Measurement, p))]))
+            hub.subscribe(keys.command("rig-7"), lambda _k, p: seen.update([("c", *_step(Command, p))]))
+        puts = Counter()
+        remote = rig_bus.publish_remote
+
+        def counted(key, encode, express=False):
+            put = remote(key, encode, express)
+            puts[key] += put
+            return put
+
+        rig_bus.publish_remote = counted
         nodes += [ControllerNode(rig_bus, "rig-7", loop=loop), SensorsNode(rig_bus, "rig-7", loop=loop), LearnerNode(hub)]
         deadline = time.monotonic() + 20
         alive: list[str] = []
@@ -129,6 +261,9 @@ def test_a_one_session_rig_publishes_every_step_on_the_network_and_equals_simula
         c = run_to_end(store, scheduler, "paper", SMALL, 3, 21, algorithms)
         assert c["status"] == "done", c["error"]
         assert untimed(c["results"]) == untimed(run_campaign("paper", build_scenario("paper", SMALL), 3, 21, algorithms))
+        if not observed:
+            assert not seen and sum(puts.values()) == 0, puts
+            return
         episodes = {eid for _, eid, _ in seen}
         assert len(episodes) == 3 * len(algorithms)
         time.sleep(0.2)  # the last publications are on their way to the observer

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import pytest
 
@@ -195,3 +196,28 @@ def test_the_step_costs_the_nodes_report_add_up(mesh):
     assert b["parts_sum_ms"] == pytest.approx(b["step_ms"], rel=0.02)
     assert 0 < b["controller_compute_share"] <= 1
     assert c["results"].get("latency_ms") is None  # fast-mode timing reports carry no latencies into the results
+
+
+def test_a_realtime_episode_samples_on_its_grid_and_its_timer_stops_after_it(mesh):
+    """Realtime pacing (the sensors' timer thread schedules every tick after the first itself,
+    on the grid t0 + k T_RF, so the worker never wakes it mid-step): one sample per step on the
+    grid, one latency per command, an EpisodeTiming per episode, and no tick left once it is
+    over."""
+    from ra2vipas.services.protocol.messages import EpisodeTiming
+
+    bus, store, scheduler = mesh(window=1)
+    seen: list[tuple[float, int]] = []
+    bus.subscribe(keys.measurement("rig-1"), lambda _k, p: seen.append((time.monotonic(), Measurement.model_validate_json(p).step)))
+    overrides = {"steps": 8, "rf_period_s": 0.04, "n_train": 200, "n_targets": 8}
+    c = run_to_end(store, scheduler, "paper", overrides, 2, 5, ["ra2vipas"], mode="realtime")
+    assert c["status"] == "done", c["error"]
+    timings = [EpisodeTiming.model_validate_json(p) for k, p in bus.published if k == keys.episode_timing("rig-1")]
+    assert len(timings) == 2 and all(len(t.latencies_ms) == 7 for t in timings)
+    steps = [s for _, s in seen]
+    assert steps == list(range(8)) * 2
+    for episode in (seen[:8], seen[8:]):
+        t0 = episode[0][0]
+        offsets = [t - t0 - k * 0.04 for k, (t, _) in enumerate(episode)]
+        assert max(abs(o) for o in offsets) < 0.03, offsets  # on the grid (a loaded machine may delay a sample)
+    time.sleep(0.15)
+    assert len(seen) == 16  # nothing after the end

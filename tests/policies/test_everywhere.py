@@ -224,6 +224,7 @@ def test_the_radio_warning_counts_the_builtins_that_read_rx_dir_never_a_policy_w
     from ra2vipas.services.orchestrator.rigcheck import dr_warnings, radio_algorithms
 
     assert radio_algorithms() == tuple(a for a in BUILTINS if a != "ravipas")  # RaViPAS: the camera and Rx(iso) only
+    assert radio_algorithms() == tuple(a for a in BUILTINS if registry.load(a).reads_rx_dir)  # what their classes say
     scenario = {"n_targets": 20, "antenna_model": "paper"}
     far_below = {"dr_final": 0.0}
     assert dr_warnings({"scenario": scenario, "tests": 200, "algorithms": {"greedy": far_below, "ravipas": far_below}}) == []

@@ -128,6 +128,31 @@ def test_lobe_fit_with_ar1_noise_equals_batch_gls():
     assert np.max(np.abs(white - loglik)) > 1.0
 
 
+@pytest.mark.parametrize("rho", [0.0, 0.7])
+def test_extend_is_add_one_by_one_in_one_pass(rho):
+    """``extend`` into an empty GP (the controller's lobe check, fitted once at the episode's end)
+    is the fit of ``add`` sample by sample, up to rounding; samples added afterwards go on as
+    usual."""
+    RNG = np.random.default_rng(4)
+    grid = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+    x = np.concatenate([grid[RNG.integers(0, 90, 30)], RNG.uniform(-math.pi, math.pi, 10)])  # pans on and off the grid
+    z = -40.0 + 8.0 * np.cos(x - 1.0) + RNG.normal(0, 2, x.size)
+    one_by_one = _filled(x, z, -1, capacity=45, rho=rho)
+    at_once = LobeGP(grid, NOISE, WIDTH, -1, RES_L, RES_VAR, capacity=45, noise_correlation=rho)
+    at_once.extend(x, z)
+    assert at_once.n_ == one_by_one.n_ == x.size
+    for got, want in zip(at_once.lobe_fit(), one_by_one.lobe_fit()):
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+    for s, v in ((0.3, -41.0), (-2.0, -38.5)):
+        at_once.add(s, v)
+        one_by_one.add(s, v)
+    for got, want in zip(at_once.lobe_fit(), one_by_one.lobe_fit()):
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+    mean, sd = at_once.posterior(10, -5.0, -40.0)
+    np.testing.assert_allclose(mean, one_by_one.posterior(10, -5.0, -40.0)[0], rtol=1e-9)
+    np.testing.assert_allclose(sd, one_by_one.posterior(10, -5.0, -40.0)[1], rtol=1e-9)
+
+
 def test_changing_the_noise_correlation_refits_every_sample():
     RNG = np.random.default_rng(3)
     x = RNG.uniform(-math.pi, math.pi, 15)

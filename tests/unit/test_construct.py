@@ -1,9 +1,9 @@
-"""The simulator's cheaper model_construct (services/sensors/_construct.py) builds the same objects."""
+"""The cheaper model_construct (services/protocol/construct.py) builds the same objects."""
 
 from __future__ import annotations
 
+from ra2vipas.services.protocol.construct import builder
 from ra2vipas.services.protocol.measurements import Advertisement, CameraFrame, RFSample, StepMeasurement
-from ra2vipas.services.sensors._construct import builder
 
 
 def _same(a, b) -> None:

@@ -194,10 +194,10 @@ def test_the_services_never_import_the_cli():
             assert "ra2vipas.cli" not in text, f"{rel} names the CLI in {text!r}"
 
 
-def _imported_by(modules: str, which: str) -> list[str]:
+def _imported_by(modules: str, which: str, then: str = "") -> list[str]:
     """The modules (``which``: a condition on a module name ``m``) that importing ``modules`` (a
-    comma-separated list) loads, in a fresh interpreter."""
-    code = f"import json, sys, {modules}; print(json.dumps(sorted(m for m in sys.modules if {which})))"
+    comma-separated list), and running the statement ``then`` after, loads in a fresh interpreter."""
+    code = f"import json, sys, {modules}; {then or 'pass'}; print(json.dumps(sorted(m for m in sys.modules if {which})))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SERVICES.parent)
     return json.loads(out.stdout)
 
@@ -215,6 +215,19 @@ def test_the_orchestrator_starts_without_the_controllers_the_learners_fit_or_num
                         "m.split('.')[0] in ('numba', 'scipy', 'sklearn') or m in ('ra2vipas.services.controller.policy', "
                         "'ra2vipas.services.learner.pod', 'ra2vipas.services.orchestrator.simulate', "
                         "'ra2vipas.services.sensors.world')") == []
+
+
+def test_the_orchestrator_finishes_and_serves_a_campaign_without_the_simulator_or_the_controllers():
+    """Its results object (``reduce.results_object``: the envelope, the below-chance warning that
+    names the built-ins reading Rx(dir)) and a results page's overrides come from modules that
+    import neither the simulator nor a controller (~1 s of CPU at an orchestrator's first campaign
+    end, while the rigs of the next one run)."""
+    finish = ("from ra2vipas.services.orchestrator import envelope, rigcheck; "
+              "rigcheck.dr_warnings({'scenario': {'n_targets': 20}, 'tests': 200, 'algorithms': {'rapas': {'dr_final': 0.0}}}); "
+              "envelope.overrides_of('paper', {'n_targets': 8})")
+    assert _imported_by("ra2vipas.services.orchestrator.api.app, ra2vipas.services.orchestrator.reduce",
+                        "m.split('.')[0] == 'numba' or m in ('ra2vipas.services.controller.policy', "
+                        "'ra2vipas.services.controller.builtins', 'ra2vipas.services.orchestrator.simulate')", finish) == []
 
 
 def test_the_orchestrator_a_learner_and_a_rig_start_without_the_fitting_and_plotting_libraries():

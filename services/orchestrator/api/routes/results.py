@@ -48,7 +48,7 @@ def _with_overrides(results: dict[str, Any]) -> dict[str, Any]:
     """Results stored before they carried their ``overrides`` get them from their scenario."""
     if "overrides" in results:
         return results
-    from ra2vipas.services.orchestrator.simulate import overrides_of
+    from ra2vipas.services.orchestrator.envelope import overrides_of
 
     return {"preset": results["preset"], "overrides": overrides_of(results["preset"], results["scenario"]), **results}
 

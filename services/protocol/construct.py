@@ -1,5 +1,6 @@
-"""A cheaper ``model_construct`` for the measurement models the simulator builds in its inner
-loop (a camera frame per frame, an RF pair and a step per step, an advertisement per packet).
+"""A cheaper ``model_construct`` for the messages built on a hot path: the measurement models
+the simulator builds in its inner loop (a camera frame per frame, an RF pair and a step per
+step, an advertisement per packet), and a rig's per-step ``Measurement`` and ``Command``.
 
 ``pydantic.BaseModel.model_construct`` walks every field (aliases, validation aliases, defaults
 through ``get_default`` and ``smart_deepcopy``) on every call: ~6 us, ten times a step. ``builder``
