@@ -58,7 +58,7 @@ from ra2vipas.services.protocol.messages import (
     training_job_id,
 )
 from ra2vipas.services.protocol.pod import PODModel
-from ra2vipas.services.protocol.rig import RigDescriptor
+from ra2vipas.services.protocol.rig import DESCRIPTOR_REASK_S, DESCRIPTOR_TIMEOUT_S, RigDescriptor
 from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
 from ra2vipas.services.transport.costs import CostClock
@@ -68,7 +68,6 @@ log = logging.getLogger(__name__)
 
 MODEL_TIMEOUT_S = 300.0
 MODEL_ATTEMPTS = 30  # about a minute of retries while no learner answers
-DESCRIPTOR_TIMEOUT_S = 3.0  # a v1 sensors node serves no descriptor: the query ends with no reply
 DESCRIPTORS_KEPT = 64  # campaigns whose rig descriptor is remembered
 _ASKING = object()
 _new_command = builder(Command, "episode_id", "step", "pan_rad")
@@ -214,10 +213,23 @@ class ControllerNode:
             self.descriptors[msg.campaign_id] = _ASKING
             while len(self.descriptors) > DESCRIPTORS_KEPT:
                 self.descriptors.pop(next(iter(self.descriptors)))
-            self.bus.query(keys.rig_info(self.rig), b"", DESCRIPTOR_TIMEOUT_S,
-                           lambda replies: self.loop.post(self._on_descriptor, msg.campaign_id, replies))
+            self._ask_descriptor(msg.campaign_id, 0)
 
-    def _on_descriptor(self, campaign_id: str, replies: list[Reply]) -> None:
+    def _ask_descriptor(self, campaign_id: str, empty: int) -> None:
+        """Query the rig's descriptor for a campaign; ``empty``: how many earlier queries no node answered."""
+        self.bus.query(keys.rig_info(self.rig), b"", DESCRIPTOR_TIMEOUT_S,
+                       lambda replies: self.loop.post(self._on_descriptor, campaign_id, replies, empty))
+
+    def _on_descriptor(self, campaign_id: str, replies: list[Reply], empty: int) -> None:
+        """The descriptor's answer: a query no node answered at all is asked again after the waits of
+        ``DESCRIPTOR_REASK_S`` (the router may not route it to the sensors' queryable yet: a link just
+        back, a node just up) before the rig is taken for a v1 node and modelled from the scenario."""
+        if not replies and empty < len(DESCRIPTOR_REASK_S):
+            log.info("rig %s: no node answered the descriptor query; asking again in %.0f s", self.rig, DESCRIPTOR_REASK_S[empty])
+            timer = threading.Timer(DESCRIPTOR_REASK_S[empty], self.loop.post, (self._ask_descriptor, campaign_id, empty + 1))
+            timer.daemon = True
+            timer.start()
+            return
         descriptor, passed_over = first_valid_reply(replies, RigDescriptor, "RigDescriptor")
         if descriptor is not None and descriptor.rig != self.rig:
             log.warning("rig %s: the descriptor names rig %s; ignored", self.rig, descriptor.rig)

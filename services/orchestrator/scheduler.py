@@ -74,7 +74,7 @@ from ra2vipas.services.protocol.messages import (
     TrainingTruth,
     dump,
 )
-from ra2vipas.services.protocol.rig import RigDescriptor, conflicts, speaks
+from ra2vipas.services.protocol.rig import DESCRIPTOR_REASK_S, DESCRIPTOR_TIMEOUT_S, RigDescriptor, conflicts, speaks
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.protocol.versions import (
     BUILTIN_POLICIES,
@@ -96,12 +96,6 @@ MODEL_PATIENCE_S = 30.0  # how long the learner may keep failing (e.g. missing l
 EPISODE_TIMEOUT_S = 60.0  # plus twice the test's duration in realtime mode
 TIMEOUT_CHECK_S = 2.0
 HEAL_BACKOFF_S = (1.0, 30.0)  # first and longest wait between retries of a failed database write
-DESCRIPTOR_TIMEOUT_S = 3.0  # a v1 sensors node serves no descriptor: the query ends with no reply
-DESCRIPTOR_REASK_S = (1.0, 2.0)
-"""A descriptor or policies query that no node answered at all is asked again after these waits
-before the rig is taken for a v1 node: right after a rig's liveliness token arrives (a restart,
-a link back after a cut) the router may not route the query to its queryable yet, and one empty
-answer would score its campaigns as an undescribed rig's."""
 
 REJECTIONS = ("malformed", "not_in_flight", "wrong_rig")
 """Why a result-plane or truth-plane message was dropped: it did not validate; its episode id

@@ -107,6 +107,17 @@ def speaks(descriptor: "RigDescriptor | None") -> str:
     return V1_0 if descriptor is None else descriptor.protocol
 
 
+DESCRIPTOR_TIMEOUT_S = 3.0
+"""How long a query of ``rig/{rig}/info`` (or a controller's ``policies``) waits for replies: a v1
+sensors node serves no descriptor, and the query then ends with none."""
+
+DESCRIPTOR_REASK_S = (1.0, 2.0)
+"""A descriptor or policies query that no node answered at all is asked again after these waits
+before the rig is taken for a v1 node, by the orchestrator and by a rig's controller alike: right
+after a liveliness token arrives or a link comes back (a restart, the end of a cut) the router may
+not route the query to the rig's queryable yet, and one empty answer would have the campaign
+modelled and scored under its scenario's assumptions (docs/protocol.md)."""
+
 HARDWARE_FIELDS = ("frames_per_rf", "rf_period_s", "fov_half_angle_deg", "box_bearing_noise_deg", "rx_dir")
 """The descriptor fields that describe the platform's hardware (null = configurable)."""
 

@@ -77,3 +77,30 @@ def test_a_node_that_never_answers_is_undescribed_after_the_re_asks(mesh, monkey
     _wait(lambda: scheduler.rigs[RIG].described != "asking")
     assert scheduler.rigs[RIG].described == "undescribed" and scheduler.rigs[RIG].descriptor is None
     assert scheduler.rigs[RIG].asks["descriptor"][1] == len(scheduler_module.DESCRIPTOR_REASK_S)
+
+
+def test_a_controllers_descriptor_query_nobody_answered_is_asked_again_and_the_campaign_uses_the_descriptor(tmp_path, monkeypatch):
+    """The controller asks the rig's descriptor at a campaign's first episode (issue 18: the same
+    flake of tests/deploy/test_multihost.py, on the controller's side: a campaign started right
+    after a link came back had all its episodes modelled from the scenario): a query no node
+    answered is asked again, and the campaign is modelled from the descriptor, as simulate does."""
+    from ra2vipas.services.controller import node as controller_module
+
+    monkeypatch.setattr(controller_module, "DESCRIPTOR_REASK_S", (0.2, 0.4))
+    bus, store = MemoryBus(), Store(str(tmp_path / "reask.db"))
+    view = FirstQueriesUnrouted(bus, (keys.rig_info(RIG),), unrouted=2)
+    scheduler = scheduler_module.Scheduler(bus, store, window=3)
+    nodes = [SensorsNode(bus, RIG), LearnerNode(bus)]
+    controller = ControllerNode(view, RIG)
+    try:
+        _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
+        c = run_to_end(store, scheduler, "paper", SMALL, 2, 3, ["rapas"], timeout=60.0)
+        assert c["status"] == "done", c["error"]
+        assert view.asked.count(keys.rig_info(RIG)) == 3  # two unanswered, the third answered
+        assert "assumptions" not in c["results"]  # every episode modelled from the descriptor
+    finally:
+        scheduler.close()
+        controller.close()
+        for n in nodes:
+            n.close()
+        bus.close()
