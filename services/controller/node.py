@@ -24,7 +24,6 @@ is declared last, after the subscribers and the queryable.
 from __future__ import annotations
 
 import logging
-import threading
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -226,9 +225,7 @@ class ControllerNode:
         back, a node just up) before the rig is taken for a v1 node and modelled from the scenario."""
         if not replies and empty < len(DESCRIPTOR_REASK_S):
             log.info("rig %s: no node answered the descriptor query; asking again in %.0f s", self.rig, DESCRIPTOR_REASK_S[empty])
-            timer = threading.Timer(DESCRIPTOR_REASK_S[empty], self.loop.post, (self._ask_descriptor, campaign_id, empty + 1))
-            timer.daemon = True
-            timer.start()
+            self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._ask_descriptor, campaign_id, empty + 1)
             return
         descriptor, passed_over = first_valid_reply(replies, RigDescriptor, "RigDescriptor")
         if descriptor is not None and descriptor.rig != self.rig:
@@ -266,9 +263,7 @@ class ControllerNode:
     def _on_model(self, job: str, replies: list[Reply], request: bytes = b"", attempt: int = MODEL_ATTEMPTS) -> None:
         if not replies and attempt < MODEL_ATTEMPTS and self._waiting.get(job):
             # no learner reachable right now (restarting?): ask again shortly instead of failing
-            timer = threading.Timer(min(0.5 * attempt, 5.0), self.loop.post, (self._request_model, job, request, attempt + 1))
-            timer.daemon = True
-            timer.start()
+            self.loop.post_later(min(0.5 * attempt, 5.0), self._request_model, job, request, attempt + 1)
             return
         waiting = self._waiting.pop(job, [])
         response, passed_over = first_valid_reply(replies, PODResponse, "PODResponse")

@@ -862,9 +862,7 @@ class Scheduler:
         if replies or empty >= len(DESCRIPTOR_REASK_S):
             return False
         rig.asks[what] = (current, empty + 1)
-        timer = threading.Timer(DESCRIPTOR_REASK_S[empty], self.loop.post, (self._ask, name, what, False, current))
-        timer.daemon = True
-        timer.start()
+        self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._ask, name, what, False, current)
         log.info("no node answered the %s query of rig %s; asking again in %.0f s", what, name, DESCRIPTOR_REASK_S[empty])
         return True
 

@@ -86,6 +86,13 @@ class EventLoop:
             self._queue.put((fn, args, time.perf_counter_ns()))
             self._wake()
 
+    def post_later(self, seconds: float, fn: Callable[..., None], *args) -> None:
+        """``post(fn, *args)`` once ``seconds`` have passed (a daemon timer: it never keeps the
+        process alive, and what it posts after ``stop`` is dropped)."""
+        timer = threading.Timer(seconds, self.post, (fn, *args))
+        timer.daemon = True
+        timer.start()
+
     def _wake(self) -> None:
         # the worker sets ``_waiting`` before it last looks at the queue and then blocks: a post
         # that reads False was queued before that look (the GIL orders the two), so it is seen
