@@ -135,7 +135,7 @@ def exclusive_posteriors(track_loglik, missed_loglik) -> np.ndarray:
     out = np.empty_like(w)
     if _kernels.exclusive_marginals(w, m, *_partition_runs(k), RELIABLE_SHARE, out):
         return out
-    return _enumerated(w, m)
+    return _enumerated(w, m, full - full.max(axis=1, keepdims=True))
 
 
 _PARTITIONS: dict[int, list] = {}
@@ -178,17 +178,17 @@ def _partitions(items: list[int]):
         yield [[first], *smaller]
 
 
-def _enumerated(w: np.ndarray, m: int) -> np.ndarray:
+def _enumerated(w: np.ndarray, m: int, log_w: np.ndarray) -> np.ndarray:
     """``exclusive_posteriors`` by summing the joint assignments one by one (in numpy), over the
     tracks some tag gives at least ``NEGLIGIBLE`` of its largest weight, at most the
     ``ENUMERATION_LIMIT``-th root of them by weight; the others are left open to every tag, as
-    "missed" is (ruling out a track no tag can be on changes nothing at that share)."""
+    "missed" is (ruling out a track no tag can be on changes nothing at that share).
+
+    ``w`` are the weights exp(``log_w``). Where every assignment the constraint allows has
+    weights that underflow to 0 (tags each certain of one track, the same one, everything else
+    hundreds of nats below), the same sum is taken over the log-weights (``_enumerated_in_logs``)."""
     k = w.shape[0]
-    strongest = w[:, :m].max(axis=0)
-    order = np.argsort(-strongest, kind="stable")
-    most = max(1, int(ENUMERATION_LIMIT ** (1.0 / k)) - 1)
-    kept = np.sort(order[: min(most, int((strongest >= NEGLIGIBLE).sum()))])
-    rest = np.setdiff1d(np.arange(m), kept)
+    kept, rest = _enumerated_tracks(w, m)
     open_weight = w[:, m] + w[:, rest].sum(axis=1)  # (K,): missed and the tracks left open
     cols = np.concatenate([w[:, kept], open_weight[:, None]], axis=1)  # (K, c + 1)
     c = kept.size
@@ -197,17 +197,62 @@ def _enumerated(w: np.ndarray, m: int) -> np.ndarray:
         shape = [1] * k
         shape[tag] = c + 1
         joint = joint * cols[tag].reshape(shape)
-    grids = np.indices((c + 1,) * k, sparse=True)
-    for a in range(k):
-        for b in range(a + 1, k):
-            joint = np.where((grids[a] == grids[b]) & (grids[a] < c), 0.0, joint)
+    joint = _excluded(joint, c, 0.0)
     out = np.stack([joint.sum(axis=tuple(ax for ax in range(k) if ax != tag)) for tag in range(k)])
     full = np.zeros_like(w)
     full[:, kept] = out[:, :c]
-    spread = out[:, c] / open_weight  # what the open column took, shared in proportion to its parts
+    with np.errstate(invalid="ignore", divide="ignore"):  # an open column of weight 0 took nothing: 0, not 0 / 0
+        spread = np.where(open_weight > 0.0, out[:, c] / open_weight, 0.0)  # what the open column took, shared in proportion
     full[:, m] = w[:, m] * spread
     full[:, rest] = w[:, rest] * spread[:, None]
-    return full / full.sum(axis=1, keepdims=True)
+    total = full.sum(axis=1, keepdims=True)
+    if not (total > 0.0).all():  # every allowed assignment underflowed: the same sum in logs
+        return _enumerated_in_logs(log_w, kept, rest)
+    return full / total
+
+
+def _enumerated_tracks(w: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """The tracks ``_enumerated`` sums over one by one (sorted), and the tracks it leaves open."""
+    k = w.shape[0]
+    strongest = w[:, :m].max(axis=0)
+    order = np.argsort(-strongest, kind="stable")
+    most = max(1, int(ENUMERATION_LIMIT ** (1.0 / k)) - 1)
+    kept = np.sort(order[: min(most, int((strongest >= NEGLIGIBLE).sum()))])
+    return kept, np.setdiff1d(np.arange(m), kept)
+
+
+def _excluded(joint: np.ndarray, c: int, nothing: float) -> np.ndarray:
+    """``joint`` (one axis per tag, c tracks and the open column each) with every assignment in
+    which two tags share a track set to ``nothing`` (0, or -inf in logs)."""
+    k = joint.ndim
+    grids = np.indices((c + 1,) * k, sparse=True)
+    for a in range(k):
+        for b in range(a + 1, k):
+            joint = np.where((grids[a] == grids[b]) & (grids[a] < c), nothing, joint)
+    return joint
+
+
+def _enumerated_in_logs(log_w: np.ndarray, kept: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """``_enumerated``'s sum over the same tracks, in log-weights: the marginals where every
+    assignment the constraint allows is too unlikely for its weight to be a double."""
+    k, width = log_w.shape
+    m = width - 1
+    c = kept.size
+    log_open = logsumexp(np.concatenate([log_w[:, m:], log_w[:, rest]], axis=1), axis=1)  # (K,)
+    cols = np.concatenate([log_w[:, kept], log_open[:, None]], axis=1)
+    joint = np.zeros((c + 1,) * k)
+    for tag in range(k):
+        shape = [1] * k
+        shape[tag] = c + 1
+        joint = joint + cols[tag].reshape(shape)
+    joint = _excluded(joint, c, -np.inf)
+    out = np.stack([logsumexp(joint, axis=tuple(ax for ax in range(k) if ax != tag)) for tag in range(k)])
+    full = np.full(log_w.shape, -np.inf)
+    full[:, kept] = out[:, :c]
+    spread = out[:, c] - log_open
+    full[:, m] = log_w[:, m] + spread
+    full[:, rest] = log_w[:, rest] + spread[:, None]
+    return np.exp(full - logsumexp(full, axis=1, keepdims=True))
 
 
 def entropy(posteriors) -> np.ndarray:

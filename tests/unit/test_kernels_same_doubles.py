@@ -145,7 +145,7 @@ def _exclusive_numpy(track_loglik, missed_loglik):
     z = unnormalised.sum(axis=1)
     share = multitag.RELIABLE_SHARE
     if (unnormalised < -share * largest_term).any() or (z <= share * largest_term).any():
-        return multitag._enumerated(w, m)
+        return multitag._enumerated(w, m, full - full.max(axis=1, keepdims=True))
     return np.clip(unnormalised, 0.0, None) / z[:, None]
 
 
@@ -158,8 +158,8 @@ def test_exclusive_marginals_as_the_numpy_sum():
         tracks, missed = rng.normal(size=(k, m)) * scale, rng.normal(size=k) * scale
         if trial % 7 == 0:  # two tags after one track
             tracks[1, 0] = tracks[0, 0] = tracks.max() + 5.0
-        with np.errstate(invalid="ignore"):  # _enumerated's 0 / 0 where every weight but the largest underflows
-            want, got = _exclusive_numpy(tracks, missed), multitag.exclusive_posteriors(tracks, missed)
+        want, got = _exclusive_numpy(tracks, missed), multitag.exclusive_posteriors(tracks, missed)
+        assert np.isfinite(got).all() and np.allclose(got.sum(axis=1), 1.0)
         assert _same(got, want)
         full = np.concatenate([tracks, missed[:, None]], axis=1)
         w = np.exp(full - full.max(axis=1, keepdims=True))

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.special import logsumexp
 
 from ra2vipas.services.controller.multitag import (
     entropy,
@@ -141,3 +142,30 @@ def test_bad_shapes_and_rules_are_refused():
         pan_weights(np.full((2, 2), 0.5), decided=[False])
     with pytest.raises(ValueError, match="unknown pan rule"):
         pan_weights(np.full((2, 2), 0.5), decided=[False, False], rule="loudest")
+
+
+def test_tags_certain_of_one_track_whose_other_assignments_underflow_still_get_marginals():
+    # both tags certain of track 0, everything else 2000 nats below: every assignment the constraint allows
+    # has a weight exp(-2000) = 0.0 in doubles. Exactly: one tag on track 0, the other on track 1 or "missed".
+    tracks = np.array([[0.0, -2000.0], [0.0, -2000.0]])
+    missed = np.array([-2000.0, -2000.0])
+    post = exclusive_posteriors(tracks, missed)
+    assert np.isfinite(post).all()
+    assert np.allclose(post, [[0.5, 0.25, 0.25], [0.5, 0.25, 0.25]], atol=1e-12)
+    # three tags, the best allowed assignment 900 nats below the unconstrained one: the brute-force sum in logs agrees
+    tracks = np.array([[0.0, -800.0, -2.0], [0.0, -900.0, -1500.0], [-3.0, 0.0, -750.0]])
+    missed = np.array([-760.0, -1200.0, -5.0])
+    assert np.allclose(exclusive_posteriors(tracks, missed), _brute_force_in_logs(tracks - 1000.0, missed - 1000.0), atol=1e-12)
+
+
+def _brute_force_in_logs(tracks, missed):
+    k, m = tracks.shape
+    full = np.concatenate([tracks, missed[:, None]], axis=1)
+    terms = [[[] for _ in range(m + 1)] for _ in range(k)]
+    for a in itertools.product(range(m + 1), repeat=k):
+        real = [x for x in a if x < m]
+        if len(real) == len(set(real)):
+            for t, x in enumerate(a):
+                terms[t][x].append(sum(full[u, y] for u, y in enumerate(a)))
+    logs = np.array([[logsumexp(c) if c else -np.inf for c in row] for row in terms])
+    return np.exp(logs - logsumexp(logs, axis=1, keepdims=True))
