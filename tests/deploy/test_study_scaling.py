@@ -3,8 +3,11 @@ episode (issue 10): Linux network namespaces as hosts in a star around the Zenoh
 test_multihost.py), the orchestrator and the learner on one host, and 1, 2, then 4 rig hosts
 each running ``ra2vipas rig`` with the compose file's command and environment. The same study
 runs on each; the test prints, per rig count, the study's wall time, episodes and control steps
-per second, and the orchestrator's CPU time per episode (from /proc), and writes them to
-``$RA2VIPAS_SCALING_OUT`` if set.
+per second, the orchestrator's CPU time per episode and the rigs' CPU time per control step
+(from /proc), and the rigs' per-core efficiency against in-process: the study's episodes run in
+this process on one core cost some CPU per control step (``in_process_cpu_ms_per_step``), and
+``rig_core_efficiency`` is that over the rigs' (issue 22: what a rig core does of what an
+in-process core does). It writes them to ``$RA2VIPAS_SCALING_OUT`` if set.
 
 It asserts what must hold whatever the machine: the study finishes on every rig count, every
 rig took part, and the results are identical value for value whatever the number of rigs.
@@ -120,8 +123,32 @@ def wait_rigs(api: str, count: int, timeout: float = 90.0) -> list[str]:
     raise AssertionError(f"expected {count} live rigs, the orchestrator sees {rigs}")
 
 
+def in_process_cpu_ms_per_step() -> float:
+    """CPU [ms] per control step of ``STUDY``'s episodes run in this process on one core (every
+    test of every algorithm of every point; the POD trained first, not counted: the rigs of a
+    study after the first train nothing either, the learner has the model)."""
+    from ra2vipas.services.orchestrator.simulate import run_test, train_pod
+    from ra2vipas.services.protocol.scenario import build_scenario
+
+    ((name, values),) = STUDY["vary"].items()
+    steps, cpu = 0, 0.0
+    for value in values:
+        scenario = build_scenario(STUDY["preset"], {**STUDY["overrides"], name: value})
+        pod = train_pod(scenario, STUDY["seed"], cache=False).model
+        for algorithm in STUDY["algorithms"]:  # the kernels loaded and the imports done first, as in a running rig
+            run_test(scenario, STUDY["seed"], 0, algorithm, pod)
+        t0 = time.process_time()
+        for test in range(STUDY["tests"]):
+            for algorithm in STUDY["algorithms"]:
+                run_test(scenario, STUDY["seed"], test, algorithm, pod)
+        cpu += time.process_time() - t0
+        steps += STUDY["tests"] * len(STUDY["algorithms"]) * scenario.steps
+    return 1000.0 * cpu / steps
+
+
 def test_study_throughput_with_1_2_and_4_rig_hosts(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("scaling")
+    in_process_ms = in_process_cpu_ms_per_step()
     remove_stale_namespaces()
     net = Star()
     procs = Services(tmp)
@@ -146,6 +173,7 @@ def test_study_throughput_with_1_2_and_4_rig_hosts(tmp_path_factory):
         orch = procs.start("orchestrator", argv, env, prefix=net.prefix("orch"))
         argv, env = service("learner", RA2VIPAS_MODEL_CACHE=str(tmp / "models"), RA2VIPAS_LOG_LEVEL="WARNING")
         procs.start("learner", argv, env, prefix=net.prefix("orch"))
+        rig_pids: list[int] = []
         api = f"http://{net.api_host}:{environment(compose['services']['orchestrator'])['RA2VIPAS_PORT']}"
         started_rigs = 0
         rows_by_count: dict[int, list[dict]] = {}
@@ -154,9 +182,10 @@ def test_study_throughput_with_1_2_and_4_rig_hosts(tmp_path_factory):
                 while started_rigs < count:
                     started_rigs += 1
                     argv, env = service("rig", RA2VIPAS_RIG=f"rig-{started_rigs}", RA2VIPAS_LOG_LEVEL="WARNING")
-                    procs.start(f"rig-{started_rigs}", argv, env, prefix=net.prefix(f"rig{started_rigs}"))
+                    rig_pids.append(procs.start(f"rig-{started_rigs}", argv, env, prefix=net.prefix(f"rig{started_rigs}")).proc.pid)
                 wait_rigs(api, count)
                 cpu_before = cpu_seconds(orchestrator_pid(orch))
+                rigs_before = sum(map(cpu_seconds, rig_pids))
                 t0 = time.monotonic()
                 r = http.post("/studies", json={**STUDY, "name": f"{count} rigs"})
                 assert r.status_code == 201, r.text
@@ -170,6 +199,7 @@ def test_study_throughput_with_1_2_and_4_rig_hosts(tmp_path_factory):
                 wall = time.monotonic() - t0
                 assert s["status"] == "done", f"{s['status']} {s['progress']} {s.get('error')}\n{procs.tails()}"
                 orch_cpu = cpu_seconds(orchestrator_pid(orch)) - cpu_before
+                rigs_cpu = sum(map(cpu_seconds, rig_pids)) - rigs_before
                 episodes = s["progress"]["done"]
                 steps = episodes * STUDY["overrides"]["steps"]
                 # the episodes' wall time, without the POD training before them: first to last episode recorded
@@ -188,6 +218,12 @@ def test_study_throughput_with_1_2_and_4_rig_hosts(tmp_path_factory):
                                "steps_per_s_after_training": round(steps / max(1e-9, last - started_at), 1),
                                "orchestrator_cpu_s": round(orch_cpu, 3),
                                "orchestrator_cpu_ms_per_episode": round(1000 * orch_cpu / episodes, 2),
+                               # the rigs' CPU per control step (with 1 rig it includes the training episode's
+                               # samples the rig's sensors make for the learner), and what a rig core does of an
+                               # in-process one
+                               "rig_cpu_ms_per_step": round(1000 * rigs_cpu / steps, 4),
+                               "in_process_cpu_ms_per_step": round(in_process_ms, 4),
+                               "rig_core_efficiency": round(in_process_ms / (1000 * rigs_cpu / steps), 3) if rigs_cpu > 0 else None,
                                "load_average": [round(v, 2) for v in os.getloadavg()]})
     finally:
         procs.stop_all()
