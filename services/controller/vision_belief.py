@@ -202,10 +202,15 @@ class CameraBelief(VisionBelief):
         """Per grid bearing, log P(no detection in the frames that looked there | POD ~
         Beta(alpha, beta)) = log B(alpha, n + beta) - log B(alpha, beta): over every frame (a
         standing Tx) and over the recent ones (a walking Tx)."""
-        base = gammaln(alpha + beta) - gammaln(beta)
         values, lengths = self._view_runs()
-        per_cell = _repeated_miss(values, lengths, alpha, beta, base)  # every frame's cells, then the recent ones'
+        # _repeated_miss(values, lengths, alpha, beta, gammaln(alpha + beta) - gammaln(beta)) with one gammaln call over
+        # every argument (elementwise: the same doubles), the sums, differences and the repeat compiled
+        r = values.size
+        args = np.empty(2 * r + 2)
+        _kernels.miss_arguments(values, alpha, beta, args)
         M = self.view_frames.size
+        per_cell = np.empty(2 * M)  # every frame's cells, then the recent ones'
+        _kernels.repeat_miss(gammaln(args, out=args), r, lengths, per_cell)
         return per_cell[:M], per_cell[M:]
 
     def _view_runs(self) -> tuple[np.ndarray, np.ndarray]:

@@ -425,3 +425,54 @@ def test_pod_lookup_finds_the_cell_as_searchsorted():
             w = (rssi - lookup.r[i]) / (lookup.r[i + 1] - lookup.r[i])
             want = tuple(float(a[i] + w * (a[i + 1] - a[i])) for a in (lookup.mean, lookup.std, lookup.slope))
             assert got == want
+
+
+def test_filter_reads_in_fewer_passes_as_the_numpy_expressions():
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        n = int(rng.integers(1, 800))
+        values = rng.normal(size=n) * 10.0 ** rng.uniform(-3.0, 3.0)
+        weights = rng.random(n) * 10.0 ** rng.uniform(-10.0, 0.0)  # the walking filter's update: prediction x exps
+        got = rng.random(n) * 10.0 ** rng.uniform(-290.0, 0.0)
+        mine = got.copy()
+        c_want = _kernels.times_sum(weights, got)
+        want = np.maximum(got / c_want, 1e-300)
+        assert _kernels.times_sum_floored(weights, mine, 1e-300) == c_want and _same(mine, want)
+        top = values.max()  # logsumexp and the normalised log as rf_filter computed them
+        lse = top + math.log(float(np.exp(values - top).sum()))
+        out = np.empty(n)
+        assert _kernels.log_normalise(values, np.exp(values - top), top, out) == lse and _same(out, values - lse)
+        rows = rng.normal(size=(2, n)) * 10.0 ** rng.uniform(-3.0, 3.0)
+        assert _kernels.row_totals(rows) == tuple(rows.sum(axis=1).tolist())
+        post = np.exp(rng.normal(size=n) * 10.0 ** rng.uniform(-1.0, 2.0))
+        for mass in (1e-3, 0.5, 1.0):
+            keep, p = np.empty(n, dtype=np.int64), np.empty(n)
+            k = _kernels.support(post, mass, keep, p)
+            want_keep = np.flatnonzero(post >= mass * post.max())
+            assert np.array_equal(keep[:k], want_keep) and _same(p[:k], post[want_keep] / post[want_keep].sum())
+        first, second = rng.random(n), rng.random(n)
+        second[: n // 3] = first[: n // 3] ** 2  # a spread of 0, and rounding just below it
+        sd = np.empty(n)
+        _kernels.spread(first, second, sd)
+        assert _same(sd, np.sqrt(np.maximum(second - first * first, 0.0)))
+
+
+def test_fusion_answer_posterior_in_one_pass_as_the_numpy_expressions():
+    rng = np.random.default_rng(12)
+    for _ in range(400):
+        l_missed = rng.normal(size=360) * 10.0 ** rng.uniform(-1.0, 2.5)
+        l_tracks = rng.normal(size=int(rng.integers(0, 40))) * 10.0 ** rng.uniform(-1.0, 2.5) + rng.normal() * 20.0
+        if l_tracks.size and rng.uniform() < 0.2:
+            l_tracks[int(rng.integers(0, l_tracks.size))] = l_tracks.max()  # a tie: the first one
+        half = int(rng.integers(1, 6))
+        top = max(float(l_missed.max()), float(l_tracks.max()) if l_tracks.size else -np.inf)  # Fusion.answer as it was
+        w_missed, w_tracks = np.exp(l_missed - top), np.exp(l_tracks - top)
+        total = float(w_missed.sum() + w_tracks.sum())
+        post_missed, post = w_missed / total, w_tracks / total
+        weights = np.empty(360 + l_tracks.size)
+        _kernels.shift_both(l_missed, l_tracks, weights)
+        missed_mass, i, post_max = _kernels.posterior_both(np.exp(weights, out=weights), 360, half)
+        assert _same(weights[:360], post_missed) and _same(weights[360:], post)
+        assert missed_mass == arc_mass(post_missed, int(np.argmax(post_missed)), half)
+        if post.size:
+            assert i == int(np.argmax(post)) and post_max == float(post.max())
