@@ -76,8 +76,17 @@ def pod_evidence(k, n, alpha, beta, alpha0, beta0, outlier):
     (paper eq. 21) and the POD model's own uncertainty are both in it and it stays bounded."""
     if n <= 0.0:
         return 0.0
+    return _pod_evidence_given(k, n, alpha, beta, alpha0, beta0, outlier, _lbeta(alpha, beta), _lbeta(alpha0, beta0))
+
+
+@njit(cache=True, inline="always")
+def _pod_evidence_given(k, n, alpha, beta, alpha0, beta0, outlier, lbeta, lbeta0):
+    """``pod_evidence`` given its two terms that depend on no track, lbeta = _lbeta(alpha, beta) and lbeta0 =
+    _lbeta(alpha0, beta0) (computed once for every track of a step: half its lgamma calls)."""
+    if n <= 0.0:
+        return 0.0
     k = min(max(k, 0.0), n)
-    log_bf = (_lbeta(k + alpha, n - k + beta) - _lbeta(alpha, beta)) - (_lbeta(k + alpha0, n - k + beta0) - _lbeta(alpha0, beta0))
+    log_bf = (_lbeta(k + alpha, n - k + beta) - lbeta) - (_lbeta(k + alpha0, n - k + beta0) - lbeta0)
     # robust: with probability ``outlier`` the POD model says nothing about this Tx (shadowing,
     # a body in front of it, a detector that differs from the one trained): log((1-e) BF + e)
     if outlier <= 0.0:
@@ -91,8 +100,9 @@ def pod_evidence(k, n, alpha, beta, alpha0, beta0, outlier):
 def add_pod_evidence(out, detections, frames, alpha, beta, alpha0, beta0, outlier):
     """out[i] += pod_evidence(detections[i], frames[i], ...) for every track (one call, not one
     per track)."""
+    lbeta, lbeta0 = _lbeta(alpha, beta), _lbeta(alpha0, beta0)  # the same for every track
     for i in range(out.size):
-        out[i] += pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
+        out[i] += _pod_evidence_given(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier, lbeta, lbeta0)
 
 
 @njit(cache=True)
@@ -151,6 +161,7 @@ def track_logpost(l_rf, track_rf, grid_step, rf_weight, means, sds, weights, det
     wide_at = 0.0
     comp = np.empty(2)
     spot = np.empty(2)
+    lbeta, lbeta0 = _lbeta(alpha, beta), _lbeta(alpha0, beta0)  # pod_evidence's terms that depend on no track
     for i in range(means.shape[0]):
         top = -1e300
         for a in range(2):
@@ -183,7 +194,7 @@ def track_logpost(l_rf, track_rf, grid_step, rf_weight, means, sds, weights, det
             top = comp[0]
         rf = top + math.log(math.exp(comp[0] - top) + math.exp(comp[1] - top))
         where[i] = spot[0] if comp[0] >= comp[1] else spot[1]
-        out[i] = rf + pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
+        out[i] = rf + _pod_evidence_given(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier, lbeta, lbeta0)
     return out
 
 
@@ -528,11 +539,19 @@ def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, first, cou
                 f = first[i, a]
                 o = offset[i, a]
                 num = 0.0
+                last_ll = math.nan  # a cell whose ll equals the last one computed here (outside the lobe most do) reuses its exp
+                last_e = math.nan
                 for j in range(c):
                     k = _cell(f + j, M)
                     e = row[k]
                     if e != e:
-                        e = math.exp(ll[k] - top)
+                        v = ll[k]
+                        if v == last_ll:
+                            e = last_e
+                        else:
+                            e = math.exp(v - top)
+                            last_ll = v
+                            last_e = e
                         row[k] = e
                     num += w[o + j] * e
                 s_ll = top + math.log(max(num / den[i, a], 1e-300))
@@ -984,3 +1003,40 @@ def repeat_miss(g, r, lengths, out):
         for _ in range(lengths[i]):
             out[k] = v
             k += 1
+
+
+@njit(cache=True)
+def count_views(window, frames, forget, view_frames, view_recent):
+    """A step's frames counted where the camera looked (``CameraBelief.update``): view_frames[window] +=
+    frames; view_recent *= forget; view_recent[window] += frames (``window`` a boolean mask)."""
+    for i in range(window.size):
+        if window[i]:
+            view_frames[i] += frames
+        view_recent[i] = view_recent[i] * forget
+        if window[i]:
+            view_recent[i] += frames
+
+
+@njit(cache=True)
+def less_twice(values, first, second):
+    """values = (values - first) - second, in place."""
+    for i in range(values.size):
+        values[i] = (values[i] - first) - second
+
+
+@njit(cache=True)
+def runs_of_both(first, second, values, lengths):
+    """The runs (``runs``) of ``first``, then those of ``second``: each run's value (its first element) into
+    ``values`` and its length into ``lengths`` (room for both sizes); returns the number of runs. What
+    ``vision_belief._runs_of`` of each, concatenated, gives."""
+    r = 0
+    for a in range(2):
+        x = first if a == 0 else second
+        for j in range(x.size):
+            if j == 0 or x[j] != x[j - 1]:
+                values[r] = x[j]
+                lengths[r] = 1
+                r += 1
+            else:
+                lengths[r - 1] += 1
+    return r

@@ -180,9 +180,8 @@ class CameraBelief(VisionBelief):
             self.ranges.update(pan_rad, frames, self.tracks, self._steps * self.rf_period_s)
         self._steps += 1
         window = self.circle.window(pan_rad, self.tracks.count_limit)
-        self.view_frames[window] += len(frames)
-        self.view_recent *= self.forget
-        self.view_recent[window] += len(frames)
+        # view_frames[window] += nu; view_recent *= forget; view_recent[window] += nu (one compiled pass)
+        _kernels.count_views(window, float(len(frames)), self.forget, self.view_frames, self.view_recent)
 
     def tx_pod(self, iso: IsoLevel) -> tuple[float, float]:
         """Beta(alpha, beta) of the Tx's POD: mean p_hat_D(z_iso), variance std(p_hat)^2 +
@@ -219,8 +218,11 @@ class CameraBelief(VisionBelief):
         elementwise, so one call over both gives each's doubles (``_per_run``)."""
         kept = getattr(self, "_runs_kept", None)
         if kept is None or kept[0] != self._steps:
-            (v1, n1), (v2, n2) = _runs_of(self.view_frames), _runs_of(self.view_recent)
-            kept = self._runs_kept = (self._steps, np.concatenate([v1, v2]), np.concatenate([n1, n2]))
+            # np.concatenate of the two _runs_of, in one compiled pass
+            size = self.view_frames.size + self.view_recent.size
+            values, lengths = np.empty(size), np.empty(size, dtype=np.int64)
+            r = _kernels.runs_of_both(self.view_frames, self.view_recent, values, lengths)
+            kept = self._runs_kept = (self._steps, values[:r], lengths[:r])
         return kept[1], kept[2]
 
     def miss_outlier(self) -> np.ndarray:
