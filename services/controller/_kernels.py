@@ -76,8 +76,17 @@ def pod_evidence(k, n, alpha, beta, alpha0, beta0, outlier):
     (paper eq. 21) and the POD model's own uncertainty are both in it and it stays bounded."""
     if n <= 0.0:
         return 0.0
+    return _pod_evidence_given(k, n, alpha, beta, alpha0, beta0, outlier, _lbeta(alpha, beta), _lbeta(alpha0, beta0))
+
+
+@njit(cache=True, inline="always")
+def _pod_evidence_given(k, n, alpha, beta, alpha0, beta0, outlier, lbeta, lbeta0):
+    """``pod_evidence`` given its two terms that depend on no track, lbeta = _lbeta(alpha, beta) and lbeta0 =
+    _lbeta(alpha0, beta0) (computed once for every track of a step: half its lgamma calls)."""
+    if n <= 0.0:
+        return 0.0
     k = min(max(k, 0.0), n)
-    log_bf = (_lbeta(k + alpha, n - k + beta) - _lbeta(alpha, beta)) - (_lbeta(k + alpha0, n - k + beta0) - _lbeta(alpha0, beta0))
+    log_bf = (_lbeta(k + alpha, n - k + beta) - lbeta) - (_lbeta(k + alpha0, n - k + beta0) - lbeta0)
     # robust: with probability ``outlier`` the POD model says nothing about this Tx (shadowing,
     # a body in front of it, a detector that differs from the one trained): log((1-e) BF + e)
     if outlier <= 0.0:
@@ -91,8 +100,9 @@ def pod_evidence(k, n, alpha, beta, alpha0, beta0, outlier):
 def add_pod_evidence(out, detections, frames, alpha, beta, alpha0, beta0, outlier):
     """out[i] += pod_evidence(detections[i], frames[i], ...) for every track (one call, not one
     per track)."""
+    lbeta, lbeta0 = _lbeta(alpha, beta), _lbeta(alpha0, beta0)  # the same for every track
     for i in range(out.size):
-        out[i] += pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
+        out[i] += _pod_evidence_given(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier, lbeta, lbeta0)
 
 
 @njit(cache=True)
@@ -151,6 +161,7 @@ def track_logpost(l_rf, track_rf, grid_step, rf_weight, means, sds, weights, det
     wide_at = 0.0
     comp = np.empty(2)
     spot = np.empty(2)
+    lbeta, lbeta0 = _lbeta(alpha, beta), _lbeta(alpha0, beta0)  # pod_evidence's terms that depend on no track
     for i in range(means.shape[0]):
         top = -1e300
         for a in range(2):
@@ -183,7 +194,7 @@ def track_logpost(l_rf, track_rf, grid_step, rf_weight, means, sds, weights, det
             top = comp[0]
         rf = top + math.log(math.exp(comp[0] - top) + math.exp(comp[1] - top))
         where[i] = spot[0] if comp[0] >= comp[1] else spot[1]
-        out[i] = rf + pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
+        out[i] = rf + _pod_evidence_given(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier, lbeta, lbeta0)
     return out
 
 
@@ -528,11 +539,19 @@ def track_sample_loglik(ll_stand, ll_walk, means, sds, weights, step, first, cou
                 f = first[i, a]
                 o = offset[i, a]
                 num = 0.0
+                last_ll = math.nan  # a cell whose ll equals the last one computed here (outside the lobe most do) reuses its exp
+                last_e = math.nan
                 for j in range(c):
                     k = _cell(f + j, M)
                     e = row[k]
                     if e != e:
-                        e = math.exp(ll[k] - top)
+                        v = ll[k]
+                        if v == last_ll:
+                            e = last_e
+                        else:
+                            e = math.exp(v - top)
+                            last_ll = v
+                            last_e = e
                         row[k] = e
                     num += w[o + j] * e
                 s_ll = top + math.log(max(num / den[i, a], 1e-300))
@@ -839,3 +858,185 @@ def row_entropies(p, log_p, out):
             v = p[r, c]
             terms[c] = -v * log_p[r, c] if v > 0 else 0.0
         out[r] = pairwise_sum(terms, 0, cols)
+
+
+@njit(cache=True)
+def times_sum_floored(weights, values, floor):
+    """values = weights * values, c = their numpy sum, then values = np.maximum(values / c, floor) in place
+    (NaN kept, as np.maximum does); returns c (``times_sum`` then ``floored_ratio``, in one call)."""
+    for i in range(values.size):
+        values[i] = weights[i] * values[i]
+    c = pairwise_sum(values, 0, values.size)
+    for i in range(values.size):
+        v = values[i] / c
+        values[i] = v if (v >= floor or v != v) else floor
+    return c
+
+
+@njit(cache=True)
+def log_normalise(values, exps, top, out):
+    """The logsumexp of ``values`` from ``exps`` = exp(values - top) (numpy's exps): lse = top +
+    log(exps' numpy sum), and out = values - lse; returns lse."""
+    lse = top + math.log(pairwise_sum(exps, 0, exps.size))
+    for i in range(values.size):
+        out[i] = values[i] - lse
+    return lse
+
+
+@njit(cache=True)
+def row_totals(rows):
+    """The numpy sums of the two rows of a C-contiguous (2, M) array (``rows.sum(axis=1)``)."""
+    return pairwise_sum(rows[0], 0, rows.shape[1]), pairwise_sum(rows[1], 0, rows.shape[1])
+
+
+@njit(cache=True)
+def support(post, mass, keep, out):
+    """The cells where ``post`` is at least ``mass`` times its largest (np.flatnonzero(post >= mass *
+    post.max())) into keep[:n], their values divided by their numpy sum into out[:n]; returns n."""
+    threshold = mass * _max(post)
+    n = 0
+    for i in range(post.size):
+        if post[i] >= threshold:
+            keep[n] = i
+            out[n] = post[i]
+            n += 1
+    total = pairwise_sum(out, 0, n)
+    for i in range(n):
+        out[i] = out[i] / total
+    return n
+
+
+@njit(cache=True)
+def spread(first, second, out):
+    """out = np.sqrt(np.maximum(second - first * first, 0.0)): a standard deviation from the first two
+    moments (NaN kept, as np.maximum does; the square root is exactly rounded everywhere)."""
+    for i in range(first.size):
+        v = second[i] - first[i] * first[i]
+        out[i] = math.sqrt(v if (v >= 0.0 or v != v) else 0.0)
+
+
+@njit(cache=True, inline="always")
+def _argmax(values, lo, n):
+    """np.argmax(values[lo:lo + n]) (the first largest; the first NaN if any), n >= 1."""
+    best = 0
+    top = values[lo]
+    if top != top:
+        return 0
+    for i in range(1, n):
+        v = values[lo + i]
+        if v != v:
+            return i
+        if v > top:
+            top = v
+            best = i
+    return best
+
+
+@njit(cache=True)
+def normalise_exps(weights, top):
+    """weights /= their numpy sum, in place; returns top + log(that sum) (``fusion.softmax_and_logsumexp``
+    from weights = exp(l - top))."""
+    total = pairwise_sum(weights, 0, weights.size)
+    for i in range(weights.size):
+        weights[i] = weights[i] / total
+    return top + math.log(total)
+
+
+@njit(cache=True)
+def shift_both(first, second, out):
+    """out = np.concatenate([first - top, second - top]), top = max(float(first.max()), float(second.max())
+    if second.size else -inf) (Python's max of the two: the second only when larger)."""
+    top = _max(first)
+    if second.size:
+        other = _max(second)
+        if other > top:
+            top = other
+    m = first.size
+    for i in range(m):
+        out[i] = first[i] - top
+    for i in range(second.size):
+        out[m + i] = second[i] - top
+
+
+@njit(cache=True)
+def posterior_both(weights, m, half):
+    """``Fusion.answer``'s posterior from weights = exp(l - top) of "missed" (weights[:m]) and the tracks
+    (weights[m:]): both divided in place by float(weights[:m].sum() + weights[m:].sum()) (each part summed as
+    numpy sums it); returns the mass of the missed part's arc of ``half`` cells either side of its argmax
+    (``arc_mass``: the gathered terms summed as numpy sums them), the tracks' argmax and their largest (0 and
+    NaN without a track)."""
+    n = weights.size - m
+    total = pairwise_sum(weights, 0, m) + pairwise_sum(weights, m, n)
+    for i in range(weights.size):
+        weights[i] = weights[i] / total
+    centre = _argmax(weights, 0, m)
+    arc = np.empty(2 * half + 1)
+    for d in range(-half, half + 1):
+        arc[d + half] = weights[(centre + d) % m]
+    missed_mass = pairwise_sum(arc, 0, arc.size)
+    if n == 0:
+        return missed_mass, 0, math.nan
+    return missed_mass, _argmax(weights, m, n), _max(weights[m:])
+
+
+@njit(cache=True)
+def miss_arguments(values, alpha, beta, out):
+    """The arguments of ``CameraBelief.miss_loglik``'s gammaln calls, end to end: values + beta, then
+    values + alpha + beta (left to right), then alpha + beta and beta."""
+    r = values.size
+    for i in range(r):
+        out[i] = values[i] + beta
+        out[r + i] = values[i] + alpha + beta
+    out[2 * r] = alpha + beta
+    out[2 * r + 1] = beta
+
+
+@njit(cache=True)
+def repeat_miss(g, r, lengths, out):
+    """From g = gammaln(``miss_arguments``): each run's (g[i] - g[r + i]) + (g[2 r] - g[2 r + 1]) repeated over
+    its length into ``out`` (``vision_belief._repeated_miss``: np.repeat(gammaln(v + beta) - gammaln(v + alpha
+    + beta) + base, lengths), base = gammaln(alpha + beta) - gammaln(beta))."""
+    base = g[2 * r] - g[2 * r + 1]
+    k = 0
+    for i in range(r):
+        v = (g[i] - g[r + i]) + base
+        for _ in range(lengths[i]):
+            out[k] = v
+            k += 1
+
+
+@njit(cache=True)
+def count_views(window, frames, forget, view_frames, view_recent):
+    """A step's frames counted where the camera looked (``CameraBelief.update``): view_frames[window] +=
+    frames; view_recent *= forget; view_recent[window] += frames (``window`` a boolean mask)."""
+    for i in range(window.size):
+        if window[i]:
+            view_frames[i] += frames
+        view_recent[i] = view_recent[i] * forget
+        if window[i]:
+            view_recent[i] += frames
+
+
+@njit(cache=True)
+def less_twice(values, first, second):
+    """values = (values - first) - second, in place."""
+    for i in range(values.size):
+        values[i] = (values[i] - first) - second
+
+
+@njit(cache=True)
+def runs_of_both(first, second, values, lengths):
+    """The runs (``runs``) of ``first``, then those of ``second``: each run's value (its first element) into
+    ``values`` and its length into ``lengths`` (room for both sizes); returns the number of runs. What
+    ``vision_belief._runs_of`` of each, concatenated, gives."""
+    r = 0
+    for a in range(2):
+        x = first if a == 0 else second
+        for j in range(x.size):
+            if j == 0 or x[j] != x[j - 1]:
+                values[r] = x[j]
+                lengths[r] = 1
+                r += 1
+            else:
+                lengths[r - 1] += 1
+    return r

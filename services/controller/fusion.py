@@ -26,7 +26,7 @@ from ra2vipas.services.controller.vision_belief import VisionBelief
 
 def refined_argmax(circle: CircleGrid, values: np.ndarray) -> float:
     """Grid argmax refined by a parabola through its two neighbours."""
-    j = int(np.argmax(values))
+    j = int(values.argmax())  # np.argmax without its Python wrapper
     M = values.size
     a, b, c = values[(j - 1) % M], values[j], values[(j + 1) % M]
     den = a - 2.0 * b + c
@@ -54,10 +54,10 @@ def softmax(log_weights: np.ndarray) -> np.ndarray:
 def softmax_and_logsumexp(log_weights: np.ndarray) -> tuple[np.ndarray, float]:
     """(softmax(l), rf_filter.logsumexp(l)) of a non-empty array from one exp: the same doubles as
     the two apart (both subtract the same max, exponentiate and sum the same array)."""
-    top = log_weights.max()
-    w = np.exp(log_weights - top)
-    total = w.sum()
-    return w / total, float(top) + math.log(float(total))
+    w = np.empty(log_weights.size)
+    top = _kernels.less_max(log_weights, w)  # the subtraction, the sum, the division and the log compiled; the exps numpy's
+    lse = _kernels.normalise_exps(np.exp(w, out=w), top)
+    return w, lse
 
 
 class Fusion:
@@ -140,15 +140,14 @@ class Fusion:
             post_grid = softmax((1.0 if rf.exact else self.rf_weight) * l_rf)
             estimate = refined_argmax(self.circle, l_rf)
             return estimate, arc_mass(post_grid, self.circle.nearest(estimate), half), l_tracks
-        top = max(float(l_missed.max()), float(l_tracks.max()) if l_tracks.size else -np.inf)
-        w_missed = np.exp(l_missed - top)
-        w_tracks = np.exp(l_tracks - top)
-        total = float(w_missed.sum() + w_tracks.sum())
-        post_missed, post = w_missed / total, w_tracks / total
-        j = int(np.argmax(post_missed))
-        missed_mass = arc_mass(post_missed, j, half)
-        if post.size and (float(post.max()) >= missed_mass or not rf.listens):  # without Rx(dir), "missed" names no bearing
-            i = int(np.argmax(post))
+        # one array of both hypotheses' weights exp(l - top), top the largest of both (the exps numpy's, in one call), their
+        # posterior (each part summed as numpy sums it), the missed part's argmax and arc mass and the tracks' best, compiled
+        M = l_missed.size
+        weights = np.empty(M + l_tracks.size)
+        _kernels.shift_both(l_missed, l_tracks, weights)
+        missed_mass, i, post_max = _kernels.posterior_both(np.exp(weights, out=weights), M, half)
+        post_missed, post = weights[:M], weights[M:]
+        if post.size and (post_max >= missed_mass or not rf.listens):  # without Rx(dir), "missed" names no bearing
             estimate = float(self.where[i])
             if rf.listens and self.walker_answer_from_rf and rf.tx_walks > 0.5:
                 # a walker: the tracks are where the camera last saw people, l_RF where the Tx is now

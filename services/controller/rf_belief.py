@@ -463,7 +463,7 @@ class RFFilterBelief(RFBelief):
     def track_loglik(self, tracks) -> np.ndarray:
         """Each track's trajectory evidence, on the footing of ``log_likelihood`` (the normalised
         posterior of the Tx's bearing)."""
-        return self.rff.track_evidence(tracks.ids.tolist()) - self.rff._joint()[1]
+        return self.rff.track_evidence(tracks.ids.tolist(), less=self.rff._joint()[1])
 
     def gain_at(self, pan_rad: float) -> float:
         """The antenna gain expected at s under the filter's posterior of gamma."""

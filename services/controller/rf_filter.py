@@ -69,8 +69,14 @@ def convolve_periodic(x: np.ndarray, kernel_fft: np.ndarray) -> np.ndarray:
     spectrum = np.empty(n // 2 + 1, dtype=complex)
     (_pocketfft.rfft_n_even if n % 2 == 0 else _pocketfft.rfft_n_odd)(x, 1, axes=_AXES, out=spectrum)
     out = np.empty(n)
-    _pocketfft.irfft(spectrum * kernel_fft, np.reciprocal(n, dtype=np.float64), axes=_AXES, out=out)
+    scale = _INVERSE_SCALE.get(n)
+    if scale is None:  # np.reciprocal(n, dtype=np.float64), kept per n (the call costs ~2 us, the 360-cell FFTs ~4 us each)
+        scale = _INVERSE_SCALE[n] = np.reciprocal(n, dtype=np.float64)
+    _pocketfft.irfft(spectrum * kernel_fft, scale, axes=_AXES, out=out)
     return out
+
+
+_INVERSE_SCALE: dict[int, np.float64] = {}
 
 
 def _gain_row(curvature: float, circle: CircleGrid, pan_rad: float) -> np.ndarray:
@@ -115,7 +121,7 @@ def _columns(table: np.ndarray, keep: np.ndarray) -> np.ndarray:
     Prescott, Nehalem, Sandybridge and Haswell kernels), without copying the block."""
     if keep.size and keep[-1] - keep[0] + 1 == keep.size:
         return table[:, keep[0]:keep[-1] + 1]
-    return np.take(table, keep, axis=1)
+    return table.take(keep, axis=1)  # np.take without its Python wrapper
 
 
 _WINDOWS: list = [None]  # the last tracks' windows: (means, sds, weights as given, step, M, what smear_windows returned)
@@ -252,16 +258,16 @@ class RFBearingFilter:
         # the walking filter: predict (diffuse), update; its normaliser is the baseline. The arithmetic of
         # prior = exp(walk - max walk), predicted = max(irfft(rfft(prior) kernel), 0) / its sum,
         # joint = predicted exp(ll_walk - max ll_walk) in compiled passes, the exps, logs and FFTs numpy's
+        # (the exps and the log in place: elementwise, the same doubles as into new arrays)
         shifted = np.empty(self._walk.size)
         _kernels.less_max(self._walk, shifted)
         kernel = self._kernel_fft if steps == 1 else self._kernel_fft**steps  # k steps: k times the variance
-        predicted = convolve_periodic(np.exp(shifted), kernel)
+        predicted = convolve_periodic(np.exp(shifted, out=shifted), kernel)
         top = _kernels.clip_normalise(predicted, ll_walk, shifted)
-        joint = np.exp(shifted)
-        c = _kernels.times_sum(predicted, joint)
+        joint = np.exp(shifted, out=shifted)
+        c = _kernels.times_sum_floored(predicted, joint, 1e-300)  # joint = np.maximum(predicted joint / c, 1e-300), c its sum
         log_c = top + math.log(max(c, 1e-300))
-        _kernels.floored_ratio(joint, c, 1e-300, joint)  # np.maximum(joint / c, 1e-300), in place
-        self._walk = np.log(joint)
+        self._walk = np.log(joint, out=joint)
         # ll_stand - log_c, ll_walk - log_c, and the first added to _static (one compiled pass)
         self.ll_stand, self.ll_walk = np.empty(ll_stand.size), np.empty(ll_walk.size)
         _kernels.rebase(ll_stand, ll_walk, float(log_c), self._static, self.ll_stand, self.ll_walk)
@@ -310,7 +316,8 @@ class RFBearingFilter:
             var, q = np.empty(2 * M), np.empty(2 * M)  # the standing level's cells, then the walking one's
             _kernels.t_innovations(gain, gain0, float(z), float(z0), float(levels[0]), float(levels[1]), float(rho),
                                    float(self.noise_var), float(level_vars[0]), float(level_vars[1]), float(nu), differenced, var, q)
-            _kernels.t_combine(np.log1p(q), np.log(var), -0.5 * (nu + 1.0), _t_const(nu), q)
+            # the log1p and the log in place (elementwise: the same doubles), combined into q
+            _kernels.t_combine(np.log1p(q, out=q), np.log(var, out=var), -0.5 * (nu + 1.0), _t_const(nu), q)
             return q[:M], q[M:]
         shared = self._slope_term(gain)  # the same for both levels
         return tuple(self._sample_loglik(z, gain, level, level_var, shared) for level, level_var in zip(levels, level_vars))
@@ -395,10 +402,14 @@ class RFBearingFilter:
         read = self._reading()
         joint = read.get("joint")
         if joint is None:
-            joint = read["joint"] = np.logaddexp(*self._joints())
+            joints = self._joints()
+            joint = read["joint"] = np.logaddexp(joints[0], joints[1])
             shifted = np.empty(joint.size)
-            top = _kernels.less_max(joint, shifted)  # logsumexp(joint), its subtraction compiled
-            read["joint_lse"] = top + math.log(float(np.exp(shifted).sum()))
+            top = _kernels.less_max(joint, shifted)  # logsumexp(joint): the exps numpy's, the sum and log compiled
+            posterior = np.empty(joint.size)  # log_posterior's joint - logsumexp(joint), in the same pass
+            read["joint_lse"] = _kernels.log_normalise(joint, np.exp(shifted, out=shifted), top, posterior)
+            posterior.flags.writeable = False
+            read["posterior"] = posterior
         return joint, read["joint_lse"]
 
     def _joints(self) -> np.ndarray:
@@ -422,9 +433,8 @@ class RFBearingFilter:
         read = self._reading()
         posterior = read.get("posterior")
         if posterior is None:
-            joint, lse = self._joint()
-            posterior = read["posterior"] = joint - lse
-            posterior.flags.writeable = False
+            self._joint()  # joint - logsumexp(joint), made with the logsumexp
+            posterior = read["posterior"]
         return posterior
 
     def posterior(self) -> np.ndarray:
@@ -441,10 +451,11 @@ class RFBearingFilter:
         ``mass`` of its largest: the cells worth a column in a (pans x cells) product."""
         read = self._reading()
         support = read.get(("support", mass))
-        if support is None:
+        if support is None:  # np.flatnonzero(post >= mass * post.max()) and post[keep] / post[keep].sum(), compiled
             post = self.posterior()
-            keep = np.flatnonzero(post >= mass * post.max())
-            support = read[("support", mass)] = (keep, post[keep] / post[keep].sum())
+            keep, p = np.empty(post.size, dtype=np.int64), np.empty(post.size)
+            n = _kernels.support(post, mass, keep, p)
+            support = read[("support", mass)] = (keep[:n], p[:n])
         return support
 
     @property
@@ -453,9 +464,10 @@ class RFBearingFilter:
         read = self._reading()
         p = read.get("p_walk")
         if p is None:
-            self._joints()  # logsumexp of each row: its max plus the log of its shifted row's exps summed
-            totals = np.exp(read["joints_shifted"]).sum(axis=1)
-            s, w = (top + math.log(float(total)) for top, total in zip(read["tops"], totals))
+            self._joints()  # logsumexp of each row: its max plus the log of its shifted row's exps summed (as numpy sums a row)
+            top_s, top_w = read["tops"]
+            total_s, total_w = _kernels.row_totals(np.exp(read["joints_shifted"]))
+            s, w = top_s + math.log(total_s), top_w + math.log(total_w)
             p = read["p_walk"] = 1.0 / (1.0 + math.exp(min(max(s - w, -50.0), 50.0)))
         return p
 
@@ -471,7 +483,7 @@ class RFBearingFilter:
         mean = self.response.mean(level, _columns(self.response.gain_table(self.circle, stride), keep))  # (S, K)
         first = mean @ p
         var = (mean * mean) @ p - first * first
-        return float(pans[int(np.argmax(var))])
+        return float(pans[int(var.argmax())])
 
     def _level_now(self, walking: bool) -> float:
         """The level L Rx(iso) reads now: the walking model's recent one, or the standing mean."""
@@ -485,12 +497,19 @@ class RFBearingFilter:
         # gain(angles[:, None] - angles[keep][None, :]) @ p, (M, K) @ (K,), and the same with the gains squared
         first = _columns(self.response.gain_table(self.circle), keep) @ p
         second = _columns(self.response.gain_table(self.circle, squared=True), keep) @ p
-        return first, np.sqrt(np.maximum(second - first * first, 0.0))
+        sd = np.empty(first.size)
+        _kernels.spread(first, second, sd)  # np.sqrt(np.maximum(second - first * first, 0.0)), compiled
+        return first, sd
 
-    def track_evidence(self, ids) -> np.ndarray:
+    def track_evidence(self, ids, less: float | None = None) -> np.ndarray:
         """log P(the Tx is track id, its trajectory) + the same const as ``log_joint_*``: the
-        track's trajectory evidence per grid cell (less log M, like an untracked bearing)."""
-        return np.fromiter(map(self._evidence.__getitem__, ids), dtype=float, count=len(ids)) - self._log_m
+        track's trajectory evidence per grid cell (less log M, like an untracked bearing); ``less``:
+        that minus ``less`` (one compiled pass, the same doubles as subtracting it after)."""
+        values = np.fromiter(map(self._evidence.__getitem__, ids), dtype=float, count=len(ids))
+        if less is None:
+            return values - self._log_m
+        _kernels.less_twice(values, self._log_m, float(less))
+        return values
 
 
 class PacketBearingFilter(RFBearingFilter):

@@ -120,7 +120,7 @@ class BearingTracker:
             value = self._kept[name] = read()
             for array in value if isinstance(value, tuple) else (value,):
                 if isinstance(array, np.ndarray):
-                    array.flags.writeable = False
+                    array.setflags(write=False)  # (flags.writeable = False, without making a flags object)
         return value
 
     def _kept_value(self, name: str):
@@ -197,8 +197,9 @@ class BearingTracker:
         self._pans[self._n_pans] = pan
         self._frames_per_pan[self._n_pans] = nu
         self._n_pans += 1
-        counts = np.fromiter((len(f.box_bearings_rad) for f in frames), dtype=np.int64, count=nu)
-        total = int(counts.sum())
+        lengths = [len(f.box_bearings_rad) for f in frames]
+        counts = np.fromiter(lengths, dtype=np.int64, count=nu)
+        total = sum(lengths)  # int(counts.sum()), without numpy's reduction
         boxes = np.fromiter((b for f in frames for b in f.box_bearings_rad), dtype=float, count=total)
         self._n = _tracker.tracker_step(
             float(pan), boxes, counts, self._n, self._prm, self._tab, self._together, self._pans[: self._n_pans],
@@ -207,7 +208,7 @@ class BearingTracker:
         if view_grid is None:
             cells = np.abs((self._cells - pan + np.pi) % (2.0 * np.pi) - np.pi) <= self.count_limit
             self._own_views[cells] += nu
-        self._view = np.flatnonzero(self._confirmed[: self._n])
+        self._view = self._confirmed[: self._n].nonzero()[0]  # np.flatnonzero of the 1-D mask, without its wrappers
         # the share of walkers among well-observed tracks (Laplace's rule): a new track's prior
         self._prm[_tracker.F_WALK] = min(max(self.walking_share(prior=0.5, strength=2.0), 0.02), 0.98)
 

@@ -180,9 +180,8 @@ class CameraBelief(VisionBelief):
             self.ranges.update(pan_rad, frames, self.tracks, self._steps * self.rf_period_s)
         self._steps += 1
         window = self.circle.window(pan_rad, self.tracks.count_limit)
-        self.view_frames[window] += len(frames)
-        self.view_recent *= self.forget
-        self.view_recent[window] += len(frames)
+        # view_frames[window] += nu; view_recent *= forget; view_recent[window] += nu (one compiled pass)
+        _kernels.count_views(window, float(len(frames)), self.forget, self.view_frames, self.view_recent)
 
     def tx_pod(self, iso: IsoLevel) -> tuple[float, float]:
         """Beta(alpha, beta) of the Tx's POD: mean p_hat_D(z_iso), variance std(p_hat)^2 +
@@ -202,10 +201,15 @@ class CameraBelief(VisionBelief):
         """Per grid bearing, log P(no detection in the frames that looked there | POD ~
         Beta(alpha, beta)) = log B(alpha, n + beta) - log B(alpha, beta): over every frame (a
         standing Tx) and over the recent ones (a walking Tx)."""
-        base = gammaln(alpha + beta) - gammaln(beta)
         values, lengths = self._view_runs()
-        per_cell = _repeated_miss(values, lengths, alpha, beta, base)  # every frame's cells, then the recent ones'
+        # _repeated_miss(values, lengths, alpha, beta, gammaln(alpha + beta) - gammaln(beta)) with one gammaln call over
+        # every argument (elementwise: the same doubles), the sums, differences and the repeat compiled
+        r = values.size
+        args = np.empty(2 * r + 2)
+        _kernels.miss_arguments(values, alpha, beta, args)
         M = self.view_frames.size
+        per_cell = np.empty(2 * M)  # every frame's cells, then the recent ones'
+        _kernels.repeat_miss(gammaln(args, out=args), r, lengths, per_cell)
         return per_cell[:M], per_cell[M:]
 
     def _view_runs(self) -> tuple[np.ndarray, np.ndarray]:
@@ -214,8 +218,11 @@ class CameraBelief(VisionBelief):
         elementwise, so one call over both gives each's doubles (``_per_run``)."""
         kept = getattr(self, "_runs_kept", None)
         if kept is None or kept[0] != self._steps:
-            (v1, n1), (v2, n2) = _runs_of(self.view_frames), _runs_of(self.view_recent)
-            kept = self._runs_kept = (self._steps, np.concatenate([v1, v2]), np.concatenate([n1, n2]))
+            # np.concatenate of the two _runs_of, in one compiled pass
+            size = self.view_frames.size + self.view_recent.size
+            values, lengths = np.empty(size), np.empty(size, dtype=np.int64)
+            r = _kernels.runs_of_both(self.view_frames, self.view_recent, values, lengths)
+            kept = self._runs_kept = (self._steps, values[:r], lengths[:r])
         return kept[1], kept[2]
 
     def miss_outlier(self) -> np.ndarray:

@@ -17,7 +17,7 @@ from ra2vipas.services.controller.grid import CircleGrid
 from ra2vipas.services.controller.joint import SummedGPUCB, gpucb_values
 from ra2vipas.services.controller.rf_filter import RxDirModel, antenna_gain, logsumexp
 from ra2vipas.services.controller.tracks import BearingTracker
-from ra2vipas.services.controller.vision_belief import CameraBelief, PODLookup, _per_run
+from ra2vipas.services.controller.vision_belief import CameraBelief, PODLookup, _per_run, _runs_of
 from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.pod import PODModel
 
@@ -224,10 +224,12 @@ def test_shared_smear_windows_give_each_tags_sample_loglik():
         for array in (means, sds, weights):  # the tracker's components: read-only, kept for the step
             array.flags.writeable = False
         kept = None
-        for tag in range(3):  # the K tags of a step: the windows computed once (kept), each tag's own likelihoods
+        for tag in range(4):  # the K tags of a step: the windows computed once (kept), each tag's own likelihoods
             ll_stand, ll_walk = rng.normal(size=360) * 5.0, rng.normal(size=360) * 5.0
             if tag:  # smooth, as a sample's likelihood over the grid is: overlapping windows share their top
                 ll_stand, ll_walk = (-3.0 * (1.0 - np.cos(circle.angles - rng.uniform(-3.0, 3.0))) for _ in range(2))
+            if tag == 3:  # flat where the antenna's gain is 0 (equal doubles in a row), as the paper response's is
+                ll_stand, ll_walk = np.maximum(ll_stand, -2.0), np.maximum(ll_walk, -1.5)
             m, s, w, windows = rf_filter.smear_windows(means, sds, weights, circle)
             assert tag == 0 or windows is kept
             kept = windows
@@ -425,3 +427,98 @@ def test_pod_lookup_finds_the_cell_as_searchsorted():
             w = (rssi - lookup.r[i]) / (lookup.r[i + 1] - lookup.r[i])
             want = tuple(float(a[i] + w * (a[i + 1] - a[i])) for a in (lookup.mean, lookup.std, lookup.slope))
             assert got == want
+
+
+def test_filter_reads_in_fewer_passes_as_the_numpy_expressions():
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        n = int(rng.integers(1, 800))
+        values = rng.normal(size=n) * 10.0 ** rng.uniform(-3.0, 3.0)
+        weights = rng.random(n) * 10.0 ** rng.uniform(-10.0, 0.0)  # the walking filter's update: prediction x exps
+        got = rng.random(n) * 10.0 ** rng.uniform(-290.0, 0.0)
+        mine = got.copy()
+        c_want = _kernels.times_sum(weights, got)
+        want = np.maximum(got / c_want, 1e-300)
+        assert _kernels.times_sum_floored(weights, mine, 1e-300) == c_want and _same(mine, want)
+        top = values.max()  # logsumexp and the normalised log as rf_filter computed them
+        lse = top + math.log(float(np.exp(values - top).sum()))
+        out = np.empty(n)
+        assert _kernels.log_normalise(values, np.exp(values - top), top, out) == lse and _same(out, values - lse)
+        rows = rng.normal(size=(2, n)) * 10.0 ** rng.uniform(-3.0, 3.0)
+        assert _kernels.row_totals(rows) == tuple(rows.sum(axis=1).tolist())
+        post = np.exp(rng.normal(size=n) * 10.0 ** rng.uniform(-1.0, 2.0))
+        for mass in (1e-3, 0.5, 1.0):
+            keep, p = np.empty(n, dtype=np.int64), np.empty(n)
+            k = _kernels.support(post, mass, keep, p)
+            want_keep = np.flatnonzero(post >= mass * post.max())
+            assert np.array_equal(keep[:k], want_keep) and _same(p[:k], post[want_keep] / post[want_keep].sum())
+        got = values.copy()
+        _kernels.less_twice(got, 5.886104031450156, float(top))
+        assert _same(got, (values - 5.886104031450156) - top)
+        first, second = rng.random(n), rng.random(n)
+        second[: n // 3] = first[: n // 3] ** 2  # a spread of 0, and rounding just below it
+        sd = np.empty(n)
+        _kernels.spread(first, second, sd)
+        assert _same(sd, np.sqrt(np.maximum(second - first * first, 0.0)))
+
+
+def test_fusion_answer_posterior_in_one_pass_as_the_numpy_expressions():
+    rng = np.random.default_rng(12)
+    for _ in range(400):
+        l_missed = rng.normal(size=360) * 10.0 ** rng.uniform(-1.0, 2.5)
+        l_tracks = rng.normal(size=int(rng.integers(0, 40))) * 10.0 ** rng.uniform(-1.0, 2.5) + rng.normal() * 20.0
+        if l_tracks.size and rng.uniform() < 0.2:
+            l_tracks[int(rng.integers(0, l_tracks.size))] = l_tracks.max()  # a tie: the first one
+        half = int(rng.integers(1, 6))
+        top = max(float(l_missed.max()), float(l_tracks.max()) if l_tracks.size else -np.inf)  # Fusion.answer as it was
+        w_missed, w_tracks = np.exp(l_missed - top), np.exp(l_tracks - top)
+        total = float(w_missed.sum() + w_tracks.sum())
+        post_missed, post = w_missed / total, w_tracks / total
+        weights = np.empty(360 + l_tracks.size)
+        _kernels.shift_both(l_missed, l_tracks, weights)
+        missed_mass, i, post_max = _kernels.posterior_both(np.exp(weights, out=weights), 360, half)
+        assert _same(weights[:360], post_missed) and _same(weights[360:], post)
+        assert missed_mass == arc_mass(post_missed, int(np.argmax(post_missed)), half)
+        if post.size:
+            assert i == int(np.argmax(post)) and post_max == float(post.max())
+
+
+def test_view_counts_as_the_numpy_indexing():
+    rng = np.random.default_rng(13)
+    circle = CircleGrid(360)
+    frames, recent = np.zeros(360), np.zeros(360)
+    want_frames, want_recent = frames.copy(), recent.copy()
+    for _ in range(300):
+        window = circle.window(float(rng.uniform(-4.0, 4.0)), float(rng.uniform(0.05, 1.0)))
+        nu = int(rng.integers(0, 12))
+        _kernels.count_views(window, float(nu), 0.8824969025845955, frames, recent)
+        want_frames[window] += nu  # CameraBelief.update as it was
+        want_recent *= 0.8824969025845955
+        want_recent[window] += nu
+        assert _same(frames, want_frames) and _same(recent, want_recent)
+        values, lengths = np.empty(720), np.empty(720, dtype=np.int64)
+        r = _kernels.runs_of_both(frames, recent, values, lengths)
+        (v1, n1), (v2, n2) = _runs_of(frames), _runs_of(recent)
+        assert _same(values[:r], np.concatenate([v1, v2])) and np.array_equal(lengths[:r], np.concatenate([n1, n2]))
+
+
+def test_pod_evidence_with_its_track_free_terms_once_as_per_track():
+    rng = np.random.default_rng(14)
+
+    @njit
+    def per_track(detections, frames, alpha, beta, alpha0, beta0, outlier, out):  # add_pod_evidence as it was
+        for i in range(out.size):
+            out[i] += _kernels.pod_evidence(detections[i], frames[i], alpha, beta, alpha0, beta0, outlier)
+
+    for _ in range(300):
+        n = int(rng.integers(0, 40))
+        frames = np.floor(rng.uniform(-2.0, 60.0, n))
+        detections = np.floor(rng.uniform(-1.0, 1.1, n) * np.maximum(frames, 0.0))
+        alpha, beta = (float(v) for v in rng.uniform(0.05, 30.0, 2))
+        alpha0, beta0 = (1.0, 1.0) if rng.uniform() < 0.5 else tuple(float(v) for v in rng.uniform(0.3, 5.0, 2))
+        outlier = float(rng.choice([0.0, 0.2, 0.5]))
+        start = rng.normal(size=n)
+        got, want = start.copy(), start.copy()
+        _kernels.add_pod_evidence(got, detections, frames, alpha, beta, alpha0, beta0, outlier)
+        per_track(detections, frames, alpha, beta, alpha0, beta0, outlier, want)
+        assert _same(got, want)
