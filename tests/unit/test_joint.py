@@ -49,6 +49,38 @@ def test_a_tags_view_is_its_own_evidence_as_tag_0_and_nothing_when_it_was_not_he
     assert [a.rssi_dbm for a in tag_view(adverts, 0).advertisements()] == [-61.0]
 
 
+
+def _state(model) -> tuple:
+    """Everything a pydantic model object holds: its fields, which were set, its extra and private."""
+    return (type(model), model.__dict__, model.__pydantic_fields_set__, model.__pydantic_extra__, model.__pydantic_private__)
+
+
+def test_a_tags_view_is_the_object_model_construct_and_model_copy_build():
+    frames = (CameraFrame(box_bearings_rad=(0.1,)),)
+    paired = StepMeasurement(step=3, pan_rad=0.2, rf=RFSample(iso_rssi_dbm=-40.0, dir_rssi_dbm=-41.0), frames=frames,
+                             rf_tags=(RFSample(iso_rssi_dbm=-50.0, dir_rssi_dbm=-52.0, tag=2),
+                                      RFSample(iso_rssi_dbm=-51.0, dir_rssi_dbm=-53.0, tag=1)))
+    adverts = StepMeasurement(step=5, pan_rad=0.1, frames=frames, adverts=(
+        Advertisement(receiver="iso", rssi_dbm=-60.0, tag=1, channel=37, offset_s=0.01),
+        Advertisement(receiver="dir", rssi_dbm=-61.0, tag=0), Advertisement(receiver="dir", rssi_dbm=-62.0, tag=1)))
+    for m in (paired, adverts):
+        for tag in range(3):
+            for step in (None, 2):
+                t = int(m.step) if step is None else step
+                if m.rf is not None:  # what tag_view built with pydantic's own constructors
+                    pair = next((p for p in m.pairs() if p.tag == tag), None)
+                    rf = None if pair is None else (pair if pair.tag == 0 else pair.model_copy(update={"tag": 0}))
+                    want = StepMeasurement.model_construct(step=t, pan_rad=m.pan_rad, rf=rf, frames=m.frames, adverts=(), rf_tags=())
+                else:
+                    ads = tuple(a if a.tag == 0 else a.model_copy(update={"tag": 0}) for a in m.adverts if a.tag == tag)
+                    want = StepMeasurement.model_construct(step=t, pan_rad=m.pan_rad, rf=None, frames=m.frames, adverts=ads, rf_tags=())
+                got = tag_view(m, tag, step)
+                assert got == want and _state(got)[:1] + _state(got)[2:] == _state(want)[:1] + _state(want)[2:]
+                assert {k: v for k, v in got.__dict__.items() if k not in ("rf", "adverts")} == \
+                       {k: v for k, v in want.__dict__.items() if k not in ("rf", "adverts")}
+                assert (got.rf is None) == (want.rf is None) and (got.rf is None or _state(got.rf) == _state(want.rf))
+                assert [_state(a) for a in got.adverts] == [_state(a) for a in want.adverts]
+
 def test_a_joint_search_for_one_tag_is_the_single_tag_search_step_for_step(two_tags):
     scenario = build_scenario("paper", SMALL)
     model = train_pod(scenario, 1).model
