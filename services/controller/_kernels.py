@@ -861,6 +861,54 @@ def row_entropies(p, log_p, out):
 
 
 @njit(cache=True)
+def which_person_entropies(p, log_p, where, log_where, out):
+    """out = entropy(p) + p[:, -1] * entropy(where) (``multitag.which_person_entropy``; each row's
+    entropy summed as ``row_entropies`` sums it, then the product and the sum per row, as numpy's)."""
+    row_entropies(p, log_p, out)
+    h_where = np.empty(where.shape[0])
+    row_entropies(where, log_where, h_where)
+    last = p.shape[1] - 1
+    for r in range(out.size):
+        out[r] = out[r] + p[r, last] * h_where[r]
+
+
+@njit(cache=True)
+def pan_shares(h, open_, neediest, out):
+    """``multitag.pan_weights`` from the tags' entropies h and open flags: all 0 when no tag is
+    open; ``neediest``: 1 at np.argmax(np.where(open_, h, -inf)) (the first largest, the first NaN
+    if any, as numpy's argmax); else w = np.where(open_, h, 0.0), replaced by the open flags as
+    doubles when its numpy sum is not above 0, divided by its numpy sum."""
+    k = h.size
+    for i in range(k):
+        out[i] = 0.0
+    any_open = False
+    for i in range(k):
+        any_open = any_open or open_[i]
+    if not any_open:
+        return
+    if neediest:
+        best = 0
+        top = h[0] if open_[0] else -np.inf
+        if top == top:
+            for i in range(1, k):
+                v = h[i] if open_[i] else -np.inf
+                if not v <= top:
+                    top = v
+                    best = i
+                    if v != v:
+                        break
+        out[best] = 1.0
+        return
+    for i in range(k):
+        out[i] = h[i] if open_[i] else 0.0
+    if pairwise_sum(out, 0, k) <= 0.0:
+        for i in range(k):
+            out[i] = 1.0 if open_[i] else 0.0
+    total = pairwise_sum(out, 0, k)
+    for i in range(k):
+        out[i] = out[i] / total
+
+@njit(cache=True)
 def times_sum_floored(weights, values, floor):
     """values = weights * values, c = their numpy sum, then values = np.maximum(values / c, floor) in place
     (NaN kept, as np.maximum does); returns c (``times_sum`` then ``floored_ratio``, in one call)."""

@@ -51,10 +51,11 @@ def softmax(log_weights: np.ndarray) -> np.ndarray:
     return w / w.sum()
 
 
-def softmax_and_logsumexp(log_weights: np.ndarray) -> tuple[np.ndarray, float]:
+def softmax_and_logsumexp(log_weights: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """(softmax(l), rf_filter.logsumexp(l)) of a non-empty array from one exp: the same doubles as
-    the two apart (both subtract the same max, exponentiate and sum the same array)."""
-    w = np.empty(log_weights.size)
+    the two apart (both subtract the same max, exponentiate and sum the same array). ``out``, if
+    given (a contiguous array of l's size, e.g. a row of a (K, grid) array), takes softmax(l)."""
+    w = np.empty(log_weights.size) if out is None else out
     top = _kernels.less_max(log_weights, w)  # the subtraction, the sum, the division and the log compiled; the exps numpy's
     lse = _kernels.normalise_exps(np.exp(w, out=w), top)
     return w, lse

@@ -210,6 +210,11 @@ def with_summed_gpucb(acquisition: Acquisition) -> Acquisition:
     return acquisition
 
 
+def _same_double(a: float, b: float) -> bool:
+    """Whether two floats are one double (a signed zero its sign; NaN never: the caller recomputes)."""
+    return a == b and math.copysign(1.0, a) == math.copysign(1.0, b)
+
+
 class JointSearch:
     """One episode of the search for K tags at once (module docstring): create it, call
     ``first_pan()``, then ``step`` for every sample.
@@ -287,11 +292,14 @@ class JointSearch:
         which = self._which_track(scored)
         answers = self._answers(scored, which)
         tags: list[TagDecision] = []
+        cov0 = None  # tag 0's covariates at its reported (wrapped) estimate, when the loop computed them there
         for k, (p, (estimate, raw, _post)) in enumerate(zip(self.parts, answers)):
             if self.decided[k] is not None:
                 tags.append(self.decided[k])
                 continue
             cov = p.confidence.covariates(estimate, p.rf, vision, p.iso)
+            if k == 0 and _same_double(wrapped(estimate), estimate):
+                cov0 = cov
             confidence = round(p.confidence(raw, cov), 6)
             decision = TagDecision(tag=k, estimate_rad=wrapped(estimate), confidence=confidence, raw_confidence=float(raw),
                                    covariates=cov)
@@ -302,9 +310,9 @@ class JointSearch:
         open_ = [d is None for d in self.decided]
         where_missed = None
         if self.missed_bearings and self.vision.sees:  # an undetected carrier is named by its bearing
-            where_missed = np.stack(self._missed_reads(scored)[0])
+            where_missed = self._missed_reads(scored)[0]
         weights = multitag.pan_weights(which, [not o for o in open_], self.pan_rule, where_missed)
-        lead = int(np.argmax(weights)) if weights.any() else 0
+        lead = int(weights.argmax()) if weights.any() else 0  # np.argmax, np.any without their Python wrappers
         per_tag = tuple(Beliefs(t, p.rf, vision, scored[k][0], answers[k][2], self._due(k, t)) for k, p in enumerate(self.parts))
         lead_beliefs = per_tag[lead]
         b = JointBeliefs(t, lead_beliefs.rf, vision, lead_beliefs.l_tracks, lead_beliefs.post, lead_beliefs.packet_due,
@@ -313,21 +321,39 @@ class JointSearch:
         lead_parts = self.parts[lead]
         reward = vision.mass_at(s, answers[lead][2]) * lead_parts.rf.gain_at(s)
         first = tags[0]
-        p0 = self.parts[0]
-        cov0 = p0.confidence.covariates(first.estimate_rad, p0.rf, vision, p0.iso)
+        if cov0 is None:  # tag 0 decided earlier (its answer stands, the beliefs moved on) or its estimate not its wrapped self
+            p0 = self.parts[0]
+            cov0 = p0.confidence.covariates(first.estimate_rad, p0.rf, vision, p0.iso)
         return JointDecision(step=t, next_pan_rad=wrapped(next_pan), estimate_rad=first.estimate_rad, reward=reward, probe=probe,
                              confidence=first.confidence, raw_confidence=first.raw_confidence, tx_walks=cov0.tx_walks,
                              noise_correlation=cov0.noise_correlation, clutter_density=cov0.clutter_density,
                              crowding=cov0.crowding, tags=tuple(tags), all_decided=not any(open_), lead_tag=lead)
 
-    def _missed_reads(self, scored) -> tuple[list[np.ndarray], list[float]]:
-        """Per tag, softmax(l_missed) and logsumexp(l_missed) of a step's ``scored`` (the pan's
-        entropy, the joint posteriors and the answers each read them), computed once per ``scored``."""
-        kept = getattr(self, "_missed_kept", None)
-        if kept is None or kept[0] is not scored:
-            reads = [softmax_and_logsumexp(l_missed) for _, l_missed in scored]
-            kept = self._missed_kept = (scored, [r[0] for r in reads], [r[1] for r in reads])
+    def _missed_reads(self, scored) -> tuple[np.ndarray, list[float]]:
+        """Per tag, softmax(l_missed) (row k of a (K, grid) array) and logsumexp(l_missed) of a
+        step's ``scored`` (the pan's entropy, the joint posteriors and the answers each read them),
+        computed once per ``scored`` (every tag's l_missed is over the one pan grid)."""
+        kept = self._kept(scored)
+        if kept[1] is None:
+            where = np.empty((len(scored), scored[0][1].size))
+            kept[2] = [softmax_and_logsumexp(l_missed, out=row)[1] for (_, l_missed), row in zip(scored, where)]
+            kept[1] = where
         return kept[1], kept[2]
+
+    def _track_logliks(self, scored) -> np.ndarray:
+        """Every tag's l_k(i) of a step's ``scored`` as one (K, M) array, stacked once per ``scored``."""
+        kept = self._kept(scored)
+        if kept[3] is None:
+            kept[3] = np.stack([s[0] for s in scored])
+        return kept[3]
+
+    def _kept(self, scored) -> list:
+        """What ``_missed_reads`` and ``_track_logliks`` made of ``scored`` (None: not yet), kept
+        until the next step's ``scored``."""
+        kept = getattr(self, "_reads_kept", None)
+        if kept is None or kept[0] is not scored:
+            kept = self._reads_kept = [scored, None, None, None]
+        return kept
 
     def _due(self, k: int, t: int) -> bool | None:
         clock = self.clocks[k]
@@ -338,7 +364,7 @@ class JointSearch:
         without a camera, over the grid of bearings (K, grid)."""
         if not self.vision.sees:
             return np.stack([softmax((1.0 if p.rf.exact else p.fusion.rf_weight) * p.rf.log_likelihood) for p in self.parts])
-        tracks = np.stack([s[0] for s in scored])
+        tracks = self._track_logliks(scored)
         missed = np.array(self._missed_reads(scored)[1])
         if self._jointly():
             return multitag.exclusive_posteriors(tracks, missed)
@@ -354,7 +380,7 @@ class JointSearch:
         marginals under that constraint, ``_which_track``)."""
         if not self._jointly():
             return [p.fusion.answer(p.rf, l_tracks, l_missed, self._first_pan) for p, (l_tracks, l_missed) in zip(self.parts, scored)]
-        tracks = np.stack([s[0] for s in scored])
+        tracks = self._track_logliks(scored)
         m = tracks.shape[1]
         marginals = which
         half = [max(1, int(round(p.fusion.answer_window_rad / p.fusion.circle.step))) for p in self.parts]
@@ -362,7 +388,7 @@ class JointSearch:
         missed_arc = []
         where_missed, missed_lse = self._missed_reads(scored)  # where an undetected carrier of tag k would be
         for lse, post, h in zip(missed_lse, where_missed, half):
-            missed_arc.append(lse + math.log(max(arc_mass(post, int(np.argmax(post)), h), 1e-300)))
+            missed_arc.append(lse + math.log(max(arc_mass(post, int(post.argmax()), h), 1e-300)))
         assignment = multitag.joint_assignment(tracks, np.array(missed_arc))
         out = []
         for k, (p, (_, l_missed), a) in enumerate(zip(self.parts, scored, assignment)):

@@ -275,11 +275,15 @@ def which_person_entropy(posteriors, where_missed=None) -> np.ndarray:
     entropy of ``posteriors`` alone, where "missed" counts as one certain outcome however wide the
     bearing it leaves open (a walker the camera lost, found only by Rx(dir), then pulls nothing).
     """
-    p = np.asarray(posteriors, dtype=float)
-    h = entropy(p)
     if where_missed is None:
-        return h
-    return h + p[:, -1] * entropy(where_missed)
+        return entropy(posteriors)
+    p = np.ascontiguousarray(posteriors, dtype=float)
+    where = np.ascontiguousarray(where_missed, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):  # the two logs under one errstate (~2 us each)
+        log_p, log_where = np.log(p), np.log(where)
+    out = np.empty(p.shape[0])
+    _kernels.which_person_entropies(p, log_p, where, log_where, out)  # entropy(p) + p[:, -1] * entropy(where), compiled
+    return out
 
 
 def pan_weights(posteriors, decided, rule: PanRule = "entropy", where_missed=None) -> np.ndarray:
@@ -300,15 +304,10 @@ def pan_weights(posteriors, decided, rule: PanRule = "entropy", where_missed=Non
     open_ = ~np.asarray(decided, dtype=bool)
     if h.shape != open_.shape:
         raise ValueError(f"one decided flag per tag: {open_.shape} for {h.shape[0]} tags")
-    out = np.zeros_like(h)
-    if not open_.any():
-        return out
-    if rule == "neediest":
-        out[int(np.argmax(np.where(open_, h, -np.inf)))] = 1.0
-        return out
-    if rule != "entropy":
+    if rule not in ("entropy", "neediest") and open_.any():  # (with every tag decided, any rule gives zeros)
         raise ValueError(f"unknown pan rule {rule!r}: entropy or neediest")
-    weights = np.where(open_, h, 0.0)
-    if weights.sum() <= 0.0:  # every open tag already certain: share equally
-        weights = open_.astype(float)
-    return weights / weights.sum()
+    out = np.empty_like(h)
+    # no tag open: zeros; neediest: out[argmax(np.where(open_, h, -inf))] = 1; entropy: w = np.where(open_, h, 0), all open
+    # tags alike when w.sum() <= 0 (every open tag already certain), w / w.sum(): compiled, the same doubles
+    _kernels.pan_shares(h, open_, rule == "neediest", out)
+    return out

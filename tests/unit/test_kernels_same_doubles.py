@@ -522,3 +522,49 @@ def test_pod_evidence_with_its_track_free_terms_once_as_per_track():
         _kernels.add_pod_evidence(got, detections, frames, alpha, beta, alpha0, beta0, outlier)
         per_track(detections, frames, alpha, beta, alpha0, beta0, outlier, want)
         assert _same(got, want)
+
+
+def _pan_weights_numpy(posteriors, decided, rule="entropy", where_missed=None):
+    """``multitag.pan_weights`` (with ``which_person_entropy``) as numpy computed it before ``_kernels.pan_shares``
+    and ``_kernels.which_person_entropies``."""
+    p = np.asarray(posteriors, dtype=float)
+    h = multitag.entropy(p)
+    if where_missed is not None:
+        h = h + p[:, -1] * multitag.entropy(where_missed)
+    open_ = ~np.asarray(decided, dtype=bool)
+    out = np.zeros_like(h)
+    if not open_.any():
+        return h, out
+    if rule == "neediest":
+        out[int(np.argmax(np.where(open_, h, -np.inf)))] = 1.0
+        return h, out
+    weights = np.where(open_, h, 0.0)
+    if weights.sum() <= 0.0:
+        weights = open_.astype(float)
+    return h, weights / weights.sum()
+
+
+def test_pan_weights_and_which_person_entropy_as_the_numpy_expressions():
+    rng = np.random.default_rng(31)
+    for trial in range(3000):
+        k, m, g = int(rng.integers(1, 12)), int(rng.integers(0, 40)), int(rng.integers(1, 400))
+        post = rng.dirichlet(np.full(m + 1, 0.3), k)
+        where = rng.dirichlet(np.full(g, 0.2), k)
+        post[rng.uniform(size=post.shape) < 0.1] = 0.0
+        where[rng.uniform(size=where.shape) < 0.1] = 0.0
+        if trial % 7 == 0:  # certain tags: entropies 0, the weights shared equally
+            post = np.zeros((k, m + 1))
+            post[:, -1 if trial % 2 else 0] = 1.0
+            where = np.zeros((k, g))
+            where[:, 0] = 1.0
+        if trial % 11 == 0:  # ties and NaN for argmax
+            post[:] = post[0]
+            if trial % 3 == 0:
+                post[int(rng.integers(0, k)), -1] = np.nan  # with where_missed: that tag's entropy NaN
+        decided = rng.uniform(size=k) < (0.0 if trial % 5 == 0 else 1.0 if trial % 13 == 0 else 0.4)
+        for rule in ("entropy", "neediest"):
+            for w in (None, where):
+                with np.errstate(invalid="ignore"):
+                    want_h, want = _pan_weights_numpy(post, list(decided), rule, w)
+                    assert _same(multitag.which_person_entropy(post, w), want_h)
+                    assert _same(multitag.pan_weights(post, list(decided), rule, w), want)
