@@ -210,11 +210,6 @@ def with_summed_gpucb(acquisition: Acquisition) -> Acquisition:
     return acquisition
 
 
-def _same_double(a: float, b: float) -> bool:
-    """Whether two floats are one double (a signed zero its sign; NaN never: the caller recomputes)."""
-    return a == b and math.copysign(1.0, a) == math.copysign(1.0, b)
-
-
 class JointSearch:
     """One episode of the search for K tags at once (module docstring): create it, call
     ``first_pan()``, then ``step`` for every sample.
@@ -292,14 +287,11 @@ class JointSearch:
         which = self._which_track(scored)
         answers = self._answers(scored, which)
         tags: list[TagDecision] = []
-        cov0 = None  # tag 0's covariates at its reported (wrapped) estimate, when the loop computed them there
         for k, (p, (estimate, raw, _post)) in enumerate(zip(self.parts, answers)):
             if self.decided[k] is not None:
                 tags.append(self.decided[k])
                 continue
             cov = p.confidence.covariates(estimate, p.rf, vision, p.iso)
-            if k == 0 and _same_double(wrapped(estimate), estimate):
-                cov0 = cov
             confidence = round(p.confidence(raw, cov), 6)
             decision = TagDecision(tag=k, estimate_rad=wrapped(estimate), confidence=confidence, raw_confidence=float(raw),
                                    covariates=cov)
@@ -321,9 +313,8 @@ class JointSearch:
         lead_parts = self.parts[lead]
         reward = vision.mass_at(s, answers[lead][2]) * lead_parts.rf.gain_at(s)
         first = tags[0]
-        if cov0 is None:  # tag 0 decided earlier (its answer stands, the beliefs moved on) or its estimate not its wrapped self
-            p0 = self.parts[0]
-            cov0 = p0.confidence.covariates(first.estimate_rad, p0.rf, vision, p0.iso)
+        p0 = self.parts[0]
+        cov0 = p0.confidence.covariates(first.estimate_rad, p0.rf, vision, p0.iso)
         return JointDecision(step=t, next_pan_rad=wrapped(next_pan), estimate_rad=first.estimate_rad, reward=reward, probe=probe,
                              confidence=first.confidence, raw_confidence=first.raw_confidence, tx_walks=cov0.tx_walks,
                              noise_correlation=cov0.noise_correlation, clutter_density=cov0.clutter_density,

@@ -101,12 +101,13 @@ def joint_assignment(track_loglik, missed_loglik) -> np.ndarray:
     """
     tracks, missed = _checked(track_loglik, missed_loglik)
     k, m = tracks.shape
-    own_missed = np.full((k, k), IMPOSSIBLE)
-    np.fill_diagonal(own_missed, missed)
-    gain = np.concatenate([tracks, own_missed], axis=1)
+    gain = np.full((k, m + k), IMPOSSIBLE)  # [tracks | each tag's own "missed" on the diagonal, IMPOSSIBLE off it]
+    gain[:, :m] = tracks
+    tag = np.arange(k)
+    gain[tag, m + tag] = missed
     rows, cols = _linear_sum_assignment()(gain, maximize=True)
     out = np.empty(k, dtype=np.int64)
-    out[rows] = np.where(cols < m, cols, m)
+    out[rows] = np.minimum(cols, m)  # np.where(cols < m, cols, m): any tag's own "missed" is column m
     return out
 
 

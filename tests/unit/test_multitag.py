@@ -10,6 +10,7 @@ import pytest
 from scipy.special import logsumexp
 
 from ra2vipas.services.controller.multitag import (
+    IMPOSSIBLE,
     entropy,
     exclusive_posteriors,
     independent_posteriors,
@@ -169,3 +170,22 @@ def _brute_force_in_logs(tracks, missed):
                 terms[t][x].append(sum(full[u, y] for u, y in enumerate(a)))
     logs = np.array([[logsumexp(c) if c else -np.inf for c in row] for row in terms])
     return np.exp(logs - logsumexp(logs, axis=1, keepdims=True))
+
+
+def test_the_assignment_is_the_one_the_concatenated_cost_matrix_gave():
+    """``joint_assignment`` fills its K x (M + K) matrix in place; the Hungarian algorithm gets the
+    matrix (and so gives the assignment, ties included) that concatenating [tracks | own missed] made."""
+    from scipy.optimize import linear_sum_assignment
+
+    rng = np.random.default_rng(5)
+    for trial in range(400):
+        k, m = int(rng.integers(1, 6)), int(rng.integers(0, 12))
+        tracks = np.round(rng.normal(0.0, 3.0, (k, m)), 0 if trial % 3 == 0 else 6)  # rounded: ties
+        missed = np.round(rng.normal(0.0, 3.0, k), 0 if trial % 3 == 0 else 6)
+        own = np.full((k, k), IMPOSSIBLE)
+        np.fill_diagonal(own, missed)
+        gain = np.concatenate([tracks, own], axis=1)
+        rows, cols = linear_sum_assignment(gain, maximize=True)
+        want = np.empty(k, dtype=np.int64)
+        want[rows] = np.where(cols < m, cols, m)
+        assert joint_assignment(tracks, missed).tolist() == want.tolist()
