@@ -908,6 +908,7 @@ def pan_shares(h, open_, neediest, out):
     for i in range(k):
         out[i] = out[i] / total
 
+
 @njit(cache=True)
 def times_sum_floored(weights, values, floor):
     """values = weights * values, c = their numpy sum, then values = np.maximum(values / c, floor) in place

@@ -61,7 +61,7 @@ PAN_RULES: tuple[str, ...] = ("entropy", "neediest")
 _view = builder(StepMeasurement, "step", "pan_rad", "rf", "frames", "adverts", "rf_tags")
 
 
-def relabelled(x: RFSample | Advertisement) -> RFSample | Advertisement:
+def _relabelled(x: RFSample | Advertisement) -> RFSample | Advertisement:
     """``x.model_copy(update={"tag": 0})``, the same object (the fields copied, ``tag`` 0 and marked
     set; no extra, no private attributes: the measurement models have neither), without pydantic's
     generic copy (~5 us a call, two a ward step)."""
@@ -99,9 +99,9 @@ def tag_view(m: StepMeasurement, tag: int, step: int | None = None) -> StepMeasu
     if rf is not None:
         # the first of m.pairs() (rf, then rf_tags) naming the tag, without building the tuple
         pair = rf if rf.tag == tag else next((p for p in m.rf_tags if p.tag == tag), None)
-        rf = None if pair is None else (pair if pair.tag == 0 else relabelled(pair))
+        rf = None if pair is None else (pair if pair.tag == 0 else _relabelled(pair))
         return _view(t, m.pan_rad, rf, m.frames, (), ())
-    ads = tuple(a if a.tag == 0 else relabelled(a) for a in m.adverts if a.tag == tag)
+    ads = tuple(a if a.tag == 0 else _relabelled(a) for a in m.adverts if a.tag == tag)
     return _view(t, m.pan_rad, None, m.frames, ads, ())
 
 

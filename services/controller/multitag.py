@@ -280,6 +280,8 @@ def which_person_entropy(posteriors, where_missed=None) -> np.ndarray:
         return entropy(posteriors)
     p = np.ascontiguousarray(posteriors, dtype=float)
     where = np.ascontiguousarray(where_missed, dtype=float)
+    if where.ndim != 2 or where.shape[0] != p.shape[0]:
+        raise ValueError(f"where_missed must be (K, G) for posteriors of {p.shape[0]} tags; got {where.shape}")
     with np.errstate(divide="ignore", invalid="ignore"):  # the two logs under one errstate (~2 us each)
         log_p, log_where = np.log(p), np.log(where)
     out = np.empty(p.shape[0])
