@@ -178,6 +178,7 @@ class ControllerNode:
         # campaign id -> the rig's descriptor when its first episode arrived (None: undescribed), or
         # _ASKING while the query is out; one query per campaign, so a campaign sees one rig model
         self.descriptors: dict[str, object] = {}
+        self._last_descriptor: RigDescriptor | None = None  # the last one this rig's sensors served (any campaign)
         self._described: dict[str, list[str]] = {}  # campaign id -> episodes waiting for the descriptor
         self._command_key = keys.command(rig)
         warm_up()
@@ -231,6 +232,13 @@ class ControllerNode:
         if descriptor is not None and descriptor.rig != self.rig:
             log.warning("rig %s: the descriptor names rig %s; ignored", self.rig, descriptor.rig)
             descriptor = None
+        if descriptor is not None:
+            self._last_descriptor = descriptor
+        elif not replies and self._last_descriptor is not None:
+            # no node answered at all, again and again (a link cut across the re-asks), but this rig's sensors served a
+            # descriptor before: a node that described its hardware is not a v1 node; use what it said
+            log.info("rig %s: no node answered the descriptor query; using the one its sensors served last", self.rig)
+            descriptor = self._last_descriptor
         if descriptor is None:
             log.info("rig %s is undescribed%s: modelling it from each campaign's scenario", self.rig,
                      f" ({passed_over[-1]})" if passed_over else "")
@@ -315,7 +323,38 @@ class ControllerNode:
             log.warning("episode %s step %d: %d frames, expected %d; dropped", m.episode_id, m.step, len(m.frames),
                         ep.sensors.frames_per_rf)
             return
+        realtime = ep.start.mode is Mode.realtime
+        if realtime and ep.next_step + 1 < sc.steps and not ep.start.stop_confidence and getattr(ep.policy, "splits_step", False):
+            # a realtime built-in sends the command as soon as the pan is chosen, and completes the step's decision
+            # (reward, covariates, confidence map) after it: that work is not in the sample->command latency (it
+            # lands in the time outside the node before the next sample, not in ``compute``)
+            command = _command(m.episode_id, m.step + 1, float(ep.policy.choose_pan(m)))
+            costs.lap("compute")
+            self.loop.send(self.bus, self._command_key, command, express=True, costs=costs)
+            costs.lap("publish")
+            costs.replied()
+            self._record(ep, m, ep.policy.decision())
+            return
         decision = ep.policy.step(m)
+        self._record(ep, m, decision)
+        stop = ep.start.stop_confidence
+        tags = getattr(decision, "tags", None) if sc.n_tags > 1 else None
+        confidence = getattr(decision, "confidence", None)
+        if tags:  # several tags (issue 21): the episode ends when every tag is decided
+            decided = stop > 0.0 and bool(getattr(decision, "all_decided", False))
+        else:
+            decided = stop > 0.0 and confidence is not None and confidence >= stop
+        if ep.next_step < sc.steps and not decided:
+            command = _command(m.episode_id, ep.next_step, float(decision.next_pan_rad))
+            costs.lap("compute")
+            self.loop.send(self.bus, self._command_key, command, express=realtime, costs=costs)
+            costs.lap("publish")
+            costs.replied()
+            return
+        self._finish(ep, m, decided, costs)
+
+    def _record(self, ep, m: Measurement, decision) -> None:
+        """Keep step t's decision for the episode's result; the next step expected is t + 1."""
         confidence = getattr(decision, "confidence", None)
         reward = getattr(decision, "reward", None)
         ep.estimates.append(float(decision.estimate_rad))
@@ -325,20 +364,12 @@ class ControllerNode:
             ep.says_confidence = False
         ep.confidences.append(0.0 if confidence is None else float(confidence))
         ep.next_step = m.step + 1
-        stop = ep.start.stop_confidence
-        tags = getattr(decision, "tags", None) if sc.n_tags > 1 else None
-        if tags:  # several tags (issue 21): the episode ends when every tag is decided
+        tags = getattr(decision, "tags", None) if ep.start.scenario.n_tags > 1 else None
+        if tags:
             ep.tags.append(tags)
-            decided = stop > 0.0 and bool(getattr(decision, "all_decided", False))
-        else:
-            decided = stop > 0.0 and confidence is not None and confidence >= stop
-        if ep.next_step < sc.steps and not decided:
-            command = _command(m.episode_id, ep.next_step, float(decision.next_pan_rad))
-            costs.lap("compute")
-            self.loop.send(self.bus, self._command_key, command, express=ep.start.mode is Mode.realtime, costs=costs)
-            costs.lap("publish")
-            costs.replied()
-            return
+
+    def _finish(self, ep, m: Measurement, decided: bool, costs) -> None:
+        """The episode's last step is taken (the horizon, or an early decision): its result."""
         self.episodes.pop(m.episode_id, None)
         check = model_check(ep.sensors, ep.policy.controller if isinstance(ep.policy, BuiltinPolicy) else None)
         costs.lap("compute")

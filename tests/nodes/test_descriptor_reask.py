@@ -104,3 +104,34 @@ def test_a_controllers_descriptor_query_nobody_answered_is_asked_again_and_the_c
         for n in nodes:
             n.close()
         bus.close()
+
+
+def test_a_controller_whose_rig_described_itself_before_keeps_that_descriptor_through_a_cut(tmp_path, monkeypatch):
+    """A link cut across every re-ask of a campaign's descriptor query (a flake of
+    tests/deploy/test_multihost.py: a 3 s cut right as a campaign started, all 16 episodes modelled
+    from the scenario): a controller whose rig's sensors served a descriptor for an earlier
+    campaign uses that one rather than taking its rig for a v1 node."""
+    from ra2vipas.services.controller import node as controller_module
+
+    monkeypatch.setattr(controller_module, "DESCRIPTOR_REASK_S", (0.1, 0.2))
+    bus, store = MemoryBus(), Store(str(tmp_path / "cut.db"))
+    view = FirstQueriesUnrouted(bus, (keys.rig_info(RIG),), unrouted=0)
+    scheduler = scheduler_module.Scheduler(bus, store, window=3)
+    nodes = [SensorsNode(bus, RIG), LearnerNode(bus)]
+    controller = ControllerNode(view, RIG)
+    try:
+        _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
+        first = run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["rapas"], timeout=60.0)
+        assert first["status"] == "done" and "assumptions" not in first["results"]
+        view._left[keys.rig_info(RIG)] = 3  # the next campaign's query and both re-asks go unrouted
+        asked = len(view.asked)
+        c = run_to_end(store, scheduler, "paper", SMALL, 2, 4, ["rapas"], timeout=60.0)
+        assert c["status"] == "done", c["error"]
+        assert view.asked[asked:].count(keys.rig_info(RIG)) == 3  # asked, and asked again twice: no answer
+        assert "assumptions" not in c["results"]  # modelled from the descriptor the rig served before
+    finally:
+        scheduler.close()
+        controller.close()
+        for n in nodes:
+            n.close()
+        bus.close()
