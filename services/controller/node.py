@@ -324,17 +324,6 @@ class ControllerNode:
                         ep.sensors.frames_per_rf)
             return
         realtime = ep.start.mode is Mode.realtime
-        if realtime and ep.next_step + 1 < sc.steps and not ep.start.stop_confidence and getattr(ep.policy, "splits_step", False):
-            # a realtime built-in sends the command as soon as the pan is chosen, and completes the step's decision
-            # (reward, covariates, confidence map) after it: that work is not in the sample->command latency (it
-            # lands in the time outside the node before the next sample, not in ``compute``)
-            command = _command(m.episode_id, m.step + 1, float(ep.policy.choose_pan(m)))
-            costs.lap("compute")
-            self.loop.send(self.bus, self._command_key, command, express=True, costs=costs)
-            costs.lap("publish")
-            costs.replied()
-            self._record(ep, m, ep.policy.decision())
-            return
         decision = ep.policy.step(m)
         self._record(ep, m, decision)
         stop = ep.start.stop_confidence
