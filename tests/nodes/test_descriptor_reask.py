@@ -7,6 +7,7 @@ tests/deploy/test_multihost.py). A node that never answers is undescribed after 
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 
 from ra2vipas.services.controller.node import ControllerNode
 from ra2vipas.services.learner.node import LearnerNode
@@ -84,23 +85,30 @@ def test_a_controllers_descriptor_query_nobody_answered_is_asked_again_and_the_c
     flake of tests/deploy/test_multihost.py, on the controller's side: a campaign started right
     after a link came back had all its episodes modelled from the scenario): a query no node
     answered is asked again, and the campaign is modelled from the descriptor, as simulate does."""
-    from ra2vipas.services.controller import node as controller_module
-
-    monkeypatch.setattr(controller_module, "DESCRIPTOR_REASK_S", (0.2, 0.4))
-    bus, store = MemoryBus(), Store(str(tmp_path / "reask.db"))
-    view = FirstQueriesUnrouted(bus, (keys.rig_info(RIG),), unrouted=2)
-    scheduler = scheduler_module.Scheduler(bus, store, window=3)
-    nodes = [SensorsNode(bus, RIG), LearnerNode(bus)]
-    controller = ControllerNode(view, RIG)
-    try:
-        _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
+    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=2) as (store, scheduler, view):
         c = run_to_end(store, scheduler, "paper", SMALL, 2, 3, ["rapas"], timeout=60.0)
         assert c["status"] == "done", c["error"]
         assert view.asked.count(keys.rig_info(RIG)) == 3  # two unanswered, the third answered
         assert "assumptions" not in c["results"]  # every episode modelled from the descriptor
+
+
+@contextmanager
+def _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted: int):
+    """A rig, a learner and the scheduler on one in-memory bus, the controller seeing it through
+    ``FirstQueriesUnrouted`` (its first ``unrouted`` descriptor queries unanswered; re-asks after
+    0.1 s, then 0.2 s); yields (store, scheduler, view) once the rig is ready, closes all after."""
+    from ra2vipas.services.controller import node as controller_module
+
+    monkeypatch.setattr(controller_module, "DESCRIPTOR_REASK_S", (0.1, 0.2))
+    bus, store = MemoryBus(), Store(str(tmp_path / "reask.db"))
+    view = FirstQueriesUnrouted(bus, (keys.rig_info(RIG),), unrouted=unrouted)
+    scheduler = scheduler_module.Scheduler(bus, store, window=3)
+    nodes = [SensorsNode(bus, RIG), LearnerNode(bus), ControllerNode(view, RIG)]
+    try:
+        _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
+        yield store, scheduler, view
     finally:
         scheduler.close()
-        controller.close()
         for n in nodes:
             n.close()
         bus.close()
@@ -111,16 +119,7 @@ def test_a_controller_whose_rig_described_itself_before_keeps_that_descriptor_th
     tests/deploy/test_multihost.py: a 3 s cut right as a campaign started, all 16 episodes modelled
     from the scenario): a controller whose rig's sensors served a descriptor for an earlier
     campaign uses that one rather than taking its rig for a v1 node."""
-    from ra2vipas.services.controller import node as controller_module
-
-    monkeypatch.setattr(controller_module, "DESCRIPTOR_REASK_S", (0.1, 0.2))
-    bus, store = MemoryBus(), Store(str(tmp_path / "cut.db"))
-    view = FirstQueriesUnrouted(bus, (keys.rig_info(RIG),), unrouted=0)
-    scheduler = scheduler_module.Scheduler(bus, store, window=3)
-    nodes = [SensorsNode(bus, RIG), LearnerNode(bus)]
-    controller = ControllerNode(view, RIG)
-    try:
-        _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
+    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view):
         first = run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["rapas"], timeout=60.0)
         assert first["status"] == "done" and "assumptions" not in first["results"]
         view._left[keys.rig_info(RIG)] = 3  # the next campaign's query and both re-asks go unrouted
@@ -129,9 +128,3 @@ def test_a_controller_whose_rig_described_itself_before_keeps_that_descriptor_th
         assert c["status"] == "done", c["error"]
         assert view.asked[asked:].count(keys.rig_info(RIG)) == 3  # asked, and asked again twice: no answer
         assert "assumptions" not in c["results"]  # modelled from the descriptor the rig served before
-    finally:
-        scheduler.close()
-        controller.close()
-        for n in nodes:
-            n.close()
-        bus.close()
