@@ -51,12 +51,7 @@ def _wait(predicate, timeout=10.0):
 
 def test_a_descriptor_query_nobody_answered_is_asked_again_and_the_rig_is_described(tmp_path, monkeypatch):
     monkeypatch.setattr(scheduler_module, "DESCRIPTOR_REASK_S", (0.2, 0.4))
-    bus, store = MemoryBus(), Store(str(tmp_path / "reask.db"))
-    view = FirstQueriesUnrouted(bus, (keys.rig_info(RIG), keys.rig_policies(RIG)))
-    scheduler = scheduler_module.Scheduler(view, store, window=3)
-    nodes = [SensorsNode(bus, RIG), ControllerNode(bus, RIG), LearnerNode(bus)]
-    try:
-        _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
+    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_info(RIG), keys.rig_policies(RIG)), unrouted=1) as (store, scheduler, view):
         rig = scheduler.rigs[RIG]
         assert rig.described == "described" and rig.descriptor is not None and rig.descriptor.rig == RIG
         assert rig.announced == "announced"
@@ -64,11 +59,6 @@ def test_a_descriptor_query_nobody_answered_is_asked_again_and_the_rig_is_descri
         c = run_to_end(store, scheduler, "paper", SMALL, 2, 3, ["rapas"], timeout=60.0)
         assert c["status"] == "done", c["error"]
         assert "assumptions" not in c["results"]  # a described rig: scored as simulate scores it
-    finally:
-        scheduler.close()
-        for n in nodes:
-            n.close()
-        bus.close()
 
 
 def test_a_node_that_never_answers_is_undescribed_after_the_re_asks(mesh, monkeypatch):
@@ -93,17 +83,15 @@ def test_a_controllers_descriptor_query_nobody_answered_is_asked_again_and_the_c
 
 
 @contextmanager
-def _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted: int):
-    """A rig, a learner and the scheduler on one in-memory bus, the controller seeing it through
-    ``FirstQueriesUnrouted`` (its first ``unrouted`` descriptor queries unanswered; re-asks after
-    0.1 s, then 0.2 s); yields (store, scheduler, view) once the rig is ready, closes all after."""
-    from ra2vipas.services.controller import node as controller_module
-
-    monkeypatch.setattr(controller_module, "DESCRIPTOR_REASK_S", (0.1, 0.2))
+def _rig_on_a_bus(tmp_path, seen_by: str, on_keys: tuple[str, ...], unrouted: int):
+    """A rig (sensors and controller), a learner and the scheduler on one in-memory bus, the
+    ``seen_by`` one (``scheduler`` or ``controller``) seeing it through ``FirstQueriesUnrouted``
+    (its first ``unrouted`` queries on ``on_keys`` unanswered); yields (store, scheduler, view)
+    once the rig is ready, closes all after."""
     bus, store = MemoryBus(), Store(str(tmp_path / "reask.db"))
-    view = FirstQueriesUnrouted(bus, (keys.rig_info(RIG),), unrouted=unrouted)
-    scheduler = scheduler_module.Scheduler(bus, store, window=3)
-    nodes = [SensorsNode(bus, RIG), LearnerNode(bus), ControllerNode(view, RIG)]
+    view = FirstQueriesUnrouted(bus, on_keys, unrouted=unrouted)
+    scheduler = scheduler_module.Scheduler(view if seen_by == "scheduler" else bus, store, window=3)
+    nodes = [SensorsNode(bus, RIG), ControllerNode(view if seen_by == "controller" else bus, RIG), LearnerNode(bus)]
     try:
         _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
         yield store, scheduler, view
@@ -112,6 +100,15 @@ def _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted: int):
         for n in nodes:
             n.close()
         bus.close()
+
+
+def _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted: int):
+    """``_rig_on_a_bus`` with the controller's first ``unrouted`` descriptor queries unanswered
+    (its re-asks after 0.1 s, then 0.2 s)."""
+    from ra2vipas.services.controller import node as controller_module
+
+    monkeypatch.setattr(controller_module, "DESCRIPTOR_REASK_S", (0.1, 0.2))
+    return _rig_on_a_bus(tmp_path, "controller", (keys.rig_info(RIG),), unrouted)
 
 
 def test_a_controller_whose_rig_described_itself_before_keeps_that_descriptor_through_a_cut(tmp_path, monkeypatch):
