@@ -323,27 +323,7 @@ class ControllerNode:
             log.warning("episode %s step %d: %d frames, expected %d; dropped", m.episode_id, m.step, len(m.frames),
                         ep.sensors.frames_per_rf)
             return
-        realtime = ep.start.mode is Mode.realtime
         decision = ep.policy.step(m)
-        self._record(ep, m, decision)
-        stop = ep.start.stop_confidence
-        tags = getattr(decision, "tags", None) if sc.n_tags > 1 else None
-        confidence = getattr(decision, "confidence", None)
-        if tags:  # several tags (issue 21): the episode ends when every tag is decided
-            decided = stop > 0.0 and bool(getattr(decision, "all_decided", False))
-        else:
-            decided = stop > 0.0 and confidence is not None and confidence >= stop
-        if ep.next_step < sc.steps and not decided:
-            command = _command(m.episode_id, ep.next_step, float(decision.next_pan_rad))
-            costs.lap("compute")
-            self.loop.send(self.bus, self._command_key, command, express=realtime, costs=costs)
-            costs.lap("publish")
-            costs.replied()
-            return
-        self._finish(ep, m, decided, costs)
-
-    def _record(self, ep, m: Measurement, decision) -> None:
-        """Keep step t's decision for the episode's result; the next step expected is t + 1."""
         confidence = getattr(decision, "confidence", None)
         reward = getattr(decision, "reward", None)
         ep.estimates.append(float(decision.estimate_rad))
@@ -353,12 +333,20 @@ class ControllerNode:
             ep.says_confidence = False
         ep.confidences.append(0.0 if confidence is None else float(confidence))
         ep.next_step = m.step + 1
-        tags = getattr(decision, "tags", None) if ep.start.scenario.n_tags > 1 else None
-        if tags:
+        stop = ep.start.stop_confidence
+        tags = getattr(decision, "tags", None) if sc.n_tags > 1 else None
+        if tags:  # several tags (issue 21): the episode ends when every tag is decided
             ep.tags.append(tags)
-
-    def _finish(self, ep, m: Measurement, decided: bool, costs) -> None:
-        """The episode's last step is taken (the horizon, or an early decision): its result."""
+            decided = stop > 0.0 and bool(getattr(decision, "all_decided", False))
+        else:
+            decided = stop > 0.0 and confidence is not None and confidence >= stop
+        if ep.next_step < sc.steps and not decided:
+            command = _command(m.episode_id, ep.next_step, float(decision.next_pan_rad))
+            costs.lap("compute")
+            self.loop.send(self.bus, self._command_key, command, express=ep.start.mode is Mode.realtime, costs=costs)
+            costs.lap("publish")
+            costs.replied()
+            return
         self.episodes.pop(m.episode_id, None)
         check = model_check(ep.sensors, ep.policy.controller if isinstance(ep.policy, BuiltinPolicy) else None)
         costs.lap("compute")
