@@ -296,7 +296,6 @@ class ControllerNode:
             self._fail(episode_id, f"controller of rig {self.rig}: {err}")
             return
         self.loop.send(self.bus, self._command_key, _command(episode_id, 0, float(ep.policy.first_pan())))
-        ep.costs.start()
 
     def _fail(self, episode_id: str, error: str) -> None:
         if self.episodes.pop(episode_id, None) is None:

@@ -203,8 +203,9 @@ class StepCosts(_Message):
     Per handled step message: ``queued`` on the node's event loop after it arrived,
     ``decode`` (and validate), ``compute`` (the handler's work), ``encode`` (the reply's JSON),
     ``publish`` (handing it to Zenoh); ``outside``: from the node's reply to the arrival of
-    the episode's next message (the other node and the transport); ``span``: from the node's
-    first publication of the episode to its last. The stages are contiguous, so
+    the episode's next message (the other node and the transport); ``span``: from the start
+    of its handling of the episode's first step message (a paced node: its first publication)
+    to its last publication; the wait for that first message, queue included, is in neither. The stages are contiguous, so
     ``outside + queued + decode + compute + encode + publish`` ~ ``span``.
     """
 

@@ -16,9 +16,12 @@ work (the policy's step, the platform's sample, bookkeeping), ``encode`` the rep
 ``publish`` the call that hands it to Zenoh. ``outside`` is everything the node waited for
 between its reply and the next message of the same episode: the other node's whole step and
 the transport both ways. The stages are contiguous, so per episode
-``outside + queued + decode + compute + encode + publish`` covers the node's span from its
-first publication to its last; for a lockstep (fast) episode the controller's ``outside``
-minus the sensors' in-process stages is the transport time.
+``outside + queued + decode + compute + encode + publish`` covers the node's span from the
+start of its first step message's handling to its last publication (for a paced node without
+one, from its first publication); for a lockstep (fast) episode the controller's ``outside``
+minus the sensors' in-process stages is the transport time. Neither node counts the wait for
+its episode's first step message, on the wire or in its queue (the episode's set-up, not a
+step): the two nodes' views of the transport then have the same edges, one step each.
 
 All times are monotonic (``perf_counter_ns``) and never compared across processes.
 """
@@ -47,19 +50,17 @@ class CostClock:
     def __init__(self) -> None:
         self.steps = 0
         self.queued = self.decode = self.compute = self.encode = self.publish = self.outside = 0
-        self.first = 0  # end of the node's first publication of the episode
-        self.last = 0   # end of its latest one
+        self.first = 0  # its first step message's handling began (or its first publication)
+        self.last = 0   # end of its latest publication
         self._t = 0
-
-    def start(self, at: int | None = None) -> None:
-        """The node published the episode's first message (e.g. the controller's step-0 command)."""
-        self.first = self.last = now_ns() if at is None else at
 
     def mark_arrival(self, posted_ns: int, started_ns: int) -> None:
         """A step message arrived at ``posted_ns`` (bus callback) and its handler started at ``started_ns``."""
         if self.last:
             self.outside += max(0, posted_ns - self.last)
-        self.queued += max(0, started_ns - posted_ns)
+            self.queued += max(0, started_ns - posted_ns)
+        elif not self.first:  # the span starts as the first one's handling does: the wait for it, on the wire or
+            self.first = started_ns  # in the queue (behind the episode's set-up, or other episodes), is not a step
         self.steps += 1
         self._t = started_ns
 
@@ -110,10 +111,12 @@ def step_breakdown(controller: list[StepCosts], sensors: list[StepCosts], latenc
     sensors' in-process stages plus the transport both ways, so ``transport_ms`` =
     controller ``outside`` - sensors' stages. ``transport_ms_sensors_view`` is the same
     derived the other way round (sensors ``outside`` - the controller's stages): the two
-    agree when both nodes' timers are right, but for the episodes' edges (the sensors have no
-    ``outside`` before their first reply, and no command follows the controller's last step:
-    the sensors' view is a few percent of a step short, visible only where the transport is ~0,
-    as in a one-process rig). ``step_ms`` is the controller's span per step,
+    agree when both nodes' timers are right, to each episode's edges (the controller's view
+    lacks the sensors' first step and the first measurement's transport, the sensors' view the
+    controller's last step and the last measurement's transport: about one step per episode,
+    visible only where the transport is ~0, as in a one-process rig). ``step_ms`` is the
+    controller's span per step (from its first measurement's arrival: the episode's set-up is
+    not a step),
     measured as one interval; ``parts_sum_ms`` the sum of the parts. With several episodes in
     flight per rig a step's ``queued`` time is mostly other episodes' steps: ``*_busy_ms`` (the
     stages but the queue) is what one step costs each node's worker thread.

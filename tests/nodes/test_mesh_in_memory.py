@@ -212,7 +212,10 @@ def test_a_realtime_episode_samples_on_its_grid_and_its_timer_stops_after_it(mes
     c = run_to_end(store, scheduler, "paper", overrides, 2, 5, ["ra2vipas"], mode="realtime")
     assert c["status"] == "done", c["error"]
     timings = [EpisodeTiming.model_validate_json(p) for k, p in bus.published if k == keys.episode_timing("rig-1")]
-    assert len(timings) == 2 and all(len(t.latencies_ms) == 7 for t in timings)
+    # one latency per command (7 after 8 samples); a command that a loaded machine delivers after its episode's end
+    # tick (a whole T_RF after the last sample) finds no episode to time: only the last one can miss it
+    assert len(timings) == 2 and all(len(t.latencies_ms) in (6, 7) for t in timings), timings
+    assert sum(len(t.latencies_ms) for t in timings) >= 13, timings
     steps = [s for _, s in seen]
     assert steps == list(range(8)) * 2
     for episode in (seen[:8], seen[8:]):
