@@ -75,7 +75,7 @@ class LearnerNode:
                 self._cache[job] = cached
                 return cached
             stream = self._run_training(TrainingRequest(job_id=job, scenario=req.scenario, seed=req.seed))
-            learned = fit_pod(list(stream.samples), self.settings)
+            learned = fit_pod(list(stream.samples), LearnerSettings.for_scenario(req.scenario, self.settings))
             response = PODResponse(job_id=job, model=learned.model, train_seconds=round(learned.train_seconds, 6))
             self._cache[job] = response
             self._store(job, response)

@@ -33,6 +33,21 @@ q-walk(r_j | r_{j-1}) N((z_j - r_j) - phi (z_{j-1} - r_{j-1}); 0, R (1 - phi^2))
 (``chain_posterior``). With phi below ``min_fading`` the plain model is used: a white
 receiver's fit is exactly what it was.
 
+**Shadowing.** Where the channel has shadowing, the RSSI the POD is a function of is the shadowed
+one, r = g(d) + S (``world.TrainingTruth``: p*(r) = E[p_D(d) | r]), and a Tx walking through the
+shadowing field makes S swing in time as the receiver's fading does (the training walk crosses its
+2 m decorrelation in a few samples: S moves ~4 dB^2 per sample, the 0.5 s fading ~3). The stream z
+cannot tell the two apart: on the ``dynamic`` world the fading fit takes the swings for receiver
+noise (seeds 2-4: R 12.5-14.5 dB^2 against the receiver's 9, a walk 8-70 x slower than r moves),
+and a model with both (walk + stationary S + AR(1) noise) gives, at its maximum likelihood, all of
+them to the noise on some seeds and all to S on others. The fading fit's deconvolution then removes
+the shadowing with the noise: its input posteriors are 1.4-2.2 x too narrow about a smoothed r, and
+the GP fits their errors as wiggles (length scale at its bound; R^2 -4 to -8 on seeds 2-4). So when the campaign
+says its channel shadows (``LearnerSettings.shadowing``, from the public sigma_S, as the range cue
+reads it: ``for_scenario``), the swings stay in the latent RSSI: the white walk is fitted and only
+its white noise is deconvolved; the model still reports the fading fit's noise (R, phi), what the
+level the controller reads swings by. Without shadowing nothing changes.
+
 The output is a compact ``PODModel``: mean and standard deviation of p_D on an RSSI grid.
 """
 
@@ -78,6 +93,16 @@ class LearnerSettings:
     min_rf_noise_db: float = 0.1
     min_fading: float = 0.1  # phi below which the receiver noise is taken as white
     channel_offsets: bool = True  # packets with channels: fit each channel's offset with the walk
+    shadowing: bool = False  # the campaign's channel has shadowing (sigma_S > 0): see ``fit_pod`` and ``for_scenario``
+
+    @classmethod
+    def for_scenario(cls, scenario, base: "LearnerSettings | None" = None) -> "LearnerSettings":
+        """``base`` (default: the defaults) with ``shadowing`` set from the campaign's public propagation
+        model: whether its ``shadowing_db`` (sigma_S, what the operator configured, as the range cue reads
+        it, ``RangeModel.from_scenario``) is positive. The training stream cannot say it (``fit_pod``)."""
+        import dataclasses
+
+        return dataclasses.replace(base or cls(), shadowing=float(getattr(scenario, "shadowing_db", 0.0) or 0.0) > 0.0)
 
 
 @dataclass(frozen=True)
@@ -584,13 +609,19 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
     packets = any(s.iso_rssi_dbm is None for s in samples)
     phi = 0.0
     offsets = None
+    noise = None  # (R, phi) the model reports when they are not the deconvolution's (shadowing)
     if packets:  # protocol 1.3: 0..n advertisements per sample (docs/radio.md)
         a, b, R, rc, grid, log_rssi, offsets = _packet_evidence(samples, cfg, min_var)
     else:
         a, b, R, rc = fit_diffusion(z, min_var)
         if z.size >= 50:
             fa, fb, fR, fphi, _ = fit_fading_walk(z, min_var)
-            if fphi >= cfg.min_fading:
+            if fphi >= cfg.min_fading and cfg.shadowing:
+                # the stream's stationary swings are fading or shadowing, and z cannot tell which: keep
+                # them in the latent RSSI (the white walk: only its white noise is deconvolved); the
+                # controller still gets the fading fit's noise (what the level it reads swings by)
+                noise = (fR, fphi)
+            elif fphi >= cfg.min_fading:
                 a, b, R, phi = fa, fb, fR, fphi
         grid = np.linspace(z.min() - cfg.grid_margin_db, z.max() + cfg.grid_margin_db, cfg.grid_points)
         log_rssi = -0.5 * (z[:, None] - grid[None, :]) ** 2 / R
@@ -628,12 +659,12 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
         rssi_grid_dbm=tuple(float(v) for v in grid),
         mean=tuple(float(v) for v in np.clip(f, 0.0, 1.0)),
         std=tuple(float(v) for v in std),
-        rf_noise_db=math.sqrt(R),
-        rf_noise_correlation=round(float(phi), 6),
+        rf_noise_db=math.sqrt(R if noise is None else noise[0]),
+        rf_noise_correlation=round(float(phi if noise is None else noise[1]), 6),
         n_train=int(z.size),
         frames_per_rf=int(nu),
     )
-    return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R), fading=phi,
+    return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R), fading=phi if noise is None else noise[1],
                       channel_offsets=offsets or None)
 
 

@@ -63,7 +63,7 @@ class TagOutcome:
 def _from_cache(scenario: Scenario, seed: int, settings: LearnerSettings | None) -> tuple[PODCache | None, str, CachedPOD | None]:
     """The POD model cache in force (None: off), the training job id of (scenario, seed), and the
     scored model the cache holds for it (None: none; a learner service's model, unscored, is not one)."""
-    store, job = PODCache.from_environment(settings or LearnerSettings()), training_job_id(scenario, seed)
+    store, job = PODCache.from_environment(LearnerSettings.for_scenario(scenario, settings)), training_job_id(scenario, seed)
     hit = store.load(job) if store is not None else None
     return store, job, (hit if hit is not None and hit.r2 is not None else None)
 
@@ -81,7 +81,7 @@ def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = 
     if hit is not None:
         return TrainedPOD(model=hit.model, r2=hit.r2, train_seconds=hit.train_seconds, cached=True)
     episode = TrainingEpisode(scenario, seed)
-    learned: LearnedPOD = fit_pod(list(episode.samples()), settings)
+    learned: LearnedPOD = fit_pod(list(episode.samples()), LearnerSettings.for_scenario(scenario, settings))
     r2 = r2_score(episode.truth.pod, predict(learned.model, episode.truth.rssi_dbm))
     pod = TrainedPOD(model=learned.model, r2=round(float(r2), 6), train_seconds=learned.train_seconds)
     if store is not None:
