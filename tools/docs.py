@@ -44,6 +44,7 @@ FIRST_TESTS_ROBUSTNESS = 1
 # -- collecting -------------------------------------------------------------------------------------
 def _untimed(results: dict[str, Any]) -> dict[str, Any]:
     out = json.loads(json.dumps(results))
+    out.pop("id", None)  # names the run (null in process), as tests/conftest.py's ``untimed`` drops it
     out.pop("steps_per_second", None)
     out.pop("latency_ms", None)
     out["pod"].pop("train_seconds", None)
@@ -105,7 +106,7 @@ def documented_campaigns(data: dict[str, Any]) -> list[tuple[str, dict[str, Any]
                  "stop_confidence": early["stop_confidence"]}, early))
     robustness = data["robustness"]
     out += [(f"robustness {name}", {"preset": s["preset"], "overrides": s["overrides"], "seed": robustness["seed"],
-                                    "tests": FIRST_TESTS_ROBUSTNESS, "oracle": True}, s)
+                                    "tests": FIRST_TESTS_ROBUSTNESS, "oracle": s["dr"].get("oracle") is not None}, s)
             for name, s in robustness["scenarios"].items()]
     return out
 
@@ -151,7 +152,9 @@ def collect(progress: Callable[[str], None] = print) -> dict[str, Any]:
     progress("paper with --stop-confidence 0.95, seed 1")
     early = ra2vipas.simulate(preset="paper", tests=TESTS, seed=1, stop_confidence=0.95, workers=workers)
     data["early_decision"] = {"stop_confidence": 0.95, "seed": 1, **_campaign_summary(early)}
-    progress("bench robustness (17 worlds)")
+    from ra2vipas.services.orchestrator.robustness import SCENARIOS
+
+    progress(f"bench robustness ({len(SCENARIOS)} worlds)")
     data["robustness"] = run_robustness(tests=TESTS, seed=1, workers=workers)
     progress("the check campaign")
     data["check"] = {**CHECK, "results": _untimed(ra2vipas.simulate(**CHECK, workers=1))}
