@@ -357,9 +357,9 @@ class ControllerNode:
             costs.replied()
             return
         self.episodes.pop(m.episode_id, None)
-        check = model_check(ep.sensors, ep.policy.controller if isinstance(ep.policy, BuiltinPolicy) else None)
         costs.lap("compute")
-        costs.replied()  # the span ends here: the result's own encoding and publication are not in it
+        costs.replied()  # the span ends here: the episode's model check and its result's encoding are no step's
+        check = model_check(ep.sensors, ep.policy.controller if isinstance(ep.policy, BuiltinPolicy) else None)
         self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(
             episode_id=m.episode_id, rig=self.rig, estimates_rad=tuple(ep.estimates), pans_rad=tuple(ep.pans), rewards=tuple(ep.rewards),
             confidences=tuple(ep.confidences) if ep.says_confidence else (), decided_step=m.step if decided else None,
