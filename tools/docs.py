@@ -138,6 +138,7 @@ def collect(progress: Callable[[str], None] = print) -> dict[str, Any]:
     """Run everything the README documents (minutes on 2 cores)."""
     import ra2vipas
     from ra2vipas.services.orchestrator.plots import dr_figure, render
+    from ra2vipas.services.orchestrator.robustness import SCENARIOS
     from ra2vipas.services.orchestrator.robustness import run as run_robustness
 
     workers = os.cpu_count() or 1
@@ -152,8 +153,6 @@ def collect(progress: Callable[[str], None] = print) -> dict[str, Any]:
     progress("paper with --stop-confidence 0.95, seed 1")
     early = ra2vipas.simulate(preset="paper", tests=TESTS, seed=1, stop_confidence=0.95, workers=workers)
     data["early_decision"] = {"stop_confidence": 0.95, "seed": 1, **_campaign_summary(early)}
-    from ra2vipas.services.orchestrator.robustness import SCENARIOS
-
     progress(f"bench robustness ({len(SCENARIOS)} worlds)")
     data["robustness"] = run_robustness(tests=TESTS, seed=1, workers=workers)
     progress("the check campaign")

@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
@@ -100,9 +100,7 @@ class LearnerSettings:
         """``base`` (default: the defaults) with ``shadowing`` set from the campaign's public propagation
         model: whether its ``shadowing_db`` (sigma_S, what the operator configured, as the range cue reads
         it, ``RangeModel.from_scenario``) is positive. The training stream cannot say it (``fit_pod``)."""
-        import dataclasses
-
-        return dataclasses.replace(base or cls(), shadowing=float(getattr(scenario, "shadowing_db", 0.0) or 0.0) > 0.0)
+        return replace(base or cls(), shadowing=scenario.shadowing_db > 0.0)
 
 
 @dataclass(frozen=True)
@@ -609,7 +607,7 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
     packets = any(s.iso_rssi_dbm is None for s in samples)
     phi = 0.0
     offsets = None
-    noise = None  # (R, phi) the model reports when they are not the deconvolution's (shadowing)
+    reported = None  # the noise (R, phi) the model reports when it is not the deconvolution's (shadowing)
     if packets:  # protocol 1.3: 0..n advertisements per sample (docs/radio.md)
         a, b, R, rc, grid, log_rssi, offsets = _packet_evidence(samples, cfg, min_var)
     else:
@@ -620,7 +618,7 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
                 # the stream's stationary swings are fading or shadowing, and z cannot tell which: keep
                 # them in the latent RSSI (the white walk: only its white noise is deconvolved); the
                 # controller still gets the fading fit's noise (what the level it reads swings by)
-                noise = (fR, fphi)
+                reported = (fR, fphi)
             elif fphi >= cfg.min_fading:
                 a, b, R, phi = fa, fb, fR, fphi
         grid = np.linspace(z.min() - cfg.grid_margin_db, z.max() + cfg.grid_margin_db, cfg.grid_points)
@@ -655,16 +653,17 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
         trials = post.sum(axis=0) * nu
         f, std = _gp_on_cells(u, np.clip(post.T @ k - q * trials, 0.0, None), trials * (1.0 - q), theta, m0, nu, tau2)
 
+    noise_var, noise_phi = reported or (R, phi)
     model = PODModel(
         rssi_grid_dbm=tuple(float(v) for v in grid),
         mean=tuple(float(v) for v in np.clip(f, 0.0, 1.0)),
         std=tuple(float(v) for v in std),
-        rf_noise_db=math.sqrt(R if noise is None else noise[0]),
-        rf_noise_correlation=round(float(phi if noise is None else noise[1]), 6),
+        rf_noise_db=math.sqrt(noise_var),
+        rf_noise_correlation=round(float(noise_phi), 6),
         n_train=int(z.size),
         frames_per_rf=int(nu),
     )
-    return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R), fading=phi if noise is None else noise[1],
+    return LearnedPOD(model=model, train_seconds=time.perf_counter() - started, diffusion=(a, b, R), fading=noise_phi,
                       channel_offsets=offsets or None)
 
 

@@ -63,7 +63,8 @@ class TagOutcome:
 def _from_cache(scenario: Scenario, seed: int, settings: LearnerSettings | None) -> tuple[PODCache | None, str, CachedPOD | None]:
     """The POD model cache in force (None: off), the training job id of (scenario, seed), and the
     scored model the cache holds for it (None: none; a learner service's model, unscored, is not one)."""
-    store, job = PODCache.from_environment(LearnerSettings.for_scenario(scenario, settings)), training_job_id(scenario, seed)
+    # the key is (scenario, seed) and the settings given: what ``for_scenario`` adds is the scenario's
+    store, job = PODCache.from_environment(settings or LearnerSettings()), training_job_id(scenario, seed)
     hit = store.load(job) if store is not None else None
     return store, job, (hit if hit is not None and hit.r2 is not None else None)
 

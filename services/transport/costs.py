@@ -115,8 +115,8 @@ def step_breakdown(controller: list[StepCosts], sensors: list[StepCosts], latenc
     lacks the sensors' first step and the first measurement's transport, the sensors' view the
     controller's last step and the last measurement's transport: about one step per episode,
     visible only where the transport is ~0, as in a one-process rig). ``step_ms`` is the
-    controller's span per step (from its first measurement's arrival: the episode's set-up is
-    not a step),
+    controller's span per step (from the start of its first measurement's handling: the
+    episode's set-up is not a step),
     measured as one interval; ``parts_sum_ms`` the sum of the parts. With several episodes in
     flight per rig a step's ``queued`` time is mostly other episodes' steps: ``*_busy_ms`` (the
     stages but the queue) is what one step costs each node's worker thread.
