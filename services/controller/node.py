@@ -178,8 +178,7 @@ class ControllerNode:
         # campaign id -> the rig's descriptor when its first episode arrived (None: undescribed), or
         # _ASKING while the query is out; one query per campaign, so a campaign sees one rig model
         self.descriptors: dict[str, object] = {}
-        # the last one this rig's sensors served (any campaign), forgotten when their liveliness token goes
-        self._last_descriptor: RigDescriptor | None = None
+        self._last_descriptor: RigDescriptor | None = None  # the last one this rig's sensors served (any campaign)
         self._described: dict[str, list[str]] = {}  # campaign id -> episodes waiting for the descriptor
         self._command_key = keys.command(rig)
         warm_up()
@@ -187,17 +186,8 @@ class ControllerNode:
             bus.subscribe(keys.episode_control(rig), lambda _k, p: self.loop.post(self._on_control, p)),
             self.loop.feed(bus, keys.measurement(rig), self._on_measurement),  # the worker takes them itself
             bus.serve(keys.rig_policies(rig), lambda _k, _p: info_payload),
-            bus.watch_alive(keys.alive("sensors", rig), lambda _k, alive: self.loop.post(self._on_sensors_alive, alive)),
             bus.announce(keys.alive("controller", rig)),  # last: whoever sees it may query the policies
         ]
-
-    def _on_sensors_alive(self, alive: bool) -> None:
-        """This rig's sensors' liveliness token came or went. Gone (the node stopped, or its link
-        was down past Zenoh's lease): whatever node comes back under this rig's name may be
-        another, perhaps a v1 node serving no descriptor, so what the old one said is no longer
-        the rig's (``_on_descriptor``'s fallback)."""
-        if not alive:
-            self._last_descriptor = None
 
     # -- episode lifecycle ------------------------------------------------------------------
     def _on_control(self, payload: bytes) -> None:

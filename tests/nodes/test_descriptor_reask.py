@@ -51,7 +51,7 @@ def _wait(predicate, timeout=10.0):
 
 def test_a_descriptor_query_nobody_answered_is_asked_again_and_the_rig_is_described(tmp_path, monkeypatch):
     monkeypatch.setattr(scheduler_module, "DESCRIPTOR_REASK_S", (0.2, 0.4))
-    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_info(RIG), keys.rig_policies(RIG)), unrouted=1) as (store, scheduler, view, _nodes):
+    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_info(RIG), keys.rig_policies(RIG)), unrouted=1) as (store, scheduler, view):
         rig = scheduler.rigs[RIG]
         assert rig.described == "described" and rig.descriptor is not None and rig.descriptor.rig == RIG
         assert rig.announced == "announced"
@@ -75,7 +75,7 @@ def test_a_controllers_descriptor_query_nobody_answered_is_asked_again_and_the_c
     flake of tests/deploy/test_multihost.py, on the controller's side: a campaign started right
     after a link came back had all its episodes modelled from the scenario): a query no node
     answered is asked again, and the campaign is modelled from the descriptor, as simulate does."""
-    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=2) as (store, scheduler, view, _nodes):
+    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=2) as (store, scheduler, view):
         c = run_to_end(store, scheduler, "paper", SMALL, 2, 3, ["rapas"], timeout=60.0)
         assert c["status"] == "done", c["error"]
         assert view.asked.count(keys.rig_info(RIG)) == 3  # two unanswered, the third answered
@@ -94,7 +94,7 @@ def _rig_on_a_bus(tmp_path, seen_by: str, on_keys: tuple[str, ...], unrouted: in
     nodes = [SensorsNode(bus, RIG), ControllerNode(view if seen_by == "controller" else bus, RIG), LearnerNode(bus)]
     try:
         _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
-        yield store, scheduler, view, nodes
+        yield store, scheduler, view
     finally:
         scheduler.close()
         for n in nodes:
@@ -116,7 +116,7 @@ def test_a_controller_whose_rig_described_itself_before_keeps_that_descriptor_th
     tests/deploy/test_multihost.py: a 3 s cut right as a campaign started, all 16 episodes modelled
     from the scenario): a controller whose rig's sensors served a descriptor for an earlier
     campaign uses that one rather than taking its rig for a v1 node."""
-    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view, _nodes):
+    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view):
         first = run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["rapas"], timeout=60.0)
         assert first["status"] == "done" and "assumptions" not in first["results"]
         view._left[keys.rig_info(RIG)] = 3  # the next campaign's query and both re-asks go unrouted
@@ -125,23 +125,3 @@ def test_a_controller_whose_rig_described_itself_before_keeps_that_descriptor_th
         assert c["status"] == "done", c["error"]
         assert view.asked[asked:].count(keys.rig_info(RIG)) == 3  # asked, and asked again twice: no answer
         assert "assumptions" not in c["results"]  # modelled from the descriptor the rig served before
-
-
-def test_a_controller_forgets_its_rigs_descriptor_once_the_sensors_node_is_gone(tmp_path, monkeypatch):
-    """The rig's described sensors node stops and a v1 node (no descriptor) takes the rig's name:
-    the controller no longer models the rig from what the old node said (the fallback above is
-    for a node still there behind a link cut), so the next campaign is modelled from its
-    scenario and says so, as the orchestrator, which sees the v1 node, does."""
-    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view, nodes):
-        first = run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["rapas"], timeout=60.0)
-        assert first["status"] == "done" and "assumptions" not in first["results"]
-        nodes[0].close()  # its liveliness token goes with it
-        _wait(lambda: not scheduler.rigs.get(RIG) or not scheduler.rigs[RIG].ready)
-        nodes.append(SensorsNode(view._bus, RIG, describe=False))
-        _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready and scheduler.rigs[RIG].described == "undescribed")
-        asked = len(view.asked)
-        c = run_to_end(store, scheduler, "paper", SMALL, 2, 4, ["rapas"], timeout=60.0)
-        assert c["status"] == "done", c["error"]
-        assert view.asked[asked:].count(keys.rig_info(RIG)) == 3  # asked, and asked again twice: no node answers
-        assumptions = c["results"]["assumptions"]
-        assert assumptions["sensor_model"] == "scenario" and assumptions["episodes"] == assumptions["of"] == 2, assumptions
