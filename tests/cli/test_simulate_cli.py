@@ -257,7 +257,8 @@ def _check_breakdown(b: dict, episodes: int, steps: int) -> None:
     # last one; neither counts the wait for its first message, the episode's set-up, which once made a loaded
     # machine's views differ by 10 % of a step): a few percent of a step, which only shows where the transport is ~0
     # (a one-process rig, whose two nodes hand each other messages inside one session)
-    assert b["step_ms"] > 0 and b["transport_ms"] >= 0 and b["transport_ms_sensors_view"] >= -0.05 * b["step_ms"], b
+    edge = -0.05 * b["step_ms"]  # the same edge term for both views: each lacks one step of the other node
+    assert b["step_ms"] > 0 and b["transport_ms"] >= edge and b["transport_ms_sensors_view"] >= edge, b
     assert b["parts_sum_ms"] == pytest.approx(b["step_ms"], rel=0.02), b
     own = sum(b["controller"][s] + b["sensors"][s] for s in stages)
     assert own + b["transport_ms"] == pytest.approx(b["parts_sum_ms"], abs=1e-3)
