@@ -39,12 +39,14 @@ from ra2vipas.cli.services import (
     ModeOpt,
     OldModeOpt,
     PolicyOpt,
+    RealtimePriorityOpt,
     open_error,
     served_policies,
     warn_if_unreachable,
     warn_while_alone,
     zenoh_settings,
 )
+from ra2vipas.services.transport.realtime import DEFAULT_PRIORITY
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
 log = logging.getLogger("ra2vipas")
@@ -76,6 +78,7 @@ def rig(
     mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
     zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO",
     split: Annotated[bool, typer.Option("--split", help="A Zenoh session and a worker thread per node (their traffic through the router), as two processes would.")] = False,
+    realtime_priority: RealtimePriorityOpt = DEFAULT_PRIORITY,
 ) -> None:
     """Run one rig, its simulated sensors and its Ra²ViPAS controller, in one process and one Zenoh session."""
     from ra2vipas.services.controller.node import ControllerNode
@@ -111,9 +114,10 @@ def rig(
         warn_while_alone(buses[0].session, settings)
         warn_if_unreachable(settings)
         if not split:
-            loop = EventLoop(f"rig-{name}", inline=True)
-        nodes.append(ControllerNode(buses[-1], name, ControllerSettings(beta=beta), policies=served, loop=loop))
-        nodes.append(SensorsNode(buses[0], name, loop=loop))
+            loop = EventLoop(f"rig-{name}", inline=True, realtime_priority=realtime_priority)
+        nodes.append(ControllerNode(buses[-1], name, ControllerSettings(beta=beta), policies=served, loop=loop,
+                                    realtime_priority=realtime_priority))
+        nodes.append(SensorsNode(buses[0], name, loop=loop, realtime_priority=realtime_priority))
         gc.collect()
         gc.freeze()
         sys.setswitchinterval(0.0005)

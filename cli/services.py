@@ -18,6 +18,7 @@ import typer
 from ra2vipas.cli.output import EXIT_USAGE, fail
 from ra2vipas.cli.polish import deprecated, prefer
 from ra2vipas.services.transport import service
+from ra2vipas.services.transport.realtime import DEFAULT_PRIORITY
 from ra2vipas.services.transport.service import ServiceError, open_error, warn_if_unreachable, warn_while_alone  # noqa: F401  (cli.rig)
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 
@@ -29,6 +30,11 @@ ConnectOpt = Annotated[Optional[list[str]], typer.Option("--connect", "-e", meta
 ListenOpt = Annotated[Optional[list[str]], typer.Option("--listen", "-l", metavar="ENDPOINT", help="Zenoh endpoint to listen on (repeatable) [env RA2VIPAS_ZENOH_LISTEN].")]
 ConfigOpt = Annotated[Optional[str], typer.Option("--zenoh-config", metavar="FILE", help="Zenoh JSON5 configuration file, applied first [env RA2VIPAS_ZENOH_CONFIG].")]
 LogOpt = Annotated[str, typer.Option("--log-level", envvar="RA2VIPAS_LOG_LEVEL", help="Log level.")]
+RealtimePriorityOpt = Annotated[int, typer.Option(
+    "--realtime-priority", envvar="RA2VIPAS_REALTIME_PRIORITY", min=0, max=49,
+    help="SCHED_FIFO priority of the control loop's threads while this process runs realtime episodes only "
+         "(1-49; 0: off). Needs root, CAP_SYS_NICE or an RLIMIT_RTPRIO; without, it says so once and runs at the "
+         "ordinary priority. A fast episode in flight turns it off (a lockstep never sleeps).")]
 RigOpt = Annotated[str, typer.Option("--rig", envvar="RA2VIPAS_RIG", help="Rig name (one sensing platform and its controller).")]
 PolicyOpt = Annotated[Optional[list[str]], typer.Option("--policy", "-p", metavar="NAME", envvar="RA2VIPAS_POLICY", help="A pointing policy this controller serves: an installed name (ra2vipas policies) or module:Class (repeatable or comma-separated) [env RA2VIPAS_POLICY; default: every installed policy]. The orchestrator hands this rig only episodes of these.")]
 
@@ -69,6 +75,7 @@ def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
 def sensors(rig: RigOpt = "rig-1",
             hardware: Annotated[Optional[list[str]], typer.Option("--hardware", metavar="NAME=VALUE", help="Pin a hardware parameter of this simulated rig (repeatable): frames_per_rf, rf_period_s, fov_half_angle_deg, box_bearing_noise_deg, antenna_model (paper|db-gain|unknown), antenna_curvature, antenna_floor_db. Its descriptor says so, and it simulates that hardware whatever a campaign's scenario says.")] = None,
             undescribed: Annotated[bool, typer.Option("--undescribed", help="Serve no rig descriptor (behave as a v1 node).")] = False,
+            realtime_priority: RealtimePriorityOpt = DEFAULT_PRIORITY,
             mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
             zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
     """Run a rig's simulated sensors: the world, the camera detector, Rx(iso) and Rx(dir)."""
@@ -92,12 +99,12 @@ def sensors(rig: RigOpt = "rig-1",
         fail(str(err), EXIT_USAGE)
     _claim_cpu()
     run_node(f"sensors[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config, old_mode),
-             lambda bus: SensorsNode(bus, rig, descriptor=descriptor, describe=not undescribed))
+             lambda bus: SensorsNode(bus, rig, descriptor=descriptor, describe=not undescribed, realtime_priority=realtime_priority))
 
 
 def controller(rig: RigOpt = "rig-1", beta: Annotated[float, typer.Option(min=0.0, help="UCB exploration weight beta.")] = 4.0,
                policy: PolicyOpt = None, mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
-               zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO") -> None:
+               zenoh_config: ConfigOpt = None, log_level: LogOpt = "INFO", realtime_priority: RealtimePriorityOpt = DEFAULT_PRIORITY) -> None:
     """Run a rig's controller: measurements in, pan commands out, for the pointing policies it
     serves (--policy; default every installed one), which it announces on rig/{rig}/policies."""
     from ra2vipas.services.controller.node import ControllerNode
@@ -110,7 +117,7 @@ def controller(rig: RigOpt = "rig-1", beta: Annotated[float, typer.Option(min=0.
     served = list(served_policies(policy).values())
     _claim_cpu()
     run_node(f"controller[{rig}]", zenoh_settings(mode, connect, listen, zenoh_config, old_mode),
-             lambda bus: ControllerNode(bus, rig, ControllerSettings(beta=beta), policies=served))
+             lambda bus: ControllerNode(bus, rig, ControllerSettings(beta=beta), policies=served, realtime_priority=realtime_priority))
 
 
 def learner(name: Annotated[str, typer.Option("--name", envvar="RA2VIPAS_LEARNER_NAME", help="Instance name.")] = "learner",

@@ -119,16 +119,19 @@ def stack_bus(stack: Stack, workers: int | None = None):
 
 class CostListener:
     """Joins a stack's Zenoh network (its credentials) and keeps every episode result and
-    timing report the rigs publish: the stage costs the nodes measured (``StepCosts``)."""
+    timing report the rigs (or the one ``rig``) publish: the stage costs the nodes measured
+    (``StepCosts``)."""
 
-    def __init__(self, stack: Stack) -> None:
+    def __init__(self, stack: Stack, rig: str | None = None) -> None:
         from ra2vipas.services.protocol import keys
 
         self.results: list[bytes] = []
         self.timings: list[bytes] = []
         self.bus = stack_bus(stack, workers=1)
-        self.bus.subscribe(keys.episode_result_all(), lambda _k, p: self.results.append(p))
-        self.bus.subscribe(keys.episode_timing_all(), lambda _k, p: self.timings.append(p))
+        result_key = keys.episode_result(rig) if rig else keys.episode_result_all()
+        timing_key = keys.episode_timing(rig) if rig else keys.episode_timing_all()
+        self.bus.subscribe(result_key, lambda _k, p: self.results.append(p))
+        self.bus.subscribe(timing_key, lambda _k, p: self.timings.append(p))
 
     def clear(self) -> None:
         self.results.clear()

@@ -16,6 +16,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--policy", "-p", action="append", metavar="NAME",
                    help="A pointing policy this controller serves: an installed name or module:Class (repeatable or "
                         "comma-separated) [env RA2VIPAS_POLICY; default: every installed policy].")
+    service.add_realtime_priority(p)
     args = service.parse(p, argv)
     if args.beta < 0:
         p.error(f"Invalid value for '--beta': {args.beta:g} is not in the range x>=0")
@@ -35,7 +36,8 @@ def main(argv: list[str] | None = None) -> None:
         raise service.ServiceError(str(err), service.EXIT_USAGE) from None
     service.claim_cpu()
     service.run_node(f"controller[{args.rig}]", service.zenoh_of(args),
-                     lambda bus: ControllerNode(bus, args.rig, ControllerSettings(beta=args.beta), policies=served))
+                     lambda bus: ControllerNode(bus, args.rig, ControllerSettings(beta=args.beta), policies=served,
+                                                realtime_priority=args.realtime_priority))
 
 
 if __name__ == "__main__":

@@ -163,7 +163,7 @@ class ControllerNode:
     installed policy). Raises ``registry.UnknownPolicy`` for one that does not load."""
 
     def __init__(self, bus: Bus, rig: str, settings: ControllerSettings | None = None,
-                 policies: Sequence[str] | None = None, loop: EventLoop | None = None) -> None:
+                 policies: Sequence[str] | None = None, loop: EventLoop | None = None, realtime_priority: int = 0) -> None:
         self.bus = bus
         self.rig = keys.check_chunk(rig)
         self.settings = settings or ControllerSettings()
@@ -171,7 +171,7 @@ class ControllerNode:
         self.info = controller_info(self.rig, self.served)
         info_payload = dump(self.info)
         self._own_loop = loop is None  # else shared with the rig's sensors (``ra2vipas rig``), stopped by its owner
-        self.loop = EventLoop(f"controller-{rig}") if loop is None else loop
+        self.loop = EventLoop(f"controller-{rig}", realtime_priority=realtime_priority) if loop is None else loop
         self.episodes: dict[str, _Episode] = {}
         self.models: dict[str, PODModel] = {}
         self._waiting: dict[str, list[str]] = {}  # job id -> episodes waiting for that model
@@ -195,11 +195,12 @@ class ControllerNode:
         if msg is None:
             return
         if isinstance(msg, EpisodeStop):
-            self.episodes.pop(msg.episode_id, None)
+            self._drop(msg.episode_id)
             return
         if msg.episode_id in self.episodes:
             return
         self.episodes[msg.episode_id] = _Episode(start=msg)
+        self.loop.realtime.began(("controller", msg.episode_id), msg.mode is Mode.realtime)
         if msg.algorithm not in self.served:
             self._fail(msg.episode_id, f"controller of rig {self.rig} does not serve policy {msg.algorithm!r}; it serves: "
                                        f"{', '.join(self.served)}")
@@ -297,8 +298,15 @@ class ControllerNode:
             return
         self.loop.send(self.bus, self._command_key, _command(episode_id, 0, float(ep.policy.first_pan())))
 
+    def _drop(self, episode_id: str) -> "_Episode | None":
+        """Forget an episode (ended, stopped or failed): its scheduling class no longer counts."""
+        ep = self.episodes.pop(episode_id, None)
+        if ep is not None:
+            self.loop.realtime.ended(("controller", episode_id))
+        return ep
+
     def _fail(self, episode_id: str, error: str) -> None:
-        if self.episodes.pop(episode_id, None) is None:
+        if self._drop(episode_id) is None:
             return
         log.error("episode %s failed: %s", episode_id, error)
         self.bus.publish(keys.episode_result(self.rig), dump(EpisodeResult(episode_id=episode_id, rig=self.rig, status="failed", error=error[:2000])))
@@ -346,7 +354,7 @@ class ControllerNode:
             costs.lap("publish")
             costs.replied()
             return
-        self.episodes.pop(m.episode_id, None)
+        self._drop(m.episode_id)
         costs.lap("compute")
         costs.replied()  # the span ends here: the episode's model check and its result's encoding are no step's
         check = model_check(ep.sensors, ep.policy.controller if isinstance(ep.policy, BuiltinPolicy) else None)

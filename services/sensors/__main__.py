@@ -15,6 +15,7 @@ def main(argv: list[str] | None = None) -> None:
                    help="Pin a hardware parameter of this simulated rig (repeatable): frames_per_rf, rf_period_s, "
                         "fov_half_angle_deg, box_bearing_noise_deg, antenna_model, antenna_curvature, antenna_floor_db.")
     p.add_argument("--undescribed", action="store_true", help="Serve no rig descriptor (behave as a v1 node).")
+    service.add_realtime_priority(p)
     args = service.parse(p, argv)
     from ra2vipas.services.protocol.keys import check_chunk
     from ra2vipas.services.protocol.scenario import ScenarioError, parse_value
@@ -36,7 +37,8 @@ def main(argv: list[str] | None = None) -> None:
         raise service.ServiceError(str(err), service.EXIT_USAGE) from None
     service.claim_cpu()
     service.run_node(f"sensors[{args.rig}]", service.zenoh_of(args),
-                     lambda bus: SensorsNode(bus, args.rig, descriptor=descriptor, describe=not args.undescribed))
+                     lambda bus: SensorsNode(bus, args.rig, descriptor=descriptor, describe=not args.undescribed,
+                                             realtime_priority=args.realtime_priority))
 
 
 if __name__ == "__main__":

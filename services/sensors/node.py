@@ -79,7 +79,7 @@ class SensorsNode:
     ``loop``, a loop it shares with its rig's controller on the same bus: ``ra2vipas rig``)."""
 
     def __init__(self, bus: Bus, rig: str, clock=time.monotonic, descriptor: RigDescriptor | None = None,
-                 describe: bool = True, loop: EventLoop | None = None) -> None:
+                 describe: bool = True, loop: EventLoop | None = None, realtime_priority: int = 0) -> None:
         self.bus = bus
         self.rig = keys.check_chunk(rig)
         self.descriptor = descriptor or simulated_descriptor(rig)
@@ -88,7 +88,7 @@ class SensorsNode:
         self.clock = clock
         self.report_costs = describe  # a node that serves no descriptor speaks 1.0: no StepCosts (1.2)
         self._own_loop = loop is None  # else shared with the rig's controller (``ra2vipas rig``), stopped by its owner
-        self.loop = EventLoop(f"sensors-{rig}") if loop is None else loop
+        self.loop = EventLoop(f"sensors-{rig}", realtime_priority=realtime_priority) if loop is None else loop
         self.episodes: dict[str, _Episode] = {}
         self._finished: dict[str, None] = {}
         self._early: dict[str, list[bytes]] = {}  # commands that overtook their EpisodeStart
@@ -98,6 +98,7 @@ class SensorsNode:
         self._closing = False
         self._timer_thread = threading.Thread(target=self._run_timers, name=f"sensors-timer-{rig}", daemon=True)
         self._timer_thread.start()
+        self.loop.realtime.add_thread(self._timer_thread.native_id)  # it times the samples: realtime with the worker
         self._measurement_key = keys.measurement(rig)
         self._handles = [
             bus.subscribe(keys.episode_control(rig), lambda _k, p: self.loop.post(self._on_control, p)),
@@ -123,6 +124,7 @@ class SensorsNode:
             return  # duplicate start
         platform = SimulatedPlatform(self.hardware(msg.scenario), msg.seed, msg.test_index)
         self.episodes[msg.episode_id] = _Episode(start=msg, platform=platform, pan=msg.scenario.initial_pan_rad)
+        self.loop.realtime.began(("sensors", msg.episode_id), msg.mode is Mode.realtime)
         self._finished.pop(msg.episode_id, None)
         self.bus.publish(keys.episode_truth(self.rig), dump(episode_truth(platform.truth, msg.episode_id)))
         for early in self._early.pop(msg.episode_id, []):
@@ -254,6 +256,7 @@ class SensorsNode:
             with self._timer_cv:  # no more ticks (one already queued runs and finds no episode)
                 self._clocks.pop(episode_id, None)
         if self.episodes.pop(episode_id, None) is not None:
+            self.loop.realtime.ended(("sensors", episode_id))
             self._finished[episode_id] = None
             while len(self._finished) > 10000:
                 self._finished.pop(next(iter(self._finished)))

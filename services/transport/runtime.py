@@ -16,6 +16,7 @@ from typing import Any, Callable, Iterable
 
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import ErrorReply, decode, dump, error_text
+from ra2vipas.services.transport.realtime import RealtimeClass
 
 log = logging.getLogger(__name__)
 
@@ -62,9 +63,13 @@ class EventLoop:
     CPU's caches, and episodes finish one after another instead of all at once; what a posted
     event's handler delivers (an episode's first command) joins the back, so no exchange waits
     behind more than the ones queued before it started.
+
+    ``realtime_priority`` (1-49; 0: off): while every episode its nodes have in flight is a realtime
+    one (they say so through ``realtime``), the worker runs under ``SCHED_FIFO`` at that priority,
+    where the process may (``services/transport/realtime.py``).
     """
 
-    def __init__(self, name: str, inline: bool = False) -> None:
+    def __init__(self, name: str, inline: bool = False, realtime_priority: int = 0) -> None:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self.posted_ns = 0
         self.started_ns = 0
@@ -79,6 +84,9 @@ class EventLoop:
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
         self._ident = self._thread.ident
+        # SCHED_FIFO for the worker (and threads nodes add) while realtime episodes only are in flight
+        self.realtime = RealtimeClass(realtime_priority)
+        self.realtime.add_thread(self._thread.native_id)
 
     def post(self, fn: Callable[..., None], *args) -> None:
         """Queue ``fn(*args)`` to run on the worker thread (dropped once the loop is stopped)."""

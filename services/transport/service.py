@@ -207,6 +207,25 @@ def parser(prog: str, description: str) -> argparse.ArgumentParser:
     return p
 
 
+def add_realtime_priority(p: argparse.ArgumentParser) -> None:
+    """``--realtime-priority`` (RA2VIPAS_REALTIME_PRIORITY) for the control loop's entries, as the CLI's."""
+    from ra2vipas.services.transport.realtime import ENV, MAX_PRIORITY, check_priority, priority_from_env
+
+    def priority(text: str) -> int:
+        try:
+            return check_priority(int(text))
+        except ValueError as err:
+            raise argparse.ArgumentTypeError(str(err) if text.strip().lstrip("-").isdigit() else f"not an integer: {text!r}") from None
+
+    try:
+        default = priority_from_env()
+    except ValueError as err:
+        raise ServiceError(str(err), EXIT_USAGE) from None
+    p.add_argument("--realtime-priority", type=priority, default=default, metavar="N",
+                   help=f"SCHED_FIFO priority of the control loop's threads while this process runs realtime episodes only "
+                        f"(1-{MAX_PRIORITY}; 0: off; needs root, CAP_SYS_NICE or an RLIMIT_RTPRIO) [env {ENV}; default {default}].")
+
+
 def parse(p: argparse.ArgumentParser, argv: list[str] | None = None) -> argparse.Namespace:
     """Parse ``argv``; an unknown option is ``error: No such option: NAME`` (exit 2)."""
     args, unknown = p.parse_known_args(argv)
