@@ -116,6 +116,9 @@ class EventLoop:
         inline = getattr(bus, "subscribe_inline", None) if self.inline else None
         if inline is not None:
             self._handlers[key] = handler
+            prepare = getattr(bus, "prepare_remote", None)
+            if prepare is not None:  # another node of this loop sends on ``key`` (``send``): its network publishers now, before the tokens
+                prepare(key)
             return inline(key, lambda _k, p: self._arrive(handler, p))
         make = getattr(bus, "feed", None)
         feed = make(key) if make is not None and self._feed is None else None

@@ -110,7 +110,16 @@ class _ZenohFeed:
 class _RemotePublisher:
     """A publisher to other sessions only, and whether any subscriber there matches it now
     (kept by a matching listener: reading a flag costs a step nothing, asking Zenoh a call
-    that releases and retakes the GIL)."""
+    that releases and retakes the GIL).
+
+    A client's matching status says no subscriber until the router has answered the interest
+    the publisher declares with it (Zenoh 1.x, ``hat/client/pubsub.rs``: the status counts only
+    finalized interests; the data route sends to the router while the interest is pending), so
+    a status read right after the declaration can say False with a recorder subscribed, and a put
+    skipped on it is lost. ``ZenohBus.prepare_remote`` declares it before the node's liveliness
+    token: the router answers the interest before it sees the token, hence before anyone who
+    waits for the token can start an episode; the first put reads the status once itself, from
+    the routing tables, instead of the flag a listener task updates later."""
 
     def __init__(self, session: zenoh.Session, key: str, express: bool) -> None:
         self.pub = session.declare_publisher(
@@ -123,9 +132,16 @@ class _RemotePublisher:
         self.matching = True  # until the listener is in place: put rather than miss someone
         self._listener = self.pub.declare_matching_listener(self._on_status)
         self.matching = self.pub.matching_status.matching
+        self.checked = False  # the first put reads the status itself (class docstring)
 
     def _on_status(self, status: "zenoh.MatchingStatus") -> None:
         self.matching = status.matching
+
+    def check(self) -> bool:
+        """Whether a subscriber elsewhere matches, from Zenoh's tables (once; then the flag)."""
+        self.checked = True
+        self.matching = matching = self.pub.matching_status.matching
+        return matching
 
     def undeclare(self) -> None:
         self._listener.undeclare()
@@ -157,19 +173,33 @@ class ZenohBus:
                     self._publishers[(key, express)] = pub
         pub.put(payload)
 
-    def publish_remote(self, key: str, encode: Callable[[], bytes], express: bool = False) -> bool:
-        """Put ``encode()`` on ``key`` for other sessions only (never this session's own
-        subscribers: the caller hands its own process the message itself), and only while a
-        subscriber elsewhere matches ``key`` (Zenoh's matching status, kept by the router's
-        declarations; with none, ``encode`` is not even called: Zenoh would send nothing
-        anyway). Returns whether it was put."""
+    def _remote(self, key: str, express: bool) -> _RemotePublisher:
         remote = self._remote_publishers.get((key, express))
         if remote is None:
             with self._lock:
                 remote = self._remote_publishers.get((key, express))
                 if remote is None:
                     remote = self._remote_publishers[(key, express)] = _RemotePublisher(self.session, key, express)
-        if not remote.matching:
+        return remote
+
+    def prepare_remote(self, key: str) -> None:
+        """Declare ``publish_remote``'s publishers of ``key`` (express or not) now, ahead of its
+        first put: a node that will send on ``key`` calls it before its liveliness token
+        (``EventLoop.feed``), so Zenoh knows who subscribes before any episode comes
+        (``_RemotePublisher``)."""
+        for express in (False, True):
+            self._remote(key, express)
+
+    def publish_remote(self, key: str, encode: Callable[[], bytes], express: bool = False) -> bool:
+        """Put ``encode()`` on ``key`` for other sessions only (never this session's own
+        subscribers: the caller hands its own process the message itself), and only while a
+        subscriber elsewhere matches ``key`` (Zenoh's matching status, kept by the router's
+        declarations; with none, ``encode`` is not even called: Zenoh would send nothing
+        anyway). Returns whether it was put. A key not prepared (``prepare_remote``) has its
+        publisher declared here: a subscriber may then miss the first puts while the router
+        answers the publisher's interest."""
+        remote = self._remote(key, express)
+        if not (remote.matching if remote.checked else remote.check()):
             return False
         remote.pub.put(encode())
         return True

@@ -220,6 +220,54 @@ def test_publish_remote_reaches_other_sessions_only_and_only_while_one_subscribe
         b.close()
 
 
+def test_a_client_rig_puts_its_first_step_for_a_subscriber_that_was_there_before_its_token():
+    """The rig as ``ra2vipas up`` runs it: a Zenoh client of a router. Whoever subscribed to its
+    step keys before it announced itself (a recorder: ``campaign start --record``) gets the
+    first message it sends once someone who saw its token starts it. A client's matching status
+    says no subscriber until the router has answered the interest the publisher declared, so a
+    publisher declared at the first put could skip it (a fresh-clone run: a recording without
+    the first episode's step-0 measurement); the rig's publishers are declared when its node
+    subscribes, before the token (``ZenohBus.prepare_remote``). Several fresh rig sessions: the
+    skip was a race each of them could lose."""
+    port = _free_port()
+    base = {"multicast_scouting": False}
+    router = ZenohBus(ZenohSettings(mode="router", listen=(f"tcp/127.0.0.1:{port}",), **base))
+    client = {"mode": "client", "connect": (f"tcp/127.0.0.1:{port}",), **base}
+    observer = ZenohBus(ZenohSettings(**client))
+    seen: list[str] = []
+    up: set[str] = set()
+    try:
+        observer.subscribe(f"{keys.PREFIX}/data/*/command", lambda _k, p: seen.append(Command.model_validate_json(p).episode_id))
+        observer.watch_alive(keys.alive_all(), lambda k, alive: up.add(k) if alive else up.discard(k))
+        for n in range(8):
+            rig, eid = f"rig-{n}", f"c.{n}.rapas.1.first"
+            rig_bus = ZenohBus(ZenohSettings(**client))
+            loop = EventLoop(f"rig-{rig}", inline=True)
+            try:
+                got: list = []
+                loop.feed(rig_bus, keys.command(rig), got.append)  # the "sensors"
+                # the "controller": on the start, its first command (``ControllerNode._begin``)
+                rig_bus.subscribe(keys.episode_control(rig), lambda _k, _p, rig=rig, eid=eid, loop=loop, bus=rig_bus: loop.post(
+                    lambda: loop.send(bus, keys.command(rig), Command(episode_id=eid, step=0, pan_rad=0.0))))
+                rig_bus.announce(keys.alive("sensors", rig))
+                deadline = time.monotonic() + 10
+                while keys.alive("sensors", rig) not in up and time.monotonic() < deadline:
+                    time.sleep(0.005)
+                assert keys.alive("sensors", rig) in up
+                observer.publish(keys.episode_control(rig), b"start")  # the orchestrator, once it saw the token
+                deadline = time.monotonic() + 10
+                while eid not in seen and time.monotonic() < deadline:
+                    time.sleep(0.005)
+                assert len(got) == 1, "the rig's own node did not get the command"
+                assert seen.count(eid) == 1, f"round {n}: the first command never reached the subscriber ({seen})"
+            finally:
+                loop.stop()
+                rig_bus.close()
+    finally:
+        observer.close()
+        router.close()
+
+
 @pytest.mark.parametrize("observed", [True, False], ids=["observed", "unobserved"])
 def test_a_one_session_rig_publishes_every_step_on_the_network_and_equals_simulate(tmp_path, observed):
     """Observed (another session subscribes to the rig's step keys), every command and
