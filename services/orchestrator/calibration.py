@@ -219,6 +219,17 @@ def platt(raw: np.ndarray, covariates: np.ndarray, *coefficients: float) -> np.n
 # sanity limits a few times what another CPU moved.
 MAP_TOLERANCE = {"nll_nats": 2.0, "confidence": 0.05, "ece": 0.002}
 
+# The joint search's map (``bench calibrate --joint``: 20 tests of 2-3 tags, ~20 000 tag-steps) is
+# determined less sharply, and another CPU moves its data more: each step's confidence comes from
+# three tags' chains of decisions, and a last-bit difference that flips one pan changes the rest
+# of the episode for every tag. Measured on a 2-core AMD EPYC (Zen 4), against the map the
+# previous machine fitted with the same command: 1.92 nats, confidences by <= 0.028, ECE by
+# 0.0020 (the ECE's bootstrap standard deviation on those steps: 0.0015). Still within the
+# refit's own confidence region (2 x 4 nats = 8: chi-squared_7, p = 0.33), and ECE within about
+# 2.5 bootstrap standard deviations; the single-tag map, which the joint search used before, is
+# 321 nats away on the same steps.
+JOINT_MAP_TOLERANCE = {"nll_nats": 4.0, "confidence": 0.05, "ece": 0.004}
+
 
 def map_agreement(raw: np.ndarray, covariates: np.ndarray, hit: np.ndarray, shipped: Iterable[float],
                   refitted: Iterable[float]) -> dict[str, float]:
@@ -236,9 +247,9 @@ def map_agreement(raw: np.ndarray, covariates: np.ndarray, hit: np.ndarray, ship
             "ece": abs((expected_calibration_error(a, hit) or 0.0) - (expected_calibration_error(b, hit) or 0.0))}
 
 
-def map_drift(agreement: dict[str, float]) -> list[str]:
-    """The measures of ``map_agreement`` beyond ``MAP_TOLERANCE`` (empty: the same map)."""
-    return [f"{k} {agreement[k]:.4g} > {limit:g}" for k, limit in MAP_TOLERANCE.items() if not agreement[k] <= limit]
+def map_drift(agreement: dict[str, float], tolerance: dict[str, float] = MAP_TOLERANCE) -> list[str]:
+    """The measures of ``map_agreement`` beyond ``tolerance`` (empty: the same map)."""
+    return [f"{k} {agreement[k]:.4g} > {limit:g}" for k, limit in tolerance.items() if not agreement[k] <= limit]
 
 
 def calibrate(algorithms: Iterable[str], tests: int, seed: int, progress: Callable[[str], None] | None = None,
