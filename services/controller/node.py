@@ -178,7 +178,11 @@ class ControllerNode:
         # campaign id -> the rig's descriptor when its first episode arrived (None: undescribed), or
         # _ASKING while the query is out; one query per campaign, so a campaign sees one rig model
         self.descriptors: dict[str, object] = {}
-        self._last_descriptor: RigDescriptor | None = None  # the last one this rig's sensors served (any campaign)
+        # the last one this rig's sensors served (any campaign), checked when their liveliness token comes back
+        self._last_descriptor: RigDescriptor | None = None
+        self._sensors_went = False  # their token went and has not come back yet
+        self._checking = False  # the token came back: the node is being asked for its descriptor again
+        self._after_check: list[str] = []  # campaigns whose descriptor the check decides
         self._described: dict[str, list[str]] = {}  # campaign id -> episodes waiting for the descriptor
         self._command_key = keys.command(rig)
         warm_up()
@@ -186,8 +190,53 @@ class ControllerNode:
             bus.subscribe(keys.episode_control(rig), lambda _k, p: self.loop.post(self._on_control, p)),
             self.loop.feed(bus, keys.measurement(rig), self._on_measurement),  # the worker takes them itself
             bus.serve(keys.rig_policies(rig), lambda _k, _p: info_payload),
+            bus.watch_alive(keys.alive("sensors", rig), lambda _k, alive: self.loop.post(self._on_sensors_alive, alive)),
             bus.announce(keys.alive("controller", rig)),  # last: whoever sees it may query the policies
         ]
+
+    def _on_sensors_alive(self, alive: bool) -> None:
+        """This rig's sensors' liveliness token came or went. Gone: the node stopped, or its link
+        was down past Zenoh's lease, which look alike from here, so nothing is forgotten yet. Back
+        after going: the node may be another, perhaps a v1 node serving no descriptor, so the
+        descriptor the old one served (``_on_descriptor``'s fallback) is checked: asked for again
+        (with the usual re-asks), kept or replaced if the node answers, forgotten if it does not."""
+        if not alive:
+            self._sensors_went = True
+            return
+        if self._sensors_went:
+            self._sensors_went = False
+            if self._last_descriptor is not None and not self._checking:
+                self._checking = True
+                self._check_descriptor(0)
+
+    def _check_descriptor(self, empty: int) -> None:
+        self.bus.query(keys.rig_info(self.rig), b"", DESCRIPTOR_TIMEOUT_S,
+                       lambda replies: self.loop.post(self._on_check, replies, empty))
+
+    def _on_check(self, replies: list[Reply], empty: int) -> None:
+        """The answer to ``_on_sensors_alive``'s check; campaigns that needed the fallback meanwhile
+        (``_after_check``) take its outcome."""
+        if self._sensors_went:  # gone again before it answered: checked when it is back
+            self._checking = False
+            self._resolve_after_check(self._last_descriptor)
+            return
+        if not replies and empty < len(DESCRIPTOR_REASK_S):
+            self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._check_descriptor, empty + 1)
+            return
+        self._checking = False
+        descriptor, _ = first_valid_reply(replies, RigDescriptor, "RigDescriptor")
+        if descriptor is not None and descriptor.rig == self.rig:
+            self._last_descriptor = descriptor
+        else:
+            log.info("rig %s: its sensors came back without a descriptor (a v1 node?); the one the previous node served "
+                     "is forgotten", self.rig)
+            self._last_descriptor = None
+        self._resolve_after_check(self._last_descriptor)
+
+    def _resolve_after_check(self, descriptor: "RigDescriptor | None") -> None:
+        waiting, self._after_check = self._after_check, []
+        for campaign_id in waiting:
+            self._described_as(campaign_id, descriptor)
 
     # -- episode lifecycle ------------------------------------------------------------------
     def _on_control(self, payload: bytes) -> None:
@@ -236,6 +285,9 @@ class ControllerNode:
         if descriptor is not None:
             self._last_descriptor = descriptor
         elif not replies and self._last_descriptor is not None:
+            if self._checking:  # the sensors came back after going: their check says whether the old descriptor holds
+                self._after_check.append(campaign_id)
+                return
             # no node answered at all, again and again (a link cut across the re-asks), but this rig's sensors served a
             # descriptor before: a node that described its hardware is not a v1 node; use what it said
             log.info("rig %s: no node answered the descriptor query; using the one its sensors served last", self.rig)
@@ -243,6 +295,9 @@ class ControllerNode:
         if descriptor is None:
             log.info("rig %s is undescribed%s: modelling it from each campaign's scenario", self.rig,
                      f" ({passed_over[-1]})" if passed_over else "")
+        self._described_as(campaign_id, descriptor)
+
+    def _described_as(self, campaign_id: str, descriptor: "RigDescriptor | None") -> None:
         self.descriptors[campaign_id] = descriptor
         for episode_id in self._described.pop(campaign_id, []):
             ep = self.episodes.get(episode_id)
