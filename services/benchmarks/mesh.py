@@ -43,7 +43,6 @@ class BusyRig:
     def __init__(self, api: str, rig: str, preset: str, algorithms: list[str]) -> None:
         import httpx
 
-        self.api, self.rig = api, rig
         self.body = {"preset": preset, "tests": 1000, "seed": 2, "algorithms": algorithms, "rigs": [rig]}
         self.http = httpx.Client(base_url=api, timeout=30)
         self._stopping = threading.Event()
@@ -213,7 +212,7 @@ def mesh(launch: StackFactory, *, rigs: int, window: int, tests: int, realtime_t
                 fast_part(stack, part)
                 if shared:
                     what = "realtime"
-                    realtime_part(stack, part, False)
+                    realtime_part(stack, part, beside_busy=False)
             except (TimeoutError, RuntimeError) as err:  # a stack that did not start raises a RuntimeError too
                 raise BenchmarkError(f"bench mesh ({what}, {layout} rigs): {err}") from err
             finally:
@@ -233,7 +232,7 @@ def mesh(launch: StackFactory, *, rigs: int, window: int, tests: int, realtime_t
             stack = stack_of(2 if realtime_beside_busy else 1, f"realtime-{layout}", layout)
             try:
                 stack.start()
-                realtime_part(stack, part, realtime_beside_busy)
+                realtime_part(stack, part, beside_busy=realtime_beside_busy)
             except (TimeoutError, RuntimeError) as err:
                 raise BenchmarkError(f"bench mesh (realtime, {layout} rigs): {err}") from err
             finally:

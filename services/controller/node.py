@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Sequence
+from functools import partial
+from typing import Callable, Sequence
 
 from ra2vipas.services.controller import registry
 from ra2vipas.services.controller.builtins import BuiltinPolicy
@@ -207,11 +208,7 @@ class ControllerNode:
             self._sensors_went = False
             if self._last_descriptor is not None and not self._checking:
                 self._checking = True
-                self._check_descriptor(0)
-
-    def _check_descriptor(self, empty: int) -> None:
-        self.bus.query(keys.rig_info(self.rig), b"", DESCRIPTOR_TIMEOUT_S,
-                       lambda replies: self.loop.post(self._on_check, replies, empty))
+                self._ask_descriptor(self._on_check, 0)
 
     def _on_check(self, replies: list[Reply], empty: int) -> None:
         """The answer to ``_on_sensors_alive``'s check; campaigns that needed the fallback meanwhile
@@ -221,7 +218,7 @@ class ControllerNode:
             self._resolve_after_check(self._last_descriptor)
             return
         if not replies and empty < len(DESCRIPTOR_REASK_S):
-            self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._check_descriptor, empty + 1)
+            self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._ask_descriptor, self._on_check, empty + 1)
             return
         self._checking = False
         descriptor, _ = first_valid_reply(replies, RigDescriptor, "RigDescriptor")
@@ -263,12 +260,12 @@ class ControllerNode:
             self.descriptors[msg.campaign_id] = _ASKING
             while len(self.descriptors) > DESCRIPTORS_KEPT:
                 self.descriptors.pop(next(iter(self.descriptors)))
-            self._ask_descriptor(msg.campaign_id, 0)
+            self._ask_descriptor(partial(self._on_descriptor, msg.campaign_id), 0)
 
-    def _ask_descriptor(self, campaign_id: str, empty: int) -> None:
-        """Query the rig's descriptor for a campaign; ``empty``: how many earlier queries no node answered."""
-        self.bus.query(keys.rig_info(self.rig), b"", DESCRIPTOR_TIMEOUT_S,
-                       lambda replies: self.loop.post(self._on_descriptor, campaign_id, replies, empty))
+    def _ask_descriptor(self, answer: Callable[[list[Reply], int], None], empty: int) -> None:
+        """Query the rig's descriptor; ``answer(replies, empty)`` on the loop (a campaign's
+        ``_on_descriptor``, or ``_on_check``); ``empty``: how many earlier queries no node answered."""
+        self.bus.query(keys.rig_info(self.rig), b"", DESCRIPTOR_TIMEOUT_S, lambda replies: self.loop.post(answer, replies, empty))
 
     def _on_descriptor(self, campaign_id: str, replies: list[Reply], empty: int) -> None:
         """The descriptor's answer: a query no node answered at all is asked again after the waits of
@@ -276,7 +273,7 @@ class ControllerNode:
         back, a node just up) before the rig is taken for a v1 node and modelled from the scenario."""
         if not replies and empty < len(DESCRIPTOR_REASK_S):
             log.info("rig %s: no node answered the descriptor query; asking again in %.0f s", self.rig, DESCRIPTOR_REASK_S[empty])
-            self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._ask_descriptor, campaign_id, empty + 1)
+            self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._ask_descriptor, partial(self._on_descriptor, campaign_id), empty + 1)
             return
         descriptor, passed_over = first_valid_reply(replies, RigDescriptor, "RigDescriptor")
         if descriptor is not None and descriptor.rig != self.rig:

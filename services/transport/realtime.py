@@ -32,16 +32,19 @@ DEFAULT_PRIORITY = 10  # SCHED_FIFO 1-99: above ordinary threads, below the kern
 MAX_PRIORITY = 49
 
 
-def priority_from_env(default: int = DEFAULT_PRIORITY) -> int:
-    """``RA2VIPAS_REALTIME_PRIORITY`` (0-49; 0: off), else ``default``; a ValueError says what is wrong."""
-    text = os.environ.get(ENV, "").strip()
-    if not text:
-        return default
+def parse_priority(text: str, what: str = "--realtime-priority") -> int:
+    """A priority as given (0-49; 0: off); a ValueError says what is wrong, naming ``what``."""
     try:
         value = int(text)
     except ValueError:
-        raise ValueError(f"{ENV} must be an integer 0-{MAX_PRIORITY}, got {text!r}") from None
-    return check_priority(value, ENV)
+        raise ValueError(f"{what} must be an integer 0-{MAX_PRIORITY}, got {text!r}") from None
+    return check_priority(value, what)
+
+
+def priority_from_env(default: int = DEFAULT_PRIORITY) -> int:
+    """``RA2VIPAS_REALTIME_PRIORITY`` (0-49; 0: off), else ``default``; a ValueError says what is wrong."""
+    text = os.environ.get(ENV, "").strip()
+    return parse_priority(text, ENV) if text else default
 
 
 def check_priority(value: int, what: str = "--realtime-priority") -> int:

@@ -209,13 +209,13 @@ def parser(prog: str, description: str) -> argparse.ArgumentParser:
 
 def add_realtime_priority(p: argparse.ArgumentParser) -> None:
     """``--realtime-priority`` (RA2VIPAS_REALTIME_PRIORITY) for the control loop's entries, as the CLI's."""
-    from ra2vipas.services.transport.realtime import ENV, MAX_PRIORITY, check_priority, priority_from_env
+    from ra2vipas.services.transport.realtime import ENV, MAX_PRIORITY, parse_priority, priority_from_env
 
     def priority(text: str) -> int:
         try:
-            return check_priority(int(text))
+            return parse_priority(text)
         except ValueError as err:
-            raise argparse.ArgumentTypeError(str(err) if text.strip().lstrip("-").isdigit() else f"not an integer: {text!r}") from None
+            raise argparse.ArgumentTypeError(str(err)) from None
 
     try:
         default = priority_from_env()

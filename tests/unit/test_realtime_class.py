@@ -1,6 +1,7 @@
 """A node's control loop runs under SCHED_FIFO while realtime episodes only are in flight
-(services/transport/realtime.py): the rule on a recording stand-in for the system call, the
-system call on a real worker thread, and the rule as the nodes drive it through a campaign."""
+(services/transport/realtime.py): the rule on a recording stand-in for the system call, and the
+system call on a real worker thread (the rule as a rig's nodes drive it through a campaign:
+tests/nodes/test_realtime_rig.py)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,8 @@ import threading
 
 import pytest
 
-from ra2vipas.services.transport.realtime import RealtimeClass, check_priority, priority_from_env
+from ra2vipas.services.transport.realtime import RealtimeClass, check_priority, parse_priority, priority_from_env
 from ra2vipas.services.transport.runtime import EventLoop
-from tests.nodes.conftest import mesh, run_to_end  # noqa: F401  (the fixture)
 
 
 class Calls:
@@ -87,6 +87,11 @@ def test_a_refusal_is_said_once_undone_and_never_asked_again(caplog):
 
 def test_the_priority_is_checked_from_flags_and_environment(monkeypatch):
     assert check_priority(0) == 0 and check_priority(49) == 49
+    assert parse_priority("12") == 12
+    with pytest.raises(ValueError, match="--realtime-priority must be an integer 0-49, got 'x'"):
+        parse_priority("x")
+    with pytest.raises(ValueError, match="--realtime-priority must be 0-49"):
+        parse_priority("-1")
     with pytest.raises(ValueError, match="0-49"):
         check_priority(50)
     monkeypatch.setenv("RA2VIPAS_REALTIME_PRIORITY", "12")
@@ -117,48 +122,3 @@ def test_the_worker_thread_really_runs_under_sched_fifo_and_goes_back_with_its_n
         assert os.getpriority(os.PRIO_PROCESS, tid) == 3  # the nice value it had, not 0
     finally:
         loop.stop()
-
-
-def test_a_rigs_loop_is_fifo_through_a_realtime_campaign_and_never_through_a_fast_one(mesh):  # noqa: F811
-    """Both nodes of a rig drive the rule: its threads (the worker, the sensors' tick timer) go to
-    SCHED_FIFO when a realtime episode starts and back when it ends; a fast campaign never asks."""
-    calls = Calls()
-    loops: list[EventLoop] = []
-
-    class Loop(EventLoop):
-        def __init__(self, name: str, inline: bool = False, realtime_priority: int = 0) -> None:
-            super().__init__(name, inline)
-            self.realtime = RealtimeClass(realtime_priority, calls)
-            self.realtime.add_thread(self._thread.native_id)
-            loops.append(self)
-
-    import ra2vipas.services.controller.node as controller_node
-    import ra2vipas.services.sensors.node as sensors_node
-
-    original = (controller_node.EventLoop, sensors_node.EventLoop)
-    controller_node.EventLoop = sensors_node.EventLoop = Loop
-    try:
-        _, store, scheduler = mesh({"rig-1": {"sensors": {"realtime_priority": 10}, "controller": {"realtime_priority": 10}}}, window=1)
-    finally:
-        controller_node.EventLoop, sensors_node.EventLoop = original
-    assert len(loops) == 2
-    # this mesh's threads (another test's nodes in this process may have threads of the same names)
-    threads = {tid for loop in loops for tid in loop.realtime._threads}
-    names = {t.name for t in threading.enumerate() if t.native_id in threads}
-    assert len(threads) == 3 and names == {"sensors-rig-1", "controller-rig-1", "sensors-timer-rig-1"}, names
-    small = {"steps": 6, "n_train": 200, "n_targets": 8}
-    c = run_to_end(store, scheduler, "paper", small, 2, 5, ["ra2vipas"])
-    assert c["status"] == "done", c["error"]
-    assert calls.take() == [] and not any(loop.realtime.active for loop in loops)
-    c = run_to_end(store, scheduler, "paper", {**small, "rf_period_s": 0.02}, 2, 5, ["ra2vipas"], mode="realtime")
-    assert c["status"] == "done", c["error"]
-    for loop in loops:
-        assert loop.wait_idle()
-    got = calls.take()
-    assert {tid for tid, on, _ in got if on} == threads  # every thread on a realtime step's path
-    assert all(p == 10 for tid, on, p in got if on)
-    for tid in threads:  # each went to FIFO and back, as often as episodes started and ended, and ended ordinary
-        mine = [on for t, on, _ in got if t == tid]
-        assert mine and mine[0] is True and mine[-1] is False
-        assert all(a != b for a, b in zip(mine, mine[1:]))
-    assert not any(loop.realtime.active for loop in loops)
