@@ -25,8 +25,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from functools import partial
-from typing import Callable, Sequence
+from typing import Sequence
 
 from ra2vipas.services.controller import registry
 from ra2vipas.services.controller.builtins import BuiltinPolicy
@@ -179,11 +178,7 @@ class ControllerNode:
         # campaign id -> the rig's descriptor when its first episode arrived (None: undescribed), or
         # _ASKING while the query is out; one query per campaign, so a campaign sees one rig model
         self.descriptors: dict[str, object] = {}
-        # the last one this rig's sensors served (any campaign), checked when their liveliness token comes back
-        self._last_descriptor: RigDescriptor | None = None
-        self._sensors_went = False  # their token went and has not come back yet
-        self._checking = False  # the token came back: the node is being asked for its descriptor again
-        self._after_check: list[str] = []  # campaigns whose descriptor the check decides
+        self._last_descriptor: RigDescriptor | None = None  # the last one this rig's sensors served (any campaign)
         self._described: dict[str, list[str]] = {}  # campaign id -> episodes waiting for the descriptor
         self._command_key = keys.command(rig)
         warm_up()
@@ -191,49 +186,8 @@ class ControllerNode:
             bus.subscribe(keys.episode_control(rig), lambda _k, p: self.loop.post(self._on_control, p)),
             self.loop.feed(bus, keys.measurement(rig), self._on_measurement),  # the worker takes them itself
             bus.serve(keys.rig_policies(rig), lambda _k, _p: info_payload),
-            bus.watch_alive(keys.alive("sensors", rig), lambda _k, alive: self.loop.post(self._on_sensors_alive, alive)),
             bus.announce(keys.alive("controller", rig)),  # last: whoever sees it may query the policies
         ]
-
-    def _on_sensors_alive(self, alive: bool) -> None:
-        """This rig's sensors' liveliness token came or went. Gone: the node stopped, or its link
-        was down past Zenoh's lease, which look alike from here, so nothing is forgotten yet. Back
-        after going: the node may be another, perhaps a v1 node serving no descriptor, so the
-        descriptor the old one served (``_on_descriptor``'s fallback) is checked: asked for again
-        (with the usual re-asks), kept or replaced if the node answers, forgotten if it does not."""
-        if not alive:
-            self._sensors_went = True
-            return
-        if self._sensors_went:
-            self._sensors_went = False
-            if self._last_descriptor is not None and not self._checking:
-                self._checking = True
-                self._ask_descriptor(self._on_check, 0)
-
-    def _on_check(self, replies: list[Reply], empty: int) -> None:
-        """The answer to ``_on_sensors_alive``'s check; campaigns that needed the fallback meanwhile
-        (``_after_check``) take its outcome."""
-        if self._sensors_went:  # gone again before it answered: checked when it is back
-            self._checking = False
-            self._resolve_after_check(self._last_descriptor)
-            return
-        if not replies and empty < len(DESCRIPTOR_REASK_S):
-            self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._ask_descriptor, self._on_check, empty + 1)
-            return
-        self._checking = False
-        descriptor, _ = first_valid_reply(replies, RigDescriptor, "RigDescriptor")
-        if descriptor is not None and descriptor.rig == self.rig:
-            self._last_descriptor = descriptor
-        else:
-            log.info("rig %s: its sensors came back without a descriptor (a v1 node?); the one the previous node served "
-                     "is forgotten", self.rig)
-            self._last_descriptor = None
-        self._resolve_after_check(self._last_descriptor)
-
-    def _resolve_after_check(self, descriptor: "RigDescriptor | None") -> None:
-        waiting, self._after_check = self._after_check, []
-        for campaign_id in waiting:
-            self._described_as(campaign_id, descriptor)
 
     # -- episode lifecycle ------------------------------------------------------------------
     def _on_control(self, payload: bytes) -> None:
@@ -260,12 +214,12 @@ class ControllerNode:
             self.descriptors[msg.campaign_id] = _ASKING
             while len(self.descriptors) > DESCRIPTORS_KEPT:
                 self.descriptors.pop(next(iter(self.descriptors)))
-            self._ask_descriptor(partial(self._on_descriptor, msg.campaign_id), 0)
+            self._ask_descriptor(msg.campaign_id, 0)
 
-    def _ask_descriptor(self, answer: Callable[[list[Reply], int], None], empty: int) -> None:
-        """Query the rig's descriptor; ``answer(replies, empty)`` on the loop (a campaign's
-        ``_on_descriptor``, or ``_on_check``); ``empty``: how many earlier queries no node answered."""
-        self.bus.query(keys.rig_info(self.rig), b"", DESCRIPTOR_TIMEOUT_S, lambda replies: self.loop.post(answer, replies, empty))
+    def _ask_descriptor(self, campaign_id: str, empty: int) -> None:
+        """Query the rig's descriptor for a campaign; ``empty``: how many earlier queries no node answered."""
+        self.bus.query(keys.rig_info(self.rig), b"", DESCRIPTOR_TIMEOUT_S,
+                       lambda replies: self.loop.post(self._on_descriptor, campaign_id, replies, empty))
 
     def _on_descriptor(self, campaign_id: str, replies: list[Reply], empty: int) -> None:
         """The descriptor's answer: a query no node answered at all is asked again after the waits of
@@ -273,7 +227,7 @@ class ControllerNode:
         back, a node just up) before the rig is taken for a v1 node and modelled from the scenario."""
         if not replies and empty < len(DESCRIPTOR_REASK_S):
             log.info("rig %s: no node answered the descriptor query; asking again in %.0f s", self.rig, DESCRIPTOR_REASK_S[empty])
-            self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._ask_descriptor, partial(self._on_descriptor, campaign_id), empty + 1)
+            self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._ask_descriptor, campaign_id, empty + 1)
             return
         descriptor, passed_over = first_valid_reply(replies, RigDescriptor, "RigDescriptor")
         if descriptor is not None and descriptor.rig != self.rig:
@@ -282,9 +236,6 @@ class ControllerNode:
         if descriptor is not None:
             self._last_descriptor = descriptor
         elif not replies and self._last_descriptor is not None:
-            if self._checking:  # the sensors came back after going: their check says whether the old descriptor holds
-                self._after_check.append(campaign_id)
-                return
             # no node answered at all, again and again (a link cut across the re-asks), but this rig's sensors served a
             # descriptor before: a node that described its hardware is not a v1 node; use what it said
             log.info("rig %s: no node answered the descriptor query; using the one its sensors served last", self.rig)
@@ -292,9 +243,6 @@ class ControllerNode:
         if descriptor is None:
             log.info("rig %s is undescribed%s: modelling it from each campaign's scenario", self.rig,
                      f" ({passed_over[-1]})" if passed_over else "")
-        self._described_as(campaign_id, descriptor)
-
-    def _described_as(self, campaign_id: str, descriptor: "RigDescriptor | None") -> None:
         self.descriptors[campaign_id] = descriptor
         for episode_id in self._described.pop(campaign_id, []):
             ep = self.episodes.get(episode_id)

@@ -150,9 +150,6 @@ def _controller(rig: str) -> list[Grant]:
         # the orchestrator's query reaches the queryable with its wildcard
         Grant(EGRESS, (QUERY,), (keys.rig_policies(rig), keys.rig_policies_any())),
         Grant(INGRESS, (TOKEN,), (keys.alive("controller", rig),)),
-        # it watches its own rig's sensors (a node gone may come back as another: its old descriptor is forgotten)
-        Grant(INGRESS, (LIVELINESS_SUBSCRIBER, LIVELINESS_QUERY), (keys.alive("sensors", rig),)),
-        Grant(EGRESS, (TOKEN,), (keys.alive("sensors", rig),)),
     ]
 
 

@@ -14,7 +14,6 @@ from ra2vipas.services.learner.node import LearnerNode
 from ra2vipas.services.orchestrator import scheduler as scheduler_module
 from ra2vipas.services.orchestrator.storage import Store
 from ra2vipas.services.protocol import keys
-from ra2vipas.services.protocol.messages import dump
 from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
 from tests.nodes.conftest import run_to_end, settle
@@ -52,7 +51,7 @@ def _wait(predicate, timeout=10.0):
 
 def test_a_descriptor_query_nobody_answered_is_asked_again_and_the_rig_is_described(tmp_path, monkeypatch):
     monkeypatch.setattr(scheduler_module, "DESCRIPTOR_REASK_S", (0.2, 0.4))
-    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_info(RIG), keys.rig_policies(RIG)), unrouted=1) as (store, scheduler, view, _nodes):
+    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_info(RIG), keys.rig_policies(RIG)), unrouted=1) as (store, scheduler, view):
         rig = scheduler.rigs[RIG]
         assert rig.described == "described" and rig.descriptor is not None and rig.descriptor.rig == RIG
         assert rig.announced == "announced"
@@ -76,7 +75,7 @@ def test_a_controllers_descriptor_query_nobody_answered_is_asked_again_and_the_c
     flake of tests/deploy/test_multihost.py, on the controller's side: a campaign started right
     after a link came back had all its episodes modelled from the scenario): a query no node
     answered is asked again, and the campaign is modelled from the descriptor, as simulate does."""
-    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=2) as (store, scheduler, view, _nodes):
+    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=2) as (store, scheduler, view):
         c = run_to_end(store, scheduler, "paper", SMALL, 2, 3, ["rapas"], timeout=60.0)
         assert c["status"] == "done", c["error"]
         assert view.asked.count(keys.rig_info(RIG)) == 3  # two unanswered, the third answered
@@ -95,7 +94,7 @@ def _rig_on_a_bus(tmp_path, seen_by: str, on_keys: tuple[str, ...], unrouted: in
     nodes = [SensorsNode(bus, RIG), ControllerNode(view if seen_by == "controller" else bus, RIG), LearnerNode(bus)]
     try:
         _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
-        yield store, scheduler, view, nodes
+        yield store, scheduler, view
     finally:
         scheduler.close()
         for n in nodes:
@@ -117,7 +116,7 @@ def test_a_controller_whose_rig_described_itself_before_keeps_that_descriptor_th
     tests/deploy/test_multihost.py: a 3 s cut right as a campaign started, all 16 episodes modelled
     from the scenario): a controller whose rig's sensors served a descriptor for an earlier
     campaign uses that one rather than taking its rig for a v1 node."""
-    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view, _nodes):
+    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view):
         first = run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["rapas"], timeout=60.0)
         assert first["status"] == "done" and "assumptions" not in first["results"]
         view._left[keys.rig_info(RIG)] = 3  # the next campaign's query and both re-asks go unrouted
@@ -126,101 +125,3 @@ def test_a_controller_whose_rig_described_itself_before_keeps_that_descriptor_th
         assert c["status"] == "done", c["error"]
         assert view.asked[asked:].count(keys.rig_info(RIG)) == 3  # asked, and asked again twice: no answer
         assert "assumptions" not in c["results"]  # modelled from the descriptor the rig served before
-
-
-def test_a_controller_forgets_its_rigs_descriptor_once_the_sensors_node_is_gone(tmp_path, monkeypatch):
-    """The rig's described sensors node stops and a v1 node (no descriptor) takes the rig's name:
-    the controller no longer models the rig from what the old node said (the fallback above is
-    for a node still there behind a link cut), so the next campaign is modelled from its
-    scenario and says so, as the orchestrator, which sees the v1 node, does."""
-    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view, nodes):
-        first = run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["rapas"], timeout=60.0)
-        assert first["status"] == "done" and "assumptions" not in first["results"]
-        nodes[0].close()  # its liveliness token goes with it
-        _wait(lambda: not scheduler.rigs.get(RIG) or not scheduler.rigs[RIG].ready)
-        nodes.append(SensorsNode(view._bus, RIG, describe=False))
-        _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready and scheduler.rigs[RIG].described == "undescribed")
-        asked = len(view.asked)
-        c = run_to_end(store, scheduler, "paper", SMALL, 2, 4, ["rapas"], timeout=60.0)
-        assert c["status"] == "done", c["error"]
-        assert view.asked[asked:].count(keys.rig_info(RIG)) == 3  # asked, and asked again twice: no node answers
-        assumptions = c["results"]["assumptions"]
-        assert assumptions["sensor_model"] == "scenario" and assumptions["episodes"] == assumptions["of"] == 2, assumptions
-
-
-def test_a_controller_keeps_its_rigs_descriptor_when_the_sensors_come_back_described(tmp_path, monkeypatch):
-    """The sensors' token goes and comes back (a node restarted, or a link cut past Zenoh's
-    lease): the controller asks the returned node for its descriptor, and as it answers, the
-    fallback stands: a later campaign whose query and re-asks all go unanswered is modelled from it."""
-    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view, nodes):
-        first = run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["rapas"], timeout=60.0)
-        assert first["status"] == "done" and "assumptions" not in first["results"]
-        controller = nodes[1]
-        nodes[0].close()
-        _wait(lambda: controller._sensors_went)
-        asked = len(view.asked)
-        nodes.append(SensorsNode(view._bus, RIG))
-        _wait(lambda: not controller._sensors_went and not controller._checking)
-        assert view.asked[asked:].count(keys.rig_info(RIG)) == 1 and controller._last_descriptor is not None  # checked
-        view._left[keys.rig_info(RIG)] = 3  # the next campaign's query and both re-asks go unrouted
-        c = run_to_end(store, scheduler, "paper", SMALL, 2, 4, ["rapas"], timeout=60.0)
-        assert c["status"] == "done", c["error"]
-        assert "assumptions" not in c["results"]
-
-
-class HeldQueries:
-    """A controller's view of the bus whose descriptor queries wait until the test answers them."""
-
-    def __init__(self, bus: MemoryBus) -> None:
-        self._bus = bus
-        self.held: list = []
-
-    def query(self, key, payload, timeout, callback):
-        if key == keys.rig_info(RIG):
-            self.held.append(callback)
-            return
-        self._bus.query(key, payload, timeout, callback)
-
-    def __getattr__(self, name):
-        return getattr(self._bus, name)
-
-
-def test_a_campaign_that_needs_the_fallback_while_the_returned_node_is_checked_takes_the_checks_outcome(monkeypatch):
-    """A campaign's query and re-asks go unanswered while the sensors, just back, are being
-    checked: the campaign waits for the check, then is modelled from what it found (the node
-    answers: its descriptor; it does not, a v1 node: the scenario), never from a descriptor the
-    returned node did not confirm."""
-    from ra2vipas.services.controller import node as controller_module
-    from ra2vipas.services.controller.node import _ASKING
-    from ra2vipas.services.sensors.node import simulated_descriptor
-
-    monkeypatch.setattr(controller_module, "DESCRIPTOR_REASK_S", (0.01, 0.01))
-    for answers in (True, False):
-        bus = MemoryBus()
-        view = HeldQueries(bus)
-        controller = ControllerNode(view, RIG)
-        try:
-            old = simulated_descriptor(RIG)
-            controller._last_descriptor = old
-            controller.loop.post(controller._on_sensors_alive, False)
-            controller.loop.post(controller._on_sensors_alive, True)  # back: the check's first query goes out
-            assert controller.loop.wait_idle()
-            assert controller._checking and len(view.held) == 1
-            controller.descriptors["c-1"] = _ASKING
-            controller.loop.post(controller._on_descriptor, "c-1", [], len(controller_module.DESCRIPTOR_REASK_S))
-            assert controller.loop.wait_idle()
-            assert controller.descriptors["c-1"] is _ASKING and controller._after_check == ["c-1"]  # waits for the check
-            if answers:
-                reply = type("Reply", (), {"ok": True, "payload": dump(old)})()
-                view.held.pop()([reply])
-            else:
-                for _ in range(3):  # the check's query and its two re-asks: nobody answers
-                    _wait(lambda: view.held)
-                    view.held.pop()([])
-            _wait(lambda: not controller._checking)
-            assert controller.loop.wait_idle()
-            assert controller.descriptors["c-1"] == (old if answers else None)
-            assert (controller._last_descriptor is not None) is answers and controller._after_check == []
-        finally:
-            controller.close()
-            bus.close()
