@@ -128,7 +128,7 @@ COMPOSITIONS = {"ra2vipas": ra2vipas, "rapas": rapas, "ravipas": ravipas, "sweep
 def compose(algorithm: str, sensors: SensorConfig, pod_model: PODModel, settings: ControllerSettings) -> Parts:
     """The parts of a built-in ``algorithm`` for one episode, with ``settings`` (already tuned:
     ``policy.tuned_settings``)."""
-    circle = CircleGrid(settings.grid_points)
+    circle = CircleGrid(sensors.bearing_cells(settings))
     return COMPOSITIONS[algorithm](circle, sensors, PODLookup(pod_model, settings.min_pod_std), settings)
 
 

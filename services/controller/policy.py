@@ -77,7 +77,11 @@ class ControllerSettings:
     """
 
     beta: float = 4.0
-    grid_points: int = 360
+    grid_points: int = 360  # cells of the bearing grid (1 degree) for a rig of RSSI pairs
+    # ... and for a rig of BLE advertisements (SensorConfig.radio "adverts"; 1/3 degree): a db-gain lobe's flank near its
+    # floor moves a packet's expected RSSI by 1-5 dB per degree, so a 1-degree grid (and the interpolation of a track's
+    # evidence between its cells) loses what the packets say about two people 0.2-1 degree apart (docs/radio.md, measured)
+    packet_grid_points: int = 1080
     lobe_width_rad: float = 1.0
     residual_length_scale_rad: float = 0.5
     residual_std_db: float = 3.0
@@ -143,8 +147,8 @@ class ControllerSettings:
             object.__setattr__(self, "confidence_calibration", ConfidenceMap.from_vector(self.confidence_calibration))
         if self.beta < 0:
             raise ValueError("beta must be >= 0")
-        if self.grid_points < 16:
-            raise ValueError("grid_points must be >= 16")
+        if self.grid_points < 16 or self.packet_grid_points < 16:
+            raise ValueError("grid_points and packet_grid_points must be >= 16")
         if self.lobe_width_rad <= 0 or self.residual_length_scale_rad <= 0:
             raise ValueError("lobe_width_rad and residual_length_scale_rad must be > 0")
         if self.probe_every < 0:
@@ -169,6 +173,12 @@ class SensorConfig:
     rx_dir_curvature: float | None = None  # a in rho = 1 - a Delta^2 (None: not known)
     rx_dir_floor_db: float = -20.0  # db-gain: the lowest gain
     box_heights: bool = False  # the detector's boxes carry their angular heights (protocol 1.3; a range cue)
+    radio: str = "pair"  # what the rig's Measurements carry: pair (one RSSI pair a step) | adverts (1.3: BLE advertisements)
+
+    def bearing_cells(self, settings: ControllerSettings) -> int:
+        """Cells of the bearing grid a controller of this platform uses: ``settings.packet_grid_points``
+        for a rig of advertisements, ``settings.grid_points`` for one of pairs."""
+        return settings.packet_grid_points if self.radio == "adverts" else settings.grid_points
 
 
 class Controller(Composition):
@@ -244,7 +254,7 @@ def sensor_config_from_scenario(scenario) -> SensorConfig:
     Only properties of the platform itself: timing, camera geometry and detector accuracy,
     the receiver's reporting convention. Nothing about targets or the Tx.
     """
-    from ra2vipas.services.protocol.scenario import AntennaModel
+    from ra2vipas.services.protocol.scenario import AntennaModel, RadioMode
 
     return SensorConfig(
         steps=scenario.steps,
@@ -259,6 +269,7 @@ def sensor_config_from_scenario(scenario) -> SensorConfig:
         rx_dir_curvature=scenario.antenna_curvature,
         rx_dir_floor_db=scenario.antenna_floor_db,
         box_heights=bool(scenario.box_heights),
+        radio="pair" if scenario.radio is RadioMode.pair else "adverts",
     )
 
 
@@ -272,7 +283,7 @@ def sensor_config_from_descriptor(descriptor, scenario) -> SensorConfig:
     from the campaign, which decides them. An ``unknown`` Rx(dir) response leaves the lobe's
     orientation to be learned from the data (``rssi_grows_with_alignment=None``).
     """
-    from ra2vipas.services.protocol.scenario import AntennaModel
+    from ra2vipas.services.protocol.scenario import AntennaModel, RadioMode
 
     def value(name: str):
         own = getattr(descriptor, name)
@@ -294,4 +305,5 @@ def sensor_config_from_descriptor(descriptor, scenario) -> SensorConfig:
                                                                  else rx.curvature),
         rx_dir_floor_db=float(scenario.antenna_floor_db if rx is None or rx.floor_db is None else rx.floor_db),
         box_heights=bool(scenario.box_heights if descriptor.box_heights is None else descriptor.box_heights),
+        radio=descriptor.radio or ("pair" if scenario.radio is RadioMode.pair else "adverts"),
     )

@@ -120,6 +120,7 @@ def test_sensor_config_describes_only_the_platform():
         "source", "rx_dir",  # where the description came from (descriptor | scenario) and the Rx(dir) response it names
         "rx_dir_curvature", "rx_dir_floor_db",  # that response's shape: the antenna's, a property of the platform
         "box_heights",  # whether the detector's boxes carry their angular heights (a property of the detector)
+        "radio",  # what the receivers deliver: RSSI pairs or BLE advertisements (a property of the receivers)
     }
     sc = small_scenario(initial_pan_deg=45.0)
     cfg = sensor_config_from_scenario(sc)
