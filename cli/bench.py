@@ -62,6 +62,8 @@ def bench_step(
     tests: Annotated[int, typer.Option(min=1, max=1000, help="Episodes to time.")] = 10,
     seed: Annotated[int, typer.Option(min=0)] = 1,
     preset: Annotated[str, typer.Option(help="Scenario preset (paper, dynamic, ...).")] = "paper",
+    overrides: Annotated[Optional[list[str]], typer.Option("--set", metavar="NAME=VALUE", help=(
+        "Override a scenario parameter, e.g. --set box_heights=true (repeatable; see `ra2vipas presets show paper`)."))] = None,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Time one controller step (measurement in, decision out) on a preset's scenario, in-process.
@@ -71,11 +73,17 @@ def bench_step(
     """
     from ra2vipas.services.benchmarks.step import controller_step
     from ra2vipas.services.controller.registry import BUILTINS
+    from ra2vipas.services.protocol.scenario import ScenarioError, build_scenario, parse_overrides
 
     if algorithm not in BUILTINS:  # it times the built-ins' Controller
         fail(f"unknown algorithm {algorithm!r}; choose from {', '.join(BUILTINS)}", EXIT_USAGE)
     _check_preset(preset)
-    report = controller_step(algorithm, tests, seed, preset)
+    try:
+        changed = parse_overrides(overrides or [])
+        build_scenario(preset, changed)
+    except ScenarioError as err:
+        fail(str(err), EXIT_USAGE)
+    report = controller_step(algorithm, tests, seed, preset, changed)
     if as_json:
         print_json(report)
     else:

@@ -12,17 +12,18 @@ from ra2vipas.services.benchmarks.common import percentile
 TARGET_MEDIAN_MS = {1: 1.0, 3: 1.5}
 
 
-def controller_step(algorithm: str, tests: int, seed: int, preset: str) -> dict:
+def controller_step(algorithm: str, tests: int, seed: int, preset: str, overrides: dict | None = None) -> dict:
     """Time every step of ``tests`` episodes of the built-in ``algorithm`` on ``preset``'s
-    scenario: the median and p99 over all steps and over the last step of each test (when the
-    controller holds n_test samples). ``algorithm`` is a built-in, ``preset`` a known preset; a
-    preset with several tags (``ward``) times the joint search for all of them (issue 21)."""
+    scenario (with ``overrides``, as ``--set`` gives them): the median and p99 over all steps and
+    over the last step of each test (when the controller holds n_test samples). ``algorithm`` is a
+    built-in, ``preset`` a known preset; a scenario with several tags (``ward``) times the joint
+    search for all of them (issue 21)."""
     from ra2vipas.services.controller.policy import Controller, sensor_config_from_scenario, tuned_settings
     from ra2vipas.services.orchestrator.simulate import new_policy, train_pod
     from ra2vipas.services.protocol.scenario import build_scenario
     from ra2vipas.services.sensors.world import SimulatedPlatform
 
-    scenario = build_scenario(preset)
+    scenario = build_scenario(preset, overrides or {})
     pod = train_pod(scenario, seed)
     all_ms: list[float] = []
     last_ms: list[float] = []
@@ -45,6 +46,7 @@ def controller_step(algorithm: str, tests: int, seed: int, preset: str) -> dict:
         "benchmark": "controller-step",
         "algorithm": algorithm,
         "preset": preset,
+        "overrides": dict(overrides or {}),
         "n_tags": scenario.n_tags,
         "tests": tests,
         "steps": len(all_ms),

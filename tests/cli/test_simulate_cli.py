@@ -98,6 +98,17 @@ def test_bench_step_prints_timings_as_json():
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["benchmark"] == "controller-step" and report["steps"] == 120
     assert 0 < report["median_ms"] <= report["p99_ms"] and report["target_median_ms"] == 1.0
+    assert report["overrides"] == {}
+
+
+def test_bench_step_times_a_scenario_changed_by_set_and_refuses_a_bad_one():
+    proc = ra2vipas("bench", "step", "--tests", "1", "--preset", "dynamic", "--set", "box_heights=true", "--set", "steps=30",
+                    "--json")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["overrides"] == {"box_heights": True, "steps": 30} and report["steps"] == 30
+    bad = ra2vipas("bench", "step", "--set", "no_such_thing=1")
+    assert bad.returncode == 2 and "no_such_thing" in one_error_line(bad)
 
 
 def test_bench_calibrate_refits_only_the_maps_asked_for_and_names_a_bad_algorithm():
