@@ -167,6 +167,10 @@ def replay(
                          f"{s['episodes_matched']} matched to the end (final DR there: "
                          f"{'-' if s['dr_final_matched'] is None else format(s['dr_final_matched'], '.3f')}), "
                          f"{s['same_estimates']} with the recorded estimates")
+            if s["stopped_other_pan"] or s["stopped_missing_measurement"]:
+                stdout.print(f"  stopped early: {s['stopped_other_pan']} where the controller asked for another pan than the "
+                             f"recorded one, {s['stopped_missing_measurement']} at a step whose measurement the recording lacks "
+                             "(a message lost while recording)")
 
 
 def _comparable(results: dict | None) -> dict | None:

@@ -367,6 +367,9 @@ class Rerun:
     same_estimates: bool  # equal, step for step, to the recorded controller's (every tag's, with several)
     tag_estimates: list[list[float]] = field(default_factory=list)  # several tags (issue 21): per tag, per step taken
     tag_hits: list[list[bool]] = field(default_factory=list)  # per tag, eq. 11 against its carrier
+    # why it stopped before the recorded end: "pan" (the controller asked for a pan other than the next recorded
+    # sample's), "missing" (the recording lacks the measurement of a step the episode took: a message lost), None
+    stopped: str | None = None
 
 
 def rerun(rec: Recording, algorithm: str | None = None, settings=None, pan_tolerance_rad: float = 1e-9) -> list[Rerun]:
@@ -404,9 +407,15 @@ def rerun(rec: Recording, algorithm: str | None = None, settings=None, pan_toler
         pan = ctl.first_pan()
         estimates: list[float] = []
         tag_estimates: list[list[float]] = []
+        recorded = list(ep.result.estimates_rad)
+        stopped = None
         for t in range(sc.steps):
             m = ep.measurements.get(t)
-            if m is None or abs(float(wrap(pan - m.pan_rad))) > pan_tolerance_rad:
+            if m is None:
+                stopped = "missing" if t < len(recorded) else None
+                break
+            if abs(float(wrap(pan - m.pan_rad))) > pan_tolerance_rad:
+                stopped = "pan"
                 break
             d = ctl.step(m)
             estimates.append(d.estimate_rad)
@@ -422,16 +431,17 @@ def rerun(rec: Recording, algorithm: str | None = None, settings=None, pan_toler
         per_tag = [list(col) for col in zip(*tag_estimates)] if tag_estimates else []
         tag_hits = [[bool(x) for x in score_episode(np.asarray(e), bearings, ep.truth.carriers[k], sc.fov_half_angle_rad, len(e), None)[0]]
                     for k, e in enumerate(per_tag) if k < len(ep.truth.carriers)]
-        recorded = list(ep.result.estimates_rad)
         recorded_tags = [list(r.estimates_rad) for r in sorted(ep.result.tags, key=lambda r: r.tag)]
         out.append(Rerun(ep.episode_id, start.test_index, algorithm or start.algorithm, len(recorded), len(estimates), estimates, hits,
-                         estimates == recorded and per_tag == recorded_tags, per_tag, tag_hits))
+                         estimates == recorded and per_tag == recorded_tags, per_tag, tag_hits, stopped))
     return out
 
 
 def rerun_summary(reruns: list[Rerun]) -> dict[str, Any]:
     """Per algorithm: episodes, the share of steps matched, episodes matched to the end, and over
-    those the final DR, and whether the estimates equal the recorded ones."""
+    those the final DR, whether the estimates equal the recorded ones, and how many episodes
+    stopped early because the controller asked for another pan or because the recording lacks a
+    measurement (``Rerun.stopped``)."""
     by: dict[str, list[Rerun]] = defaultdict(list)
     for r in reruns:
         by[r.algorithm].append(r)
@@ -443,6 +453,8 @@ def rerun_summary(reruns: list[Rerun]) -> dict[str, Any]:
             "episodes_matched": len(full),
             "dr_final_matched": round(sum(r.hits[-1] for r in full) / len(full), 6) if full else None,
             "same_estimates": sum(r.same_estimates for r in rs),
+            "stopped_other_pan": sum(r.stopped == "pan" for r in rs),
+            "stopped_missing_measurement": sum(r.stopped == "missing" for r in rs),
         }
         if full and all(r.tag_hits for r in full):  # several tags: each tag's final DR over those episodes
             out[name]["tag_dr_final_matched"] = [round(sum(r.tag_hits[k][-1] for r in full) / len(full), 6)

@@ -76,9 +76,25 @@ def test_the_same_controller_rerun_takes_every_recorded_pan(recorded):
     for name in ("ra2vipas", "rapas", "sweep"):
         assert summary[name]["episodes_matched"] == summary[name]["same_estimates"] == 3
         assert summary[name]["dr_final_matched"] == recorded["results"]["algorithms"][name]["dr_final"]
+    assert summary[name]["stopped_other_pan"] == summary[name]["stopped_missing_measurement"] == 0
     # another algorithm on the same measurements follows the recorded pans only while it asks for them
     other = rerun_summary(rerun(rec, "rapas"))["rapas"]
     assert other["episodes"] == 9 and other["steps_matched"] < 1.0
+    assert other["stopped_other_pan"] >= 1 and other["stopped_missing_measurement"] == 0
+
+
+def test_a_rerun_says_where_the_recording_lacks_a_measurement(recorded):
+    """A measurement lost while recording stops that episode's rerun there, and the summary says
+    it was the recording, not the controller, that stopped it."""
+    rec = read_mcap(recorded["live"])
+    episode = next(ep for ep in rec.recorded() if ep.start.algorithm == "ra2vipas" and len(ep.result.estimates_rad) > 5)
+    del episode.measurements[5]
+    runs = {r.episode_id: r for r in rerun(rec)}
+    lost = runs[episode.episode_id]
+    assert (lost.stopped, lost.matched) == ("missing", 5)
+    assert all(r.stopped is None for eid, r in runs.items() if eid != episode.episode_id)
+    summary = rerun_summary(list(runs.values()))["ra2vipas"]
+    assert (summary["stopped_missing_measurement"], summary["stopped_other_pan"], summary["episodes_matched"]) == (1, 0, 2)
 
 
 def test_a_recording_from_the_store_cannot_be_rerun(recorded):
