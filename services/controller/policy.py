@@ -254,7 +254,7 @@ def sensor_config_from_scenario(scenario) -> SensorConfig:
     Only properties of the platform itself: timing, camera geometry and detector accuracy,
     the receiver's reporting convention. Nothing about targets or the Tx.
     """
-    from ra2vipas.services.protocol.scenario import AntennaModel, RadioMode
+    from ra2vipas.services.protocol.scenario import AntennaModel
 
     return SensorConfig(
         steps=scenario.steps,
@@ -269,7 +269,7 @@ def sensor_config_from_scenario(scenario) -> SensorConfig:
         rx_dir_curvature=scenario.antenna_curvature,
         rx_dir_floor_db=scenario.antenna_floor_db,
         box_heights=bool(scenario.box_heights),
-        radio="pair" if scenario.radio is RadioMode.pair else "adverts",
+        radio=_radio_of(scenario),
     )
 
 
@@ -283,7 +283,7 @@ def sensor_config_from_descriptor(descriptor, scenario) -> SensorConfig:
     from the campaign, which decides them. An ``unknown`` Rx(dir) response leaves the lobe's
     orientation to be learned from the data (``rssi_grows_with_alignment=None``).
     """
-    from ra2vipas.services.protocol.scenario import AntennaModel, RadioMode
+    from ra2vipas.services.protocol.scenario import AntennaModel
 
     def value(name: str):
         own = getattr(descriptor, name)
@@ -305,5 +305,12 @@ def sensor_config_from_descriptor(descriptor, scenario) -> SensorConfig:
                                                                  else rx.curvature),
         rx_dir_floor_db=float(scenario.antenna_floor_db if rx is None or rx.floor_db is None else rx.floor_db),
         box_heights=bool(scenario.box_heights if descriptor.box_heights is None else descriptor.box_heights),
-        radio=descriptor.radio or ("pair" if scenario.radio is RadioMode.pair else "adverts"),
+        radio=descriptor.radio or _radio_of(scenario),
     )
+
+
+def _radio_of(scenario) -> str:
+    """``SensorConfig.radio`` of a simulator that runs ``scenario``: a recorded channel delivers advertisements too."""
+    from ra2vipas.services.protocol.scenario import RadioMode
+
+    return "pair" if scenario.radio is RadioMode.pair else "adverts"

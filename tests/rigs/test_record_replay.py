@@ -76,7 +76,7 @@ def test_the_same_controller_rerun_takes_every_recorded_pan(recorded):
     for name in ("ra2vipas", "rapas", "sweep"):
         assert summary[name]["episodes_matched"] == summary[name]["same_estimates"] == 3
         assert summary[name]["dr_final_matched"] == recorded["results"]["algorithms"][name]["dr_final"]
-    assert summary[name]["stopped_other_pan"] == summary[name]["stopped_missing_measurement"] == 0
+        assert summary[name]["stopped_other_pan"] == summary[name]["stopped_missing_measurement"] == 0
     # another algorithm on the same measurements follows the recorded pans only while it asks for them
     other = rerun_summary(rerun(rec, "rapas"))["rapas"]
     assert other["episodes"] == 9 and other["steps_matched"] < 1.0
