@@ -124,6 +124,10 @@ class ControllerSettings:
     rssi_step_db: float = 1.0  # the receivers' RSSI step (whole dBm): its rounding adds step^2 / 12 to a packet's variance
     due_probe_every: int = 1  # probe in every n-th step an advertisement is due (the beacon's interval, rf_belief.PacketClock)
     packet_fading_tempering: bool = False  # temper each packet's term by its AR(1) correlation with the previous (rf_filter)
+    # the standing model's evidence: all of Rx(dir)'s packets in one batch at the current level, their spread unknown
+    # (rf_filter.PacketBearingFilter): ble-recorded seeds 1-5 DR 0.945 / 0.955 / 0.930 / 0.955 / 0.920 with it, 0.915 /
+    # 0.910 / 0.900 / 0.915 / 0.880 with each packet scored once against the level as it stood then (docs/radio.md)
+    packet_standing_batch: bool = True
     # a walking Tx's bearing has a rate, prior N(0, std^2), changing by change per sqrt(s) (rf_filter.PacketBearingFilter, packets
     # only), once the camera has seen packet_rate_walkers people walk (0: never): sparse packets leave a random walk behind a walker
     packet_walk_rate_std_rad_s: float = 0.5
