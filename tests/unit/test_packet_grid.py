@@ -63,4 +63,5 @@ def test_people_a_fraction_of_a_degree_apart_are_told_apart_on_packets(ble_seed_
     scenario, pod = ble_seed_3
     right = {cells: sum(run_test(scenario, 3, test, "ra2vipas", pod, dataclasses.replace(ControllerSettings(), packet_grid_points=cells))
                         .hits[-1] for test in NEAR_TESTS) for cells in (360, 1080)}
-    assert right[1080] >= 7 and right[360] == 0, right
+    # with the standing model's batch (packet_standing_batch) the 1-degree grid names 4 of them, the finer one 8
+    assert right[1080] >= 7 and right[1080] - right[360] >= 3, right
