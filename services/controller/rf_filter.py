@@ -536,16 +536,17 @@ class PacketBearingFilter(RFBearingFilter):
       the built-ins' default): a standing Tx at gamma gives packet k the mean a_k(gamma) + b_k(gamma) L
       (db-gain: a the gain in dB, b = 1; eq. 6: a = 0, b = rho). Its evidence is the batch marginal
       of all of Rx(dir)'s packets so far, at the current level estimate L (Rx(iso)'s mean): per
-      channel group an offset b_c ~ N(0, kappa_c sigma^2) (``channel_offset_db`` or
-      ``receiver_offset_db``, plus the level's own variance), and the spread sigma^2 itself unknown,
-      scaled-inverse-chi^2 with ``prior_dof`` degrees of freedom about sigma_e^2 (normal-inverse-gamma:
-      Gelman et al., *Bayesian Data Analysis*, 3rd ed., Sec. 3.3). Each step's term is the change of
-      that evidence, so a cell's terms add up to it. The sequential form (each packet scored once,
-      against the level as it stood then) never revises a residual when Rx(iso)'s mean moves — on a
-      recorded channel, whose level jumps 3-25 dB, it named the Tx 0.900 of the time on seed 1 where
-      the same likelihood in one batch names it 0.955 (docs/radio.md) — and a packet spread larger
-      than sigma_e then counts as evidence against every bearing alike rather than for a walker.
-      The walking model stays sequential (its level moves).
+      channel group an offset ~ N(0, kappa_c sigma^2) (``channel_offset_db`` or ``receiver_offset_db``,
+      plus the level's own variance: exact when b = 1, as if b = 1 for eq. 6), and the spread sigma^2
+      itself unknown, scaled-inverse-chi^2 with ``prior_dof`` degrees of freedom about sigma_e^2
+      (normal-inverse-gamma: Gelman et al., *Bayesian Data Analysis*, 3rd ed., Sec. 3.3). Each step's
+      term is the change of that evidence, so a cell's terms add up to it. The sequential form (each
+      packet scored once, against the level as it stood then) never revises a residual when Rx(iso)'s
+      mean moves: on a recorded channel, whose level jumps 3-25 dB, its standing model named the Tx
+      0.900 of the time on seed 1 where the same likelihood in one batch names it 0.955
+      (docs/radio.md). With the spread unknown, packets spread wider than sigma_e lower every bearing
+      alike instead of counting for the walking model. The walking model stays sequential (its level
+      moves).
     * **Whole dBm.** Quantisation to a step q adds q^2 / 12 to the per-packet variance (a uniform
       rounding error, independent of the noise), rather than an interval likelihood: with
       sigma_e ~ 1.6 dB and q = 1 dB the two differ by under 1 % in log-likelihood.
