@@ -695,6 +695,11 @@ class PacketBearingFilter(RFBearingFilter):
             return super()._level_now(walking)
         return self._level_walk if walking else self._p_sum / self.packets
 
+    def _offset_prior_var(self, channel: object) -> float:
+        """Prior variance of Rx(dir)'s offset on ``channel``: sigma_ch^2, or ``receiver_offset_db``^2 for
+        packets that do not say their channel."""
+        return self.offset_var if channel is not None else self.receiver_offset_var
+
     def _packet_level_var(self, walking: bool, white: float) -> float:
         if walking:
             lam = math.exp(-self._pair_dt / self._pairs / self.level_memory_s) if self._pairs else 0.5
@@ -716,7 +721,8 @@ class PacketBearingFilter(RFBearingFilter):
         gain = resp.gain_over(pan_rad, self.circle)
         slope = resp.level_slope(gain)
         slope2 = slope * slope  # (in every packet's variance)
-        means = (resp.mean(self._level_now(False), gain), resp.mean(self._level_walk, gain))
+        level = self._level_now(False)
+        means = (resp.mean(level, gain), resp.mean(self._level_walk, gain))
         level_vars = (self._packet_level_var(False, white), self._packet_level_var(True, white))
         total = [np.zeros(self.circle.size), np.zeros(self.circle.size)]
         models = (1,) if self.batch_standing else (0, 1)  # the standing model's term is then the batch's (below)
@@ -730,7 +736,7 @@ class PacketBearingFilter(RFBearingFilter):
             if group is None:
                 group = self._dir_groups[channel] = [0, np.zeros(self.circle.size), np.zeros(self.circle.size)]
             n_c = group[0]
-            prior_var = self.offset_var if channel is not None else self.receiver_offset_var
+            prior_var = self._offset_prior_var(channel)
             if prior_var > 0.0:
                 shrink = prior_var / (white + n_c * prior_var)
                 offset_var = white * shrink
@@ -744,7 +750,7 @@ class PacketBearingFilter(RFBearingFilter):
                 group[1 + j] += resid
             group[0] = n_c + 1
         if self.batch_standing:
-            total[0] = self._standing_batch_term(dir_, gain, white)
+            total[0] = self._standing_batch_term(dir_, gain, white, level, level_vars[0])
         now = sum(p[0] for p in dir_) / len(dir_)
         steps = 1 if self._update_time is None else max(int(round((now - self._update_time) / self.rf_period_s)), 1)
         self._update_time = now
@@ -754,12 +760,13 @@ class PacketBearingFilter(RFBearingFilter):
             self._absorb(total[0], total[1], steps)  # the walker moved for every step since the last update
         return True
 
-    def _standing_batch_term(self, dir_: list[tuple[float, float, object]], gain: np.ndarray, white: float) -> np.ndarray:
+    def _standing_batch_term(self, dir_: list[tuple[float, float, object]], gain: np.ndarray, white: float, level: float,
+                             level_var: float) -> np.ndarray:
         """The standing model's term for this step's Rx(dir) packets (``batch_standing``): the batch
         evidence of every Rx(dir) packet so far at the current level, less the evidence as of the
         last update.
 
-        With L the level (Rx(iso)'s mean, variance sigma_e^2 / its packets), packet k's residual
+        With L = ``level`` (Rx(iso)'s mean) and Var L = ``level_var`` (sigma_e^2 / its packets), packet k's residual
         r_k = z_k - a_k - b_k L; per channel group c (n_c packets) an offset ~ N(0, kappa_c sigma^2),
         kappa_c = (sigma_c^2 + Var L) / sigma_e^2, the spread sigma^2 ~ scaled-inv-chi^2(nu0 = prior_dof,
         sigma_e^2); with RSS = sum_c [sum r^2 - (sum r)^2 kappa_c / (1 + n_c kappa_c)] over n packets,
@@ -781,14 +788,12 @@ class PacketBearingFilter(RFBearingFilter):
             sums[3] += b * b
             sums[4] += x * b
             group[0] += 1
-        level = self._p_sum / self.packets
-        level_var = white / self.packets
         nu0 = self.prior_dof
         rss = np.zeros(self.circle.size)
         evidence = np.zeros(self.circle.size)
         n_total = 0
         for channel, (n, sums) in self._stand_groups.items():
-            kappa = ((self.offset_var if channel is not None else self.receiver_offset_var) + level_var) / white
+            kappa = (self._offset_prior_var(channel) + level_var) / white
             r1 = sums[0] - level * sums[2]
             r2 = sums[1] - 2.0 * level * sums[4] + level * level * sums[3]
             rss += r2 - r1 * r1 * (kappa / (1.0 + n * kappa))
