@@ -320,7 +320,7 @@ FIRST_RESTART_DELAY_S = 0.5
 def _ready_but_the_database(health: dict) -> bool:
     """Whether a 503 /health body says everything is up but the database (a degraded start)."""
     return (health.get("database") is False and bool(health.get("zenoh")) and bool(health.get("learners"))
-            and len(health.get("rigs") or []) >= int(health.get("expected_rigs") or 0))
+            and len(health.get("ready_rigs") or []) >= int(health.get("expected_rigs") or 0))
 
 
 @dataclass

@@ -302,6 +302,11 @@ class Scheduler:
     def live_rigs(self) -> list[str]:
         return sorted(r for r, st in list(self.rigs.items()) if st.live)
 
+    def ready_rigs(self) -> list[str]:
+        """The live rigs whose descriptor and controller's policies (or their absence: a v1 node)
+        are known, i.e. that episodes may go to (``_Rig.ready``)."""
+        return sorted(r for r, st in list(self.rigs.items()) if st.ready)
+
     def close(self) -> None:
         self._stop.set()
         undeclare_all(self._handles)

@@ -198,3 +198,27 @@ def test_a_rig_that_left_is_no_longer_listed(tmp_path):
             assert 'data-rig="stay-1"' in page and 'data-rig="gone-1"' not in page
     finally:
         server.stop()
+
+
+def test_health_is_ready_only_once_each_expected_rig_has_said_what_it_is(tmp_path):
+    """A rig whose nodes are alive but whose descriptor is still being asked for is live, not
+    ready: /health answers 503 until episodes may go there (a v1 node's silence is taken as such
+    after the re-asks, ``DESCRIPTOR_REASK_S``), so a client that waited for 200 finds each rig's
+    descriptor in ``GET /rigs``."""
+    import time
+
+    server = LiveAPI(tmp_path / "ready.db", rigs=("old-1",), sensors={"old-1": {"describe": False}}).start()
+    try:
+        with server.client() as http:
+            deadline = time.monotonic() + 10.0
+            while (r := http.get("/health")).json()["rigs"] != ["old-1"]:
+                assert time.monotonic() < deadline, r.json()
+                time.sleep(0.02)
+            assert r.status_code == 503 and not r.json()["ready"] and r.json()["ready_rigs"] == [], r.json()
+            assert http.get("/rigs").json()["rigs"][0]["described"] == "asking"
+            server.settle()
+            r = http.get("/health")
+            assert r.status_code == 200 and r.json()["ready"] and r.json()["ready_rigs"] == ["old-1"], r.json()
+            assert http.get("/rigs").json()["rigs"][0]["described"] == "undescribed"
+    finally:
+        server.stop()

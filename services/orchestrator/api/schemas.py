@@ -390,7 +390,9 @@ class Health(BaseModel):
     database: bool = Field(description="the database answers and takes writes")
     database_error: Optional[str] = Field(None, description="why not, e.g. 'not writable: database or disk is full (since 12:01:02)'")
     zenoh: bool
-    rigs: list[str]
+    rigs: list[str] = Field(description="the live rigs (sensors and controller both up)")
+    ready_rigs: list[str] = Field(default_factory=list, description="the live rigs whose descriptor and controller's policies are known "
+                                  "(a v1 node's silence counts): the ones episodes may go to; `ready` waits for `expected_rigs` of them")
     expected_rigs: int
     learners: list[str]
     rejected_messages: dict[str, int] = Field(
