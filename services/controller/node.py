@@ -24,6 +24,7 @@ is declared last, after the subscribers and the queryable.
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -57,7 +58,7 @@ from ra2vipas.services.protocol.messages import (
     training_job_id,
 )
 from ra2vipas.services.protocol.pod import PODModel
-from ra2vipas.services.protocol.rig import DESCRIPTOR_REASK_S, DESCRIPTOR_TIMEOUT_S, RigDescriptor
+from ra2vipas.services.protocol.rig import DESCRIPTOR_REASK_S, DESCRIPTOR_TIMEOUT_S, SENSORS_SETTLED_S, RigDescriptor
 from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
 from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
 from ra2vipas.services.transport.costs import CostClock
@@ -179,6 +180,13 @@ class ControllerNode:
         # _ASKING while the query is out; one query per campaign, so a campaign sees one rig model
         self.descriptors: dict[str, object] = {}
         self._last_descriptor: RigDescriptor | None = None  # the last one this rig's sensors served (any campaign)
+        # this rig's sensors' liveliness token: when it last appeared (monotonic; None while gone), how many times it
+        # appeared, in which of those appearances the sensors served ``_last_descriptor``, and when each campaign's
+        # round of descriptor queries began
+        self._sensors_since: float | None = None
+        self._sensors_presence = 0
+        self._described_in = -1
+        self._round_began: dict[str, float] = {}
         self._described: dict[str, list[str]] = {}  # campaign id -> episodes waiting for the descriptor
         self._command_key = keys.command(rig)
         warm_up()
@@ -186,8 +194,18 @@ class ControllerNode:
             bus.subscribe(keys.episode_control(rig), lambda _k, p: self.loop.post(self._on_control, p)),
             self.loop.feed(bus, keys.measurement(rig), self._on_measurement),  # the worker takes them itself
             bus.serve(keys.rig_policies(rig), lambda _k, _p: info_payload),
+            bus.watch_alive(keys.alive("sensors", rig), lambda _k, alive: self.loop.post(self._on_sensors_alive, alive)),
             bus.announce(keys.alive("controller", rig)),  # last: whoever sees it may query the policies
         ]
+
+    def _on_sensors_alive(self, alive: bool) -> None:
+        """This rig's sensors' liveliness token came or went (a node stopped, or its link was down
+        past Zenoh's lease: they look alike from here). Only counted: ``_on_descriptor`` reads it."""
+        if not alive:
+            self._sensors_since = None
+        elif self._sensors_since is None:
+            self._sensors_since = time.monotonic()
+            self._sensors_presence += 1
 
     # -- episode lifecycle ------------------------------------------------------------------
     def _on_control(self, payload: bytes) -> None:
@@ -218,6 +236,8 @@ class ControllerNode:
 
     def _ask_descriptor(self, campaign_id: str, empty: int) -> None:
         """Query the rig's descriptor for a campaign; ``empty``: how many earlier queries no node answered."""
+        if empty == 0:
+            self._round_began[campaign_id] = time.monotonic()
         self.bus.query(keys.rig_info(self.rig), b"", DESCRIPTOR_TIMEOUT_S,
                        lambda replies: self.loop.post(self._on_descriptor, campaign_id, replies, empty))
 
@@ -233,11 +253,28 @@ class ControllerNode:
         if descriptor is not None and descriptor.rig != self.rig:
             log.warning("rig %s: the descriptor names rig %s; ignored", self.rig, descriptor.rig)
             descriptor = None
-        if descriptor is not None:
+        began = self._round_began.pop(campaign_id, None)
+        if descriptor is not None:  # served in the token's current appearance (or the first, not seen here yet)
             self._last_descriptor = descriptor
+            self._described_in = self._sensors_presence + (self._sensors_since is None)
+        elif not replies and self._last_descriptor is not None and self._sensors_since is not None \
+                and self._sensors_presence != self._described_in:
+            # no node answered, and the sensors' token went and came back since they described the rig: the node now
+            # under its name may be another (a v1 node serving no descriptor) or the same one just back, whose queryable
+            # may not be routed yet. Silence counts only from a token that stood SENSORS_SETTLED_S before the round began
+            settled_at = self._sensors_since + SENSORS_SETTLED_S
+            if began is None or began < settled_at:
+                wait = max(settled_at - time.monotonic(), 0.0)
+                log.info("rig %s: its sensors came back and answer no descriptor query yet; asking again in %.0f s", self.rig, wait)
+                self.loop.post_later(wait, self._ask_descriptor, campaign_id, 0)
+                return
+            log.info("rig %s: the sensors node now under its name serves no descriptor (a v1 node); the one the node "
+                     "before it served is forgotten", self.rig)
+            self._last_descriptor = None
         elif not replies and self._last_descriptor is not None:
             # no node answered at all, again and again (a link cut across the re-asks), but this rig's sensors served a
-            # descriptor before: a node that described its hardware is not a v1 node; use what it said
+            # descriptor before, and their token has not come back since (it may have gone: a cut past the lease):
+            # a node that described its hardware is not a v1 node; use what it said
             log.info("rig %s: no node answered the descriptor query; using the one its sensors served last", self.rig)
             descriptor = self._last_descriptor
         if descriptor is None:

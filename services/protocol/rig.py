@@ -118,6 +118,13 @@ after a liveliness token arrives or a link comes back (a restart, the end of a c
 not route the query to the rig's queryable yet, and one empty answer would have the campaign
 modelled and scored under its scenario's assumptions (docs/protocol.md)."""
 
+SENSORS_SETTLED_S = 10.0
+"""A rig's controller takes a silent sensors node for another node than the one that described the
+rig before (e.g. a v1 node under the same rig name) only once that node's liveliness token has
+stood this long (Zenoh's default lease) before a descriptor query, and its re-asks, went
+unanswered: a token that just came back (a restart, or a link back after a cut past the lease)
+may not have its queryable routed yet (docs/protocol.md)."""
+
 HARDWARE_FIELDS = ("frames_per_rf", "rf_period_s", "fov_half_angle_deg", "box_bearing_noise_deg", "rx_dir")
 """The descriptor fields that describe the platform's hardware (null = configurable)."""
 

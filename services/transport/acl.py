@@ -150,6 +150,9 @@ def _controller(rig: str) -> list[Grant]:
         # the orchestrator's query reaches the queryable with its wildcard
         Grant(EGRESS, (QUERY,), (keys.rig_policies(rig), keys.rig_policies_any())),
         Grant(INGRESS, (TOKEN,), (keys.alive("controller", rig),)),
+        # it watches its own rig's sensors (a node whose token went and came back may be another: ``node._on_descriptor``)
+        Grant(INGRESS, (LIVELINESS_SUBSCRIBER, LIVELINESS_QUERY), (keys.alive("sensors", rig),)),
+        Grant(EGRESS, (TOKEN,), (keys.alive("sensors", rig),)),
     ]
 
 

@@ -143,7 +143,7 @@ def test_connect_without_a_mode_joins_the_router_and_a_campaign_started_before_t
     waiting = layout.campaign(cid)
     assert waiting["status"] == "training", f"{waiting['status']}: {waiting.get('error')}\n{layout.procs.tails()}"
     layout.start("sensors", "sensors")
-    health = layout.wait_for("the rig live", lambda h: h.get("rigs") == [RIG], 90)
+    health = layout.wait_for("the rig live and described", lambda h: h.get("ready_rigs") == [RIG], 90)
     assert health["status"] == "ok"
     c = layout.wait_finished(cid, timeout=420)
     assert c["status"] == "done", f"{c.get('error')}\n{layout.procs.tails()}"

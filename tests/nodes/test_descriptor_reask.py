@@ -51,7 +51,7 @@ def _wait(predicate, timeout=10.0):
 
 def test_a_descriptor_query_nobody_answered_is_asked_again_and_the_rig_is_described(tmp_path, monkeypatch):
     monkeypatch.setattr(scheduler_module, "DESCRIPTOR_REASK_S", (0.2, 0.4))
-    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_info(RIG), keys.rig_policies(RIG)), unrouted=1) as (store, scheduler, view):
+    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_info(RIG), keys.rig_policies(RIG)), unrouted=1) as (store, scheduler, view, _nodes):
         rig = scheduler.rigs[RIG]
         assert rig.described == "described" and rig.descriptor is not None and rig.descriptor.rig == RIG
         assert rig.announced == "announced"
@@ -75,7 +75,7 @@ def test_a_controllers_descriptor_query_nobody_answered_is_asked_again_and_the_c
     flake of tests/deploy/test_multihost.py, on the controller's side: a campaign started right
     after a link came back had all its episodes modelled from the scenario): a query no node
     answered is asked again, and the campaign is modelled from the descriptor, as simulate does."""
-    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=2) as (store, scheduler, view):
+    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=2) as (store, scheduler, view, _nodes):
         c = run_to_end(store, scheduler, "paper", SMALL, 2, 3, ["rapas"], timeout=60.0)
         assert c["status"] == "done", c["error"]
         assert view.asked.count(keys.rig_info(RIG)) == 3  # two unanswered, the third answered
@@ -87,14 +87,14 @@ def _rig_on_a_bus(tmp_path, seen_by: str, on_keys: tuple[str, ...], unrouted: in
     """A rig (sensors and controller), a learner and the scheduler on one in-memory bus, the
     ``seen_by`` one (``scheduler`` or ``controller``) seeing it through ``FirstQueriesUnrouted``
     (its first ``unrouted`` queries on ``on_keys`` unanswered); yields (store, scheduler, view)
-    once the rig is ready, closes all after."""
+    once the rig is ready (and the nodes, which a test may replace), closes all after."""
     bus, store = MemoryBus(), Store(str(tmp_path / "reask.db"))
     view = FirstQueriesUnrouted(bus, on_keys, unrouted=unrouted)
     scheduler = scheduler_module.Scheduler(view if seen_by == "scheduler" else bus, store, window=3)
     nodes = [SensorsNode(bus, RIG), ControllerNode(view if seen_by == "controller" else bus, RIG), LearnerNode(bus)]
     try:
         _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
-        yield store, scheduler, view
+        yield store, scheduler, view, nodes
     finally:
         scheduler.close()
         for n in nodes:
@@ -116,7 +116,7 @@ def test_a_controller_whose_rig_described_itself_before_keeps_that_descriptor_th
     tests/deploy/test_multihost.py: a 3 s cut right as a campaign started, all 16 episodes modelled
     from the scenario): a controller whose rig's sensors served a descriptor for an earlier
     campaign uses that one rather than taking its rig for a v1 node."""
-    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view):
+    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view, _nodes):
         first = run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["rapas"], timeout=60.0)
         assert first["status"] == "done" and "assumptions" not in first["results"]
         view._left[keys.rig_info(RIG)] = 3  # the next campaign's query and both re-asks go unrouted
@@ -125,3 +125,100 @@ def test_a_controller_whose_rig_described_itself_before_keeps_that_descriptor_th
         assert c["status"] == "done", c["error"]
         assert view.asked[asked:].count(keys.rig_info(RIG)) == 3  # asked, and asked again twice: no answer
         assert "assumptions" not in c["results"]  # modelled from the descriptor the rig served before
+
+
+def _replace_the_sensors(scheduler, view, nodes, **kwargs):
+    """Stop the rig's sensors node (its token goes with it) and start another under the rig's name
+    (``kwargs``: its ``SensorsNode`` arguments); returns once the orchestrator saw it go and the new one come."""
+    nodes[0].close()
+    _wait(lambda: RIG not in scheduler.rigs or not scheduler.rigs[RIG].sensors)
+    nodes.append(SensorsNode(view._bus, RIG, **kwargs))
+    _wait(lambda: RIG in scheduler.rigs and scheduler.rigs[RIG].ready)
+
+
+def _settled_after(monkeypatch, seconds: float) -> None:
+    from ra2vipas.services.controller import node as controller_module
+
+    monkeypatch.setattr(controller_module, "SENSORS_SETTLED_S", seconds)
+
+
+def test_a_controller_forgets_its_rigs_descriptor_once_a_v1_node_has_taken_the_rigs_name(tmp_path, monkeypatch):
+    """The rig's described sensors node stops and a v1 node (no descriptor) takes the rig's name:
+    once the new node's token has stood ``SENSORS_SETTLED_S`` and it answers no descriptor query, the
+    controller no longer models the rig from what the old node said, so the next campaign is
+    modelled from its scenario and says so, as the orchestrator, which sees the v1 node, does."""
+    _settled_after(monkeypatch, 0.5)
+    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view, nodes):
+        first = run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["rapas"], timeout=60.0)
+        assert first["status"] == "done" and "assumptions" not in first["results"]
+        _replace_the_sensors(scheduler, view, nodes, describe=False)
+        assert scheduler.rigs[RIG].described == "undescribed"
+        asked = len(view.asked)
+        c = run_to_end(store, scheduler, "paper", SMALL, 2, 4, ["rapas"], timeout=60.0)
+        assert c["status"] == "done", c["error"]
+        assert view.asked[asked:].count(keys.rig_info(RIG)) >= 3  # asked, and asked again: no node answers
+        assumptions = c["results"]["assumptions"]
+        assert assumptions["sensor_model"] == "scenario" and assumptions["episodes"] == assumptions["of"] == 2, assumptions
+
+
+def test_a_described_node_back_whose_first_queries_go_unanswered_keeps_the_rig_described(tmp_path, monkeypatch):
+    """The same described node comes back (a restart, or a link back after a cut past the lease) and
+    the next campaign's query and re-asks go unanswered (its queryable not routed yet): the
+    controller does not take the silence of a token younger than ``SENSORS_SETTLED_S`` for a v1
+    node; it asks again once the token has stood that long, and the node answers."""
+    _settled_after(monkeypatch, 1.0)
+    with _rig_whose_controller_sees(tmp_path, monkeypatch, unrouted=0) as (store, scheduler, view, nodes):
+        first = run_to_end(store, scheduler, "paper", SMALL, 1, 3, ["rapas"], timeout=60.0)
+        assert first["status"] == "done" and "assumptions" not in first["results"]
+        _replace_the_sensors(scheduler, view, nodes)
+        view._left[keys.rig_info(RIG)] = 3  # the next campaign's query and both re-asks go unrouted
+        asked = len(view.asked)
+        c = run_to_end(store, scheduler, "paper", SMALL, 2, 4, ["rapas"], timeout=60.0)
+        assert c["status"] == "done", c["error"]
+        assert view.asked[asked:].count(keys.rig_info(RIG)) == 4  # three unanswered, then, the token settled, answered
+        assert "assumptions" not in c["results"]
+
+
+def test_a_controller_unsure_of_a_returned_node_asks_again_once_its_token_has_settled(monkeypatch):
+    """The decision itself, on the controller alone: a descriptor query round that no node answered
+    while the sensors' token is younger than ``SENSORS_SETTLED_S`` (it went and came back since the
+    node described the rig) is neither the old descriptor nor "undescribed": the campaign waits and
+    a new round goes out once the token has stood that long."""
+    from ra2vipas.services.controller import node as controller_module
+    from ra2vipas.services.sensors.node import simulated_descriptor
+
+    monkeypatch.setattr(controller_module, "DESCRIPTOR_REASK_S", ())
+    _settled_after(monkeypatch, 0.3)
+    bus = MemoryBus()
+    asked: list[float] = []
+
+    class Silent:
+        def query(self, key, payload, timeout, callback):
+            asked.append(time.monotonic())
+            callback([])
+
+        def __getattr__(self, name):
+            return getattr(bus, name)
+
+    controller = ControllerNode(Silent(), RIG)
+    try:
+        controller.loop.post(controller._on_sensors_alive, True)
+        controller.loop.post(lambda: setattr(controller, "_last_descriptor", simulated_descriptor(RIG)))
+        controller.loop.post(lambda: setattr(controller, "_described_in", controller._sensors_presence))
+        controller.loop.post(controller._on_sensors_alive, False)
+        controller.loop.post(controller._on_sensors_alive, True)  # back: another appearance of the token
+        controller.loop.post(lambda: controller.descriptors.__setitem__("c1", "asking"))
+        controller.loop.post(controller._ask_descriptor, "c1", 0)
+        _wait(lambda: controller.descriptors.get("c1", "asking") != "asking", timeout=5.0)
+        assert controller.descriptors["c1"] is None and controller._last_descriptor is None
+        assert len(asked) == 2 and asked[1] - asked[0] >= 0.25  # the young token's silence was asked again, settled
+        # the same with the token never gone: the old descriptor stands (a cut shorter than the lease)
+        controller.loop.post(lambda: setattr(controller, "_last_descriptor", simulated_descriptor(RIG)))
+        controller.loop.post(lambda: setattr(controller, "_described_in", controller._sensors_presence))
+        controller.loop.post(lambda: controller.descriptors.__setitem__("c2", "asking"))
+        controller.loop.post(controller._ask_descriptor, "c2", 0)
+        _wait(lambda: controller.descriptors.get("c2", "asking") != "asking", timeout=5.0)
+        assert controller.descriptors["c2"] is not None and len(asked) == 3
+    finally:
+        controller.close()
+        bus.close()

@@ -86,6 +86,8 @@ LEGIT = [
     ("rig-1", INGRESS, TOKEN, keys.alive("controller", "rig-1")),
     ("robot-1.sensors", INGRESS, PUT, keys.measurement("robot-1")),
     ("robot-1.controller", INGRESS, PUT, keys.episode_result("robot-1")),
+    ("robot-1.controller", INGRESS, LIVELINESS_SUBSCRIBER, keys.alive("sensors", "robot-1")),  # its rig's sensors come and go
+    ("robot-1.controller", EGRESS, TOKEN, keys.alive("sensors", "robot-1")),
     ("learner", INGRESS, QUERY, keys.training_any()),
     ("learner", INGRESS, QUERYABLE, keys.pod_model()),
     ("orchestrator", INGRESS, PUT, keys.episode_control("rig-2")),
@@ -121,6 +123,8 @@ FORBIDDEN = [
     ("rig-1", INGRESS, TOKEN, keys.alive("orchestrator", "orchestrator")),
     ("rig-1", INGRESS, TOKEN, f"{keys.PREFIX}/alive/**"),
     ("rig-1", INGRESS, LIVELINESS_SUBSCRIBER, keys.alive_all()),
+    ("rig-1", INGRESS, LIVELINESS_SUBSCRIBER, keys.alive("sensors", "rig-2")),
+    ("robot-1.controller", EGRESS, TOKEN, keys.alive("sensors", "rig-1")),
     ("robot-1.controller", INGRESS, PUT, keys.measurement("robot-1")),
     ("robot-1.controller", INGRESS, PUT, keys.episode_truth("robot-1")),
     ("robot-1.controller", INGRESS, TOKEN, keys.alive("sensors", "robot-1")),
