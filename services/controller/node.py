@@ -60,7 +60,7 @@ from ra2vipas.services.protocol.messages import (
 from ra2vipas.services.protocol.pod import PODModel
 from ra2vipas.services.protocol.rig import DESCRIPTOR_REASK_S, DESCRIPTOR_TIMEOUT_S, SENSORS_SETTLED_S, RigDescriptor
 from ra2vipas.services.protocol.versions import PROTOCOL_VERSION
-from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
+from ra2vipas.services.transport.bus import Bus, Reply, answered, undeclare_all
 from ra2vipas.services.transport.costs import CostClock
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, decode_or_reject, first_valid_reply
 
@@ -245,6 +245,7 @@ class ControllerNode:
         """The descriptor's answer: a query no node answered at all is asked again after the waits of
         ``DESCRIPTOR_REASK_S`` (the router may not route it to the sensors' queryable yet: a link just
         back, a node just up) before the rig is taken for a v1 node and modelled from the scenario."""
+        replies = answered(replies)  # a query that timed out (a link cut mid-query) was answered by no node
         if not replies and empty < len(DESCRIPTOR_REASK_S):
             log.info("rig %s: no node answered the descriptor query; asking again in %.0f s", self.rig, DESCRIPTOR_REASK_S[empty])
             self.loop.post_later(DESCRIPTOR_REASK_S[empty], self._ask_descriptor, campaign_id, empty + 1)

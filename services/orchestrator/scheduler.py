@@ -83,7 +83,7 @@ from ra2vipas.services.protocol.versions import (
     describe_missing,
     missing_features,
 )
-from ra2vipas.services.transport.bus import Bus, Reply, undeclare_all
+from ra2vipas.services.transport.bus import Bus, Reply, answered, undeclare_all
 from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, first_valid_reply
 
 log = logging.getLogger(__name__)
@@ -858,7 +858,7 @@ class Scheduler:
         self.bus.query(key, b"", DESCRIPTOR_TIMEOUT_S, lambda replies: self.loop.post(handler, name, replies, round_))
 
     def _asked_again(self, name: str, what: str, replies: list[Reply], generation: int) -> bool:
-        """Whether an answer with no reply at all is asked again later (``DESCRIPTOR_REASK_S``)
+        """Whether an answer with no reply at all (a timeout counts as none: ``answered``) is asked again later (``DESCRIPTOR_REASK_S``)
         rather than taken as the node's silence; True also for an answer to an old round."""
         rig = self.rigs[name]
         current, empty = rig.asks.get(what, (None, 0))
@@ -872,6 +872,7 @@ class Scheduler:
         return True
 
     def _on_descriptor(self, name: str, replies: list[Reply], generation: int) -> None:
+        replies = answered(replies)  # a query that timed out (a link cut mid-query) was answered by no node
         rig = self.rigs.get(name)
         if rig is None or not rig.sensors or rig.described != "asking":
             return
@@ -891,6 +892,7 @@ class Scheduler:
         self._dispatch()
 
     def _on_controller_info(self, name: str, replies: list[Reply], generation: int) -> None:
+        replies = answered(replies)  # as for the descriptor
         rig = self.rigs.get(name)
         if rig is None or not rig.controller or rig.announced != "asking":
             return

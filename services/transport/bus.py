@@ -25,11 +25,20 @@ class QueryError(Exception):
 
 @dataclass(frozen=True)
 class Reply:
-    """One reply to a query: ``ok`` False means an error reply whose text is in ``payload``."""
+    """One reply to a query: ``ok`` False means an error reply whose text is in ``payload``;
+    ``timed_out``: the error is the querier's own timeout (a node matched the key but no answer
+    came in time, e.g. its link went down mid-query), not a node's answer."""
 
     key: str
     payload: bytes
     ok: bool = True
+    timed_out: bool = False
+
+
+def answered(replies: list[Reply]) -> list[Reply]:
+    """The replies some node sent (``replies`` without the querier's own timeout): a query whose
+    every matching node stayed silent until its timeout was answered by no node."""
+    return [r for r in replies if not r.timed_out]
 
 
 class Handle(Protocol):

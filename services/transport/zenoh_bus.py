@@ -23,6 +23,7 @@ from ra2vipas.services.transport.zenoh_config import ZenohSettings
 log = logging.getLogger(__name__)
 
 JSON = zenoh.Encoding.APPLICATION_JSON
+ZENOH_QUERY_TIMEOUT = b"Timeout"  # the error reply a Zenoh session gives its own query that timed out (eclipse-zenoh 1.x)
 
 MAX_MESSAGE_BYTES = 1 << 20
 """Largest publication or query payload a node accepts (1 MiB; the largest legitimate message,
@@ -286,7 +287,9 @@ class ZenohBus:
                     if r.ok is not None:
                         replies.append(Reply(str(r.ok.key_expr), r.ok.payload.to_bytes(), True))
                     elif r.err is not None:
-                        replies.append(Reply(key, r.err.payload.to_bytes(), False))
+                        # Zenoh ends a query that a matched queryable did not answer in time with its own error "Timeout"
+                        text = r.err.payload.to_bytes()
+                        replies.append(Reply(key, text, False, timed_out=text == ZENOH_QUERY_TIMEOUT))
             except Exception:
                 log.exception("query on %s failed", key)
             callback(replies)
