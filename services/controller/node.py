@@ -264,7 +264,7 @@ class ControllerNode:
             # under its name may be another (a v1 node serving no descriptor) or the same one just back, whose queryable
             # may not be routed yet. Silence counts only from a token that stood SENSORS_SETTLED_S before the round began
             settled_at = self._sensors_since + SENSORS_SETTLED_S
-            if began is None or began < settled_at:
+            if began is None or began < settled_at - 0.01:  # (a timer that fires a hair early does not ask twice)
                 wait = max(settled_at - time.monotonic(), 0.0)
                 log.info("rig %s: its sensors came back and answer no descriptor query yet; asking again in %.0f s", self.rig, wait)
                 self.loop.post_later(wait, self._ask_descriptor, campaign_id, 0)
