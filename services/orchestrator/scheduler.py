@@ -74,7 +74,14 @@ from ra2vipas.services.protocol.messages import (
     TrainingTruth,
     dump,
 )
-from ra2vipas.services.protocol.rig import DESCRIPTOR_REASK_S, DESCRIPTOR_TIMEOUT_S, RigDescriptor, conflicts, speaks
+from ra2vipas.services.protocol.rig import (
+    DESCRIPTOR_REASK_S,
+    DESCRIPTOR_TIMEOUT_S,
+    SENSORS_SETTLED_S,
+    RigDescriptor,
+    conflicts,
+    speaks,
+)
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.protocol.versions import (
     BUILTIN_POLICIES,
@@ -151,6 +158,7 @@ class _Rig:
     controller_info: ControllerInfo | None = None
     announced: str = "unknown"  # unknown (controller down) | asking | announced | silent (a 1.0/1.1 controller)
     asks: dict = field(default_factory=dict)  # "descriptor" | "policies" -> (generation, empty answers so far)
+    sensors_since: float = 0.0  # monotonic time its sensors' token last appeared
 
     @property
     def live(self) -> bool:
@@ -802,7 +810,7 @@ class Scheduler:
         if role == "sensors":
             self._forget_descriptor(name)
             if up:  # the token is declared after the queryables (docs/protocol.md): ask what the rig is
-                rig.described = "asking"
+                rig.described, rig.sensors_since = "asking", time.monotonic()
                 self._ask(name, "descriptor", new=True)
                 for run in list(self.runs.values()):  # campaigns waiting for sensors to train on: ask again now
                     if run.awaiting_sensors and run.pod is None and run.model_retry_at is not None:
@@ -887,6 +895,33 @@ class Scheduler:
         if descriptor is None:
             log.info("rig %s is undescribed%s: its campaigns are scored under their scenarios' assumptions", name,
                      f" ({passed_over[-1]})" if passed_over else "")
+            young = SENSORS_SETTLED_S - (time.monotonic() - rig.sensors_since)
+            if not replies and young > 0.0:
+                # silent from a token that just appeared: its queryable may not be routed yet. The rig stays usable
+                # as undescribed (a v1 node's readiness is not delayed) and is asked once more when the token has settled
+                self.loop.post_later(young, self._recheck_descriptor, name, generation)
+        for run in self.runs.values():
+            run.eligible.pop(name, None)
+        self._dispatch()
+
+    def _recheck_descriptor(self, name: str, generation: int) -> None:
+        """Ask a rig taken for undescribed on the silence of a token that had just appeared once more,
+        now that it has stood ``SENSORS_SETTLED_S``; only a valid descriptor changes anything."""
+        rig = self.rigs.get(name)
+        if rig is None or not rig.sensors or rig.described != "undescribed" or rig.asks.get("descriptor", (None,))[0] != generation:
+            return
+        self.bus.query(keys.rig_info(name), b"", DESCRIPTOR_TIMEOUT_S,
+                       lambda replies: self.loop.post(self._on_recheck, name, replies, generation))
+
+    def _on_recheck(self, name: str, replies: list[Reply], generation: int) -> None:
+        rig = self.rigs.get(name)
+        if rig is None or not rig.sensors or rig.described != "undescribed" or rig.asks.get("descriptor", (None,))[0] != generation:
+            return
+        descriptor, _ = first_valid_reply(answered(replies), RigDescriptor, "RigDescriptor")
+        if descriptor is None or descriptor.rig != name:
+            return
+        log.info("rig %s answered its descriptor once its token had settled: described", name)
+        rig.descriptor, rig.described = descriptor, "described"
         for run in self.runs.values():
             run.eligible.pop(name, None)
         self._dispatch()

@@ -255,3 +255,19 @@ def test_a_descriptor_query_that_timed_out_counts_as_unanswered_for_the_orchestr
         assert c["status"] == "done", c["error"]
         assert view.asked[asked:].count(keys.rig_info(RIG)) == 3  # asked, and asked again twice
         assert "assumptions" not in c["results"]  # modelled from the descriptor the rig served before
+
+
+def test_the_orchestrator_asks_a_rig_taken_for_undescribed_on_a_young_tokens_silence_once_more_when_it_settles(tmp_path, monkeypatch):
+    """The rig's descriptor query and both re-asks go unanswered right after its sensors' token
+    appeared (the queryable not routed yet for longer than the re-asks): the rig is taken for
+    undescribed at once (a v1 node's readiness is not delayed), and asked once more when the token
+    has stood ``SENSORS_SETTLED_S``; the node answers and the rig is described (else it would be
+    taken for a v1 node, protocol 1.0, until its token changed)."""
+    monkeypatch.setattr(scheduler_module, "DESCRIPTOR_REASK_S", (0.1, 0.2))
+    monkeypatch.setattr(scheduler_module, "SENSORS_SETTLED_S", 2.0)
+    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_info(RIG),), unrouted=3) as (store, scheduler, view, _nodes):
+        rig = scheduler.rigs[RIG]
+        assert rig.described == "undescribed" and view.asked.count(keys.rig_info(RIG)) == 3
+        _wait(lambda: rig.described == "described", timeout=15.0)
+        assert rig.descriptor is not None and rig.descriptor.rig == RIG and view.asked.count(keys.rig_info(RIG)) == 4
+        assert scheduler.protocols()[RIG] != "1.0"
