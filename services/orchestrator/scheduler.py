@@ -904,18 +904,23 @@ class Scheduler:
             run.eligible.pop(name, None)
         self._dispatch()
 
+    def _still_undescribed(self, name: str, generation: int) -> "_Rig | None":
+        """Rig ``name`` if its sensors are up and still undescribed from the descriptor round ``generation``."""
+        rig = self.rigs.get(name)
+        if rig is None or not rig.sensors or rig.described != "undescribed" or rig.asks.get("descriptor", (None,))[0] != generation:
+            return None
+        return rig
+
     def _recheck_descriptor(self, name: str, generation: int) -> None:
         """Ask a rig taken for undescribed on the silence of a token that had just appeared once more,
         now that it has stood ``SENSORS_SETTLED_S``; only a valid descriptor changes anything."""
-        rig = self.rigs.get(name)
-        if rig is None or not rig.sensors or rig.described != "undescribed" or rig.asks.get("descriptor", (None,))[0] != generation:
-            return
-        self.bus.query(keys.rig_info(name), b"", DESCRIPTOR_TIMEOUT_S,
-                       lambda replies: self.loop.post(self._on_recheck, name, replies, generation))
+        if self._still_undescribed(name, generation) is not None:
+            self.bus.query(keys.rig_info(name), b"", DESCRIPTOR_TIMEOUT_S,
+                           lambda replies: self.loop.post(self._on_recheck, name, replies, generation))
 
     def _on_recheck(self, name: str, replies: list[Reply], generation: int) -> None:
-        rig = self.rigs.get(name)
-        if rig is None or not rig.sensors or rig.described != "undescribed" or rig.asks.get("descriptor", (None,))[0] != generation:
+        rig = self._still_undescribed(name, generation)
+        if rig is None:
             return
         descriptor, _ = first_valid_reply(answered(replies), RigDescriptor, "RigDescriptor")
         if descriptor is None or descriptor.rig != name:
