@@ -158,7 +158,7 @@ class _Rig:
     controller_info: ControllerInfo | None = None
     announced: str = "unknown"  # unknown (controller down) | asking | announced | silent (a 1.0/1.1 controller)
     asks: dict = field(default_factory=dict)  # "descriptor" | "policies" -> (generation, empty answers so far)
-    sensors_since: float = 0.0  # monotonic time its sensors' token last appeared
+    appeared: dict = field(default_factory=dict)  # "descriptor" | "policies" -> monotonic time its node's token last appeared
 
     @property
     def live(self) -> bool:
@@ -810,7 +810,7 @@ class Scheduler:
         if role == "sensors":
             self._forget_descriptor(name)
             if up:  # the token is declared after the queryables (docs/protocol.md): ask what the rig is
-                rig.described, rig.sensors_since = "asking", time.monotonic()
+                rig.described, rig.appeared["descriptor"] = "asking", time.monotonic()
                 self._ask(name, "descriptor", new=True)
                 for run in list(self.runs.values()):  # campaigns waiting for sensors to train on: ask again now
                     if run.awaiting_sensors and run.pod is None and run.model_retry_at is not None:
@@ -818,7 +818,7 @@ class Scheduler:
         if role == "controller":
             rig.controller_info, rig.announced = None, "unknown"
             if up:  # its token is declared after its queryable: ask which policies it serves
-                rig.announced = "asking"
+                rig.announced, rig.appeared["policies"] = "asking", time.monotonic()
                 self._ask(name, "policies", new=True)
         if rig.live != was_live or not rig.since:
             rig.since = time.time()
@@ -895,40 +895,52 @@ class Scheduler:
         if descriptor is None:
             log.info("rig %s is undescribed%s: its campaigns are scored under their scenarios' assumptions", name,
                      f" ({passed_over[-1]})" if passed_over else "")
-            young = SENSORS_SETTLED_S - (time.monotonic() - rig.sensors_since)
-            if not replies and young > 0.0:
-                # silent from a token that just appeared: its queryable may not be routed yet. The rig stays usable
-                # as undescribed (a v1 node's readiness is not delayed) and is asked once more when the token has settled
-                self.loop.post_later(young, self._recheck_descriptor, name, generation)
+            self._recheck_if_young(name, "descriptor", replies, generation)
         for run in self.runs.values():
             run.eligible.pop(name, None)
         self._dispatch()
 
-    def _still_undescribed(self, name: str, generation: int) -> "_Rig | None":
-        """Rig ``name`` if its sensors are up and still undescribed from the descriptor round ``generation``."""
+    def _recheck_if_young(self, name: str, what: str, replies: list[Reply], generation: int) -> None:
+        """After rig ``name`` was taken for undescribed (``what`` = "descriptor") or its controller for
+        silent ("policies") on the silence of a node whose token had just appeared (its queryable may
+        not be routed yet): the rig stays usable as it is (a v1 node's readiness is not delayed), and
+        the node is asked once more when its token has stood ``SENSORS_SETTLED_S``."""
+        young = SENSORS_SETTLED_S - (time.monotonic() - self.rigs[name].appeared.get(what, 0.0))
+        if not replies and young > 0.0:
+            self.loop.post_later(young, self._recheck, name, what, generation)
+
+    def _still_unknown(self, name: str, what: str, generation: int) -> "_Rig | None":
+        """Rig ``name`` if its node is up and still undescribed (or its controller silent) from round ``generation``."""
         rig = self.rigs.get(name)
-        if rig is None or not rig.sensors or rig.described != "undescribed" or rig.asks.get("descriptor", (None,))[0] != generation:
+        if rig is None or rig.asks.get(what, (None,))[0] != generation:
             return None
-        return rig
+        if what == "descriptor":
+            unknown = rig.sensors and rig.described == "undescribed"
+        else:
+            unknown = rig.controller and rig.announced == "silent"
+        return rig if unknown else None
 
-    def _recheck_descriptor(self, name: str, generation: int) -> None:
-        """Ask a rig taken for undescribed on the silence of a token that had just appeared once more,
-        now that it has stood ``SENSORS_SETTLED_S``; only a valid descriptor changes anything."""
-        if self._still_undescribed(name, generation) is not None:
-            self.bus.query(keys.rig_info(name), b"", DESCRIPTOR_TIMEOUT_S,
-                           lambda replies: self.loop.post(self._on_recheck, name, replies, generation))
+    def _recheck(self, name: str, what: str, generation: int) -> None:
+        if self._still_unknown(name, what, generation) is not None:
+            key = keys.rig_info(name) if what == "descriptor" else keys.rig_policies(name)
+            self.bus.query(key, b"", DESCRIPTOR_TIMEOUT_S, lambda replies: self.loop.post(self._on_recheck, name, what, replies, generation))
 
-    def _on_recheck(self, name: str, replies: list[Reply], generation: int) -> None:
-        rig = self._still_undescribed(name, generation)
+    def _on_recheck(self, name: str, what: str, replies: list[Reply], generation: int) -> None:
+        """Only a valid answer for that rig, in the same round, changes anything."""
+        rig = self._still_unknown(name, what, generation)
         if rig is None:
             return
-        descriptor, _ = first_valid_reply(answered(replies), RigDescriptor, "RigDescriptor")
-        if descriptor is None or descriptor.rig != name:
+        schema = RigDescriptor if what == "descriptor" else ControllerInfo
+        answer, _ = first_valid_reply(answered(replies), schema, schema.__name__)
+        if answer is None or answer.rig != name:
             return
-        log.info("rig %s answered its descriptor once its token had settled: described", name)
-        rig.descriptor, rig.described = descriptor, "described"
-        for run in self.runs.values():
-            run.eligible.pop(name, None)
+        log.info("rig %s answered its %s once its token had settled", name, what)
+        if what == "descriptor":
+            rig.descriptor, rig.described = answer, "described"
+            for run in self.runs.values():
+                run.eligible.pop(name, None)
+        else:
+            self._take_policies(name, rig, answer)
         self._dispatch()
 
     def _on_controller_info(self, name: str, replies: list[Reply], generation: int) -> None:
@@ -942,17 +954,21 @@ class Scheduler:
         if info is not None and info.rig != name:
             log.warning("the controller of rig %s answers for rig %s; taken to serve the built-ins only", name, info.rig)
             info = None
-        rig.controller_info = info
-        rig.announced = "announced" if info is not None else "silent"
         if info is None:
+            rig.controller_info, rig.announced = None, "silent"
             log.info("the controller of rig %s says nothing of its policies%s: it serves the built-ins (%s)", name,
                      f" ({passed_over[-1]})" if passed_over else "", ", ".join(BUILTIN_POLICIES))
+            self._recheck_if_young(name, "policies", replies, generation)
         else:
-            log.info("the controller of rig %s serves %s", name, ", ".join(p.name for p in info.policies))
-            for offer in info.policies:
-                if offer.name not in BUILTIN_POLICIES and offer.name not in SHIPPED_BASELINES and offer.package:
-                    self._provenance[offer.name] = {"package": offer.package, "version": offer.version or "?"}
+            self._take_policies(name, rig, info)
         self._dispatch()
+
+    def _take_policies(self, name: str, rig: _Rig, info: ControllerInfo) -> None:
+        rig.controller_info, rig.announced = info, "announced"
+        log.info("the controller of rig %s serves %s", name, ", ".join(p.name for p in info.policies))
+        for offer in info.policies:
+            if offer.name not in BUILTIN_POLICIES and offer.name not in SHIPPED_BASELINES and offer.package:
+                self._provenance[offer.name] = {"package": offer.package, "version": offer.version or "?"}
 
     def served(self) -> dict[str, tuple[str, ...] | None]:
         """The policies each live rig's controller serves (None: not known yet); thread-safe copy."""

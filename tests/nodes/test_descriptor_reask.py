@@ -271,3 +271,18 @@ def test_the_orchestrator_asks_a_rig_taken_for_undescribed_on_a_young_tokens_sil
         _wait(lambda: rig.described == "described", timeout=15.0)
         assert rig.descriptor is not None and rig.descriptor.rig == RIG and view.asked.count(keys.rig_info(RIG)) == 4
         assert scheduler.protocols()[RIG] != "1.0"
+
+
+def test_the_orchestrator_asks_a_controller_taken_for_silent_on_a_young_tokens_silence_once_more_when_it_settles(tmp_path, monkeypatch):
+    """The same for a controller's policies: taken to serve the built-ins at once, asked once more
+    when its token has settled, and then known to serve what it announces."""
+    monkeypatch.setattr(scheduler_module, "DESCRIPTOR_REASK_S", (0.1, 0.2))
+    monkeypatch.setattr(scheduler_module, "SENSORS_SETTLED_S", 2.0)
+    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_policies(RIG),), unrouted=3) as (store, scheduler, view, _nodes):
+        rig = scheduler.rigs[RIG]
+        assert rig.announced == "silent" and view.asked.count(keys.rig_policies(RIG)) == 3
+        _wait(lambda: rig.announced == "announced", timeout=15.0)
+        assert rig.controller_info is not None and rig.controller_info.rig == RIG and view.asked.count(keys.rig_policies(RIG)) == 4
+        assert scheduler.rigs[RIG].described == "described"  # the descriptor's own round was answered: no re-check
+        c = run_to_end(store, scheduler, "paper", SMALL, 2, 3, ["rapas"], timeout=60.0)
+        assert c["status"] == "done", c["error"]
