@@ -9,6 +9,8 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 
+import pytest
+
 from ra2vipas.services.controller.node import ControllerNode
 from ra2vipas.services.learner.node import LearnerNode
 from ra2vipas.services.orchestrator import scheduler as scheduler_module
@@ -257,32 +259,25 @@ def test_a_descriptor_query_that_timed_out_counts_as_unanswered_for_the_orchestr
         assert "assumptions" not in c["results"]  # modelled from the descriptor the rig served before
 
 
-def test_the_orchestrator_asks_a_rig_taken_for_undescribed_on_a_young_tokens_silence_once_more_when_it_settles(tmp_path, monkeypatch):
-    """The rig's descriptor query and both re-asks go unanswered right after its sensors' token
-    appeared (the queryable not routed yet for longer than the re-asks): the rig is taken for
-    undescribed at once (a v1 node's readiness is not delayed), and asked once more when the token
-    has stood ``SENSORS_SETTLED_S``; the node answers and the rig is described (else it would be
-    taken for a v1 node, protocol 1.0, until its token changed)."""
+@pytest.mark.parametrize("what", ["descriptor", "policies"])
+def test_the_orchestrator_asks_a_node_taken_for_silent_on_a_young_tokens_silence_once_more_when_it_settles(tmp_path, monkeypatch, what):
+    """The rig's descriptor query (or its controller's policies query) and both re-asks go
+    unanswered right after the node's token appeared (the queryable not routed yet for longer than
+    the re-asks): the rig is taken for undescribed (the controller for serving the built-ins) at
+    once, so a v1 node's readiness is not delayed, and asked once more when the token has stood
+    ``SENSORS_SETTLED_S``; the node answers and the rig is described (else it would be taken for a
+    v1 node, protocol 1.0, until its token changed), or the controller known to serve what it
+    announces; a campaign then runs."""
     monkeypatch.setattr(scheduler_module, "DESCRIPTOR_REASK_S", (0.1, 0.2))
     monkeypatch.setattr(scheduler_module, "SENSORS_SETTLED_S", 2.0)
-    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_info(RIG),), unrouted=3) as (store, scheduler, view, _nodes):
+    key = keys.rig_info(RIG) if what == "descriptor" else keys.rig_policies(RIG)
+    with _rig_on_a_bus(tmp_path, "scheduler", (key,), unrouted=3) as (store, scheduler, view, _nodes):
         rig = scheduler.rigs[RIG]
-        assert rig.described == "undescribed" and view.asked.count(keys.rig_info(RIG)) == 3
-        _wait(lambda: rig.described == "described", timeout=15.0)
-        assert rig.descriptor is not None and rig.descriptor.rig == RIG and view.asked.count(keys.rig_info(RIG)) == 4
-        assert scheduler.protocols()[RIG] != "1.0"
-
-
-def test_the_orchestrator_asks_a_controller_taken_for_silent_on_a_young_tokens_silence_once_more_when_it_settles(tmp_path, monkeypatch):
-    """The same for a controller's policies: taken to serve the built-ins at once, asked once more
-    when its token has settled, and then known to serve what it announces."""
-    monkeypatch.setattr(scheduler_module, "DESCRIPTOR_REASK_S", (0.1, 0.2))
-    monkeypatch.setattr(scheduler_module, "SENSORS_SETTLED_S", 2.0)
-    with _rig_on_a_bus(tmp_path, "scheduler", (keys.rig_policies(RIG),), unrouted=3) as (store, scheduler, view, _nodes):
-        rig = scheduler.rigs[RIG]
-        assert rig.announced == "silent" and view.asked.count(keys.rig_policies(RIG)) == 3
-        _wait(lambda: rig.announced == "announced", timeout=15.0)
-        assert rig.controller_info is not None and rig.controller_info.rig == RIG and view.asked.count(keys.rig_policies(RIG)) == 4
-        assert scheduler.rigs[RIG].described == "described"  # the descriptor's own round was answered: no re-check
+        state = (lambda: rig.described) if what == "descriptor" else (lambda: rig.announced)
+        assert state() == ("undescribed" if what == "descriptor" else "silent") and view.asked.count(key) == 3
+        _wait(lambda: state() in ("described", "announced"), timeout=15.0)
+        answer = rig.descriptor if what == "descriptor" else rig.controller_info
+        assert answer is not None and answer.rig == RIG and view.asked.count(key) == 4
+        assert rig.described == "described" and rig.announced == "announced" and scheduler.protocols()[RIG] != "1.0"
         c = run_to_end(store, scheduler, "paper", SMALL, 2, 3, ["rapas"], timeout=60.0)
         assert c["status"] == "done", c["error"]
