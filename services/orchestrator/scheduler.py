@@ -95,6 +95,10 @@ from ra2vipas.services.transport.runtime import EventLoop, decode_or_drop, first
 
 log = logging.getLogger(__name__)
 
+# what the orchestrator asks of a rig: the key of the query, the message that answers it, and what the rig is taken
+# for when no node answers (``_Rig.asked``)
+_QUERIES = {"descriptor": (keys.rig_info, RigDescriptor, "undescribed"), "policies": (keys.rig_policies, ControllerInfo, "silent")}
+
 MAX_ATTEMPTS = 5
 MODEL_TIMEOUT_S = 600.0
 MODEL_ATTEMPTS = 60  # retries (every 2-10 s) while no learner answers, or no rig's sensors are live to train on
@@ -163,6 +167,10 @@ class _Rig:
     @property
     def live(self) -> bool:
         return self.sensors and self.controller
+
+    def asked(self, what: str) -> tuple[bool, str]:
+        """(its node is up, what is known of it) for ``what`` = "descriptor" (its sensors) or "policies" (its controller)."""
+        return (self.sensors, self.described) if what == "descriptor" else (self.controller, self.announced)
 
     @property
     def ready(self) -> bool:
@@ -842,6 +850,14 @@ class Scheduler:
         rig = self.rigs.get(name)
         if rig is not None:
             rig.descriptor, rig.described = None, "unknown"
+        self._reassess(name)
+
+    def _take_descriptor(self, name: str, rig: _Rig, descriptor: RigDescriptor | None) -> None:
+        rig.descriptor, rig.described = descriptor, ("described" if descriptor is not None else "undescribed")
+        self._reassess(name)
+
+    def _reassess(self, name: str) -> None:
+        """Rig ``name``'s descriptor changed: every campaign decides again whether it may run there."""
         for run in self.runs.values():
             run.eligible.pop(name, None)
 
@@ -857,13 +873,12 @@ class Scheduler:
             rig.asks[what] = (rig.asks.get(what, (0, 0))[0] + 1, 0)
         elif generation != rig.asks.get(what, (None, 0))[0]:
             return
-        up, state = (rig.sensors, rig.described) if what == "descriptor" else (rig.controller, rig.announced)
+        up, state = rig.asked(what)
         if not up or state != "asking":
             return
         round_ = rig.asks[what][0]
-        key, handler = ((keys.rig_info(name), self._on_descriptor) if what == "descriptor"
-                        else (keys.rig_policies(name), self._on_controller_info))
-        self.bus.query(key, b"", DESCRIPTOR_TIMEOUT_S, lambda replies: self.loop.post(handler, name, replies, round_))
+        handler = self._on_descriptor if what == "descriptor" else self._on_controller_info
+        self.bus.query(_QUERIES[what][0](name), b"", DESCRIPTOR_TIMEOUT_S, lambda replies: self.loop.post(handler, name, replies, round_))
 
     def _asked_again(self, name: str, what: str, replies: list[Reply], generation: int) -> bool:
         """Whether an answer with no reply at all (a timeout counts as none: ``answered``) is asked again later (``DESCRIPTOR_REASK_S``)
@@ -890,14 +905,11 @@ class Scheduler:
         if descriptor is not None and descriptor.rig != name:
             log.warning("rig %s describes itself as rig %s; treated as undescribed", name, descriptor.rig)
             descriptor = None
-        rig.descriptor = descriptor
-        rig.described = "described" if descriptor is not None else "undescribed"
+        self._take_descriptor(name, rig, descriptor)
         if descriptor is None:
             log.info("rig %s is undescribed%s: its campaigns are scored under their scenarios' assumptions", name,
                      f" ({passed_over[-1]})" if passed_over else "")
             self._recheck_if_young(name, "descriptor", replies, generation)
-        for run in self.runs.values():
-            run.eligible.pop(name, None)
         self._dispatch()
 
     def _recheck_if_young(self, name: str, what: str, replies: list[Reply], generation: int) -> None:
@@ -914,33 +926,25 @@ class Scheduler:
         rig = self.rigs.get(name)
         if rig is None or rig.asks.get(what, (None,))[0] != generation:
             return None
-        if what == "descriptor":
-            unknown = rig.sensors and rig.described == "undescribed"
-        else:
-            unknown = rig.controller and rig.announced == "silent"
-        return rig if unknown else None
+        up, state = rig.asked(what)
+        return rig if up and state == _QUERIES[what][2] else None
 
     def _recheck(self, name: str, what: str, generation: int) -> None:
         if self._still_unknown(name, what, generation) is not None:
-            key = keys.rig_info(name) if what == "descriptor" else keys.rig_policies(name)
-            self.bus.query(key, b"", DESCRIPTOR_TIMEOUT_S, lambda replies: self.loop.post(self._on_recheck, name, what, replies, generation))
+            self.bus.query(_QUERIES[what][0](name), b"", DESCRIPTOR_TIMEOUT_S,
+                           lambda replies: self.loop.post(self._on_recheck, name, what, replies, generation))
 
     def _on_recheck(self, name: str, what: str, replies: list[Reply], generation: int) -> None:
         """Only a valid answer for that rig, in the same round, changes anything."""
         rig = self._still_unknown(name, what, generation)
         if rig is None:
             return
-        schema = RigDescriptor if what == "descriptor" else ControllerInfo
+        schema = _QUERIES[what][1]
         answer, _ = first_valid_reply(answered(replies), schema, schema.__name__)
         if answer is None or answer.rig != name:
             return
         log.info("rig %s answered its %s once its token had settled", name, what)
-        if what == "descriptor":
-            rig.descriptor, rig.described = answer, "described"
-            for run in self.runs.values():
-                run.eligible.pop(name, None)
-        else:
-            self._take_policies(name, rig, answer)
+        (self._take_descriptor if what == "descriptor" else self._take_policies)(name, rig, answer)
         self._dispatch()
 
     def _on_controller_info(self, name: str, replies: list[Reply], generation: int) -> None:
