@@ -59,7 +59,8 @@ def radio(circle: CircleGrid, sensors: SensorConfig, pod: PODLookup, cfg: Contro
                                   channel_offset_db=cfg.channel_offset_db, rssi_step_db=cfg.rssi_step_db,
                                   receiver_offset_db=cfg.receiver_offset_db, temper_fading=cfg.packet_fading_tempering,
                                   walk_rate_std_rad_s=cfg.packet_walk_rate_std_rad_s, walk_rate_change_rad_s=cfg.packet_walk_rate_change_rad_s,
-                                  packet_tail_dof=cfg.packet_tail_dof, batch_standing=cfg.packet_standing_batch)
+                                  packet_tail_dof=cfg.packet_tail_dof, batch_standing=cfg.packet_standing_batch,
+                                  probe_offsets=cfg.packet_probe_offsets)
         return RFFilterBelief(rff, gp, walk_prior_from_tracks=cfg.walk_prior_from_tracks, walk_prior=cfg.tx_walk_prior,
                               rate_walkers=cfg.packet_rate_walkers)
     recent = RecentLobe(circle, noise_var=gp.noise_var, lobe_width=cfg.lobe_width_rad, lobe_sign=lobe_sign,

@@ -128,6 +128,10 @@ class ControllerSettings:
     # (rf_filter.PacketBearingFilter): ble-recorded seeds 1-5 DR 0.945 / 0.955 / 0.930 / 0.955 / 0.920 with it, 0.915 /
     # 0.910 / 0.900 / 0.915 / 0.880 with each packet scored once against the level as it stood then (docs/radio.md)
     packet_standing_batch: bool = True
+    # probes aim where the next Rx(dir) packet's mean varies most over the bearing's posterior with Rx(dir)'s offset as its
+    # packets so far estimate it (rf_filter.PacketBearingFilter.most_informative_pan): ble-recorded seeds 1-5 DR 0.975 /
+    # 0.965 / 0.980 / 0.985 / 0.945 with it, 0.945 / 0.955 / 0.930 / 0.955 / 0.920 with the offset taken as 0 (docs/radio.md)
+    packet_probe_offsets: bool = True
     # a walking Tx's bearing has a rate, prior N(0, std^2), changing by change per sqrt(s) (rf_filter.PacketBearingFilter, packets
     # only), once the camera has seen packet_rate_walkers people walk (0: never): sparse packets leave a random walk behind a walker
     packet_walk_rate_std_rad_s: float = 0.5

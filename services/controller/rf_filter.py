@@ -565,6 +565,15 @@ class PacketBearingFilter(RFBearingFilter):
       outliers and the estimate lags behind it (ble-dynamic, docs/radio.md).
     * sigma_e, the white per-packet spread, is the pooled within-channel spread of Rx(iso),
       shrunk to the learner's estimate with ``prior_dof`` pseudo-samples.
+    * **Where to probe.** The probe pan is the one of largest predictive variance of the next
+      Rx(dir) packet over the posterior of gamma (MacKay 1992, as the parent's), but the offset is
+      unknown, not 0: given bearing gamma, the packets so far estimate it (the offset's posterior
+      mean, per channel group, averaged by their counts), and the next packet's mean at pan s is
+      a_s(gamma) + b_s(gamma) L + E[offset | packets, gamma]. At a pan where many packets were heard
+      every bearing then predicts what was heard there, so another packet there says next to
+      nothing about gamma; with the offset taken as 0 the variance is the same at every pan of a
+      flat posterior and a probe could return to one pan for the whole test, its packets telling
+      the level but not the bearing (``ble-recorded``, docs/radio.md).
     * **A walking Tx between packets.** The walking model diffuses for every step of T_RF since
       its last update (k steps: the kernel's k-th power, k times the variance), not one.
 
@@ -585,6 +594,10 @@ class PacketBearingFilter(RFBearingFilter):
     batch_standing : bool
         The standing model's evidence in one batch at the current level (above); False: each
         packet scored once, sequentially, like the walking model.
+    probe_offsets : bool
+        The probe's predictive variance (``most_informative_pan``) reads each bearing's mean with
+        Rx(dir)'s offset as its packets so far estimate it for that bearing (below); False: with
+        the offset taken as known (0), as on the pair path.
     (others as ``RFBearingFilter``)
     """
 
@@ -593,7 +606,7 @@ class PacketBearingFilter(RFBearingFilter):
                  tail_dof: float | None = 4.0, channel_offset_db: float = 3.0, rssi_step_db: float = 1.0,
                  prior_dof: float = 5.0, receiver_offset_db: float = 8.0, temper_fading: bool = False,
                  walk_rate_std_rad_s: float = 0.0, walk_rate_change_rad_s: float = 0.2, walk_rate_cells: int = 21,
-                 packet_tail_dof: float = -1.0, batch_standing: bool = False) -> None:
+                 packet_tail_dof: float = -1.0, batch_standing: bool = False, probe_offsets: bool = False) -> None:
         super().__init__(circle, response, noise_db, rf_period_s, walk_std_rad, level_memory_s, walk_prior, tail_dof)
         # the packets' innovations: Student-t with this many degrees of freedom (negative: ``tail_dof``, 0: Gaussian)
         self.packet_tail_dof = tail_dof if packet_tail_dof < 0.0 else (float(packet_tail_dof) or None)
@@ -614,6 +627,7 @@ class PacketBearingFilter(RFBearingFilter):
         self._walk_time: float | None = None
         self._dir_groups: dict[object, list] = {}  # channel -> [n, residual sums (standing), (walking)]
         self.batch_standing = bool(batch_standing)
+        self.probe_offsets = bool(probe_offsets)
         # the standing model's batch (``batch_standing``): channel -> [n, sums over its Rx(dir) packets of (z - a),
         # (z - a)^2, b, b^2, (z - a) b per cell]; and the evidence as of the last update
         self._stand_groups: dict[object, list] = {}
@@ -805,6 +819,48 @@ class PacketBearingFilter(RFBearingFilter):
         term = evidence - self._stand_evidence
         self._stand_evidence = evidence
         return term
+
+    def most_informative_pan(self, stride: int = 2, mass: float = 1e-3) -> float:
+        """The parent's pan of largest predictive variance of the next Rx(dir) packet, each bearing's
+        mean shifted by Rx(dir)'s offset as the packets so far estimate it for that bearing
+        (``probe_offsets``; ``_offset_estimate``). Before a Rx(dir) packet, or on the 1.0 pair: the
+        parent's."""
+        if not self.probe_offsets or not self._dir_groups:
+            return super().most_informative_pan(stride, mass)
+        keep, p = self._posterior_support(mass)
+        pans = self.circle.angles[::stride]
+        walking = self.p_walk > 0.5
+        mean = self.response.mean(self._level_now(walking), _columns(self.response.gain_table(self.circle, stride), keep))
+        mean += self._offset_estimate(walking)[keep][None, :]
+        first = mean @ p
+        var = (mean * mean) @ p - first * first
+        return float(pans[int(var.argmax())])
+
+    def _offset_estimate(self, walking: bool) -> np.ndarray:
+        """E[Rx(dir)'s offset | its packets so far, gamma] per cell: per channel group c the
+        posterior mean of a Gaussian random effect, sum_k r_k(gamma) kappa_c / (1 + n_c kappa_c)
+        (r_k packet k's residual given gamma; kappa_c the offset's prior variance over the packet
+        spread), averaged over the groups by their packets (the next packet's channel is not known).
+        The standing model's from its batch (``batch_standing``) at the current level, the walking
+        model's from its sequential residuals."""
+        white = self.white_var()
+        out = np.zeros(self.circle.size)
+        total = 0
+        if self.batch_standing and not walking:
+            level = self._level_now(False)
+            level_var = self._packet_level_var(False, white)
+            for channel, (n, sums) in self._stand_groups.items():
+                kappa = (self._offset_prior_var(channel) + level_var) / white
+                out += (sums[0] - level * sums[2]) * (n * kappa / (1.0 + n * kappa))
+                total += n
+        else:
+            j = 2 if walking else 1
+            for channel, group in self._dir_groups.items():
+                n, prior_var = group[0], self._offset_prior_var(channel)
+                if prior_var > 0.0:
+                    out += group[j] * (n * prior_var / (white + n * prior_var))
+                total += n
+        return out / max(total, 1)
 
     def standing_batch_evidence(self) -> np.ndarray:
         """log p(Rx(dir)'s packets so far | the Tx stands at each cell), as of the last update

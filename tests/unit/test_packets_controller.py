@@ -382,3 +382,46 @@ def test_the_standing_batch_reads_every_packet_against_todays_level():
     batch = np.mean([error_deg(True, s) for s in range(20)])
     sequential = np.mean([error_deg(False, s) for s in range(20)])
     assert batch < 0.75 * sequential
+
+
+def test_the_probe_reads_each_bearing_with_rx_dir_offset_as_its_packets_estimate_it():
+    """``probe_offsets``: after n Rx(dir) packets at one pan s0 (no channel: one offset, prior
+    ``receiver_offset_db``), bearing gamma predicts the next packet at s0 to read
+    a(s0, gamma) + L + w (z_bar - a(s0, gamma) - L), w = n kappa / (1 + n kappa) (the offset's
+    posterior mean), so the predicted mean at s0 hardly varies over gamma (by 1 - w of the lobe)
+    and the probe goes elsewhere."""
+    f = _filter(batch_standing=True, probe_offsets=True, receiver_offset_db=8.0)
+    s0 = 0.4
+    zs = [-61.0, -63.0, -60.0, -62.0, -64.0]
+    for k, z in enumerate(zs):
+        assert f.add_packets(s0, [(0.45 * k, -50.0 + (k % 2), None)], [(0.45 * k + 0.1, z, None)])
+    white = f.white_var()
+    level = f._p_sum / f.packets
+    kappa = (8.0**2 + white / f.packets) / white
+    w = len(zs) * kappa / (1.0 + len(zs) * kappa)
+    a = f.response.mean(0.0, f.response.gain_over(s0, f.circle))
+    np.testing.assert_allclose(f._offset_estimate(False), w * (np.mean(zs) - a - level), rtol=1e-9, atol=1e-9)
+    assert abs(math.remainder(f.most_informative_pan() - s0, 2 * math.pi)) > math.radians(20.0)
+
+
+def test_probes_that_know_the_offset_is_unknown_find_a_standing_tx_rx_dir_reads_offset():
+    """A standing Tx whose Rx(dir) reads 12 dB above Rx(iso)'s level (another receiver, another
+    offset): probing at ``most_informative_pan`` from a flat start for 24 packets, with the offset
+    estimated per bearing the bearing is found (0.4 degrees off on average over 10 draws); with
+    the offset taken as 0 far less well (18 degrees)."""
+
+    def run(probe_offsets: bool, seed: int) -> float:
+        rng = np.random.default_rng(seed)
+        f = PacketBearingFilter(CircleGrid(360), RxDirModel("db-gain", 0.5), noise_db=1.5, rf_period_s=0.1, tail_dof=2.0,
+                                receiver_offset_db=8.0, batch_standing=True, walk_prior=0.05, probe_offsets=probe_offsets)
+        truth, pan, t = 2.0, 0.0, 0.0
+        for _ in range(24):
+            gain = 10 * math.log10(max(1 - 0.5 * math.remainder(pan - truth, 2 * math.pi) ** 2, 0.01))
+            f.add_packets(pan, [(t, float(np.round(-60.0 + rng.normal(0, 1.5))), None)],
+                          [(t + 0.2, float(np.round(-48.0 + gain + rng.normal(0, 3.0))), None)])
+            pan = f.most_informative_pan()
+            t += 0.45
+        best = float(f.circle.angles[int(np.argmax(f.log_joint_stand))])
+        return abs(math.degrees(math.remainder(best - truth, 2 * math.pi)))
+
+    assert np.mean([run(True, s) for s in range(10)]) < 0.25 * np.mean([run(False, s) for s in range(10)])
