@@ -107,6 +107,9 @@ MODEL_PATIENCE_S = 30.0  # how long the learner may keep failing (e.g. missing l
 EPISODE_TIMEOUT_S = 60.0  # plus twice the test's duration in realtime mode
 TIMEOUT_CHECK_S = 2.0
 HEAL_BACKOFF_S = (1.0, 30.0)  # first and longest wait between retries of a failed database write
+# after the settled-token re-check (Scheduler._recheck_if_young) a node still silent is asked again after these waits,
+# the last repeated while it stays up and silent
+RECHECK_BACKOFF_S = (30.0, 60.0, 120.0, 300.0)
 
 REJECTIONS = ("malformed", "not_in_flight", "wrong_rig")
 """Why a result-plane or truth-plane message was dropped: it did not validate; its episode id
@@ -916,7 +919,8 @@ class Scheduler:
         """After rig ``name`` was taken for undescribed (``what`` = "descriptor") or its controller for
         silent ("policies") on the silence of a node whose token had just appeared (its queryable may
         not be routed yet): the rig stays usable as it is (a v1 node's readiness is not delayed), and
-        the node is asked once more when its token has stood ``SENSORS_SETTLED_S``."""
+        the node is asked again when its token has stood ``SENSORS_SETTLED_S``, and then after
+        ``RECHECK_BACKOFF_S`` while it stays silent (``_on_recheck``)."""
         young = SENSORS_SETTLED_S - (time.monotonic() - self.rigs[name].appeared.get(what, 0.0))
         if not replies and young > 0.0:
             self.loop.post_later(young, self._recheck, name, what, generation)
@@ -929,19 +933,25 @@ class Scheduler:
         up, state = rig.asked(what)
         return rig if up and state == _QUERIES[what][2] else None
 
-    def _recheck(self, name: str, what: str, generation: int) -> None:
+    def _recheck(self, name: str, what: str, generation: int, attempt: int = 0) -> None:
         if self._still_unknown(name, what, generation) is not None:
             self.bus.query(_QUERIES[what][0](name), b"", DESCRIPTOR_TIMEOUT_S,
-                           lambda replies: self.loop.post(self._on_recheck, name, what, replies, generation))
+                           lambda replies: self.loop.post(self._on_recheck, name, what, replies, generation, attempt))
 
-    def _on_recheck(self, name: str, what: str, replies: list[Reply], generation: int) -> None:
-        """Only a valid answer for that rig, in the same round, changes anything."""
+    def _on_recheck(self, name: str, what: str, replies: list[Reply], generation: int, attempt: int = 0) -> None:
+        """Only a valid answer for that rig, in the same round, changes anything; without one the node
+        is asked again after ``RECHECK_BACKOFF_S`` (its last wait repeated) while it stays up and
+        unknown from that round: a queryable unrouted for longer than the settle time (a router slow
+        to learn the node's routes) is seen once it is routed, without its token having to change;
+        a v1 node's silence costs one query every few minutes."""
         rig = self._still_unknown(name, what, generation)
         if rig is None:
             return
         schema = _QUERIES[what][1]
         answer, _ = first_valid_reply(answered(replies), schema, schema.__name__)
         if answer is None or answer.rig != name:
+            wait = RECHECK_BACKOFF_S[min(attempt, len(RECHECK_BACKOFF_S) - 1)]
+            self.loop.post_later(wait, self._recheck, name, what, generation, attempt + 1)
             return
         log.info("rig %s answered its %s once its token had settled", name, what)
         (self._take_descriptor if what == "descriptor" else self._take_policies)(name, rig, answer)

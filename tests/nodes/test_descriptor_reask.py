@@ -259,25 +259,28 @@ def test_a_descriptor_query_that_timed_out_counts_as_unanswered_for_the_orchestr
         assert "assumptions" not in c["results"]  # modelled from the descriptor the rig served before
 
 
-@pytest.mark.parametrize("what", ["descriptor", "policies"])
-def test_the_orchestrator_asks_a_node_taken_for_silent_on_a_young_tokens_silence_once_more_when_it_settles(tmp_path, monkeypatch, what):
+@pytest.mark.parametrize("what, unrouted", [("descriptor", 3), ("policies", 3), ("descriptor", 5)])
+def test_the_orchestrator_asks_a_node_taken_for_silent_on_a_young_tokens_silence_again_when_it_settles(tmp_path, monkeypatch,
+                                                                                                         what, unrouted):
     """The rig's descriptor query (or its controller's policies query) and both re-asks go
     unanswered right after the node's token appeared (the queryable not routed yet for longer than
     the re-asks): the rig is taken for undescribed (the controller for serving the built-ins) at
-    once, so a v1 node's readiness is not delayed, and asked once more when the token has stood
-    ``SENSORS_SETTLED_S``; the node answers and the rig is described (else it would be taken for a
-    v1 node, protocol 1.0, until its token changed), or the controller known to serve what it
-    announces; a campaign then runs."""
+    once, so a v1 node's readiness is not delayed, and asked again when the token has stood
+    ``SENSORS_SETTLED_S`` and then after ``RECHECK_BACKOFF_S`` while unanswered (here the first
+    two re-checks unanswered too); the node answers and the rig is described (else it would be
+    taken for a v1 node, protocol 1.0, until its token changed), or the controller known to serve
+    what it announces; a campaign then runs."""
     monkeypatch.setattr(scheduler_module, "DESCRIPTOR_REASK_S", (0.1, 0.2))
     monkeypatch.setattr(scheduler_module, "SENSORS_SETTLED_S", 2.0)
+    monkeypatch.setattr(scheduler_module, "RECHECK_BACKOFF_S", (0.5, 1.0))
     key = keys.rig_info(RIG) if what == "descriptor" else keys.rig_policies(RIG)
-    with _rig_on_a_bus(tmp_path, "scheduler", (key,), unrouted=3) as (store, scheduler, view, _nodes):
+    with _rig_on_a_bus(tmp_path, "scheduler", (key,), unrouted=unrouted) as (store, scheduler, view, _nodes):
         rig = scheduler.rigs[RIG]
         state = (lambda: rig.described) if what == "descriptor" else (lambda: rig.announced)
         assert state() == ("undescribed" if what == "descriptor" else "silent") and view.asked.count(key) == 3
         _wait(lambda: state() in ("described", "announced"), timeout=15.0)
         answer = rig.descriptor if what == "descriptor" else rig.controller_info
-        assert answer is not None and answer.rig == RIG and view.asked.count(key) == 4
+        assert answer is not None and answer.rig == RIG and view.asked.count(key) == unrouted + 1
         assert rig.described == "described" and rig.announced == "announced" and scheduler.protocols()[RIG] != "1.0"
         c = run_to_end(store, scheduler, "paper", SMALL, 2, 3, ["rapas"], timeout=60.0)
         assert c["status"] == "done", c["error"]
