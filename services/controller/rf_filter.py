@@ -573,7 +573,7 @@ class PacketBearingFilter(RFBearingFilter):
       every bearing then predicts what was heard there, so another packet there says next to
       nothing about gamma; with the offset taken as 0 the variance is the same at every pan of a
       flat posterior and a probe could return to one pan for the whole test, its packets telling
-      the level but not the bearing (``ble-recorded``, docs/radio.md).
+      the offset but not the bearing (``ble-recorded``, docs/radio.md).
     * **A walking Tx between packets.** The walking model diffuses for every step of T_RF since
       its last update (k steps: the kernel's k-th power, k times the variance), not one.
 
