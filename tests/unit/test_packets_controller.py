@@ -8,8 +8,11 @@ import math
 import numpy as np
 import pytest
 
+from ra2vipas.services.controller.builtins import Ra2ViPAS
+from ra2vipas.services.controller.contract import episode_context
 from ra2vipas.services.controller.grid import CircleGrid
 from ra2vipas.services.controller.policy import ALGORITHMS, Controller, sensor_config_from_scenario, tuned_settings
+from ra2vipas.services.controller.probe_policy import Ra2ViPASKnownOffsetProbes
 from ra2vipas.services.controller.rf_belief import Packets, RFBelief
 from ra2vipas.services.controller.rf_filter import PacketBearingFilter, RxDirModel
 from ra2vipas.services.orchestrator.simulate import train_pod
@@ -425,3 +428,24 @@ def test_probes_that_know_the_offset_is_unknown_find_a_standing_tx_rx_dir_reads_
         return abs(math.degrees(math.remainder(best - truth, 2 * math.pi)))
 
     assert np.mean([run(True, s) for s in range(10)]) < 0.25 * np.mean([run(False, s) for s in range(10)])
+
+
+def _decisions(policy, platform, steps=40):
+    pan, out = policy.first_pan(), []
+    for t in range(steps):
+        d = policy.step(platform.sense(t, pan))
+        out.append((d.next_pan_rad, d.estimate_rad))
+        pan = d.next_pan_rad
+    return out
+
+
+def test_the_known_offset_probe_policy_differs_from_the_built_in_on_packets_only(ble_pod, small_pod):
+    """``probe_policy.Ra2ViPASKnownOffsetProbes`` (the probes' offset taken as 0, for paired
+    comparisons) pans differently from ``ra2vipas`` on BLE packets and exactly alike on RSSI
+    pairs, where the probe never had an offset to estimate."""
+    for preset, pod, differ in (("ble", ble_pod, True), ("paper", small_pod, False)):
+        sc = small_scenario(preset)
+        ctx = episode_context(sensor_config_from_scenario(sc), pod.model, sc, 3, 0)
+        built_in = _decisions(Ra2ViPAS(ctx), SimulatedPlatform(sc, 3, 0))
+        known = _decisions(Ra2ViPASKnownOffsetProbes(ctx), SimulatedPlatform(sc, 3, 0))
+        assert (built_in != known) is differ, preset
