@@ -478,9 +478,12 @@ class RFBearingFilter:
         posterior below ``mass`` of the largest are left out; pans every ``stride`` grid cells."""
         keep, p = self._posterior_support(mass)
         pans = self.circle.angles[::stride]
-        level = self._level_now(self.p_walk > 0.5)
+        walking = self.p_walk > 0.5
         # gain(pans[:, None] - angles[keep][None, :]): those rows and columns of the grid's table
-        mean = self.response.mean(level, _columns(self.response.gain_table(self.circle, stride), keep))  # (S, K)
+        mean = self.response.mean(self._level_now(walking), _columns(self.response.gain_table(self.circle, stride), keep))  # (S, K)
+        offset = self._probe_offset(walking)
+        if offset is not None:
+            mean += offset[keep][None, :]
         first = mean @ p
         var = (mean * mean) @ p - first * first
         return float(pans[int(var.argmax())])
@@ -488,6 +491,10 @@ class RFBearingFilter:
     def _level_now(self, walking: bool) -> float:
         """The level L Rx(iso) reads now: the walking model's recent one, or the standing mean."""
         return self._level_walk if walking else self._iso_sum / max(self.n, 1)
+
+    def _probe_offset(self, walking: bool) -> np.ndarray | None:
+        """Rx(dir)'s offset per cell as ``most_informative_pan`` reads it (None: 0, known, as for the 1.0 pair)."""
+        return None
 
     def predicted_gain(self, mass: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
         """Mean and standard deviation over the posterior of gamma of the antenna gain
@@ -806,9 +813,7 @@ class PacketBearingFilter(RFBearingFilter):
         rss = np.zeros(self.circle.size)
         evidence = np.zeros(self.circle.size)
         n_total = 0
-        for channel, (n, sums) in self._stand_groups.items():
-            kappa = (self._offset_prior_var(channel) + level_var) / white
-            r1 = sums[0] - level * sums[2]
+        for n, sums, kappa, r1 in self._batch_groups(white, level, level_var):
             r2 = sums[1] - 2.0 * level * sums[4] + level * level * sums[3]
             rss += r2 - r1 * r1 * (kappa / (1.0 + n * kappa))
             evidence -= 0.5 * math.log1p(n * kappa)
@@ -820,21 +825,13 @@ class PacketBearingFilter(RFBearingFilter):
         self._stand_evidence = evidence
         return term
 
-    def most_informative_pan(self, stride: int = 2, mass: float = 1e-3) -> float:
-        """The parent's pan of largest predictive variance of the next Rx(dir) packet, each bearing's
-        mean shifted by Rx(dir)'s offset as the packets so far estimate it for that bearing
-        (``probe_offsets``; ``_offset_estimate``). Before a Rx(dir) packet, or on the 1.0 pair: the
-        parent's."""
+    def _probe_offset(self, walking: bool) -> np.ndarray | None:
+        """``most_informative_pan`` reads each bearing's mean with Rx(dir)'s offset as the packets so
+        far estimate it for that bearing (``probe_offsets``; ``_offset_estimate``). Before a Rx(dir)
+        packet, or on the 1.0 pair: the parent's (0)."""
         if not self.probe_offsets or not self._dir_groups:
-            return super().most_informative_pan(stride, mass)
-        keep, p = self._posterior_support(mass)
-        pans = self.circle.angles[::stride]
-        walking = self.p_walk > 0.5
-        mean = self.response.mean(self._level_now(walking), _columns(self.response.gain_table(self.circle, stride), keep))
-        mean += self._offset_estimate(walking)[keep][None, :]
-        first = mean @ p
-        var = (mean * mean) @ p - first * first
-        return float(pans[int(var.argmax())])
+            return None
+        return self._offset_estimate(walking)
 
     def _offset_estimate(self, walking: bool) -> np.ndarray:
         """E[Rx(dir)'s offset | its packets so far, gamma] per cell: per channel group c the
@@ -847,11 +844,8 @@ class PacketBearingFilter(RFBearingFilter):
         out = np.zeros(self.circle.size)
         total = 0
         if self.batch_standing and not walking:
-            level = self._level_now(False)
-            level_var = self._packet_level_var(False, white)
-            for channel, (n, sums) in self._stand_groups.items():
-                kappa = (self._offset_prior_var(channel) + level_var) / white
-                out += (sums[0] - level * sums[2]) * (n * kappa / (1.0 + n * kappa))
+            for n, _sums, kappa, r1 in self._batch_groups(white, self._level_now(False), self._packet_level_var(False, white)):
+                out += r1 * (n * kappa / (1.0 + n * kappa))
                 total += n
         else:
             j = 2 if walking else 1
@@ -861,6 +855,12 @@ class PacketBearingFilter(RFBearingFilter):
                     out += group[j] * (n * prior_var / (white + n * prior_var))
                 total += n
         return out / max(total, 1)
+
+    def _batch_groups(self, white: float, level: float, level_var: float):
+        """Per channel group of the standing model's batch at level L = ``level``: (n, its sums,
+        kappa_c = (offset prior variance + Var L) / sigma_e^2, sum_k r_k = sum (z_k - a_k) - L sum b_k)."""
+        for channel, (n, sums) in self._stand_groups.items():
+            yield n, sums, (self._offset_prior_var(channel) + level_var) / white, sums[0] - level * sums[2]
 
     def standing_batch_evidence(self) -> np.ndarray:
         """log p(Rx(dir)'s packets so far | the Tx stands at each cell), as of the last update

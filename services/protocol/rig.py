@@ -124,8 +124,8 @@ rig before (e.g. a v1 node under the same rig name) only once that node's liveli
 stood this long (Zenoh's default lease) before a descriptor query, and its re-asks, went
 unanswered: a token that just came back (a restart, or a link back after a cut past the lease)
 may not have its queryable routed yet. The orchestrator, which takes a silent rig for undescribed
-(or its controller for silent) after its re-asks, asks once more when a token that was younger than
-this has stood this long (docs/protocol.md)."""
+(or its controller for silent) after its re-asks, asks again when a token that was younger than
+this has stood this long, and then with a backoff while the node stays silent (docs/protocol.md)."""
 
 HARDWARE_FIELDS = ("frames_per_rf", "rf_period_s", "fov_half_angle_deg", "box_bearing_noise_deg", "rx_dir")
 """The descriptor fields that describe the platform's hardware (null = configurable)."""

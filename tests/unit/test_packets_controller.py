@@ -18,7 +18,7 @@ from ra2vipas.services.controller.rf_filter import PacketBearingFilter, RxDirMod
 from ra2vipas.services.orchestrator.simulate import train_pod
 from ra2vipas.services.protocol.measurements import Advertisement, StepMeasurement
 from ra2vipas.services.sensors.world import SimulatedPlatform
-from tests.conftest import small_scenario
+from tests.conftest import run_closed_loop, small_scenario
 
 
 @pytest.fixture(scope="module")
@@ -430,15 +430,6 @@ def test_probes_that_know_the_offset_is_unknown_find_a_standing_tx_rx_dir_reads_
     assert np.mean([run(True, s) for s in range(10)]) < 0.25 * np.mean([run(False, s) for s in range(10)])
 
 
-def _decisions(policy, platform, steps=40):
-    pan, out = policy.first_pan(), []
-    for t in range(steps):
-        d = policy.step(platform.sense(t, pan))
-        out.append((d.next_pan_rad, d.estimate_rad))
-        pan = d.next_pan_rad
-    return out
-
-
 def test_the_known_offset_probe_policy_differs_from_the_built_in_on_packets_only(ble_pod, small_pod):
     """``probe_policy.Ra2ViPASKnownOffsetProbes`` (the probes' offset taken as 0, for paired
     comparisons) pans differently from ``ra2vipas`` on BLE packets and exactly alike on RSSI
@@ -446,6 +437,6 @@ def test_the_known_offset_probe_policy_differs_from_the_built_in_on_packets_only
     for preset, pod, differ in (("ble", ble_pod, True), ("paper", small_pod, False)):
         sc = small_scenario(preset)
         ctx = episode_context(sensor_config_from_scenario(sc), pod.model, sc, 3, 0)
-        built_in = _decisions(Ra2ViPAS(ctx), SimulatedPlatform(sc, 3, 0))
-        known = _decisions(Ra2ViPASKnownOffsetProbes(ctx), SimulatedPlatform(sc, 3, 0))
+        built_in = [(d.next_pan_rad, d.estimate_rad) for d in run_closed_loop(Ra2ViPAS(ctx), SimulatedPlatform(sc, 3, 0), 40)]
+        known = [(d.next_pan_rad, d.estimate_rad) for d in run_closed_loop(Ra2ViPASKnownOffsetProbes(ctx), SimulatedPlatform(sc, 3, 0), 40)]
         assert (built_in != known) is differ, preset

@@ -26,7 +26,7 @@ from ra2vipas.services.protocol.measurements import CameraFrame
 from ra2vipas.services.protocol.rig import RigDescriptor
 from ra2vipas.services.sensors import radio
 from ra2vipas.services.sensors.world import SimulatedPlatform
-from tests.conftest import small_scenario
+from tests.conftest import run_closed_loop, small_scenario
 
 ON = ControllerSettings(height_cue=True)
 MODEL = RangeModel(ref_dbm=-30.0, exponent=2.0, ref_distance_m=1.0, shadowing_db=4.0)
@@ -169,12 +169,7 @@ def test_the_cue_reads_a_public_prior_never_the_world_s_heights(small_pod):
 
 
 def _decisions(policy, platform, steps=30):
-    pan, out = policy.first_pan(), []
-    for t in range(steps):
-        d = policy.step(platform.sense(t, pan))
-        out.append((d.next_pan_rad, d.estimate_rad, d.confidence))
-        pan = d.next_pan_rad
-    return out
+    return [(d.next_pan_rad, d.estimate_rad, d.confidence) for d in run_closed_loop(policy, platform, steps)]
 
 
 def test_the_cue_changes_the_decisions_only_when_heights_are_on(small_pod):
