@@ -287,10 +287,9 @@ class ZenohBus:
                     if r.ok is not None:
                         replies.append(Reply(str(r.ok.key_expr), r.ok.payload.to_bytes(), True))
                     elif r.err is not None:
-                        # Zenoh ends a query that a matched queryable did not answer in time with its own error "Timeout",
-                        # which no node sent (no replier id): a node's error of the same text is the node's answer
+                        # Zenoh ends a query that a matched queryable did not answer in time with its own error "Timeout"
                         text = r.err.payload.to_bytes()
-                        replies.append(Reply(key, text, False, timed_out=text == ZENOH_QUERY_TIMEOUT and r.replier_id is None))
+                        replies.append(Reply(key, text, False, timed_out=text == ZENOH_QUERY_TIMEOUT))
             except Exception:
                 log.exception("query on %s failed", key)
             callback(replies)
