@@ -93,6 +93,24 @@ def bench_step(
         )
 
 
+def parse_seeds(text: str) -> list[int]:
+    """Campaign seeds from ``1-5``, ``1,3,7`` or both (``1-3,7``): sorted, each once. Raises
+    ValueError (the message says what is wrong) for anything else (a sign included: seeds are
+    non-negative) or a range that runs backwards: a benchmark over no seed would print nothing and
+    succeed."""
+    chosen: set[int] = set()
+    for part in text.split(","):
+        low, sep, high = part.strip().partition("-")
+        try:
+            first, last = (int(low), int(high)) if sep else (int(low), int(low))
+        except ValueError:
+            raise ValueError(f"expected e.g. 1-5 or 1,3,7, got {text!r}") from None
+        if last < first:
+            raise ValueError(f"the range {part.strip()!r} runs backwards (write {last}-{first})")
+        chosen.update(range(first, last + 1))
+    return sorted(chosen)
+
+
 @app.command("learner")
 def bench_learner(
     preset: Annotated[str, typer.Option(help="Scenario preset (paper, dynamic, ble, ...).")] = "dynamic",
@@ -106,10 +124,9 @@ def bench_learner(
 
     _check_preset(preset)
     try:
-        chosen = sorted({n for part in seeds.split(",") for n in (range(int(part.split("-")[0]), int(part.split("-")[1]) + 1)
-                                                                  if "-" in part else [int(part)])})
-    except ValueError:
-        fail(f"--seeds: expected e.g. 1-5 or 1,3,7, got {seeds!r}", EXIT_USAGE)
+        chosen = parse_seeds(seeds)
+    except ValueError as exc:
+        fail(f"--seeds: {exc}", EXIT_USAGE)
     out = learner(preset, chosen)
     if as_json:
         print_json(out)

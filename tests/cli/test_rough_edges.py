@@ -60,3 +60,23 @@ def test_results_of_one_algorithm_and_campaigns_by_name(live, done_campaign):
     listed = run("campaign", "list", "--name", "fixture", "--json", "--api", live.url)
     items = json.loads(listed.stdout.strip().splitlines()[-1])["items"]
     assert items and {c["name"] for c in items} == {"fixture"}
+
+
+@pytest.mark.parametrize("seeds, words", [
+    ("3-1", "the range '3-1' runs backwards (write 1-3)"),
+    ("x", "expected e.g. 1-5 or 1,3,7, got 'x'"),
+    ("1-", "expected e.g. 1-5 or 1,3,7, got '1-'"),
+    ("-2", "expected e.g. 1-5 or 1,3,7, got '-2'"),
+])
+def test_benchmark_seeds_that_name_no_seed_are_a_usage_error(seeds, words):
+    # before: "3-1" was an empty range, so `bench learner` printed nothing and exited 0
+    proc = run("bench", "learner", "--preset", "paper", "--seeds", seeds)
+    assert proc.returncode == 2, proc
+    assert one_error_line(proc) == f"error: --seeds: {words}"
+
+
+def test_benchmark_seeds_parse_ranges_and_lists_once_each():
+    from cli.bench import parse_seeds
+
+    assert parse_seeds("1-3,7, 2") == [1, 2, 3, 7]
+    assert parse_seeds("0") == [0]
