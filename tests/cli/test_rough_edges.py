@@ -80,3 +80,10 @@ def test_benchmark_seeds_parse_ranges_and_lists_once_each():
 
     assert parse_seeds("1-3,7, 2") == [1, 2, 3, 7]
     assert parse_seeds("0") == [0]
+
+
+def test_bench_walkers_refuses_what_it_cannot_score_in_one_line():
+    proc = run("bench", "walkers", "--preset", "ward", "--tests", "2")
+    assert proc.returncode == 2 and one_error_line(proc) == "error: bench walkers scores one tag; this scenario has n_tags > 1"
+    proc = run("bench", "walkers", "--tests", "2", "--boxed", "30")
+    assert proc.returncode == 2 and "boxed <= window" in one_error_line(proc)
