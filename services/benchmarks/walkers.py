@@ -4,7 +4,7 @@ could reach").
 
 Each test runs in process (``simulate.run_test``: the policy sees the measurements only). Afterwards,
 for scoring alone, the test's truth is read: whether the Tx walks (its bearing moves by more than
-``WALKS_DEG`` over the episode) and, replaying the test's own draws at the pans the policy chose,
+``WALKS_DEG`` over the episode) and, replaying the test from its seed at the pans the policy chose,
 in how many of the last ``window`` steps the camera reported a box within ``near_deg`` of the Tx.
 
 The *bound* counts right every walking Tx that was boxed in at least ``boxed`` of those steps and in
@@ -43,7 +43,8 @@ def _scenario_and_model(preset: str, overrides: tuple[tuple[str, Any], ...], see
 
 def boxed_steps(scenario: Scenario, seed: int, test_index: int, pans: list[float], near_rad: float) -> np.ndarray:
     """Per step, whether a box the camera reported at the pan ``pans[t]`` lies within ``near_rad``
-    of the Tx (the test replayed from its own draws, which do not depend on the pans' history)."""
+    of the Tx: the test replayed from its own seed at the same pans, in order, so the measurements are
+    the ones the policy saw."""
     platform = SimulatedPlatform(scenario, seed, test_index)
     bearings = platform.truth.step_bearings_rad()
     tx = platform.truth.tx_index
