@@ -155,7 +155,7 @@ def bench_walkers(
     bound on what naming a walker among the people the camera saw would reach at the pans the
     policy chose (every walking Tx boxed in at least --boxed of the last --window steps and in one
     of the last --recent counted right; docs/radio.md). Ground truth scores the episodes
-    afterwards; the policy sees only measurements. ~10 s for 200 tests of ble-dynamic on 2 cores.
+    afterwards; the policy sees only measurements. ~17 s for 200 tests of ble-dynamic on 2 cores.
 
     Example:
 
