@@ -3,8 +3,8 @@ what the camera's own views would allow (docs/radio.md, "What a tracker that kep
 could reach").
 
 Each test runs in process (``simulate.run_test``: the policy sees the measurements only). Afterwards,
-for scoring alone, the test's truth is read: whether the Tx walks (its bearing moves by more than
-``WALKS_DEG`` over the episode) and, replaying the test from its seed at the pans the policy chose,
+for scoring alone, the test's truth is read: whether the Tx walks (``GroundTruth.tx_walks``) and,
+replaying the test from its seed at the pans the policy chose,
 in how many of the last ``window`` steps the camera reported a box within ``near_deg`` of the Tx.
 
 The *bound* counts right every walking Tx that was boxed in at least ``boxed`` of those steps and in
@@ -31,9 +31,6 @@ from ra2vipas.services.protocol.angles import wrap
 from ra2vipas.services.protocol.scenario import Scenario, build_scenario
 from ra2vipas.services.sensors.world import SimulatedPlatform
 
-WALKS_DEG = 2.0
-"""A Tx whose bearing moves by more than this over the episode walks."""
-
 
 @lru_cache(maxsize=2)
 def _scenario_and_model(preset: str, overrides: tuple[tuple[str, Any], ...], seed: int) -> tuple[Scenario, Any]:
@@ -41,11 +38,10 @@ def _scenario_and_model(preset: str, overrides: tuple[tuple[str, Any], ...], see
     return scenario, train_pod(scenario, seed).model
 
 
-def boxed_steps(scenario: Scenario, seed: int, test_index: int, pans: list[float], near_rad: float) -> np.ndarray:
+def boxed_steps(platform: SimulatedPlatform, pans: list[float], near_rad: float) -> np.ndarray:
     """Per step, whether a box the camera reported at the pan ``pans[t]`` lies within ``near_rad``
-    of the Tx: the test replayed from its own seed at the same pans, in order, so the measurements are
-    the ones the policy saw."""
-    platform = SimulatedPlatform(scenario, seed, test_index)
+    of the Tx. ``platform``: the test made afresh from its own seed and sensed here at the same pans,
+    in order, so the measurements are the ones the policy saw."""
     bearings = platform.truth.step_bearings_rad()
     tx = platform.truth.tx_index
     out = np.zeros(len(pans), dtype=bool)
@@ -64,12 +60,9 @@ def run_chunk(preset: str, overrides: tuple[tuple[str, Any], ...], seed: int, te
     rows = []
     for k in tests:
         outcome = run_test(scenario, seed, k, algorithm, model)
-        truth = SimulatedPlatform(scenario, seed, k).truth
-        bearings = truth.step_bearings_rad()
-        path = bearings[:, truth.tx_index] if bearings.ndim == 2 else np.full(1, bearings[truth.tx_index])
-        walks = bool(np.degrees(np.max(np.abs(wrap(path - path[0])))) > WALKS_DEG)
-        boxed = boxed_steps(scenario, seed, k, outcome.pans, math.radians(near_deg))
-        rows.append({"test": k, "hit": bool(outcome.hits[-1]), "walks": walks, "boxed": boxed.tolist()})
+        platform = SimulatedPlatform(scenario, seed, k)
+        boxed = boxed_steps(platform, outcome.pans, math.radians(near_deg))
+        rows.append({"test": k, "hit": bool(outcome.hits[-1]), "walks": platform.truth.tx_walks, "boxed": boxed.tolist()})
     return rows
 
 

@@ -41,8 +41,8 @@ def test_boxed_steps_sees_the_tx_where_the_camera_looks_and_not_behind_it():
     scenario = build_scenario("paper")
     platform = SimulatedPlatform(scenario, 3, 0)
     tx = float(platform.truth.step_bearings_rad()[platform.truth.tx_index])
-    at_tx = walkers.boxed_steps(scenario, 3, 0, [tx] * 40, math.radians(2.5))
-    behind = walkers.boxed_steps(scenario, 3, 0, [float(wrap(tx + math.pi))] * 40, math.radians(2.5))
+    at_tx = walkers.boxed_steps(SimulatedPlatform(scenario, 3, 0), [tx] * 40, math.radians(2.5))
+    behind = walkers.boxed_steps(SimulatedPlatform(scenario, 3, 0), [float(wrap(tx + math.pi))] * 40, math.radians(2.5))
     assert at_tx.mean() > 0.5  # the paper's Tx lies where the POD is high: boxed in most steps looked at it
     assert not behind.any()
 
