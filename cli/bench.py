@@ -446,35 +446,40 @@ def bench_calibrate(
     scenarios: Annotated[Optional[str], typer.Option("--scenarios", help="Comma-separated subset of the fitting worlds (default: all of paper, paper-uniform, crowd-40, noise-6dB, db-gain, wide-lobe, fov-45, nu-3, dynamic, dynamic-static): fit on the worlds you deploy in. The shipped maps use all of them, so --write refuses a subset.")] = None,
     write: Annotated[bool, typer.Option("--write", help="Write the maps into the shipped file (services/controller/data/confidence_maps.json), one named coefficient each, with this command.")] = False,
     joint: Annotated[bool, typer.Option("--joint", help="Fit the maps of the searches for several tags at once (issue 21; named ALGORITHM-joint), on every tag's steps in worlds with 2-3 tags.")] = False,
+    adverts: Annotated[bool, typer.Option("--adverts", help="Fit the maps of a rig of BLE advertisements (protocol 1.3; named ALGORITHM-adverts, used when the rig's radio is adverts) on the BLE worlds: ble, ble-uniform, ble-dynamic, ble-dynamic-static, ble-recorded (--scenarios chooses among these).")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Refit the controllers' confidence maps (Platt scaling with covariates the controller
     measures: how likely the Tx walks, the fading correlation, the clutter density, the crowding
     around the answer) on a mix of simulated scenarios, and print them with the expected
     calibration error before and after. The shipped maps (services/controller/data/confidence_maps.json)
-    come from `ra2vipas bench calibrate --tests 40 --seed 1001 --write` (Ra²ViPAS's with `--from-s 3`)."""
+    come from `ra2vipas bench calibrate --tests 40 --seed 1001 --write` (Ra²ViPAS's with `--from-s 3`), and those of a
+    rig of BLE advertisements from the same with `--adverts`."""
     from ra2vipas.cli.output import stderr
     from ra2vipas.cli.simulate import parse_algorithms
-    from ra2vipas.services.orchestrator.calibration import SCENARIOS, calibrate
+    from ra2vipas.services.orchestrator.calibration import PACKET_SCENARIOS, SCENARIOS, calibrate
     from ra2vipas.services.protocol.scenario import ScenarioError
 
     try:
         names = parse_algorithms(algorithms)
     except ScenarioError as err:
         fail(str(err), EXIT_USAGE)
-    worlds = list(SCENARIOS)
+    if joint and adverts:
+        fail("--joint fits on RSSI pairs and --adverts on BLE advertisements: drop one of them", EXIT_USAGE)
+    table = PACKET_SCENARIOS if adverts else SCENARIOS
+    worlds = list(table)
     if joint and scenarios is not None:
         fail("--scenarios chooses among the single-tag worlds; --joint fits on its own (drop one of them)", EXIT_USAGE)
     if scenarios is not None:
         worlds = list(dict.fromkeys(w.strip() for w in scenarios.split(",") if w.strip()))
-        unknown = [w for w in worlds if w not in SCENARIOS]
+        unknown = [w for w in worlds if w not in table]
         if unknown or not worlds:
-            fail(f"--scenarios: unknown world(s) {', '.join(map(repr, unknown)) or '(none given)'}; choose among {', '.join(SCENARIOS)}",
+            fail(f"--scenarios: unknown world(s) {', '.join(map(repr, unknown)) or '(none given)'}; choose among {', '.join(table)}",
                  EXIT_USAGE)
-        if write and worlds != list(SCENARIOS):
+        if write and worlds != list(table):
             fail("--write ships maps fitted on every world: drop --scenarios (or keep the map printed, without --write)", EXIT_USAGE)
     report = calibrate(names, tests, seed, progress=lambda what: stderr.print(f"calibrate: {what}"), from_s=from_s,
-                       workers=workers or os.cpu_count() or 1, scenarios=worlds, joint=joint)
+                       workers=workers or os.cpu_count() or 1, scenarios=worlds, joint=joint, adverts=adverts)
     if write:
         from ra2vipas.services.controller.confidence import MAPS_FILE, write_maps
 

@@ -165,7 +165,7 @@ def joint_search(algorithm: str, context: EpisodeContext, n_tags: int, settings:
     algorithm's map fitted on joint searches (``{algorithm}-joint`` in the maps file, ``bench
     calibrate --joint``) where one ships; the scenario's ``one_tag_per_person`` and the context's
     ``stop_confidence`` apply."""
-    cfg = tuned_settings(algorithm, settings)
+    cfg = tuned_settings(algorithm, settings, context.sensors.radio)
     joint_map = shipped_maps().get(f"{algorithm}-joint")  # fitted on joint searches (``bench calibrate --joint``)
     if joint_map is not None:
         cfg = dataclasses.replace(cfg, confidence_calibration=joint_map)
@@ -208,7 +208,7 @@ class Ra2ViPASSequential(BuiltinPolicy):
 
     def __init__(self, context: EpisodeContext, settings: ControllerSettings | None = None) -> None:
         Policy.__init__(self, context)
-        cfg = tuned_settings(self.algorithm, settings)
+        cfg = tuned_settings(self.algorithm, settings, context.sensors.radio)
         sensors = context.sensors
         self.controller = SequentialSearch(sensors.initial_pan_rad, lambda: compose(self.algorithm, sensors, context.pod_model, cfg),
                                            n_tags=int(context.scenario.get("n_tags", 1) or 1), steps=sensors.steps,

@@ -30,6 +30,11 @@ the model's own assumptions than about the world (a posterior of 1 - 1e-9 is wro
 of the time in a crowd), and a map linear in an unbounded logit would have to flatten every
 confidence to tame those few."""
 
+ADVERTS_MAP_SUFFIX = "-adverts"
+"""A built-in's map for a rig of BLE advertisements (``SensorConfig.radio`` "adverts") is named
+ALGORITHM-adverts (``bench calibrate --adverts``: fitted on the BLE worlds, whose raw confidences
+the RSSI-pair worlds' map does not describe); without one, the algorithm's own map."""
+
 CROWDING_SCALE_RAD = math.radians(1.0)
 """Scale of the crowding covariate exp(-d / scale) of the confidence map (see ``Confidence``)."""
 
@@ -138,11 +143,12 @@ def write_maps(report: dict[str, Any], path: Path = MAPS_FILE) -> None:
     """Write the maps of a ``calibration.calibrate`` report (merged into the file's other maps),
     with the command that made them."""
     data = json.loads(path.read_text()) if path.exists() else {"maps": {}}
-    joint = bool(report.get("joint"))
+    joint, adverts = bool(report.get("joint")), bool(report.get("adverts"))
+    flag = "--joint " if joint else "--adverts " if adverts else ""
     for name, a in report["algorithms"].items():
-        algorithm = name.removesuffix("-joint") if joint else name
+        algorithm = name.removesuffix("-joint") if joint else name.removesuffix(ADVERTS_MAP_SUFFIX) if adverts else name
         data["maps"][name] = {"map": asdict(ConfidenceMap.from_vector(a["map"])),
-                              "command": f"ra2vipas bench calibrate {'--joint ' if joint else ''}-a {algorithm} --tests {report['tests_per_scenario']} "
+                              "command": f"ra2vipas bench calibrate {flag}-a {algorithm} --tests {report['tests_per_scenario']} "
                                          f"--seed {report['seed']} --from-s {report['from_s']:g} --write",
                               "from_s": report["from_s"], "samples": a["samples"], "ece_raw": a["ece_raw"],
                               "ece_fitted": a["ece_fitted"]}

@@ -47,7 +47,13 @@ from dataclasses import dataclass
 from enum import Enum
 
 from ra2vipas.services.controller.composed import Composition, Decision
-from ra2vipas.services.controller.confidence import CROWDING_SCALE_RAD, RAW_CONFIDENCE_CLIP, ConfidenceMap, shipped_maps
+from ra2vipas.services.controller.confidence import (
+    ADVERTS_MAP_SUFFIX,
+    CROWDING_SCALE_RAD,
+    RAW_CONFIDENCE_CLIP,
+    ConfidenceMap,
+    shipped_maps,
+)
 from ra2vipas.services.controller.range_cue import RangeModel
 from ra2vipas.services.controller.vision_belief import PODLookup
 from ra2vipas.services.protocol.pod import PODModel
@@ -212,7 +218,7 @@ class Controller(Composition):
 
         self.algorithm = Algorithm(algorithm)
         self.sensors = sensors
-        self.settings = tuned_settings(self.algorithm, settings)
+        self.settings = tuned_settings(self.algorithm, settings, sensors.radio)
         super().__init__(sensors.initial_pan_rad, compose(self.algorithm.value, sensors, pod_model, self.settings),
                          rf_period_s=sensors.rf_period_s)
 
@@ -231,13 +237,15 @@ TUNING: dict[str, dict] = {
 campaigns (each baseline gets its own best settings, so comparisons are fair)."""
 
 
-def tuned_settings(algorithm: "Algorithm | str", base: ControllerSettings | None = None) -> ControllerSettings:
+def tuned_settings(algorithm: "Algorithm | str", base: ControllerSettings | None = None, radio: str = "pair") -> ControllerSettings:
     """The settings an algorithm runs with: ``base`` (default ``ControllerSettings()``) with the
     algorithm's own tuning (``TUNING``) on top, whoever builds the controller (in-process
-    campaigns and the controller service alike)."""
+    campaigns and the controller service alike); its confidence map the one fitted for the rig's
+    ``radio`` (``SensorConfig.radio``: BLE advertisements have their own, ``ADVERTS_MAP_SUFFIX``)."""
     name = Algorithm(algorithm).value
     tuning = {**TUNING.get(name, {})}
-    confidence_map = shipped_maps().get(name)
+    maps = shipped_maps()
+    confidence_map = (maps.get(name + ADVERTS_MAP_SUFFIX) if radio == "adverts" else None) or maps.get(name)
     if confidence_map is not None:
         tuning["confidence_calibration"] = confidence_map
     return dataclasses.replace(base or ControllerSettings(), **tuning)

@@ -163,6 +163,23 @@ def test_bench_calibrate_joint_fits_the_joint_searchs_map_on_every_tags_steps(tm
     assert entry["command"] == "ra2vipas bench calibrate --joint -a ra2vipas --tests 2 --seed 1001 --from-s 3 --write"
 
 
+def test_bench_calibrate_adverts_fits_a_ble_rigs_map_on_the_ble_worlds():
+    """`bench calibrate --adverts` fits ``ALGORITHM-adverts`` on the BLE worlds (one, two tests,
+    here); it is not a joint map, and a world of RSSI pairs is not one of its worlds."""
+    proc = ra2vipas("bench", "calibrate", "--adverts", "-a", "ra2vipas", "--tests", "2", "--scenarios", "ble", "--workers", "1",
+                    "--json")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["adverts"] is True and report["scenarios"] == ["ble"] and list(report["algorithms"]) == ["ra2vipas-adverts"]
+    assert report["algorithms"]["ra2vipas-adverts"]["samples"] == 2 * 120
+    proc = ra2vipas("bench", "calibrate", "--adverts", "--joint")
+    assert proc.returncode == 2 and "drop one of them" in one_error_line(proc)
+    proc = ra2vipas("bench", "calibrate", "--adverts", "--scenarios", "dynamic")
+    assert proc.returncode == 2 and "unknown world(s) 'dynamic'; choose among ble, ble-uniform" in one_error_line(proc)
+    proc = ra2vipas("bench", "calibrate", "--adverts", "--scenarios", "ble", "--write")
+    assert proc.returncode == 2 and "--write ships maps fitted on every world" in one_error_line(proc)
+
+
 def test_bench_simulate_reports_both_speeds_the_speedup_and_peak_memory_as_json():
     """A small `bench simulate` (2 tests, one memory run of 3 short tests; one worker, so it
     stays cheap on a shared machine: `--workers 2 == --workers 1` has its own test): the keys

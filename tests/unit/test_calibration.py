@@ -28,3 +28,61 @@ def test_collect_many_equals_one_collect_per_algorithm(monkeypatch):
 def test_an_unknown_world_is_named():
     with pytest.raises(ValueError, match="unknown calibration scenario.*'mars'"):
         calibration.collect_many({"rapas": 0.0}, tests=1, seed=7, scenarios=["paper", "mars"])
+
+
+# -- the maps of a rig of BLE advertisements (``bench calibrate --adverts``) -------------------------
+
+def test_a_ble_rig_reports_its_confidence_through_the_map_fitted_on_ble_packets(monkeypatch):
+    """A controller whose rig hears BLE advertisements (``SensorConfig.radio`` "adverts") calibrates
+    with ``ALGORITHM-adverts``; one on RSSI pairs, or of an algorithm without such a map, with the
+    algorithm's own: each step's reported confidence is its map applied to the step's raw
+    posterior and covariates."""
+    from ra2vipas.services.controller import policy
+    from ra2vipas.services.controller.confidence import ADVERTS_MAP_SUFFIX, Confidence, Covariates, shipped_maps
+    from ra2vipas.services.orchestrator.simulate import train_pod
+    from ra2vipas.services.protocol.scenario import build_scenario
+    from ra2vipas.services.sensors.world import SimulatedPlatform
+
+    maps = shipped_maps()
+    assert policy.tuned_settings("ra2vipas", radio="adverts").confidence_calibration == maps["ra2vipas" + ADVERTS_MAP_SUFFIX]
+    assert policy.tuned_settings("ra2vipas").confidence_calibration == maps["ra2vipas"]
+    assert maps["ra2vipas" + ADVERTS_MAP_SUFFIX] != maps["ra2vipas"]
+    for preset, radio in (("ble", "adverts"), ("paper", "pair")):
+        scenario = build_scenario(preset, {"steps": 30})
+        sensors = policy.sensor_config_from_scenario(scenario)
+        assert sensors.radio == radio
+        controller = policy.Controller("ra2vipas", sensors, train_pod(scenario, 3).model)
+        own = maps["ra2vipas" + ADVERTS_MAP_SUFFIX] if radio == "adverts" else maps["ra2vipas"]
+        other = maps["ra2vipas"] if radio == "adverts" else maps["ra2vipas" + ADVERTS_MAP_SUFFIX]
+        assert controller.settings.confidence_calibration == own
+        platform, pan, apart = SimulatedPlatform(scenario, 3, 0), controller.first_pan(), 0
+        for t in range(scenario.steps):
+            d = controller.step(platform.sense(t, pan))
+            pan = d.next_pan_rad
+            cov = Covariates(d.tx_walks, d.noise_correlation, d.clutter_density, d.crowding)
+            assert d.confidence == pytest.approx(Confidence(own)(d.raw_confidence, cov), abs=1e-6)
+            apart += abs(Confidence(other)(d.raw_confidence, cov) - d.confidence) > 1e-3
+        assert apart > 0, f"{preset}: the other map gives the same confidences"
+    # an algorithm without an adverts map keeps its own
+    monkeypatch.setattr(policy, "shipped_maps", lambda: {"rapas": maps["rapas"]})
+    assert policy.tuned_settings("rapas", radio="adverts").confidence_calibration == maps["rapas"]
+
+
+def test_calibrate_adverts_names_its_maps_and_refuses_what_does_not_belong(tmp_path):
+    import json
+
+    from ra2vipas.services.controller.confidence import write_maps
+
+    report = calibration.calibrate(["ra2vipas"], tests=1, seed=7, scenarios=["ble"], adverts=True)
+    assert report["adverts"] is True and list(report["algorithms"]) == ["ra2vipas-adverts"] and report["scenarios"] == ["ble"]
+    assert report["algorithms"]["ra2vipas-adverts"]["samples"] == 120
+    maps = tmp_path / "maps.json"
+    maps.write_text(json.dumps({"maps": {}}))
+    write_maps(report, maps)
+    entry = json.loads(maps.read_text())["maps"]["ra2vipas-adverts"]
+    assert entry["command"] == "ra2vipas bench calibrate --adverts -a ra2vipas --tests 1 --seed 7 --from-s 0 --write"
+    with pytest.raises(ValueError, match="'paper'"):
+        calibration.calibrate(["ra2vipas"], tests=1, seed=7, scenarios=["paper"], adverts=True)
+    with pytest.raises(ValueError, match="exclude each other"):
+        calibration.calibrate(["ra2vipas"], tests=1, seed=7, joint=True, adverts=True)
+    assert list(calibration.calibrate(["ra2vipas"], tests=1, seed=7, scenarios=["paper"])["algorithms"]) == ["ra2vipas"]
