@@ -446,7 +446,7 @@ def bench_calibrate(
     scenarios: Annotated[Optional[str], typer.Option("--scenarios", help="Comma-separated subset of the fitting worlds (default: all of paper, paper-uniform, crowd-40, noise-6dB, db-gain, wide-lobe, fov-45, nu-3, dynamic, dynamic-static): fit on the worlds you deploy in. The shipped maps use all of them, so --write refuses a subset.")] = None,
     write: Annotated[bool, typer.Option("--write", help="Write the maps into the shipped file (services/controller/data/confidence_maps.json), one named coefficient each, with this command.")] = False,
     joint: Annotated[bool, typer.Option("--joint", help="Fit the maps of the searches for several tags at once (issue 21; named ALGORITHM-joint), on every tag's steps in worlds with 2-3 tags.")] = False,
-    adverts: Annotated[bool, typer.Option("--adverts", help="Fit the maps of a rig of BLE advertisements (protocol 1.3; named ALGORITHM-adverts, used when the rig's radio is adverts) on the BLE worlds: ble, ble-uniform, ble-dynamic, ble-dynamic-static, ble-recorded (--scenarios chooses among these).")] = False,
+    adverts: Annotated[bool, typer.Option("--adverts", help="Fit the maps of a rig of BLE advertisements (protocol 1.3; named ALGORITHM-adverts, used when the rig's radio is adverts) on the BLE worlds: ble, ble-uniform, ble-dynamic, ble-dynamic-static, ble-recorded (--scenarios chooses among these); with --joint, ALGORITHM-joint-adverts on those worlds with 2-3 tags.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON line.")] = False,
 ) -> None:
     """Refit the controllers' confidence maps (Platt scaling with covariates the controller
@@ -464,8 +464,6 @@ def bench_calibrate(
         names = parse_algorithms(algorithms)
     except ScenarioError as err:
         fail(str(err), EXIT_USAGE)
-    if joint and adverts:
-        fail("--joint fits on RSSI pairs and --adverts on BLE advertisements: drop one of them", EXIT_USAGE)
     table = PACKET_SCENARIOS if adverts else SCENARIOS
     worlds = list(table)
     if joint and scenarios is not None:

@@ -144,9 +144,9 @@ def write_maps(report: dict[str, Any], path: Path = MAPS_FILE) -> None:
     with the command that made them."""
     data = json.loads(path.read_text()) if path.exists() else {"maps": {}}
     joint, adverts = bool(report.get("joint")), bool(report.get("adverts"))
-    flag = "--joint " if joint else "--adverts " if adverts else ""
+    flag = ("--joint " if joint else "") + ("--adverts " if adverts else "")
     for name, a in report["algorithms"].items():
-        algorithm = name.removesuffix("-joint") if joint else name.removesuffix(ADVERTS_MAP_SUFFIX) if adverts else name
+        algorithm = name.removesuffix(ADVERTS_MAP_SUFFIX if adverts else "").removesuffix("-joint" if joint else "")
         data["maps"][name] = {"map": asdict(ConfidenceMap.from_vector(a["map"])),
                               "command": f"ra2vipas bench calibrate {flag}-a {algorithm} --tests {report['tests_per_scenario']} "
                                          f"--seed {report['seed']} --from-s {report['from_s']:g} --write",

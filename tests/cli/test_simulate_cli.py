@@ -165,15 +165,21 @@ def test_bench_calibrate_joint_fits_the_joint_searchs_map_on_every_tags_steps(tm
 
 def test_bench_calibrate_adverts_fits_a_ble_rigs_map_on_the_ble_worlds():
     """`bench calibrate --adverts` fits ``ALGORITHM-adverts`` on the BLE worlds (one, two tests,
-    here); it is not a joint map, and a world of RSSI pairs is not one of its worlds."""
+    here), with `--joint` ``ALGORITHM-joint-adverts`` on those with several tags; a world of RSSI
+    pairs is not one of its worlds."""
     proc = ra2vipas("bench", "calibrate", "--adverts", "-a", "ra2vipas", "--tests", "2", "--scenarios", "ble", "--workers", "1",
                     "--json")
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["adverts"] is True and report["scenarios"] == ["ble"] and list(report["algorithms"]) == ["ra2vipas-adverts"]
     assert report["algorithms"]["ra2vipas-adverts"]["samples"] == 2 * 120
-    proc = ra2vipas("bench", "calibrate", "--adverts", "--joint")
-    assert proc.returncode == 2 and "drop one of them" in one_error_line(proc)
+    proc = ra2vipas("bench", "calibrate", "--adverts", "--joint", "-a", "ra2vipas", "--tests", "2", "--workers", "2", "--json",
+                    timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    joint = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert joint["joint"] is True and joint["adverts"] is True and list(joint["algorithms"]) == ["ra2vipas-joint-adverts"]
+    assert joint["scenarios"] == ["ble-3", "ble-uniform-3", "ble-2-shared", "ble-ward"]
+    assert joint["algorithms"]["ra2vipas-joint-adverts"]["samples"] == 2 * (3 + 3 + 2 + 3) * 120
     proc = ra2vipas("bench", "calibrate", "--adverts", "--scenarios", "dynamic")
     assert proc.returncode == 2 and "unknown world(s) 'dynamic'; choose among ble, ble-uniform" in one_error_line(proc)
     proc = ra2vipas("bench", "calibrate", "--adverts", "--scenarios", "ble", "--write")

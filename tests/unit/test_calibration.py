@@ -83,6 +83,23 @@ def test_calibrate_adverts_names_its_maps_and_refuses_what_does_not_belong(tmp_p
     assert entry["command"] == "ra2vipas bench calibrate --adverts -a ra2vipas --tests 1 --seed 7 --from-s 0 --write"
     with pytest.raises(ValueError, match="'paper'"):
         calibration.calibrate(["ra2vipas"], tests=1, seed=7, scenarios=["paper"], adverts=True)
-    with pytest.raises(ValueError, match="exclude each other"):
-        calibration.calibrate(["ra2vipas"], tests=1, seed=7, joint=True, adverts=True)
     assert list(calibration.calibrate(["ra2vipas"], tests=1, seed=7, scenarios=["paper"])["algorithms"]) == ["ra2vipas"]
+
+
+def test_a_joint_search_on_ble_packets_reports_through_its_own_joint_map():
+    """Several tags heard as BLE advertisements: the joint search calibrates with
+    ``ALGORITHM-joint-adverts``; on RSSI pairs with ``ALGORITHM-joint``."""
+    from ra2vipas.services.controller.builtins import joint_search
+    from ra2vipas.services.controller.confidence import shipped_maps
+    from ra2vipas.services.controller.contract import episode_context
+    from ra2vipas.services.controller.policy import sensor_config_from_scenario
+    from ra2vipas.services.orchestrator.simulate import train_pod
+    from ra2vipas.services.protocol.scenario import build_scenario
+
+    maps = shipped_maps()
+    for preset, name in (("ble", "ra2vipas-joint-adverts"), ("paper", "ra2vipas-joint")):
+        scenario = build_scenario(preset, {"n_tags": 2, "steps": 5})
+        context = episode_context(sensor_config_from_scenario(scenario), train_pod(scenario, 3).model, scenario, 3, 0)
+        search = joint_search("ra2vipas", context, 2)
+        assert all(tag.confidence.map == maps[name] for tag in search.parts), preset
+    assert maps["ra2vipas-joint-adverts"] != maps["ra2vipas-joint"]
