@@ -40,9 +40,10 @@ CROSS_MACHINE_CHECKS = [
 
 
 # Run by that child only when the session runs it too (``tests/conftest.py``): the same check twice
-# would cost the suite more CPU (the maps ~220 s, ~30 of them the BLE rigs', the documented campaigns' first tests ~45 s) for a
-# check that compares within the same tolerances on either kernels, and that the child's kernels make
-# harder (further from the machine that recorded the numbers).
+# would cost the suite more CPU (the maps ~220 s, ~30 of them the BLE rigs', the documented
+# campaigns' first tests ~45 s) for a check that compares within the same tolerances on either
+# kernels, and that the child's kernels make harder (further from the machine that recorded the
+# numbers).
 ONLY_ON_OTHER_KERNELS = (
     "tests/docs/test_confidence_maps.py",
     "tests/docs/test_readme_numbers.py::test_the_first_tests_of_every_documented_campaign_are_what_the_code_prints_now",
