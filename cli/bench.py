@@ -170,7 +170,7 @@ def bench_walkers(
     _check_preset(preset)
     try:
         changed = parse_overrides(overrides or [])
-        walkers.validate(preset, changed, algorithm, window, boxed, recent)
+        walkers.validate(preset, changed, algorithm, window, boxed, recent)  # before the bar shows (run checks again, for its API callers)
         with Progress(TextColumn("[bold]walkers[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("tests"), TimeElapsedColumn(),
                       console=stderr, transient=True) as bar:
             task = bar.add_task("tests", total=tests)

@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import ProcessPoolExecutor
 from functools import lru_cache
 from typing import Any, Callable
 
 import numpy as np
 
 from ra2vipas.services.controller import registry
+from ra2vipas.services.orchestrator.engine import worker_pool
 from ra2vipas.services.orchestrator.metrics import wilson_interval
 from ra2vipas.services.orchestrator.simulate import run_test, train_pod
 from ra2vipas.services.protocol.angles import wrap
@@ -114,7 +114,7 @@ def run(preset: str, tests: int, seed: int, algorithm: str = "ra2vipas", overrid
     chunk = max(1, min(25, tests // workers))
     jobs = [list(range(lo, min(tests, lo + chunk))) for lo in range(0, tests, chunk)]
     rows: list[dict[str, Any]] = []
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with worker_pool(workers) as pool:
         futures = [pool.submit(run_chunk, preset, frozen, seed, ks, algorithm, near_deg) for ks in jobs]
         for future in futures:
             rows += future.result()

@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import ProcessPoolExecutor
 from functools import lru_cache
 from typing import Any, Callable
 
 import numpy as np
 
 from ra2vipas.services.controller import registry
+from ra2vipas.services.orchestrator.engine import worker_pool
 from ra2vipas.services.orchestrator.metrics import Z95, paired_comparison, wilson_interval
 from ra2vipas.services.orchestrator.oracle import oracle_choice
 from ra2vipas.services.orchestrator.simulate import run_test, train_pod
@@ -145,7 +145,7 @@ def run(tests: int = 200, seed: int = 1, scenarios: list[str] | None = None, wor
     jobs = [(name, list(range(lo, min(tests, lo + chunk)))) for name in names for lo in range(0, tests, chunk)]
     hits: dict[str, dict[str, list[tuple[int, int]]]] = {name: {a: [] for a in (*ALGORITHMS, *others, "oracle")} for name in names}
     done = 0
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with worker_pool(workers) as pool:
         futures = {pool.submit(run_chunk, name, seed, ks, others): (name, ks) for name, ks in jobs}
         for future, (name, ks) in futures.items():
             part = future.result()
