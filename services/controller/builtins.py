@@ -22,7 +22,7 @@ from ra2vipas.services.controller.acquisition import GPUCB, Acquisition, ProbeSc
 from ra2vipas.services.controller.acquisition import Sweep as EvenSweep
 from ra2vipas.services.controller.circle_gp import RecentLobe
 from ra2vipas.services.controller.composed import Parts
-from ra2vipas.services.controller.confidence import ADVERTS_MAP_SUFFIX, Confidence, shipped_maps
+from ra2vipas.services.controller.confidence import Confidence, shipped_map
 from ra2vipas.services.controller.contract import EpisodeContext, Policy
 from ra2vipas.services.controller.fusion import Fusion
 from ra2vipas.services.controller.grid import CircleGrid
@@ -166,9 +166,8 @@ def joint_search(algorithm: str, context: EpisodeContext, n_tags: int, settings:
     calibrate --joint``) where one ships; the scenario's ``one_tag_per_person`` and the context's
     ``stop_confidence`` apply."""
     cfg = tuned_settings(algorithm, settings, context.sensors.radio)
-    maps = shipped_maps()  # fitted on joint searches (``bench calibrate --joint``), on BLE advertisements their own (``--adverts``)
-    joint_map = (maps.get(f"{algorithm}-joint{ADVERTS_MAP_SUFFIX}") if context.sensors.radio == "adverts" else None) \
-        or maps.get(f"{algorithm}-joint")
+    # fitted on joint searches (``bench calibrate --joint``), on BLE advertisements their own (``--joint --adverts``)
+    joint_map = shipped_map(f"{algorithm}-joint", context.sensors.radio)
     if joint_map is not None:
         cfg = dataclasses.replace(cfg, confidence_calibration=joint_map)
     tags = [compose(algorithm, context.sensors, context.pod_model, cfg) for _ in range(n_tags)]

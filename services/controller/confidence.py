@@ -134,6 +134,13 @@ def shipped_maps() -> dict[str, ConfidenceMap]:
     return {name: ConfidenceMap(**{k: entry["map"][k] for k in ConfidenceMap.FIELDS}) for name, entry in _file()["maps"].items()}
 
 
+def shipped_map(name: str, radio: str = "pair") -> ConfidenceMap | None:
+    """The shipped map ``name`` for a rig whose ``SensorConfig.radio`` is ``radio``: on BLE
+    advertisements ``name`` + ``ADVERTS_MAP_SUFFIX`` where one ships, else ``name`` (None: neither)."""
+    maps = shipped_maps()
+    return (maps.get(name + ADVERTS_MAP_SUFFIX) if radio == "adverts" else None) or maps.get(name)
+
+
 def shipped_entry(algorithm: str) -> dict[str, Any]:
     """Everything the file says of one algorithm's map (its fit: from_s, samples, ECE)."""
     return _file()["maps"][algorithm]

@@ -47,13 +47,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 from ra2vipas.services.controller.composed import Composition, Decision
-from ra2vipas.services.controller.confidence import (
-    ADVERTS_MAP_SUFFIX,
-    CROWDING_SCALE_RAD,
-    RAW_CONFIDENCE_CLIP,
-    ConfidenceMap,
-    shipped_maps,
-)
+from ra2vipas.services.controller.confidence import CROWDING_SCALE_RAD, RAW_CONFIDENCE_CLIP, ConfidenceMap, shipped_map
 from ra2vipas.services.controller.range_cue import RangeModel
 from ra2vipas.services.controller.vision_belief import PODLookup
 from ra2vipas.services.protocol.pod import PODModel
@@ -244,8 +238,7 @@ def tuned_settings(algorithm: "Algorithm | str", base: ControllerSettings | None
     ``radio`` (``SensorConfig.radio``: BLE advertisements have their own, ``ADVERTS_MAP_SUFFIX``)."""
     name = Algorithm(algorithm).value
     tuning = {**TUNING.get(name, {})}
-    maps = shipped_maps()
-    confidence_map = (maps.get(name + ADVERTS_MAP_SUFFIX) if radio == "adverts" else None) or maps.get(name)
+    confidence_map = shipped_map(name, radio)
     if confidence_map is not None:
         tuning["confidence_calibration"] = confidence_map
     return dataclasses.replace(base or ControllerSettings(), **tuning)

@@ -64,7 +64,9 @@ def test_a_ble_rig_reports_its_confidence_through_the_map_fitted_on_ble_packets(
             apart += abs(Confidence(other)(d.raw_confidence, cov) - d.confidence) > 1e-3
         assert apart > 0, f"{preset}: the other map gives the same confidences"
     # an algorithm without an adverts map keeps its own
-    monkeypatch.setattr(policy, "shipped_maps", lambda: {"rapas": maps["rapas"]})
+    from ra2vipas.services.controller import confidence
+
+    monkeypatch.setattr(confidence, "shipped_maps", lambda: {"rapas": maps["rapas"]})
     assert policy.tuned_settings("rapas", radio="adverts").confidence_calibration == maps["rapas"]
 
 
