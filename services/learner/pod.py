@@ -103,6 +103,15 @@ class LearnerSettings:
         return replace(base or cls(), shadowing=scenario.shadowing_db > 0.0)
 
 
+class TrainingDataError(ValueError):
+    """The training stream is too thin to fit p_D from (too few samples, or on BLE too few
+    advertisements: a short training episode of a sparse beacon): one line saying what it had."""
+
+
+MIN_TRAINING_SAMPLES = 10
+MIN_TRAINING_ADVERTS = 10
+
+
 @dataclass(frozen=True)
 class LearnedPOD:
     """What ``fit_pod`` returns: the model and how long fitting took."""
@@ -124,7 +133,7 @@ def detection_counts(samples: list[TrainingSample]) -> tuple[np.ndarray, np.ndar
     that clutter alone puts a box there is corrected for by the fit (``fit_pod``).
     """
     if not samples:
-        raise ValueError("no training samples")
+        raise TrainingDataError("the training stream carries no samples")
     nu = len(samples[0].frames)
     if nu == 0 or any(len(s.frames) != nu for s in samples):
         raise ValueError("every training sample must carry the same, non-zero number of frames")
@@ -549,8 +558,9 @@ def _packet_evidence(samples: list[TrainingSample], cfg: LearnerSettings, min_va
     the walk), and every packet loses its channel's offset before it weighs on its sample."""
     n_jc, s_jc, channels = _channel_sums(samples)
     counts = n_jc.sum(axis=1)
-    if counts.sum() < 10:
-        raise ValueError(f"need at least 10 advertisements in training, got {int(counts.sum())}")
+    if counts.sum() < MIN_TRAINING_ADVERTS:
+        raise TrainingDataError(f"the training stream carries {int(counts.sum())} Rx(iso) advertisements in {len(samples)} samples; "
+                                f"the POD learner needs at least {MIN_TRAINING_ADVERTS}")
     values = np.asarray([v for s in samples for v in s.rssi_dbm("iso")], dtype=float)
     grid = np.linspace(values.min() - cfg.grid_margin_db, values.max() + cfg.grid_margin_db, cfg.grid_points)
     seen = counts > 0
@@ -594,15 +604,17 @@ def fit_pod(samples: list[TrainingSample], settings: LearnerSettings | None = No
 
     Raises
     ------
+    TrainingDataError
+        Fewer than 10 samples, or on BLE fewer than 10 Rx(iso) advertisements.
     ValueError
-        Fewer than 10 samples, or inconsistent frame counts.
+        Inconsistent frame counts.
     """
     cfg = settings or LearnerSettings()
     started = time.perf_counter()
     z, k, nu = detection_counts(samples)
     _, q = training_clutter(samples)
-    if z.size < 10:
-        raise ValueError(f"need at least 10 training samples, got {z.size}")
+    if z.size < MIN_TRAINING_SAMPLES:
+        raise TrainingDataError(f"the training stream carries {z.size} samples; the POD learner needs at least {MIN_TRAINING_SAMPLES}")
     min_var = cfg.min_rf_noise_db**2
     packets = any(s.iso_rssi_dbm is None for s in samples)
     phi = 0.0

@@ -17,14 +17,14 @@ from ra2vipas.services.controller import registry
 from ra2vipas.services.controller.contract import episode_context
 from ra2vipas.services.controller.policy import ControllerSettings, sensor_config_from_scenario
 from ra2vipas.services.learner.model_cache import CachedPOD, PODCache
-from ra2vipas.services.learner.pod import LearnedPOD, LearnerSettings, fit_pod
+from ra2vipas.services.learner.pod import LearnedPOD, LearnerSettings, TrainingDataError, fit_pod
 from ra2vipas.services.learner.trained import TrainedPOD, predict, r2_score
 from ra2vipas.services.orchestrator.envelope import add_provenance, overrides_of, summarize  # noqa: F401  (the results object)
 from ra2vipas.services.orchestrator.metrics import score_episode
 from ra2vipas.services.orchestrator.reduce import held
 from ra2vipas.services.protocol.messages import training_job_id
 from ra2vipas.services.protocol.pod import PODModel
-from ra2vipas.services.protocol.scenario import Scenario
+from ra2vipas.services.protocol.scenario import Scenario, ScenarioError
 from ra2vipas.services.sensors.world import SimulatedPlatform, TrainingEpisode
 
 
@@ -82,7 +82,11 @@ def train_pod(scenario: Scenario, seed: int, settings: LearnerSettings | None = 
     if hit is not None:
         return TrainedPOD(model=hit.model, r2=hit.r2, train_seconds=hit.train_seconds, cached=True)
     episode = TrainingEpisode(scenario, seed)
-    learned: LearnedPOD = fit_pod(list(episode.samples()), LearnerSettings.for_scenario(scenario, settings))
+    try:
+        learned: LearnedPOD = fit_pod(list(episode.samples()), LearnerSettings.for_scenario(scenario, settings))
+    except TrainingDataError as err:  # the scenario's training episode is too short for its radio: say which parameter
+        raise ScenarioError(f"n_train = {scenario.n_train} is too short a training episode for this world: {err}; "
+                            "raise n_train") from None
     r2 = r2_score(episode.truth.pod, predict(learned.model, episode.truth.rssi_dbm))
     pod = TrainedPOD(model=learned.model, r2=round(float(r2), 6), train_seconds=learned.train_seconds)
     if store is not None:

@@ -87,3 +87,13 @@ def test_bench_walkers_refuses_what_it_cannot_score_in_one_line():
     assert proc.returncode == 2 and one_error_line(proc) == "error: bench walkers scores one tag; this scenario has n_tags > 1"
     proc = run("bench", "walkers", "--tests", "2", "--boxed", "30")
     assert proc.returncode == 2 and "boxed <= window" in one_error_line(proc)
+
+
+def test_a_training_episode_too_short_for_its_radio_is_one_line_naming_n_train():
+    """On BLE a 4 s training episode (n_train = 40 samples of 0.1 s) hears ~8 Rx(iso) advertisements, fewer than the
+    learner needs: the command says so and which parameter to raise, instead of a traceback."""
+    proc = run("simulate", "--preset", "ble", "--set", "n_train=40", "--tests", "1", "-a", "rapas")
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == (
+        "error: n_train = 40 is too short a training episode for this world: the training stream carries 8 Rx(iso) "
+        "advertisements in 40 samples; the POD learner needs at least 10; raise n_train")

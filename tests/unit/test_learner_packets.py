@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from ra2vipas.services.learner.pod import (
+    TrainingDataError,
     _kalman_loglik,
     _kalman_loglik_packets,
     fit_pod,
@@ -61,7 +62,7 @@ def test_the_learner_trains_from_packets_with_empty_samples():
     r2 = r2_score(episode.truth.pod, predict(learned.model, episode.truth.rssi_dbm))
     assert r2 > 0.95, r2
     assert 2.2 < learned.model.rf_noise_db < 2.9  # one packet's spread: 2.5 dB, whole dBm
-    with pytest.raises(ValueError, match="at least 10 advertisements"):
+    with pytest.raises(TrainingDataError, match=r"carries 5 Rx\(iso\) advertisements in 50 samples; the POD learner needs at least 10"):
         fit_pod([_sample(j, [-60.0] if j < 5 else []) for j in range(50)])
 
 
@@ -104,3 +105,30 @@ def test_channel_offsets_are_estimated_and_removed_where_packets_say_their_chann
     blind = [TrainingSample(index=s.index, frames=s.frames, adverts=tuple(a.model_copy(update={"channel": None}) for a in s.adverts))
              for s in samples]
     assert fit_pod(blind).channel_offsets is None  # no channels: nothing to estimate
+
+
+def test_the_learner_service_says_why_a_training_episode_cannot_be_learned_from():
+    """A training stream too thin to fit (BLE, 40 samples: 8 advertisements) is an error reply that says so and names
+    n_train, not an internal error; the in-process path raises the scenario's error with the same words."""
+    from ra2vipas.services.learner.node import LearnerNode
+    from ra2vipas.services.orchestrator.simulate import train_pod
+    from ra2vipas.services.protocol.messages import PODRequest
+    from ra2vipas.services.protocol.scenario import ScenarioError, build_scenario
+    from ra2vipas.services.sensors.node import SensorsNode
+    from ra2vipas.services.transport.bus import MemoryBus, QueryError
+
+    short = build_scenario("ble", {"n_train": 40})
+    bus = MemoryBus()
+    sensors = SensorsNode(bus, "rig-1")
+    learner = LearnerNode(bus, "l1")
+    try:
+        with pytest.raises(QueryError) as err:
+            learner.model_for(PODRequest(scenario=short, seed=1))
+    finally:
+        learner.close()
+        sensors.close()
+        bus.close()
+    assert "cannot learn the POD from the training episode: the training stream carries 8 Rx(iso) advertisements in 40 " \
+           "samples; the POD learner needs at least 10 (n_train = 40: raise it)" in str(err.value)
+    with pytest.raises(ScenarioError, match="n_train = 40 is too short a training episode"):
+        train_pod(short, 1, cache=False)
