@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """A BLE receiver driver for the hardware node (protocol 1.3, docs/protocol.md "Measurement"):
-two scanners, Rx(iso) and Rx(dir), listen for one tag's advertisements, and each control step
-the node takes *every advertisement heard since the previous step*, possibly none.
+two scanners, Rx(iso) and Rx(dir), listen for the advertisements of one tag, or of several (protocol
+1.4, docs/tags.md: tag k is the k-th address given), and each control step the node takes *every
+advertisement heard since the previous step*, possibly none.
 
 Built on bleak (https://bleak.readthedocs.io; ``pip install bleak``, an optional dependency):
 ``BleakScanner(detection_callback, adapter=...)`` calls back with ``(BLEDevice, AdvertisementData)``
@@ -11,12 +12,16 @@ started: the tests run it on ``FakeScanner`` (no BLE adapter needed).
 
 How the callback stream becomes per-step lists (``AdvertCollector``):
 
-* only the tag's address counts (case-insensitive); every other device is ignored;
+* only the tags' addresses count (case-insensitive); every other device is ignored. With several
+  tags each advertisement also names its tag (``tag``: k) and the address it came from (``address``,
+  upper case), and a campaign that searches for fewer tags (the scenario's ``n_tags``) gets only
+  tags 0 .. n_tags - 1; with one tag the lists are protocol 1.3's, byte for byte;
 * each advertisement is stamped on arrival with the node's clock and belongs to the step whose
   window (the previous ``take`` to this one) it arrived in, ``offset_s`` after that window opened;
-* **duplicates**: a second report from the same receiver within ``duplicate_window_s`` (5 ms, less
-  than BLE's shortest advertising interval, 20 ms) of the previous one is the same advertising
-  event heard twice (another channel, or the stack reporting it again) and is dropped;
+* **duplicates**: a second report of the same tag from the same receiver within ``duplicate_window_s``
+  (5 ms, less than BLE's shortest advertising interval, 20 ms) of the previous one is the same
+  advertising event heard twice (another channel, or the stack reporting it again) and is dropped
+  (two tags advertising within 5 ms of each other are two packets);
 * **late**: a report stamped before the current window opened (a callback the event loop ran
   after the step was cut) is carried by the current step at offset 0, never dropped or moved back;
 * **lost**: nothing arrives, and the step's list is empty: no RSSI is made up.
@@ -26,62 +31,92 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 log = logging.getLogger("ble-receiver")
 
 DUPLICATE_WINDOW_S = 0.005
+ADDRESS = re.compile(r"^[0-9A-Fa-f]{2}(:[0-9A-Fa-f]{2}){5}$")  # what BlueZ reports: six bytes, colon-separated
+
+
+def tag_addresses(addresses: str | Sequence[str]) -> list[str]:
+    """The tags' addresses, upper case, tag k the k-th; ValueError (one line) for one that is not six
+    colon-separated hex bytes or that is given twice."""
+    given = [addresses] if isinstance(addresses, str) else list(addresses)
+    if not given:
+        raise ValueError("no tag address given")
+    out: list[str] = []
+    for address in given:
+        text = str(address).strip()
+        if not ADDRESS.match(text):
+            raise ValueError(f"{text!r} is not a BLE address (six hex bytes, e.g. E7:8F:13:56:24:CE)")
+        if text.upper() in out:
+            raise ValueError(f"tag address {text.upper()} given twice")
+        out.append(text.upper())
+    return out
 
 
 class AdvertCollector:
     """Thread-safe: ``add`` from the scanners' callbacks, ``take`` once per control step."""
 
-    def __init__(self, clock: Callable[[], float] = time.monotonic, duplicate_window_s: float = DUPLICATE_WINDOW_S) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic, duplicate_window_s: float = DUPLICATE_WINDOW_S,
+                 addresses: Sequence[str] | None = None) -> None:
         self.clock = clock
         self.duplicate_window_s = duplicate_window_s
+        self.addresses = list(addresses or [])  # several: each advert names its tag and address (protocol 1.4)
         self.lock = threading.Lock()
-        self.pending: list[tuple[float, str, int, int | None]] = []
-        self.last: dict[str, float] = {}
+        self.pending: list[tuple[float, str, int, int | None, int]] = []
+        self.last: dict[tuple[str, int], float] = {}
         self.window_start = clock()
+        self.wanted = max(len(self.addresses), 1)  # the tags the current campaign searches for
         self.duplicates = 0
         self.late = 0
 
-    def reset(self) -> None:
-        """Start a new episode: forget what was heard; the first step's window opens now."""
+    def reset(self, n_tags: int | None = None) -> None:
+        """Start a new episode: forget what was heard; the first step's window opens now. ``n_tags``: the
+        campaign's (its scenario's), only tags 0 .. n_tags - 1 are sent (None: every tag listened for)."""
         with self.lock:
             self.pending.clear()
             self.last.clear()
             self.window_start = self.clock()
+            self.wanted = max(len(self.addresses), 1) if n_tags is None else int(n_tags)
 
-    def add(self, receiver: str, rssi_dbm: int, at: float | None = None, channel: int | None = None) -> None:
-        """One advertisement of the tag heard by ``receiver`` (``iso``|``dir``), stamped ``at`` (now if None)."""
+    def add(self, receiver: str, rssi_dbm: int, at: float | None = None, channel: int | None = None, tag: int = 0) -> None:
+        """One advertisement of tag ``tag`` heard by ``receiver`` (``iso``|``dir``), stamped ``at`` (now if None)."""
         stamp = self.clock() if at is None else at
         with self.lock:
-            previous = self.last.get(receiver)
+            previous = self.last.get((receiver, tag))
             if previous is not None and abs(stamp - previous) < self.duplicate_window_s:
                 self.duplicates += 1
                 return
-            self.last[receiver] = stamp
-            self.pending.append((stamp, receiver, int(rssi_dbm), channel))
+            self.last[(receiver, tag)] = stamp
+            self.pending.append((stamp, receiver, int(rssi_dbm), channel, int(tag)))
 
     def take(self, now: float | None = None) -> list[dict[str, Any]]:
         """The advertisements heard since the previous ``take`` (the step's ``adverts``, in arrival
         order, maybe none); the next step's window opens at ``now``."""
         cut = self.clock() if now is None else now
         with self.lock:
-            start = self.window_start
+            start, wanted = self.window_start, self.wanted
             mine = [p for p in self.pending if p[0] < cut]
             self.pending = [p for p in self.pending if p[0] >= cut]
             self.window_start = cut
+        several = len(self.addresses) > 1
         out = []
-        for stamp, receiver, rssi, channel in sorted(mine, key=lambda p: p[0]):
+        for stamp, receiver, rssi, channel, tag in sorted(mine, key=lambda p: p[0]):
+            if tag >= wanted:
+                continue  # a tag the campaign does not search for
             if stamp < start:
                 self.late += 1
             advert: dict[str, Any] = {"receiver": receiver, "rssi_dbm": rssi, "offset_s": round(max(0.0, stamp - start), 6)}
             if channel in (37, 38, 39):
                 advert["channel"] = channel
+            if several:  # protocol 1.4: which tag, from which address
+                advert["tag"] = tag
+                advert["address"] = self.addresses[tag]
             out.append(advert)
         return out
 
@@ -97,41 +132,53 @@ def bleak_scanner(detection_callback, adapter: str | None):
 
 
 class BleReceivers:
-    """Rx(iso) and Rx(dir) as two scanners (two adapters) listening for ``tag_address``.
+    """Rx(iso) and Rx(dir) as two scanners (two adapters) listening for ``tags``: one address, or
+    several (tag k the k-th; ValueError for a malformed or repeated one, ``tag_addresses``).
 
     ``scanner_factory(detection_callback, adapter)`` builds a scanner with ``async start()`` and
     ``async stop()`` (bleak's ``BleakScanner`` by default; ``FakeScanner`` in tests). The scanners
     run on an asyncio loop in a thread of their own; ``read_adverts()`` is the node's per-step call.
     """
 
-    def __init__(self, tag_address: str, adapters: dict[str, str | None] | None = None,
+    def __init__(self, tags: str | Sequence[str], adapters: dict[str, str | None] | None = None,
                  scanner_factory: Callable = bleak_scanner, clock: Callable[[], float] = time.monotonic) -> None:
-        self.tag = tag_address.strip().lower()
+        self.tags = tag_addresses(tags)
+        self.index = {address.lower(): k for k, address in enumerate(self.tags)}
         self.adapters = adapters or {"iso": "hci0", "dir": "hci1"}
         self.factory = scanner_factory
-        self.collector = AdvertCollector(clock)
+        self.collector = AdvertCollector(clock, addresses=self.tags)
         self.scanners: dict[str, Any] = {}
         self.loop: asyncio.AbstractEventLoop | None = None
         self.thread: threading.Thread | None = None
 
     def callback_for(self, receiver: str):
         def detected(device, advertisement_data) -> None:
-            if str(getattr(device, "address", "")).lower() != self.tag:
+            tag = self.index.get(str(getattr(device, "address", "")).lower())
+            if tag is None:
                 return
             rssi = getattr(advertisement_data, "rssi", None)
             if rssi is None:
                 return
-            self.collector.add(receiver, int(rssi))
+            self.collector.add(receiver, int(rssi), tag=tag)
         return detected
 
     def start(self, timeout: float = 10.0) -> None:
-        """Start both scanners on a background event loop; raise if one cannot start."""
+        """Start both scanners on a background event loop; if one cannot start, stop what started and
+        raise ``ScannerError`` (one line naming the receiver and its adapter)."""
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, name="ble-scanners", daemon=True)
         self.thread.start()
         for receiver, adapter in self.adapters.items():
-            scanner = self.factory(self.callback_for(receiver), adapter)
-            asyncio.run_coroutine_threadsafe(scanner.start(), self.loop).result(timeout)
+            try:
+                scanner = self.factory(self.callback_for(receiver), adapter)
+                asyncio.run_coroutine_threadsafe(scanner.start(), self.loop).result(timeout)
+            except ImportError as err:
+                self.stop()
+                raise ScannerError(f"real BLE receivers need bleak ({err}): pip install bleak") from err
+            except Exception as err:  # bleak's BleakError (no such adapter, BlueZ not running, not allowed), a timeout
+                self.stop()
+                raise ScannerError(f"Rx({receiver}) cannot scan on adapter {adapter or 'default'}: "
+                                   f"{str(err).strip() or type(err).__name__}") from err
             self.scanners[receiver] = scanner
 
     def stop(self, timeout: float = 10.0) -> None:
@@ -149,12 +196,16 @@ class BleReceivers:
         self.loop.close()
         self.loop = None
 
-    def reset(self) -> None:
-        self.collector.reset()
+    def reset(self, n_tags: int | None = None) -> None:
+        self.collector.reset(n_tags)
 
     def read_adverts(self) -> list[dict[str, Any]]:
         """Every advertisement of the tag heard since the previous call: the step's ``adverts``."""
         return self.collector.take()
+
+
+class ScannerError(RuntimeError):
+    """A receiver's scanner could not start (no bleak, no such adapter, BlueZ not running): one line."""
 
 
 class _WithBle:
@@ -168,11 +219,21 @@ class _WithBle:
             raise AttributeError(name)
         return getattr(self._driver, name)
 
+    @property
+    def n_tags(self) -> int:
+        """How many tags the receivers listen for (more than one: protocol 1.4)."""
+        return len(self._receivers.tags)
+
+    @property
+    def tag_addresses(self) -> list[str]:
+        """The tags' addresses, tag k the k-th (upper case)."""
+        return list(self._receivers.tags)
+
     def read_adverts(self) -> list[dict[str, Any]]:
         return self._receivers.read_adverts()
 
-    def reset_adverts(self) -> None:
-        self._receivers.reset()
+    def reset_adverts(self, n_tags: int | None = None) -> None:
+        self._receivers.reset(n_tags)
 
 
 def with_ble(driver, receivers: BleReceivers):

@@ -142,8 +142,9 @@ class HardwareNode:
         self.session, self.rig, self.driver = session, rig, driver
         self.publish_truth = publish_truth
         self.descriptor = dict(DESCRIPTOR, rig=rig, episode_truth=publish_truth)
-        if hasattr(driver, "read_adverts"):  # a BLE receiver (ble_receiver.py): adverts need protocol 1.3
-            self.descriptor.update(protocol="1.3", radio="adverts")
+        self.n_tags = int(getattr(driver, "n_tags", 1))  # tags its receivers listen for (ble_receiver.py)
+        if hasattr(driver, "read_adverts"):  # a BLE receiver (ble_receiver.py): adverts need protocol 1.3, several tags 1.4
+            self.descriptor.update(protocol="1.4" if self.n_tags > 1 else "1.3", radio="adverts")
         self.nu = int(self.descriptor["frames_per_rf"])
         self.period = float(self.descriptor["rf_period_s"])
         self.lock = threading.RLock()  # one driver, one episode table
@@ -213,12 +214,28 @@ class HardwareNode:
                 return
             self.episodes[ep.id] = ep
             self.finished.pop(ep.id, None)
-            if hasattr(self.driver, "reset_adverts"):
-                self.driver.reset_adverts()  # the first step's adverts are those heard from now on
+            try:
+                wanted = max(int(msg["scenario"].get("n_tags", 1)), 1)  # the tags the campaign searches for
+            except (AttributeError, TypeError, ValueError):
+                wanted = 1
+            if hasattr(self.driver, "reset_adverts"):  # the first step's adverts are those heard from now on
+                if self.n_tags > 1:  # ... of the tags the campaign searches for (its scenario's n_tags, docs/tags.md)
+                    if wanted > self.n_tags:
+                        log.warning("episode %s searches for %d tags; this node listens for %d: tags %d.. are never heard",
+                                    ep.id, wanted, self.n_tags, self.n_tags)
+                    self.driver.reset_adverts(wanted)
+                else:
+                    self.driver.reset_adverts()
             if self.publish_truth:
                 d = self.driver
-                self.pub_truth.put(json.dumps({"episode_id": ep.id, "bearings_rad": [round(float(b), 6) for b in d.bearings],
-                                               "ranges_m": [round(float(r), 4) for r in d.ranges], "tx_index": d.tx}).encode())
+                truth = {"episode_id": ep.id, "bearings_rad": [round(float(b), 6) for b in d.bearings],
+                         "ranges_m": [round(float(r), 4) for r in d.ranges], "tx_index": d.tx}
+                carriers = getattr(d, "tx_indices", None)  # several tags (1.4): who carries tag k, k < the campaign's n_tags
+                if wanted > 1 and carriers:
+                    truth["tx_indices"] = [int(c) for c in carriers[:wanted]]
+                    if getattr(d, "tag_addresses", None):
+                        truth["tag_addresses"] = list(d.tag_addresses[:wanted])
+                self.pub_truth.put(json.dumps(truth).encode())
             early = self.early.pop(ep.id, None)
             if early is not None:
                 self.handle_command(json.loads(early))
@@ -345,8 +362,10 @@ def main(node_class: type = HardwareNode, driver_class: type = FakeDriver) -> No
     parser.add_argument("--password-file", help="file holding the Zenoh password")
     parser.add_argument("--seed", type=int, default=0, help="the fake driver's layout")
     parser.add_argument("--publish-truth", action="store_true", help="publish EpisodeTruth (the fake driver knows its layout)")
-    parser.add_argument("--ble-tag", metavar="ADDRESS", help="real BLE receivers (bleak): the Tx tag's address; the fake driver "
-                                                            "keeps the pan unit and the camera (ble_receiver.py, README)")
+    parser.add_argument("--ble-tag", metavar="ADDRESS", action="append", default=[],
+                        help="real BLE receivers (bleak): the Tx tag's address, e.g. E7:8F:13:56:24:CE; repeat it for several "
+                             "tags (tag k is the k-th given; protocol 1.4); the fake driver keeps the pan unit and the camera "
+                             "(ble_receiver.py, README)")
     parser.add_argument("--iso-adapter", default="hci0", help="the BlueZ adapter of Rx(iso) (with --ble-tag)")
     parser.add_argument("--dir-adapter", default="hci1", help="the BlueZ adapter of Rx(dir), the directional one (with --ble-tag)")
     args = parser.parse_args()
@@ -368,10 +387,17 @@ def main(node_class: type = HardwareNode, driver_class: type = FakeDriver) -> No
     driver = driver_class(args.seed, fov_half_angle_deg=DESCRIPTOR["fov_half_angle_deg"], box_noise_deg=DESCRIPTOR["box_bearing_noise_deg"])
     receivers = None
     if args.ble_tag:
-        from ble_receiver import BleReceivers, with_ble
+        from ble_receiver import BleReceivers, ScannerError, with_ble
 
-        receivers = BleReceivers(args.ble_tag, {"iso": args.iso_adapter, "dir": args.dir_adapter})
-        receivers.start()
+        try:
+            receivers = BleReceivers(args.ble_tag, {"iso": args.iso_adapter, "dir": args.dir_adapter})
+        except ValueError as err:
+            parser.error(f"--ble-tag: {err}")  # one line, exit 2
+        try:
+            receivers.start()
+        except ScannerError as err:
+            log.error("%s", err)
+            raise SystemExit(1) from None
         driver = with_ble(driver, receivers)
     try:
         with zenoh.open(conf) as session:

@@ -102,7 +102,7 @@ def start_stack(registry: Procs, tmp: Path, *extra: str, rigs: int = 2, **popen)
 
     from ra2vipas.cli.stack import free_port
 
-    up = registry.start("up", "--rigs", str(rigs), "--port", str(free_port()), "--db", str(tmp / "stack.db"),
+    up = registry.start("up", "--rig-count", str(rigs), "--port", str(free_port()), "--db", str(tmp / "stack.db"),
                         "--log-dir", str(tmp / "logs"), *extra, **popen)
     line = wait_for_line(up, "API on http://", 120)
     return {"api": re.search(r"(http://[0-9.:]+)", line).group(1), "up": up, "db": tmp / "stack.db", "logs": tmp / "logs", "line": line}

@@ -25,7 +25,7 @@ def stack(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("stack")
     registry = Procs()
     port = free_port()
-    up = registry.start("up", "--rigs", "2", "--port", str(port), "--db", str(tmp / "stack.db"), "--log-dir", str(tmp / "logs"))
+    up = registry.start("up", "--rig-count", "2", "--port", str(port), "--db", str(tmp / "stack.db"), "--log-dir", str(tmp / "logs"))
     line = wait_for_line(up, "API on http://", 120)
     api = re.search(r"(http://[0-9.:]+)", line).group(1)
     state = {"api": api, "up": up, "children": children_of(up.pid), "db": tmp / "stack.db", "logs": tmp / "logs"}

@@ -1,9 +1,11 @@
 """The reference hardware node of examples/hardware_node with BLE receivers (protocol 1.3
 adverts) on the fake scanner backend: a fake tag advertises every 0.45 s plus advDelay and each
 receiver hears ~90 % of the packets, whole-dBm RSSI from the fake driver's model. The node is
-the example's own ``main`` with ``--ble-tag``; only the scanner factory is the fake one.
+the example's own ``main`` with ``--ble-tag``; only the scanner factory is the fake one. With
+``--ble-tag`` given more than once (protocol 1.4, several tags), tag k is carried by target
+(tx + k) mod N of the fake layout and advertises on its own schedule.
 
-    python ble_node.py --rig ble-1 --connect tcp/ROUTER:7447
+    python ble_node.py --rig ble-1 --connect tcp/ROUTER:7447 [--ble-tag A --ble-tag B]
 """
 
 import importlib.util
@@ -27,23 +29,25 @@ TAG = "e7:8f:13:56:24:ce"
 
 
 class FakeTag:
-    """Plays the tag's advertisements into the fake scanners, RSSI from the driver's geometry."""
+    """Plays a tag's advertisements into the fake scanners, RSSI from the driver's geometry: tag k
+    (address ``address``) is carried by target (tx + k) mod N."""
 
-    def __init__(self, driver) -> None:
-        self.driver = driver
-        self.rng = random.Random(7)
+    def __init__(self, driver, address: str = TAG, k: int = 0) -> None:
+        self.driver, self.address, self.k = driver, address, k
+        self.rng = random.Random(7 + k)
         self.stop = threading.Event()
         threading.Thread(target=self.run, daemon=True).start()
 
     def run(self) -> None:
         while not self.stop.wait(0.45 + self.rng.uniform(0.0, 0.01)):
             d = self.driver
-            g = -30.0 - 20.0 * math.log10(d.ranges[d.tx])
-            delta = example.wrap(d.pan - d.bearings[d.tx])
+            carrier = (d.tx + self.k) % len(d.bearings)
+            g = -30.0 - 20.0 * math.log10(d.ranges[carrier])
+            delta = example.wrap(d.pan - d.bearings[carrier])
             gain = 10.0 * math.log10(max(1.0 - 0.5 * delta * delta, 0.01))
             for scanner, level in zip(list(ble_receiver.FakeScanner.instances), (g, g + gain)):
                 if self.rng.random() > 0.1:
-                    scanner.emit(TAG, round(level + self.rng.gauss(0.0, 3.0)))
+                    scanner.emit(self.address, round(level + self.rng.gauss(0.0, 3.0)))
 
 
 original = ble_receiver.BleReceivers.__init__
@@ -58,7 +62,9 @@ real_with_ble = ble_receiver.with_ble
 
 
 def with_ble_and_tag(driver, receivers):
-    FakeTag(driver)
+    driver.tx_indices = [(driver.tx + k) % len(driver.bearings) for k in range(len(receivers.tags))]  # for --publish-truth
+    for k, address in enumerate(receivers.tags):
+        FakeTag(driver, address, k)
     return real_with_ble(driver, receivers)
 
 

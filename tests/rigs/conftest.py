@@ -49,7 +49,7 @@ def local_stack(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("local-stack")
     registry = Procs()
     try:
-        up = registry.start("up", "--rigs", "1", "--port", str(free_port()), "--db", str(tmp / "s.db"), "--insecure",
+        up = registry.start("up", "--rig-count", "1", "--port", str(free_port()), "--db", str(tmp / "s.db"), "--insecure",
                             "--log-dir", str(tmp / "logs"))
         line = wait_for_line(up, "API on http://", 120)
         api = re.search(r"(http://[0-9.:]+)", line).group(1)

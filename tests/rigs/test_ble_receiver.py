@@ -1,7 +1,9 @@
 """The example node's BLE receiver driver (examples/hardware_node/ble_receiver.py) on a fake
 scanner backend (no BLE adapter here): the callback stream of one tag becomes the per-step
 advertisement lists, with late, lost and duplicate packets handled as documented, and every
-list is a valid protocol 1.3 ``adverts``."""
+list is a valid protocol 1.3 ``adverts``; several tags' streams become protocol 1.4 lists in which
+each advertisement names its tag and address; bad addresses and scanners that cannot start are
+refused in one line."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from tests.integration.conftest import ROOT
 
 HERE = ROOT / "examples" / "hardware_node"
 TAG = "E7:8F:13:56:24:CE"
+TAG2 = "C3:5A:01:9E:44:B2"
 
 
 def _load():
@@ -138,3 +141,87 @@ def test_the_driver_wraps_a_node_driver_so_the_node_sends_adverts(rig):
     iso.emit(TAG, -58)
     clock.now = 100.1
     assert driver.read_adverts() == [{"receiver": "iso", "rssi_dbm": -58, "offset_s": 0.04}]
+
+
+@pytest.fixture()
+def two_tags():
+    clock = Clock()
+    ble.FakeScanner.instances.clear()
+    receivers = ble.BleReceivers([TAG, TAG2.lower()], {"iso": "hci0", "dir": "hci1"}, scanner_factory=ble.FakeScanner, clock=clock)
+    receivers.start()
+    iso, dir_ = ble.FakeScanner.instances
+    yield receivers, clock, iso, dir_
+    receivers.stop()
+
+
+def test_with_several_tags_each_advertisement_names_its_tag_and_address(two_tags):
+    receivers, clock, iso, dir_ = two_tags
+    assert receivers.tags == [TAG, TAG2]  # tag k is the k-th address given, upper case as the protocol writes it
+    receivers.reset()
+    clock.now = 100.02
+    iso.emit(TAG2, -70)
+    clock.now = 100.021
+    iso.emit(TAG.lower(), -60)  # 1 ms after the other tag's packet on the same receiver: another packet, not a duplicate
+    clock.now = 100.022
+    iso.emit(TAG, -61)  # the same tag's advertising event reported again within 5 ms: a duplicate
+    clock.now = 100.05
+    dir_.emit(TAG2.lower(), -75)
+    iso.emit("aa:bb:cc:dd:ee:ff", -40)  # a device that is not a tag: ignored
+    clock.now = 100.1
+    step = receivers.read_adverts()
+    assert step == [{"receiver": "iso", "rssi_dbm": -70, "offset_s": 0.02, "tag": 1, "address": TAG2},
+                    {"receiver": "iso", "rssi_dbm": -60, "offset_s": 0.021, "tag": 0, "address": TAG},
+                    {"receiver": "dir", "rssi_dbm": -75, "offset_s": 0.05, "tag": 1, "address": TAG2}]
+    assert receivers.collector.duplicates == 1
+    m = _valid(step)
+    assert m.rssi_dbm("iso") == (-60,) and m.rssi_dbm("iso", tag=1) == (-70,) and m.rssi_dbm("dir", tag=1) == (-75,)
+    assert m.advertisements("dir") == ()  # tag 0 was not heard by Rx(dir) this step: no RF evidence of it there
+
+
+def test_a_campaign_for_fewer_tags_gets_only_those(two_tags):
+    receivers, clock, iso, dir_ = two_tags
+    receivers.reset(n_tags=1)  # EpisodeStart of a campaign that searches for tag 0 only
+    clock.now = 100.03
+    iso.emit(TAG2, -70)
+    dir_.emit(TAG, -72)
+    clock.now = 100.1
+    assert receivers.read_adverts() == [{"receiver": "dir", "rssi_dbm": -72, "offset_s": 0.03, "tag": 0, "address": TAG}]
+    receivers.reset()  # the next episode's campaign did not say: every tag listened for
+    clock.now = 100.13
+    iso.emit(TAG2, -71)
+    clock.now = 100.2
+    assert [(a["tag"], a["rssi_dbm"]) for a in receivers.read_adverts()] == [(1, -71)]
+
+
+@pytest.mark.parametrize("tags, message", [
+    ("E7:8F:13", "'E7:8F:13' is not a BLE address (six hex bytes, e.g. E7:8F:13:56:24:CE)"),
+    ("E7-8F-13-56-24-CE", "'E7-8F-13-56-24-CE' is not a BLE address"),
+    ([TAG, TAG.lower()], f"tag address {TAG} given twice"),
+    ([], "no tag address given"),
+])
+def test_bad_tag_addresses_are_refused_in_one_line(tags, message):
+    with pytest.raises(ValueError) as err:
+        ble.BleReceivers(tags, scanner_factory=ble.FakeScanner)
+    assert str(err.value).startswith(message) and "\n" not in str(err.value)
+
+
+def test_a_scanner_that_cannot_start_says_which_and_stops_the_other():
+    class NoSecondAdapter(ble.FakeScanner):
+        async def start(self) -> None:
+            if self.adapter == "hci1":
+                raise RuntimeError("No Bluetooth adapter found: hci1")  # what bleak's BleakError says
+            await super().start()
+
+    ble.FakeScanner.instances.clear()
+    receivers = ble.BleReceivers(TAG, scanner_factory=NoSecondAdapter)
+    with pytest.raises(ble.ScannerError) as err:
+        receivers.start()
+    assert str(err.value) == "Rx(dir) cannot scan on adapter hci1: No Bluetooth adapter found: hci1"
+    assert [s.running for s in ble.FakeScanner.instances] == [False, False] and receivers.loop is None  # Rx(iso)'s stopped too
+
+    def no_bleak(callback, adapter):
+        raise ImportError("No module named 'bleak'")
+
+    with pytest.raises(ble.ScannerError) as err:
+        ble.BleReceivers(TAG, scanner_factory=no_bleak).start()
+    assert str(err.value) == "real BLE receivers need bleak (No module named 'bleak'): pip install bleak"

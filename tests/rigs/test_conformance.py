@@ -12,6 +12,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from ra2vipas.services.rigs.conformance import RULES, check_rig
 from ra2vipas.services.sensors.node import SensorsNode
 from ra2vipas.services.transport.bus import MemoryBus
@@ -124,18 +126,21 @@ def test_the_reference_hardware_node_passes(router, record_property):
     assert node.wait(30) == 0
 
 
-def test_the_hardware_node_with_ble_receivers_passes(router):
+@pytest.mark.parametrize("tags", [["e7:8f:13:56:24:ce"], ["e7:8f:13:56:24:ce", "c3:5a:01:9e:44:b2"]], ids=["one-tag", "two-tags"])
+def test_the_hardware_node_with_ble_receivers_passes(router, tags):
     """A node that sends protocol 1.3 adverts (the example node with its BLE driver on the fake
     scanner backend: steps with none, one or two advertisements) passes every rule, as the 1.0
-    pair node above does."""
+    pair node above does; so does one listening for two tags (protocol 1.4: each advertisement
+    names its tag; the kit's one-tag episodes get tag 0's)."""
     registry, endpoint = router
+    rig = f"ble-{len(tags)}"
 
     def start():
-        node = registry.script(BLE_NODE, "--rig", "ble-1", "--connect", endpoint)
-        wait_for_line(node, "hardware node ble-1 up", 60)
+        node = registry.script(BLE_NODE, "--rig", rig, "--connect", endpoint, *[a for tag in tags for a in ("--ble-tag", tag)])
+        wait_for_line(node, f"hardware node {rig} up", 60)
         return node
 
-    body, node = kit_first(registry, endpoint, "ble-1", start)
+    body, node = kit_first(registry, endpoint, rig, start)
     # the realtime rules time samples to 30 ms: on a loaded machine they may fail for any node, so they are left out here
     assert {k: v for k, v in statuses(body).items() if not k.startswith("realtime-")} == {
         rule: "pass" for rule in RULES if not rule.startswith("realtime-")}, body
