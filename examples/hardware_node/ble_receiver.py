@@ -24,12 +24,15 @@ How the callback stream becomes per-step lists (``AdvertCollector``):
   (two tags advertising within 5 ms of each other are two packets);
 * **late**: a report stamped before the current window opened (a callback the event loop ran
   after the step was cut) is carried by the current step at offset 0, never dropped or moved back;
-* **lost**: nothing arrives, and the step's list is empty: no RSSI is made up.
+* **lost**: nothing arrives, and the step's list is empty: no RSSI is made up;
+* **idle**: between episodes nobody takes the lists, so only the newest ``MAX_PENDING`` (10 000, what
+  one step may carry) are kept: a node left listening for days does not grow.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import logging
 import re
 import threading
@@ -39,6 +42,7 @@ from typing import Any, Callable, Sequence
 log = logging.getLogger("ble-receiver")
 
 DUPLICATE_WINDOW_S = 0.005
+MAX_PENDING = 10_000  # advertisements kept untaken (protocol: at most 10 000 per step)
 ADDRESS = re.compile(r"^[0-9A-Fa-f]{2}(:[0-9A-Fa-f]{2}){5}$")  # what BlueZ reports: six bytes, colon-separated
 
 
@@ -68,7 +72,7 @@ class AdvertCollector:
         self.duplicate_window_s = duplicate_window_s
         self.addresses = list(addresses or [])  # several: each advert names its tag and address (protocol 1.4)
         self.lock = threading.Lock()
-        self.pending: list[tuple[float, str, int, int | None, int]] = []
+        self.pending: collections.deque[tuple[float, str, int, int | None, int]] = collections.deque(maxlen=MAX_PENDING)
         self.last: dict[tuple[str, int], float] = {}
         self.window_start = clock()
         self.wanted = max(len(self.addresses), 1)  # the tags the current campaign searches for
@@ -102,7 +106,7 @@ class AdvertCollector:
         with self.lock:
             start, wanted = self.window_start, self.wanted
             mine = [p for p in self.pending if p[0] < cut]
-            self.pending = [p for p in self.pending if p[0] >= cut]
+            self.pending = collections.deque((p for p in self.pending if p[0] >= cut), maxlen=MAX_PENDING)
             self.window_start = cut
         several = len(self.addresses) > 1
         out = []

@@ -225,3 +225,16 @@ def test_a_scanner_that_cannot_start_says_which_and_stops_the_other():
     with pytest.raises(ble.ScannerError) as err:
         ble.BleReceivers(TAG, scanner_factory=no_bleak).start()
     assert str(err.value) == "real BLE receivers need bleak (No module named 'bleak'): pip install bleak"
+
+
+def test_a_node_left_listening_between_episodes_keeps_only_the_newest_advertisements(rig):
+    receivers, clock, iso, _ = rig
+    receivers.reset()
+    for k in range(ble.MAX_PENDING + 500):  # a tag heard for hours while no episode runs: nobody takes the lists
+        clock.now = 100.0 + 0.01 * (k + 1)
+        iso.emit(TAG, -60 - k % 7)
+    assert len(receivers.collector.pending) == ble.MAX_PENDING
+    clock.now += 1.0
+    step = receivers.read_adverts()
+    assert len(step) == ble.MAX_PENDING and step[0]["offset_s"] == pytest.approx(0.01 * 501)  # the oldest 500 went
+    _valid(step)  # still one valid step: the protocol allows 10 000
