@@ -86,6 +86,11 @@ class FakeDriver:
         self.tx = int(rng.integers(n_targets))
         self.ranges[self.tx] = rng.uniform(1.0, 3.5)
 
+    training_range_m: float | None = None  # while a training episode records: where the Tx is (on the optical axis)
+
+    def end_training(self) -> None:
+        self.training_range_m = None
+
     def move_to(self, pan_rad: float) -> float:
         """Drive the pan unit; return the pan actually reached [rad], wrapped."""
         self.pan = wrap(pan_rad)
@@ -115,7 +120,10 @@ class FakeDriver:
         return float(g + self.rng.normal(0, 3.0)), float(g + gain + self.rng.normal(0, 3.0))
 
     def training_sample(self, range_m: float, frames: int) -> tuple[float, list[list[float]]]:
-        """The Tx alone in view at ``range_m`` on the optical axis: iso RSSI and frames."""
+        """The Tx alone in view at ``range_m`` on the optical axis: iso RSSI and frames. (With BLE
+        receivers only the frames are used: the RSSI is what they hear; ``training_range_m`` tells a
+        simulated tag where the Tx is until ``end_training``.)"""
+        self.training_range_m = range_m
         g = -30.0 - 20.0 * math.log10(range_m)
         hits = self.rng.random(frames) < self._pod(range_m)
         return float(g + self.rng.normal(0, 3.0)), [[float(self.rng.normal(0.0, self.box_noise))] if h else [] for h in hits]
@@ -336,12 +344,37 @@ class HardwareNode:
         # a real rig: ask someone to walk the Tx along the optical axis between lo and hi while recording
         rng = np.random.default_rng(0)
         d, samples = rng.uniform(lo, hi), []
-        with self.lock:
-            for j in range(n):
-                iso, frames = self.driver.training_sample(d, self.nu)
-                samples.append({"index": j, "iso_rssi_dbm": iso, "frames": [{"box_bearings_rad": f} for f in frames]})
-                d = min(max(d + rng.normal(0.0, 0.2), lo), hi)
+        if hasattr(self.driver, "read_adverts"):
+            samples = self.train_on_adverts(n, lo, hi, rng, d)
+        else:
+            with self.lock:
+                for j in range(n):
+                    iso, frames = self.driver.training_sample(d, self.nu)
+                    samples.append({"index": j, "iso_rssi_dbm": iso, "frames": [{"box_bearings_rad": f} for f in frames]})
+                    d = min(max(d + rng.normal(0.0, 0.2), lo), hi)
         query.reply(query.key_expr, json.dumps({"job_id": job, "samples": samples}).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    def train_on_adverts(self, n: int, lo: float, hi: float, rng, d: float) -> list[dict]:
+        """BLE receivers (protocol 1.3): training takes real time. Each sample is one T_RF of what Rx(iso)
+        heard of tag 0 (the rig's POD model is learned from tag 0, docs/tags.md), possibly nothing, and
+        the camera's nu frames of the Tx on the optical axis (``training_sample``'s frames; its RSSI, a
+        pair, is not used). n_train samples take n_train x T_RF."""
+        if self.n_tags > 1:
+            self.driver.reset_adverts(1)
+        else:
+            self.driver.reset_adverts()
+        samples: list[dict] = []
+        t0 = time.monotonic()
+        for j in range(n):
+            with self.lock:  # per sample: the Zenoh threads are never held for the whole recording
+                _, frames = self.driver.training_sample(d, self.nu)
+            time.sleep(max(0.0, t0 + (j + 1) * self.period - time.monotonic()))
+            heard = [a for a in self.driver.read_adverts() if a["receiver"] == "iso" and a.get("tag", 0) == 0]
+            samples.append({"index": j, "adverts": heard, "frames": [{"box_bearings_rad": f} for f in frames]})
+            d = min(max(d + rng.normal(0.0, 0.2), lo), hi)
+        if hasattr(self.driver, "end_training"):
+            self.driver.end_training()
+        return samples
 
     def close(self) -> None:
         with self.cv:

@@ -42,8 +42,9 @@ class FakeTag:
         while not self.stop.wait(0.45 + self.rng.uniform(0.0, 0.01)):
             d = self.driver
             carrier = (d.tx + self.k) % len(d.bearings)
-            g = -30.0 - 20.0 * math.log10(d.ranges[carrier])
-            delta = example.wrap(d.pan - d.bearings[carrier])
+            training = d.training_range_m if self.k == 0 else None  # a training episode: tag 0 on the optical axis
+            g = -30.0 - 20.0 * math.log10(d.ranges[carrier] if training is None else training)
+            delta = 0.0 if training is not None else example.wrap(d.pan - d.bearings[carrier])
             gain = 10.0 * math.log10(max(1.0 - 0.5 * delta * delta, 0.01))
             for scanner, level in zip(list(ble_receiver.FakeScanner.instances), (g, g + gain)):
                 if self.rng.random() > 0.1:

@@ -1,5 +1,6 @@
 """The example node with real BLE receivers listening for several tags (protocol 1.4; the bleak
-driver on its fake scanner backend, tests/rigs/ble_node.py): its descriptor says 1.4, a two-tag
+driver on its fake scanner backend, tests/rigs/ble_node.py): its descriptor says 1.4, its training
+stream carries, per 0.1 s sample, what Rx(iso) heard of tag 0 (mostly nothing, never a made-up pair), a two-tag
 campaign runs on it through real processes (router, orchestrator, learner, the rig's controller;
 the fake layout's truth, each tag's carrier included, published by the node), every advertisement
 it sends names its tag and that tag's address, and each tag is scored against its own carrier. Bad tag addresses and receivers that cannot start stop the node in one line."""
@@ -8,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -18,7 +20,8 @@ from collections import Counter
 import httpx
 
 from ra2vipas.services.protocol import keys
-from ra2vipas.services.protocol.messages import Measurement
+from ra2vipas.services.protocol.messages import Measurement, TrainingRequest, TrainingStream, dump
+from ra2vipas.services.protocol.scenario import build_scenario
 from ra2vipas.services.transport.zenoh_bus import ZenohBus
 from ra2vipas.services.transport.zenoh_config import ZenohSettings
 from tests.integration.conftest import ROOT, wait_for_line
@@ -52,6 +55,16 @@ def test_a_two_tag_campaign_runs_on_the_example_node_with_ble_receivers(local_st
 
     handle = bus.subscribe(keys.measurement("ble-2"), on_measurement)
     try:
+        # the training stream: each 0.1 s sample carries what Rx(iso) heard of tag 0 (maybe nothing), never a made-up pair
+        got: queue.Queue = queue.Queue()
+        request = TrainingRequest(job_id="ble-2-training", scenario=build_scenario("paper", {"n_train": 30}), seed=1)
+        bus.query(keys.training("ble-2"), dump(request), 60.0, got.put)
+        (reply,) = [r for r in got.get(timeout=70) if r.ok]
+        stream = TrainingStream.model_validate_json(reply.payload)
+        assert len(stream.samples) == 30 and all(s.iso_rssi_dbm is None for s in stream.samples)
+        adverts = [a for s in stream.samples for a in s.adverts]
+        assert 3 <= len(adverts) <= 8 and {(a.receiver, a.tag) for a in adverts} == {("iso", 0)}, adverts  # ~2 a second
+        assert sum(1 for s in stream.samples if not s.adverts) >= 20
         with httpx.Client(base_url=api, timeout=30) as http:
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline:
@@ -60,7 +73,7 @@ def test_a_two_tag_campaign_runs_on_the_example_node_with_ble_receivers(local_st
                     break
                 time.sleep(0.2)
             assert rig and rig["descriptor"]["protocol"] == "1.4" and rig["descriptor"]["radio"] == "adverts", rig
-            r = http.post("/campaigns", json={"overrides": {"steps": 20, "n_train": 40, "n_tags": 2}, "tests": 2, "seed": 3,
+            r = http.post("/campaigns", json={"overrides": {"steps": 20, "n_train": 80, "n_tags": 2}, "tests": 2, "seed": 3,
                                               "algorithms": ["ra2vipas"], "rigs": ["ble-2"], "use_rig_values": True,
                                               "mode": "realtime"})
             assert r.status_code == 201, r.text
