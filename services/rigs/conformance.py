@@ -36,7 +36,7 @@ from ra2vipas.services.protocol.messages import (
 )
 from ra2vipas.services.protocol.rig import RigDescriptor, apply_rig_values, speaks
 from ra2vipas.services.protocol.scenario import Scenario
-from ra2vipas.services.protocol.versions import V1_3, newer
+from ra2vipas.services.protocol.versions import V1_3, V1_4, newer
 from ra2vipas.services.transport.bus import Bus
 
 RULES: dict[str, str] = {
@@ -46,7 +46,8 @@ RULES: dict[str, str] = {
     "fast-lockstep": "fast mode: each Command(t) is answered by one Measurement(t) with the same episode_id, valid against its schema",
     "frames": "every Measurement carries nu frames whose box bearings are sorted ascending",
     "rf-evidence": "every Measurement's RF evidence is the 1.0 rf pair or, from a node that speaks 1.3, the adverts heard since the "
-                   "previous step in arrival order (maybe none: then no rf either), never both",
+                   "previous step in arrival order (maybe none: then no rf either), never both; a tag or address (1.4) only from a "
+                   "node that speaks 1.4, only the tags the episode searches for (the kit's: tag 0), one address per tag",
     "pan-wrapped": "Measurement.pan_rad is the commanded pan, wrapped to [-pi, pi)",
     "command-before-start": "a Command(0) that arrives before its EpisodeStart is answered once the start arrives",
     "duplicate-command": "a repeated Command(t) does not advance the episode (at most the same sample again)",
@@ -176,6 +177,7 @@ class ConformanceKit:
         descriptor = self._liveliness_and_descriptor(self.timeout if wait is None else wait)
         self._speaks = speaks(descriptor)
         self._rf_seen = {"pair": 0, "adverts": 0, "empty": 0, "packets": 0}
+        self._addresses: dict[int, str] = {}  # each tag's first address (1.4)
         base = Scenario(steps=steps, n_train=25, n_targets=6)
         scenario = apply_rig_values(descriptor, base) if descriptor is not None else base
         nu = scenario.frames_per_rf
@@ -301,11 +303,35 @@ class ConformanceKit:
             if offsets != sorted(offsets):
                 self._result("rf-evidence", False, f"step {step}: adverts not in arrival order (offsets {offsets})")
                 return
+            if not self._check_tags(step, adverts):
+                return
             self._rf_seen["adverts" if adverts else "empty"] += 1
             self._rf_seen["packets"] += len(adverts)
         seen = self._rf_seen
         self._result("rf-evidence", True, f"{seen['pair']} steps with an rf pair, {seen['adverts']} with adverts "
                                           f"({seen['packets']} advertisements), {seen['empty']} with none")
+
+    def _check_tags(self, step, adverts: list) -> bool:
+        """The rf-evidence rule's 1.4 part (docs/tags.md): ``tag``/``address`` only from a node that speaks
+        1.4; the kit's episodes search for one tag (n_tags = 1), so every advertisement is tag 0's; a tag's
+        address never changes. False (the rule failed) or True."""
+        if any("tag" in a or "address" in a for a in adverts) and newer(V1_4, self._speaks):
+            self._result("rf-evidence", False, f"step {step}: adverts name a tag or an address, but the node speaks protocol "
+                                               f"{self._speaks} (1.4 fields: say so in the descriptor)")
+            return False
+        others = sorted({int(a.get("tag", 0)) for a in adverts} - {0})
+        if others:
+            self._result("rf-evidence", False, f"step {step}: advertisements of tag {', '.join(map(str, others))} in an episode "
+                                               "whose scenario searches for one tag (n_tags = 1: send tags 0 .. n_tags - 1 only)")
+            return False
+        for a in adverts:
+            if a.get("address") is not None:
+                first = self._addresses.setdefault(int(a.get("tag", 0)), a["address"])
+                if first != a["address"]:
+                    self._result("rf-evidence", False, f"step {step}: tag {a.get('tag', 0)} came from {first} and from "
+                                                       f"{a['address']}")
+                    return False
+        return True
 
     def _fast(self, scenario: Scenario, nu: int, steps: int) -> None:
         eid = self._id("fast")
@@ -422,6 +448,12 @@ class ConformanceKit:
                 break
             arrivals.append(got[0].at)
             reported.append(float(got[1]["pan_rad"]))
+            try:  # a second of real time: a BLE node's advertisements are in these (fast steps take ms)
+                Measurement.model_validate_json(got[0].payload)
+            except ValidationError:
+                pass  # whether a Measurement is valid is fast-lockstep's rule
+            else:
+                self._check_rf(got[1])
             if k + 1 < steps:
                 self._command(eid, k + 1, pans[k + 1])
         if arrivals:

@@ -150,6 +150,26 @@ def test_the_hardware_node_with_ble_receivers_passes(router, tags):
     assert node.wait(30) == 0
 
 
+def test_a_two_tag_node_that_sends_tags_the_episode_does_not_search_for_fails_rf_evidence(router):
+    """The two-tag BLE node with a bug (every tag sent, whatever the episode's n_tags): the kit's one-tag
+    episodes get tag 1's advertisements too, and the rf-evidence rule says so (the node passes without the bug)."""
+    registry, endpoint = router
+
+    def start():
+        node = registry.script(BLE_NODE, "--rig", "ble-bad", "--connect", endpoint, "--all-tags", "--ble-tag", "e7:8f:13:56:24:ce",
+                               "--ble-tag", "c3:5a:01:9e:44:b2")
+        wait_for_line(node, "hardware node ble-bad up", 60)
+        return node
+
+    body, node = kit_first(registry, endpoint, "ble-bad", start)
+    failed = {r["rule"]: r["detail"] for r in body["rules"] if r["status"] == "fail" and not r["rule"].startswith("realtime-")}
+    assert list(failed) == ["rf-evidence"], [r for r in body["rules"] if r["rule"] == "rf-evidence"]
+    assert failed["rf-evidence"].endswith("advertisements of tag 1 in an episode whose scenario searches for one tag (n_tags = 1: "
+                                          "send tags 0 .. n_tags - 1 only)"), failed
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
+
+
 def test_a_broken_node_fails_naming_the_rule(router):
     registry, endpoint = router
     node = registry.script(BROKEN, "ignores-stop", "--rig", "bad-1", "--connect", endpoint)
