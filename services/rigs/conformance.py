@@ -59,7 +59,8 @@ RULES: dict[str, str] = {
     "realtime-pan": "realtime: each sample is taken at the last commanded pan",
     "realtime-timing": "realtime: one EpisodeTiming after the last sample, at most steps-1 latencies, no late command when every "
                        "command came at once",
-    "training": "data/{rig}/training answers a TrainingStream of n_train samples (indices 0..n-1, nu frames each, job_id echoed)",
+    "training": "data/{rig}/training answers a TrainingStream of n_train samples (indices 0..n-1, nu frames each, job_id echoed); "
+                "from a rig whose radio is adverts, each sample carries what Rx(iso) heard (maybe nothing), never an rf pair",
     "truth": "a rig that says it publishes EpisodeTruth does so for every episode; one that says it does not, publishes none",
 }
 
@@ -521,6 +522,11 @@ class ConformanceKit:
             problems.append(f"{len(stream.samples)} samples, expected indices 0..{n - 1}")
         if any(len(s.frames) != nu for s in stream.samples):
             problems.append(f"samples whose frames are not nu = {nu}")
+        if scenario.radio.value == "adverts":  # the rig's descriptor says so (apply_rig_values)
+            paired = [s.index for s in stream.samples if s.iso_rssi_dbm is not None]
+            if paired:
+                problems.append(f"{len(paired)} samples (the first: {paired[0]}) carry an Rx(iso) RSSI value though the rig's radio is "
+                                "adverts: send the advertisements Rx(iso) heard in each sample, maybe none, never a made-up value")
         self._result("training", not problems, "; ".join(problems))
 
     def _truth_rule(self, descriptor: RigDescriptor | None) -> None:

@@ -5,10 +5,10 @@ the example's own ``main`` with ``--ble-tag``; only the scanner factory is the f
 ``--ble-tag`` given more than once (protocol 1.4, several tags), tag k is carried by target
 (tx + k) mod N of the fake layout and advertises on its own schedule.
 
-    python ble_node.py --rig ble-1 --connect tcp/ROUTER:7447 [--ble-tag A --ble-tag B] [--all-tags]
+    python ble_node.py --rig ble-1 --connect tcp/ROUTER:7447 [--ble-tag A --ble-tag B] [--all-tags] [--pair-training]
 
-``--all-tags`` is a bug for the conformance kit's tests: the node sends every tag it listens for,
-whatever the episode's ``n_tags``.
+``--all-tags`` and ``--pair-training`` are bugs for the conformance kit's tests: the node sends every
+tag it listens for, whatever the episode's ``n_tags``; its training stream is made-up RSSI pairs.
 """
 
 import importlib.util
@@ -79,6 +79,14 @@ if __name__ == "__main__":
         sys.argv.remove("--all-tags")
         real_reset = ble_receiver.BleReceivers.reset
         ble_receiver.BleReceivers.reset = lambda self, n_tags=None: real_reset(self, None)
+    if "--pair-training" in sys.argv:  # a bug for the kit's tests: the fake driver's made-up RSSI pairs as the training stream
+        sys.argv.remove("--pair-training")
+
+        def pair_training(self, n, lo, hi, rng, d):
+            return [{"index": j, "iso_rssi_dbm": self.driver.training_sample(d, self.nu)[0], "frames": [{"box_bearings_rad": []}] * self.nu}
+                    for j in range(n)]
+
+        example.HardwareNode.train_on_adverts = pair_training
     if "--ble-tag" not in sys.argv:
         sys.argv += ["--ble-tag", TAG]
     example.main()

@@ -150,6 +150,24 @@ def test_the_hardware_node_with_ble_receivers_passes(router, tags):
     assert node.wait(30) == 0
 
 
+def test_a_ble_node_whose_training_stream_is_made_up_pairs_fails_training(router):
+    """A BLE node (radio: adverts) that trains the learner on RSSI pairs it made up, as the example node did before it
+    read its receivers during training, fails the training rule (the node passes without the bug: above)."""
+    registry, endpoint = router
+
+    def start():
+        node = registry.script(BLE_NODE, "--rig", "ble-pairs", "--connect", endpoint, "--pair-training")
+        wait_for_line(node, "hardware node ble-pairs up", 60)
+        return node
+
+    body, node = kit_first(registry, endpoint, "ble-pairs", start)
+    failed = {r["rule"]: r["detail"] for r in body["rules"] if r["status"] == "fail" and not r["rule"].startswith("realtime-")}
+    assert failed == {"training": "25 samples (the first: 0) carry an Rx(iso) RSSI value though the rig's radio is adverts: send the "
+                                  "advertisements Rx(iso) heard in each sample, maybe none, never a made-up value"}, failed
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
+
+
 def test_a_two_tag_node_that_sends_tags_the_episode_does_not_search_for_fails_rf_evidence(router):
     """The two-tag BLE node with a bug (every tag sent, whatever the episode's n_tags): the kit's one-tag
     episodes get tag 1's advertisements too, and the rf-evidence rule says so (the node passes without the bug)."""
