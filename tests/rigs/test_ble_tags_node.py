@@ -63,8 +63,9 @@ def test_a_two_tag_campaign_runs_on_the_example_node_with_ble_receivers(local_st
         stream = TrainingStream.model_validate_json(reply.payload)
         assert len(stream.samples) == 30 and all(s.iso_rssi_dbm is None for s in stream.samples)
         adverts = [a for s in stream.samples for a in s.adverts]
-        assert 3 <= len(adverts) <= 8 and {(a.receiver, a.tag) for a in adverts} == {("iso", 0)}, adverts  # ~2 a second
-        assert sum(1 for s in stream.samples if not s.adverts) >= 20
+        # ~2 a second over the 3 s (more if a loaded machine stretches the recording)
+        assert 3 <= len(adverts) <= 12 and {(a.receiver, a.tag) for a in adverts} == {("iso", 0)}, adverts
+        assert sum(1 for s in stream.samples if not s.adverts) >= 15
         with httpx.Client(base_url=api, timeout=30) as http:
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline:
