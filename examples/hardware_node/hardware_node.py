@@ -227,13 +227,10 @@ class HardwareNode:
             except (AttributeError, TypeError, ValueError):
                 wanted = 1
             if hasattr(self.driver, "reset_adverts"):  # the first step's adverts are those heard from now on
-                if self.n_tags > 1:  # ... of the tags the campaign searches for (its scenario's n_tags, docs/tags.md)
-                    if wanted > self.n_tags:
-                        log.warning("episode %s searches for %d tags; this node listens for %d: tags %d.. are never heard",
-                                    ep.id, wanted, self.n_tags, self.n_tags)
-                    self.driver.reset_adverts(wanted)
-                else:
-                    self.driver.reset_adverts()
+                if wanted > self.n_tags > 1:
+                    log.warning("episode %s searches for %d tags; this node listens for %d: tags %d.. are never heard",
+                                ep.id, wanted, self.n_tags, self.n_tags)
+                self.listen_for(wanted)
             if self.publish_truth:
                 d = self.driver
                 truth = {"episode_id": ep.id, "bearings_rad": [round(float(b), 6) for b in d.bearings],
@@ -354,15 +351,20 @@ class HardwareNode:
                     d = min(max(d + rng.normal(0.0, 0.2), lo), hi)
         query.reply(query.key_expr, json.dumps({"job_id": job, "samples": samples}).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
 
+    def listen_for(self, n_tags: int) -> None:
+        """BLE receivers: forget what was heard; from now on take tags 0 .. n_tags - 1 (the campaign's, its
+        scenario's n_tags, docs/tags.md). A one-tag driver's ``reset_adverts`` takes no argument."""
+        if self.n_tags > 1:
+            self.driver.reset_adverts(n_tags)
+        else:
+            self.driver.reset_adverts()
+
     def train_on_adverts(self, n: int, lo: float, hi: float, rng, d: float) -> list[dict]:
         """BLE receivers (protocol 1.3): training takes real time. Each sample is one T_RF of what Rx(iso)
         heard of tag 0 (the rig's POD model is learned from tag 0, docs/tags.md), possibly nothing, and
         the camera's nu frames of the Tx on the optical axis (``training_sample``'s frames; its RSSI, a
         pair, is not used). n_train samples take n_train x T_RF."""
-        if self.n_tags > 1:
-            self.driver.reset_adverts(1)
-        else:
-            self.driver.reset_adverts()
+        self.listen_for(1)
         samples: list[dict] = []
         t0 = time.monotonic()
         for j in range(n):

@@ -41,13 +41,13 @@ def router():
 
 @pytest.fixture(scope="package")
 def local_stack(tmp_path_factory):
-    """An insecure local stack (``ra2vipas up --rigs 1``, rig ``rig-1``): its API, its router's
+    """An insecure local stack (``ra2vipas up --rig-count 1``, rig ``rig-1``): its API, its router's
     endpoint, the Zenoh environment that joins it, and the process registry (every process
     started through it is killed at the end)."""
     from ra2vipas.cli.stack import free_port
 
     tmp = tmp_path_factory.mktemp("local-stack")
-    registry = Procs()
+    registry = Scripts()
     try:
         up = registry.start("up", "--rig-count", "1", "--port", str(free_port()), "--db", str(tmp / "s.db"), "--insecure",
                             "--log-dir", str(tmp / "logs"))

@@ -35,7 +35,7 @@ TAGS = ["E7:8F:13:56:24:CE", "C3:5A:01:9E:44:B2"]
 def test_a_two_tag_campaign_runs_on_the_example_node_with_ble_receivers(local_stack):
     api, env = local_stack["api"], local_stack["env"]
     registry: Scripts = local_stack["registry"]
-    node = Scripts.script(registry, BLE_NODE, "--rig", "ble-2", "--connect", local_stack["router"], "--publish-truth",
+    node = registry.script(BLE_NODE, "--rig", "ble-2", "--connect", local_stack["router"], "--publish-truth",
                           *[a for tag in TAGS for a in ("--ble-tag", tag.lower())])
     controller = registry.start("controller", "--rig", "ble-2", env=env)
     wait_for_line(node, "hardware node ble-2 up", 60)
