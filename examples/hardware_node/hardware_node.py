@@ -151,8 +151,10 @@ class HardwareNode:
         self.publish_truth = publish_truth
         self.descriptor = dict(DESCRIPTOR, rig=rig, episode_truth=publish_truth)
         self.n_tags = int(getattr(driver, "n_tags", 1))  # tags its receivers listen for (ble_receiver.py)
-        if hasattr(driver, "read_adverts"):  # a BLE receiver (ble_receiver.py): adverts need protocol 1.3, several tags 1.4
-            self.descriptor.update(protocol="1.4" if self.n_tags > 1 else "1.3", radio="adverts")
+        if hasattr(driver, "read_adverts"):  # a BLE receiver (ble_receiver.py): adverts need protocol 1.3
+            self.descriptor.update(protocol="1.3", radio="adverts")
+            if self.n_tags > 1:  # several tags need 1.4; saying how many (``tags``) 1.5, so a campaign asking more is refused
+                self.descriptor.update(protocol="1.5", tags=self.n_tags)
         self.nu = int(self.descriptor["frames_per_rf"])
         self.period = float(self.descriptor["rf_period_s"])
         self.lock = threading.RLock()  # one driver, one episode table

@@ -157,7 +157,8 @@ def resolve_targeting(scenario, mode: str, rigs: list[str] | None, rig_kind: str
     live rig. Each targeted rig with a descriptor must agree with the scenario (and support
     ``mode``): a contradicted field is a ``TargetingError`` naming the field, the rig and both
     values, unless ``use_rig_values``, which takes the rigs' values (they must agree among
-    themselves). A campaign that targets no rig in particular runs on the live rigs it agrees
+    themselves; a campaign that searches for more tags than a rig hears, descriptor ``tags``,
+    searches for as many as the fewest heard). A campaign that targets no rig in particular runs on the live rigs it agrees
     with, and is refused only when it agrees with none of them. Rigs not live now are checked
     when they come up (the scheduler skips the ones that contradict the campaign).
 
@@ -171,7 +172,7 @@ def resolve_targeting(scenario, mode: str, rigs: list[str] | None, rig_kind: str
     ------
     TargetingError
     """
-    from ra2vipas.services.protocol.rig import conflicts, rig_values
+    from ra2vipas.services.protocol.rig import conflicts, fewer_tags, rig_values
 
     if rigs:
         targeted = [r for r in rigs if r in descriptors]
@@ -191,8 +192,12 @@ def resolve_targeting(scenario, mode: str, rigs: list[str] | None, rig_kind: str
                 values.setdefault(name, (value, rig))
         if errors:
             raise TargetingError(errors)
-        if values:
-            scenario = apply_rig_values_dict(scenario, {k: v for k, (v, _) in values.items()})
+        heard = [d.tags for d in described.values() if d.tags is not None]
+        lowered = fewer_tags(scenario, min(heard) if heard else None)  # no more tags than the fewest any rig hears
+        if values or lowered:
+            scenario = apply_rig_values_dict(scenario, {**{k: v for k, (v, _) in values.items()}, **lowered})
+        if lowered:
+            values["n_tags"] = (lowered["n_tags"], "")
     from ra2vipas.services.protocol.versions import describe_missing, missing_features
 
     found: dict[str, list[tuple[str, str]]] = {}
@@ -200,7 +205,7 @@ def resolve_targeting(scenario, mode: str, rigs: list[str] | None, rig_kind: str
         for c in conflicts(d, scenario, mode):
             where = "mode" if c.field == "mode" else f"scenario.{c.field}"
             hint = "" if c.field == "mode" else " (use_rig_values takes the rig's)"
-            found.setdefault(rig, []).append((where, f"rig {rig} is {c.rig!r}, the campaign says {c.campaign!r}{hint}"))
+            found.setdefault(rig, []).append((where, f"rig {rig} {c.relation} {c.rig!r}, the campaign says {c.campaign!r}{hint}"))
     for rig in sorted(targeted):
         version = (protocols or {}).get(rig)
         if version is None or not features:

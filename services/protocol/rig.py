@@ -4,7 +4,8 @@ campaign's scenario is checked against it.
 A descriptor describes the *platform*, never the world around it: the camera (nu frames per
 RF sample, half field of view, the detector's bearing noise), the RF timing T_RF, how Rx(dir)
 responds to the misalignment Delta = wrap(s - gamma), which pacing modes it supports and
-whether it can give the ground truth a simulator knows. The controller builds its sensor
+whether it can give the ground truth a simulator knows, and (1.5) how many BLE tags its
+receivers tell apart. The controller builds its sensor
 model from it (``services/controller/policy.py`` ``sensor_config_from_descriptor``), and the
 orchestrator refuses a campaign whose scenario contradicts a targeted rig's descriptor
 (``conflicts``), unless the campaign asks to use the rig's values (``apply_rig_values``).
@@ -26,6 +27,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from ra2vipas.services.protocol.measurements import MAX_TAGS
 from ra2vipas.services.protocol.scenario import Scenario
 from ra2vipas.services.protocol.versions import V1_0, VERSION_PATTERN
 
@@ -84,6 +86,10 @@ class RigDescriptor(_Message):
     box_heights: bool | None = Field(None, json_schema_extra={"since": "1.3"}, description=(
         "whether every box carries its angular height (CameraFrame.box_heights_rad, 1.3: a range cue); null: follows the "
         "campaign's scenario (a simulator), or no heights (a node of 1.2 or older)"))
+    tags: int | None = Field(None, ge=1, le=MAX_TAGS, json_schema_extra={"since": "1.5"}, description=(
+        "how many tags (transmitters) the node's receivers tell apart: tags 0 .. tags - 1 (1.5; a campaign whose n_tags "
+        "exceeds it contradicts the rig); null: whatever the campaign searches for (a simulator), or not said (a node of "
+        "1.4 or older)"))
     protocol: str = Field("1.1", pattern=VERSION_PATTERN, description=(
         "the protocol version the node speaks: the newest whose fields it accepts in what it receives (absent: 1.1, "
         "the version that introduced the descriptor; a node that serves no descriptor speaks 1.0)"))
@@ -138,9 +144,10 @@ class Conflict:
     field: str  # the scenario parameter (or ``mode``)
     campaign: Any
     rig: Any
+    relation: str = "is"  # how the rig's value binds: ``is`` (equal), or ``hears at most`` (``n_tags``)
 
     def describe(self, rig: str) -> str:
-        return f"rig {rig}: {self.field}: the campaign says {self.campaign!r}, the rig is {self.rig!r}"
+        return f"rig {rig}: {self.field}: the campaign says {self.campaign!r}, the rig {self.relation} {self.rig!r}"
 
 
 def rig_values(descriptor: RigDescriptor) -> dict[str, Any]:
@@ -180,14 +187,23 @@ def conflicts(descriptor: RigDescriptor, scenario: Scenario, mode: str = "fast")
         current = current.value if isinstance(current, Enum) else current
         if not _same(current, value):
             out.append(Conflict(name, current, value))
+    if descriptor.tags is not None and scenario.n_tags > descriptor.tags:
+        out.append(Conflict("n_tags", scenario.n_tags, descriptor.tags, "hears at most"))
     if mode not in descriptor.modes:
         out.append(Conflict("mode", mode, "|".join(descriptor.modes)))
     return out
 
 
+def fewer_tags(scenario: Scenario, tags: int | None) -> dict[str, Any]:
+    """What taking a rig's values does to ``n_tags``: lowered to the tags its receivers hear when the
+    campaign searches for more (``{"n_tags": tags}``), else nothing (a campaign may search for fewer)."""
+    return {"n_tags": tags} if tags is not None and scenario.n_tags > tags else {}
+
+
 def apply_rig_values(descriptor: RigDescriptor, scenario: Scenario) -> Scenario:
-    """The scenario with the rig's fixed hardware values in place of the campaign's."""
-    values = rig_values(descriptor)
+    """The scenario with the rig's fixed hardware values in place of the campaign's, and no more
+    tags than the rig hears (``fewer_tags``)."""
+    values = {**rig_values(descriptor), **fewer_tags(scenario, descriptor.tags)}
     if not values:
         return scenario
     return Scenario.model_validate({**scenario.model_dump(mode="json"), **values})

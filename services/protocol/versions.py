@@ -28,6 +28,10 @@ adding only optional fields (docs/protocol.md, "Compatibility"):
   ``EpisodeResult.tags`` (per tag: estimates, confidences, decided step; a single-tag controller
   sends none). The scenario's ``n_tags`` and ``one_tag_per_person``: a campaign with K > 1 needs
   rigs that speak 1.4.
+* ``1.5``: ``RigDescriptor.tags``: how many tags a node's receivers tell apart. The orchestrator
+  refuses a campaign that searches for more on that rig (``rig.conflicts``); absent, the node
+  takes every campaign's ``n_tags`` (a simulator, or a node of 1.4 or older). Nothing a node
+  receives changes: no campaign needs a rig that speaks 1.5.
 
 Every field added after 1.0 carries the version that added it in its schema (``"since"``).
 A sender omits such a field while it holds its default (``messages.dump``), so a message that
@@ -58,9 +62,10 @@ V1_1 = "1.1"
 V1_2 = "1.2"
 V1_3 = "1.3"
 V1_4 = "1.4"
-PROTOCOL_VERSION = V1_4
+V1_5 = "1.5"
+PROTOCOL_VERSION = V1_5
 """The newest version: what this code speaks."""
-VERSIONS: tuple[str, ...] = (V1_0, V1_1, V1_2, V1_3, PROTOCOL_VERSION)
+VERSIONS: tuple[str, ...] = (V1_0, V1_1, V1_2, V1_3, V1_4, PROTOCOL_VERSION)
 BUILTIN_POLICIES: tuple[str, ...] = ("ra2vipas", "rapas", "ravipas", "sweep")
 """The policy names every version knows (1.0 and 1.1: the only ones)."""
 VERSION_PATTERN = r"^1\.[0-9]{1,3}$"

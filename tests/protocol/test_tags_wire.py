@@ -18,9 +18,11 @@ from ra2vipas.services.protocol.versions import (
     PROTOCOL_VERSION,
     V1_3,
     V1_4,
+    VERSIONS,
     campaign_features,
     describe_missing,
     missing_features,
+    newer,
 )
 from ra2vipas.services.sensors.world import SimulatedPlatform, episode_truth
 
@@ -36,8 +38,8 @@ def _current(name: str) -> Draft202012Validator:
     return Draft202012Validator(schema_documents()[f"{name}.json"])
 
 
-def test_1_4_is_the_version_this_code_speaks_and_1_3_is_frozen_beside_it():
-    assert PROTOCOL_VERSION == V1_4
+def test_1_4_follows_1_3_and_1_3_is_frozen_beside_it():
+    assert VERSIONS.index(V1_4) == VERSIONS.index(V1_3) + 1 and not newer(V1_4, PROTOCOL_VERSION)
     current = schema_documents()
     frozen = {p.name for p in V1_3_DIR.glob("*.json")}
     assert frozen and frozen <= set(current)

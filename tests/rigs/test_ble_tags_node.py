@@ -73,7 +73,12 @@ def test_a_two_tag_campaign_runs_on_the_example_node_with_ble_receivers(local_st
                 if rig and rig["live"] and rig["descriptor"] and rig.get("policies"):
                     break
                 time.sleep(0.2)
-            assert rig and rig["descriptor"]["protocol"] == "1.4" and rig["descriptor"]["radio"] == "adverts", rig
+            assert rig and rig["descriptor"]["protocol"] == "1.5" and rig["descriptor"]["radio"] == "adverts", rig
+            assert rig["descriptor"]["tags"] == 2  # protocol 1.5: it says how many tags it hears
+            more = http.post("/campaigns", json={"overrides": {"steps": 20, "n_train": 80, "n_tags": 3}, "tests": 2, "seed": 3,
+                                                 "algorithms": ["ra2vipas"], "rigs": ["ble-2"], "use_rig_values": False,
+                                                 "mode": "realtime"})
+            assert more.status_code == 422 and "scenario.n_tags: rig ble-2 hears at most 2, the campaign says 3" in more.text, more.text
             r = http.post("/campaigns", json={"overrides": {"steps": 20, "n_train": 80, "n_tags": 2}, "tests": 2, "seed": 3,
                                               "algorithms": ["ra2vipas"], "rigs": ["ble-2"], "use_rig_values": True,
                                               "mode": "realtime"})
