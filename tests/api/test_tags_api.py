@@ -46,7 +46,9 @@ def test_a_campaign_that_searches_for_more_tags_than_a_rig_hears_is_refused_or_t
             taken = http.post("/campaigns", json={**body, "rigs": ["two-1"], "use_rig_values": True})
             assert taken.status_code == 201, taken.text
             assert taken.json()["targeting"]["rig_values"] == {"n_tags": 2} and taken.json()["overrides"]["n_tags"] == 2
-            untargeted = http.post("/campaigns", json=body)
+        assert server.wait(taken.json()["id"])["status"] == "done"
+        with server.client() as http:  # both rigs idle: the scheduler gives two-1 none of its episodes
+            untargeted = http.post("/campaigns", json={**body, "tests": 4})
             assert untargeted.status_code == 201, untargeted.text
         for created, rig, n_tags in ((taken, "two-1", 2), (untargeted, "any-1", 3)):
             done = server.wait(created.json()["id"])
@@ -56,6 +58,7 @@ def test_a_campaign_that_searches_for_more_tags_than_a_rig_hears_is_refused_or_t
                 tests = http.get(f"/campaigns/{done['id']}/tests", params={"limit": 10}).json()["items"]
                 results = http.get(f"/campaigns/{done['id']}/results").json()
             assert tests and {t["rig"] for t in tests} == {rig}
+            assert all(t["attempt"] == 1 for t in tests), tests  # no episode tried on a rig that hears fewer tags, then rerun
             assert len(results["algorithms"]["ra2vipas"]["tags"]["per_tag"]) == n_tags
     finally:
         server.stop()
