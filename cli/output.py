@@ -378,7 +378,9 @@ def served_policies(r: dict[str, Any]) -> str:
 
 def describe_rig(r: dict[str, Any]) -> str:
     """One line of a rig's descriptor: kind, vendor/model, nu, T_RF, half-FoV, box noise, Rx(dir)
-    (``=campaign`` for a configurable field); ``undescribed`` for a v1 node."""
+    (``=campaign`` for a configurable field), then what it fixes of the radio (1.3: pair or BLE
+    adverts, box heights; 1.5: how many tags it hears) and the protocol it speaks; ``undescribed``
+    for a v1 node."""
     d = r.get("descriptor")
     if d is None:
         return {"undescribed": "undescribed (v1 node: modelled from each campaign's scenario)", "asking": "asking..."}.get(
@@ -390,6 +392,13 @@ def describe_rig(r: dict[str, Any]) -> str:
              f"nu {show(d.get('frames_per_rf'))}", f"T_RF {show(d.get('rf_period_s'), '{:g} s')}",
              f"half-FoV {show(d.get('fov_half_angle_deg'), '{:g} deg')}", f"box noise {show(d.get('box_bearing_noise_deg'), '{:g} deg')}",
              f"Rx(dir) {show(None if rx is None else rx['model'])}"]
+    if d.get("radio") is not None:
+        parts.append({"adverts": "BLE adverts", "pair": "RSSI pair"}.get(d["radio"], d["radio"]))
+    if d.get("box_heights") is not None:
+        parts.append("box heights" if d["box_heights"] else "no box heights")
+    if d.get("tags") is not None:
+        parts.append(f"hears {d['tags']} tag{'s' if d['tags'] > 1 else ''}")
     if d.get("episode_truth"):
         parts.append("knows the truth")
+    parts.append(f"protocol {d.get('protocol', '1.1')}")
     return ", ".join(parts)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import re
 
-from ra2vipas.cli.output import print_results
+from ra2vipas.cli.output import describe_rig, print_results
 from ra2vipas.services.orchestrator.plots import dr_figure, overlay_title, study_figure
 
 
@@ -117,3 +117,17 @@ def test_a_many_tags_campaign_has_a_per_tag_table_and_one_curve_per_tag_plus_all
     del results["algorithms"]["ra2vipas"]["tags"]
     print_results(results)
     assert "Per tag" not in capsys.readouterr().out  # one tag: no such table
+
+
+def test_a_rigs_line_says_its_radio_and_how_many_tags_it_hears():
+    """`ra2vipas rigs list`: a real two-tag BLE node (protocol 1.5) says so; a 1.1 descriptor says
+    nothing of the radio, and a v1 node is undescribed."""
+    ble = {"kind": "hardware", "vendor": "Acme", "model": "nRF52 pair", "frames_per_rf": 5, "rf_period_s": 0.1,
+           "fov_half_angle_deg": 22.5, "box_bearing_noise_deg": 0.5, "rx_dir": {"model": "unknown"}, "radio": "adverts",
+           "tags": 2, "protocol": "1.5"}
+    assert describe_rig({"descriptor": ble}) == ("hardware, Acme nRF52 pair, nu 5, T_RF 0.1 s, half-FoV 22.5 deg, box noise 0.5 deg, "
+                                                 "Rx(dir) unknown, BLE adverts, hears 2 tags, protocol 1.5")
+    old = {k: v for k, v in ble.items() if k not in ("radio", "tags", "protocol")}
+    assert describe_rig({"descriptor": {**old, "frames_per_rf": None}}).endswith("nu =campaign, T_RF 0.1 s, half-FoV 22.5 deg, "
+                                                                               "box noise 0.5 deg, Rx(dir) unknown, protocol 1.1")
+    assert describe_rig({"descriptor": None, "described": "undescribed"}).startswith("undescribed (v1 node")
