@@ -59,6 +59,8 @@ RULES: dict[str, str] = {
     "realtime-pan": "realtime: each sample is taken at the last commanded pan",
     "realtime-timing": "realtime: one EpisodeTiming after the last sample, at most steps-1 latencies, no late command when every "
                        "command came at once",
+    "tags": "a node that says how many tags it hears (1.5: descriptor tags = N > 1) runs an episode that searches for all N, at "
+            "T_RF pace: its advertisements name only tags 0 .. N-1, each tag heard, each with one address of its own",
     "training": "data/{rig}/training answers a TrainingStream of n_train samples (indices 0..n-1, nu frames each, job_id echoed); "
                 "from a rig whose radio is adverts, each sample carries what Rx(iso) heard (maybe nothing), never an rf pair",
     "truth": "a rig that says it publishes EpisodeTruth does so for every episode; one that says it does not, publishes none",
@@ -191,6 +193,7 @@ class ConformanceKit:
         else:
             for rule in ("realtime-sample-0", "realtime-grid", "realtime-pan", "realtime-timing"):
                 self._result(rule, None, "the rig does not run realtime episodes (its descriptor's modes)")
+        self._tags(scenario, descriptor)
         if descriptor is None or descriptor.training:
             self._training(scenario, nu)
         else:
@@ -495,6 +498,61 @@ class ConformanceKit:
         else:
             self._result("realtime-timing", True, f"{len(timing.latencies_ms)} latencies, p50 "
                          f"{sorted(timing.latencies_ms)[len(timing.latencies_ms) // 2]:.2f} ms" if timing.latencies_ms else "")
+
+    TAGS_SECONDS = 4.0
+    """How long the ``tags`` rule's episode lasts: at ~2 advertisements a second per tag and receiver
+    (docs/radio.md) a tag in range is heard several times over."""
+
+    def _tags(self, scenario: Scenario, descriptor: RigDescriptor | None) -> None:
+        """The ``tags`` rule: an episode that searches for every tag the node says it hears, commanded
+        at T_RF pace in fast mode (a BLE node's advertisements arrive in real time), whose
+        advertisements must name those tags only, every one of them, each with its own address."""
+        n = descriptor.tags if descriptor is not None else None
+        if n is None or n < 2:
+            self._result("tags", None, "the descriptor says no number of tags (1.5)" if n is None else
+                         "the node hears one tag: rf-evidence checks it")
+            return
+        period = scenario.rf_period_s
+        steps = max(int(round(self.TAGS_SECONDS / period)), 2)
+        episode = scenario.model_copy(update={"steps": steps, "n_tags": n, "one_tag_per_person": n <= scenario.n_targets})
+        eid = self._id("tags")
+        self._start(eid, episode)
+        time.sleep(0.2)
+        heard: dict[int, int] = {}
+        addresses: dict[int, str] = {}
+        for t in range(steps):
+            mark = len(self.measurements)
+            self._command(eid, t, math.remainder(0.3 * t, 2.0 * math.pi))
+            got = self._wait_measurement(eid, t, mark)
+            if got is None:
+                self._result("tags", False, f"no Measurement for step {t} of an episode with n_tags = {n} within {self.timeout:g} s")
+                return
+            parsed = got[1]
+            evidence = list(parsed.get("adverts") or [])  # 1.3 adverts; the 1.0 pair is tag 0's, rf_tags (1.4) the others'
+            evidence += ([parsed["rf"]] if parsed.get("rf") else []) + list(parsed.get("rf_tags") or [])
+            for a in evidence:
+                tag = int(a.get("tag", 0))
+                if tag >= n:
+                    self._result("tags", False, f"step {t}: RF evidence of tag {tag}, though the node says it hears {n} tags "
+                                                f"(0 .. {n - 1}) and the episode searches for those")
+                    return
+                heard[tag] = heard.get(tag, 0) + 1
+                if a.get("address") is not None:
+                    first = addresses.setdefault(tag, a["address"])
+                    if first != a["address"]:
+                        self._result("tags", False, f"step {t}: tag {tag} came from {first} and from {a['address']}")
+                        return
+            time.sleep(period)
+        shared = {addr for addr in addresses.values() if list(addresses.values()).count(addr) > 1}
+        if shared:
+            self._result("tags", False, f"tags {sorted(k for k, v in addresses.items() if v in shared)} share the address "
+                                        f"{sorted(shared)[0]}: each tag has its own")
+            return
+        counts = ", ".join(f"tag {k}: {heard.get(k, 0)}" for k in range(n))
+        silent = [k for k in range(n) if not heard.get(k)]
+        self._result("tags", not silent, (f"tag {', '.join(map(str, silent))} never heard in {steps * period:g} s of an episode "
+                                          f"with n_tags = {n} ({counts}): are they in range and advertising?") if silent else
+                     f"pieces of RF evidence per tag in {steps * period:g} s: {counts}")
 
     def _training(self, scenario: Scenario, nu: int) -> None:
         job = f"conformance-{self._nonce}"

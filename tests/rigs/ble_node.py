@@ -5,10 +5,11 @@ the example's own ``main`` with ``--ble-tag``; only the scanner factory is the f
 ``--ble-tag`` given more than once (protocol 1.4, several tags), tag k is carried by target
 (tx + k) mod N of the fake layout and advertises on its own schedule.
 
-    python ble_node.py --rig ble-1 --connect tcp/ROUTER:7447 [--ble-tag A --ble-tag B] [--all-tags] [--pair-training]
+    python ble_node.py --rig ble-1 --connect tcp/ROUTER:7447 [--ble-tag A --ble-tag B] [--all-tags | --first-tag-only] [--pair-training]
 
-``--all-tags`` and ``--pair-training`` are bugs for the conformance kit's tests: the node sends every
-tag it listens for, whatever the episode's ``n_tags``; its training stream is made-up RSSI pairs.
+``--all-tags``, ``--first-tag-only`` and ``--pair-training`` are bugs for the conformance kit's tests: the
+node sends every tag it listens for, or tag 0's only, whatever the episode's ``n_tags``; its training stream
+is made-up RSSI pairs.
 """
 
 import importlib.util
@@ -79,6 +80,10 @@ if __name__ == "__main__":
         sys.argv.remove("--all-tags")
         real_reset = ble_receiver.BleReceivers.reset
         ble_receiver.BleReceivers.reset = lambda self, n_tags=None: real_reset(self, None)
+    if "--first-tag-only" in sys.argv:  # a bug for the kit's tests: only tag 0 listened for, whatever the episode's n_tags
+        sys.argv.remove("--first-tag-only")
+        real_reset = ble_receiver.BleReceivers.reset
+        ble_receiver.BleReceivers.reset = lambda self, n_tags=None: real_reset(self, 1)
     if "--pair-training" in sys.argv:  # a bug for the kit's tests: the fake driver's made-up RSSI pairs as the training stream
         sys.argv.remove("--pair-training")
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import ast
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -73,7 +74,34 @@ def test_our_sensors_node_passes_on_the_in_memory_bus():
         node.close()
         bus.close()
     assert [r.rule for r in results] == list(RULES)
-    assert {r.rule: r.status for r in results} == dict.fromkeys(RULES, "pass"), [r for r in results if r.status != "pass"]
+    assert {r.rule: r.status for r in results} == {**dict.fromkeys(RULES, "pass"), "tags": "skip"}, \
+        [r for r in results if r.status != "pass"]
+    assert next(r.detail for r in results if r.rule == "tags") == "the descriptor says no number of tags (1.5)"
+
+
+def test_a_node_that_says_how_many_tags_it_hears_is_held_to_it():
+    """Protocol 1.5: our simulated node saying it hears 2 tags passes the tags rule (an episode with
+    n_tags = 2: tag 0's pair and tag 1's in rf_tags every step); one saying 3 while simulating 2 (its
+    world pinned to two tags) fails it, naming the tag never heard."""
+    from ra2vipas.services.sensors.node import simulated_descriptor
+
+    bus = MemoryBus()
+    node = SensorsNode(bus, "rig-2", descriptor=simulated_descriptor("rig-2", tags=2))
+    try:
+        results = {r.rule: r for r in check_rig(bus, "rig-2", timeout=3.0, grid_tolerance_s=GRID_TOLERANCE_MS / 1e3)}
+    finally:
+        node.close()
+    assert results["tags"].status == "pass" and results["tags"].detail == "pieces of RF evidence per tag in 4 s: tag 0: 40, tag 1: 40"
+    liar = SensorsNode(bus, "rig-3", descriptor=simulated_descriptor("rig-3", tags=3))
+    real_world = liar.hardware
+    liar.hardware = lambda scenario: real_world(scenario).model_copy(update={"n_tags": min(scenario.n_tags, 2)})
+    try:
+        results = {r.rule: r for r in check_rig(bus, "rig-3", timeout=3.0, grid_tolerance_s=GRID_TOLERANCE_MS / 1e3)}
+    finally:
+        liar.close()
+        bus.close()
+    assert results["tags"].status == "fail", results["tags"]
+    assert results["tags"].detail.startswith("tag 2 never heard in 4 s of an episode with n_tags = 3 (tag 0: 40, tag 1: 40, tag 2: 0)")
 
 
 def test_the_realtime_grid_rule_fails_a_node_off_the_grid():
@@ -101,7 +129,8 @@ def test_our_sensors_node_passes_over_zenoh(router):
         return node
 
     body, node = kit_first(registry, endpoint, "sim-1", start)  # probed as its token appears: the token is declared last
-    assert statuses(body) == dict.fromkeys(RULES, "pass"), {r["rule"]: r["detail"] for r in body["rules"] if r["status"] != "pass"}
+    assert statuses(body) == {**dict.fromkeys(RULES, "pass"), "tags": "skip"}, {r["rule"]: r["detail"] for r in body["rules"]
+                                                                                if r["status"] != "pass"}
     os.killpg(node.pid, signal.SIGTERM)
     assert node.wait(30) == 0
 
@@ -118,8 +147,9 @@ def test_the_reference_hardware_node_passes(router, record_property):
         return node
 
     body, node = kit_first(registry, endpoint, "cam-1", start)  # probed as its token appears: the token is declared last
-    # a hardware rig publishes no truth, and the kit checks it does not
-    assert statuses(body) == dict.fromkeys(RULES, "pass"), {r["rule"]: r["detail"] for r in body["rules"] if r["status"] != "pass"}
+    # a hardware rig publishes no truth, and the kit checks it does not; it says no number of tags (a 1.1 node)
+    assert statuses(body) == {**dict.fromkeys(RULES, "pass"), "tags": "skip"}, {r["rule"]: r["detail"] for r in body["rules"]
+                                                                                if r["status"] != "pass"}
     evidence = next(r["detail"] for r in body["rules"] if r["rule"] == "rf-evidence")
     assert evidence.endswith(" with adverts (0 advertisements), 0 with none") and not evidence.startswith("0 "), evidence  # the 1.0 pair
     os.killpg(node.pid, signal.SIGTERM)
@@ -143,9 +173,12 @@ def test_the_hardware_node_with_ble_receivers_passes(router, tags):
     body, node = kit_first(registry, endpoint, rig, start)
     # the realtime rules time samples to 30 ms: on a loaded machine they may fail for any node, so they are left out here
     assert {k: v for k, v in statuses(body).items() if not k.startswith("realtime-")} == {
-        rule: "pass" for rule in RULES if not rule.startswith("realtime-")}, body
+        **{rule: "pass" for rule in RULES if not rule.startswith("realtime-")}, "tags": "pass" if len(tags) > 1 else "skip"}, body
     evidence = next(r["detail"] for r in body["rules"] if r["rule"] == "rf-evidence")
     assert evidence.startswith("0 steps with an rf pair, "), evidence  # adverts or nothing, never a made-up pair
+    if len(tags) > 1:  # 1.5: it says it hears 2 tags, and an episode searching for both hears both
+        detail = next(r["detail"] for r in body["rules"] if r["rule"] == "tags")
+        assert re.fullmatch(r"pieces of RF evidence per tag in 4 s: tag 0: \d+, tag 1: \d+", detail), detail
     os.killpg(node.pid, signal.SIGTERM)
     assert node.wait(30) == 0
 
@@ -184,6 +217,26 @@ def test_a_two_tag_node_that_sends_tags_the_episode_does_not_search_for_fails_rf
     assert list(failed) == ["rf-evidence"], [r for r in body["rules"] if r["rule"] == "rf-evidence"]
     assert failed["rf-evidence"].endswith("advertisements of tag 1 in an episode whose scenario searches for one tag (n_tags = 1: "
                                           "send tags 0 .. n_tags - 1 only)"), failed
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
+
+
+def test_a_two_tag_node_that_hears_only_tag_0_whatever_the_episode_fails_tags(router):
+    """The two-tag BLE node with a bug (it listens for tag 0 only, whatever the episode's n_tags): it says it
+    hears 2 tags, and the kit's episode searching for both never hears tag 1 (the node passes without the bug)."""
+    registry, endpoint = router
+
+    def start():
+        node = registry.script(BLE_NODE, "--rig", "ble-deaf", "--connect", endpoint, "--first-tag-only", "--ble-tag",
+                               "e7:8f:13:56:24:ce", "--ble-tag", "c3:5a:01:9e:44:b2")
+        wait_for_line(node, "hardware node ble-deaf up", 60)
+        return node
+
+    body, node = kit_first(registry, endpoint, "ble-deaf", start)
+    failed = {r["rule"]: r["detail"] for r in body["rules"] if r["status"] == "fail" and not r["rule"].startswith("realtime-")}
+    assert list(failed) == ["tags"], failed
+    assert re.fullmatch(r"tag 1 never heard in 4 s of an episode with n_tags = 2 \(tag 0: \d+, tag 1: 0\): are they in range "
+                        r"and advertising\?", failed["tags"]), failed
     os.killpg(node.pid, signal.SIGTERM)
     assert node.wait(30) == 0
 
