@@ -42,9 +42,10 @@ def check(
     """Drive a live node through scripted episodes and print a pass/fail report per protocol
     rule; exit 0 if no rule failed, 1 otherwise. With --rig, a sensors node (fast and realtime,
     a command before its start, duplicates, an EpisodeStop mid-episode, malformed messages, an
-    episode searching for every tag a node says it hears, a training episode); with --controller, a controller (its policies, Command(0), lockstep,
-    duplicate and out-of-order measurements, its EpisodeResult, an EpisodeStop mid-episode, an
-    unserved policy, malformed messages, two episodes at once). Run it on a rig no campaign is
+    episode searching for every tag a node says it hears, a training episode); with
+    --controller, a controller (its policies, Command(0), lockstep, duplicate and out-of-order
+    measurements, its EpisodeResult, an EpisodeStop mid-episode, an unserved policy, malformed
+    messages, two episodes at once). Run it on a rig no campaign is
     using. To check that the node declares its liveliness token last, start the kit first
     (with --wait) and then the node."""
     import logging

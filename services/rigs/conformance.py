@@ -519,7 +519,7 @@ class ConformanceKit:
         self._start(eid, episode)
         time.sleep(0.2)
         heard: dict[int, int] = {}
-        addresses: dict[int, str] = {}
+        addresses = dict(self._addresses)  # tag 0's address from the one-tag episodes: the same here
         for t in range(steps):
             mark = len(self.measurements)
             self._command(eid, t, math.remainder(0.3 * t, 2.0 * math.pi))
