@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ra2vipas.services.learner.model_cache import CachedPOD, PODCache, fingerprint
 from ra2vipas.services.learner.pod import LearnerSettings, TrainingDataError, fit_pod
-from ra2vipas.services.learner.trained import NO_SENSORS
+from ra2vipas.services.learner.trained import NO_SENSORS, TRAINING_DATA_ERROR
 from ra2vipas.services.protocol import keys
 from ra2vipas.services.protocol.messages import (
     ErrorReply,
@@ -77,9 +77,9 @@ class LearnerNode:
             stream = self._run_training(TrainingRequest(job_id=job, scenario=req.scenario, seed=req.seed))
             try:
                 learned = fit_pod(list(stream.samples), LearnerSettings.for_scenario(req.scenario, self.settings))
-            except TrainingDataError as err:  # the asker is told why (its campaign fails with it once its patience is out)
+            except TrainingDataError as err:  # the asker is told why (its campaign fails with it: TRAINING_DATA_ERROR)
                 log.warning("cannot learn the POD model %s: %s", job, err)
-                raise QueryError(dump(ErrorReply(error=f"cannot learn the POD from the training episode: {err} (n_train = "
+                raise QueryError(dump(ErrorReply(error=f"{TRAINING_DATA_ERROR}: {err} (n_train = "
                                                        f"{req.scenario.n_train}: raise it)")).decode()) from None
             response = PODResponse(job_id=job, model=learned.model, train_seconds=round(learned.train_seconds, 6))
             self._cache[job] = response

@@ -150,3 +150,60 @@ def test_a_learner_that_keeps_failing_fails_the_campaign_with_its_error(parts):
     assert c["status"] == "failed"
     assert c["error"].startswith("POD model unavailable: the learner's disk is full ("), c["error"]
     assert learner.requests >= 3
+
+
+def _described(scheduler: Scheduler, rig: str) -> None:
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        state = scheduler.rigs.get(rig)
+        if state is not None and state.described == "described" and rig in scheduler.live_rigs():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"rig {rig} was not described")
+
+
+def test_a_training_episode_too_short_to_learn_from_fails_at_once_on_a_simulated_rig(parts):
+    """BLE with n_train = 40 (8 advertisements): a simulated rig's training episode of this scenario and seed is the
+    same each time, so the campaign fails after one request with the learner's words, not after the model patience."""
+    bus, store, closers = parts
+    closers.extend([SensorsNode(bus, "rig-1"), ControllerNode(bus, "rig-1")])
+    learner = CountingLearner(bus)
+    closers.append(learner)
+    scheduler = Scheduler(bus, store, **{**FAST_RETRIES, "model_patience_s": 60.0})
+    closers.append(scheduler)
+    _described(scheduler, "rig-1")
+    overrides = {"steps": 20, "n_train": 40}
+    scenario = build_scenario("ble", overrides)
+    cid = store.create_campaign(preset="ble", overrides=overrides, scenario=scenario.model_dump(mode="json"), algorithms=["rapas"],
+                                tests=2, seed=1, mode="fast", stop_confidence=0.0)
+    scheduler.submit(cid)
+    c = wait_finished(store, cid, timeout=50)
+    assert c["status"] == "failed" and learner.requests == 1, (c["status"], learner.requests)
+    assert c["error"] == ("POD model unavailable: cannot learn the POD from the training episode: the training stream carries 8 "
+                          "Rx(iso) advertisements in 40 samples; the POD learner needs at least 10 (n_train = 40: raise it) (every "
+                          "live rig is simulated: its training episode of this scenario and seed is the same each time)"), c["error"]
+
+
+def test_the_same_error_from_a_real_rigs_training_episode_is_asked_again(parts):
+    """A hardware rig records a new training episode each time (a tag back in range): the learner's "too short"
+    is asked again, as any failure is, and the second answer runs the campaign."""
+    from ra2vipas.services.learner.trained import TRAINING_DATA_ERROR
+    from ra2vipas.services.protocol.rig import RigDescriptor
+
+    bus, store, closers = parts
+    paper = build_scenario("paper", SMALL)
+    hardware = RigDescriptor(rig="rig-1", kind="hardware", frames_per_rf=paper.frames_per_rf, rf_period_s=paper.rf_period_s,
+                             fov_half_angle_deg=paper.fov_half_angle_deg, box_bearing_noise_deg=paper.box_bearing_noise_deg,
+                             rx_dir={"model": "paper", "curvature": paper.antenna_curvature}, episode_truth=True,
+                             training_truth=True, protocol="1.5")
+    closers.extend([SensorsNode(bus, "rig-1", descriptor=hardware), ControllerNode(bus, "rig-1")])
+    learner = CountingLearner(bus, fail_first=1, error=f"{TRAINING_DATA_ERROR}: the training stream carries 3 samples")
+    closers.append(learner)
+    scheduler = Scheduler(bus, store, window=3, **FAST_RETRIES)
+    closers.append(scheduler)
+    _described(scheduler, "rig-1")
+    cid = create(store, tests=2, seed=8)
+    scheduler.submit(cid)
+    c = wait_finished(store, cid)
+    assert c["status"] == "done", c["error"]
+    assert learner.requests >= 2
