@@ -73,7 +73,7 @@ def run_node(name: str, zenoh: ZenohSettings, build: Callable) -> None:
 
 
 def sensors(rig: RigOpt = "rig-1",
-            hardware: Annotated[Optional[list[str]], typer.Option("--hardware", metavar="NAME=VALUE", help="Pin a hardware parameter of this simulated rig (repeatable): frames_per_rf, rf_period_s, fov_half_angle_deg, box_bearing_noise_deg, antenna_model (paper|db-gain|unknown), antenna_curvature, antenna_floor_db. Its descriptor says so, and it simulates that hardware whatever a campaign's scenario says.")] = None,
+            hardware: Annotated[Optional[list[str]], typer.Option("--hardware", metavar="NAME=VALUE", help="Pin a hardware parameter of this simulated rig (repeatable): frames_per_rf, rf_period_s, fov_half_angle_deg, box_bearing_noise_deg, antenna_model (paper|db-gain|unknown), antenna_curvature, antenna_floor_db, n_tags (how many tags its receivers hear: a campaign searching for more is refused). Its descriptor says so, and it simulates that hardware whatever a campaign's scenario says.")] = None,
             undescribed: Annotated[bool, typer.Option("--undescribed", help="Serve no rig descriptor (behave as a v1 node).")] = False,
             realtime_priority: RealtimePriorityOpt = DEFAULT_PRIORITY,
             mode: ModeOpt = None, old_mode: OldModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,

@@ -298,8 +298,10 @@ def simulated_descriptor(rig: str, **fixed) -> RigDescriptor:
 
 
 HARDWARE_PARAMETERS = ("frames_per_rf", "rf_period_s", "fov_half_angle_deg", "box_bearing_noise_deg", "antenna_model",
-                       "antenna_curvature", "antenna_floor_db")
-"""The scenario parameters a simulated rig can pin (``ra2vipas sensors --hardware NAME=VALUE``)."""
+                       "antenna_curvature", "antenna_floor_db", "n_tags")
+"""The scenario parameters a simulated rig can pin (``ra2vipas sensors --hardware NAME=VALUE``); ``n_tags``
+is how many tags its receivers hear (the descriptor's ``tags``, 1.5): a campaign searching for more is
+refused, one searching for fewer runs as it is."""
 
 
 def pinned_descriptor(rig: str, values: dict) -> RigDescriptor:
@@ -319,6 +321,8 @@ def pinned_descriptor(rig: str, values: dict) -> RigDescriptor:
             raise ValueError(f"{name!r} is not a hardware parameter; pin one of {', '.join(HARDWARE_PARAMETERS)}")
         if name.startswith("antenna_"):
             rx[{"antenna_model": "model", "antenna_curvature": "curvature", "antenna_floor_db": "floor_db"}[name]] = value
+        elif name == "n_tags":
+            fixed["tags"] = value
         else:
             fixed[name] = value
     if rx:
@@ -328,7 +332,8 @@ def pinned_descriptor(rig: str, values: dict) -> RigDescriptor:
         return simulated_descriptor(rig, **fixed)
     except ValidationError as err:
         first = err.errors()[0]
-        raise ValueError(f"{'.'.join(str(p) for p in first.get('loc', ()))}: {first.get('msg')}") from None
+        where = ".".join(str(p) for p in first.get("loc", ()))
+        raise ValueError(f"{'n_tags' if where == 'tags' else where}: {first.get('msg')}") from None  # the name the user gave
 
 
 def _training_request(payload: bytes) -> TrainingRequest:

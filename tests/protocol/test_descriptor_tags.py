@@ -91,3 +91,22 @@ def test_the_orchestrators_check_refuses_it_naming_the_rig_or_takes_the_tags_the
     with pytest.raises(TargetingError) as err:
         resolve_targeting(ward, "fast", None, None, False, {k: v for k, v in descriptors.items() if k != "any-1"})
     assert [f for f, _ in err.value.errors] == ["scenario.n_tags", "scenario.n_tags"]  # no live rig hears 3 tags
+
+
+def test_a_simulated_rig_can_pin_the_tags_it_hears():
+    """`ra2vipas sensors --hardware n_tags=2`: a simulated rig that hears two tags, to rehearse a real
+    two-tag node (its descriptor says tags 2; it simulates no more than 2 whatever a campaign asks)."""
+    from ra2vipas.services.sensors.node import SensorsNode, pinned_descriptor
+    from ra2vipas.services.transport.bus import MemoryBus
+
+    d = pinned_descriptor("two-1", {"n_tags": 2})
+    assert d.tags == 2 and d.kind == "simulated"
+    with pytest.raises(ValueError, match="^n_tags: Input should be greater than or equal to 1$"):
+        pinned_descriptor("two-1", {"n_tags": 0})
+    bus = MemoryBus()
+    node = SensorsNode(bus, "two-1", descriptor=d)
+    try:
+        assert node.hardware(build_scenario("ward")).n_tags == 2 and node.hardware(build_scenario("ward", {"n_tags": 1})).n_tags == 1
+    finally:
+        node.close()
+        bus.close()

@@ -52,6 +52,7 @@ def test_a_service_entry_starts_and_stops_on_sigterm(started, name):
     ("controller", ["--policy", "no-such-policy"], "no-such-policy"),
     ("controller", ["--beta", "-1"], "error: Invalid value for '--beta'"),
     ("sensors", ["--hardware", "frames_per_rf"], "error: --hardware expects NAME=VALUE"),
+    ("sensors", ["--hardware", "n_tags=0"], "error: n_tags: Input should be greater than or equal to 1"),
     ("orchestrator", ["--frobnicate"], "error: No such option: --frobnicate"),
 ])
 def test_a_bad_setting_is_one_error_line_and_exit_2(started, name, args, words):
