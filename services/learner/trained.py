@@ -18,8 +18,8 @@ this learner): the orchestrator asks again, with backoff, rather than failing th
 TRAINING_DATA_ERROR = "cannot learn the POD from the training episode"
 """How the learner's error reply begins when the training stream was too thin to fit p_D from
 (``pod.TrainingDataError``: too few samples, or on BLE too few advertisements). A simulated rig's
-training episode of (scenario, seed) is the same every time, so when every live sensors node is
-simulated the orchestrator fails the campaign at once with it; a real rig records a new episode
+training episode of (scenario, seed) is the same every time (a survey's is recorded), so when every
+live sensors node is simulated or a survey the orchestrator fails the campaign at once with it; a real rig records a new episode
 each time (a tag back in range), so it is asked again as for any other failure."""
 
 

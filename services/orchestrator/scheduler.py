@@ -411,8 +411,8 @@ class Scheduler:
         None, or return why the campaign fails.
 
         One failed request does not fail a campaign, unless the training episode was too thin to
-        learn from and every live sensors node is simulated (``TRAINING_DATA_ERROR``: the same
-        episode again would fail the same way). If the learner found no sensors and none is
+        learn from and every live sensors node is simulated or a recorded survey
+        (``TRAINING_DATA_ERROR``: the same episode again would fail the same way). If the learner found no sensors and none is
         live, the campaign waits for a rig, as for a learner (``_on_alive`` asks again the moment
         a rig's sensors come up). Any other failure, including sensors this orchestrator sees live
         but the learner's training query does not reach, is retried with doubling waits
@@ -430,9 +430,10 @@ class Scheduler:
                     "(ra2vipas sensors, or ra2vipas rig), and check that every service joins the same Zenoh router "
                     "(--connect tcp/ROUTER:7447, client mode)")
         run.awaiting_sensors = False
-        simulated = [name for name in live if (d := self.rigs[name].descriptor) is not None and d.kind == "simulated"]
-        if error.startswith(TRAINING_DATA_ERROR) and live and len(simulated) == len(live):
-            return f"{error} (every live rig is simulated: its training episode of this scenario and seed is the same each time)"
+        replayed = [name for name in live if (d := self.rigs[name].descriptor) is not None and d.kind in ("simulated", "survey")]
+        if error.startswith(TRAINING_DATA_ERROR) and live and len(replayed) == len(live):
+            return (f"{error} (every live rig is simulated or a recorded survey: its training episode of this scenario and seed "
+                    "is the same each time)")
         if run.model_failing_since is None:
             run.model_failing_since, run.model_failures = now, 0
         run.model_failures += 1

@@ -181,7 +181,8 @@ def test_a_training_episode_too_short_to_learn_from_fails_at_once_on_a_simulated
     assert c["status"] == "failed" and learner.requests == 1, (c["status"], learner.requests)
     assert c["error"] == ("POD model unavailable: cannot learn the POD from the training episode: the training stream carries 8 "
                           "Rx(iso) advertisements in 40 samples; the POD learner needs at least 10 (n_train = 40: raise it) (every "
-                          "live rig is simulated: its training episode of this scenario and seed is the same each time)"), c["error"]
+                          "live rig is simulated or a recorded survey: its training episode of this scenario and seed is the "
+                          "same each time)"), c["error"]
 
 
 def test_the_same_error_from_a_real_rigs_training_episode_is_asked_again(parts):
