@@ -187,7 +187,7 @@ def conflicts(descriptor: RigDescriptor, scenario: Scenario, mode: str = "fast")
         current = current.value if isinstance(current, Enum) else current
         if not _same(current, value):
             out.append(Conflict(name, current, value))
-    if descriptor.tags is not None and scenario.n_tags > descriptor.tags:
+    if fewer_tags(scenario, descriptor.tags):
         out.append(Conflict("n_tags", scenario.n_tags, descriptor.tags, "hears at most"))
     if mode not in descriptor.modes:
         out.append(Conflict("mode", mode, "|".join(descriptor.modes)))

@@ -329,12 +329,10 @@ class ConformanceKit:
                                                "whose scenario searches for one tag (n_tags = 1: send tags 0 .. n_tags - 1 only)")
             return False
         for a in adverts:
-            if a.get("address") is not None:
-                first = self._addresses.setdefault(int(a.get("tag", 0)), a["address"])
-                if first != a["address"]:
-                    self._result("rf-evidence", False, f"step {step}: tag {a.get('tag', 0)} came from {first} and from "
-                                                       f"{a['address']}")
-                    return False
+            changed = _address_changed(self._addresses, a)
+            if changed:
+                self._result("rf-evidence", False, f"step {step}: {changed}")
+                return False
         return True
 
     def _fast(self, scenario: Scenario, nu: int, steps: int) -> None:
@@ -537,16 +535,17 @@ class ConformanceKit:
                                                 f"(0 .. {n - 1}) and the episode searches for those")
                     return
                 heard[tag] = heard.get(tag, 0) + 1
-                if a.get("address") is not None:
-                    first = addresses.setdefault(tag, a["address"])
-                    if first != a["address"]:
-                        self._result("tags", False, f"step {t}: tag {tag} came from {first} and from {a['address']}")
-                        return
+                changed = _address_changed(addresses, a)
+                if changed:
+                    self._result("tags", False, f"step {t}: {changed}")
+                    return
             time.sleep(period)
-        shared = {addr for addr in addresses.values() if list(addresses.values()).count(addr) > 1}
+        by_address: dict[str, list[int]] = {}
+        for tag, address in sorted(addresses.items()):
+            by_address.setdefault(address, []).append(tag)
+        shared = sorted((address, tags) for address, tags in by_address.items() if len(tags) > 1)
         if shared:
-            self._result("tags", False, f"tags {sorted(k for k, v in addresses.items() if v in shared)} share the address "
-                                        f"{sorted(shared)[0]}: each tag has its own")
+            self._result("tags", False, f"tags {shared[0][1]} share the address {shared[0][0]}: each tag has its own")
             return
         counts = ", ".join(f"tag {k}: {heard.get(k, 0)}" for k in range(n))
         silent = [k for k in range(n) if not heard.get(k)]
@@ -607,6 +606,17 @@ class ConformanceKit:
         else:
             self._result("truth", not truths, f"published EpisodeTruth for {sorted(truths)} though its descriptor says it does not"
                          if truths else "")
+
+
+def _address_changed(addresses: dict[int, str], advert: dict) -> str | None:
+    """Whether an advertisement's ``address`` (1.4) differs from the first its tag came from
+    (``addresses``, tag -> first address, updated); the failure's words, or None."""
+    address = advert.get("address")
+    if address is None:
+        return None
+    tag = int(advert.get("tag", 0))
+    first = addresses.setdefault(tag, address)
+    return None if first == address else f"tag {tag} came from {first} and from {address}"
 
 
 def _first(err: ValidationError) -> str:
