@@ -36,6 +36,7 @@ def check(
     timeout: Annotated[float, typer.Option(min=0.5, max=600.0, help="How long to wait for any one answer [s].")] = 5.0,
     wait: Annotated[Optional[float], typer.Option(min=0.5, max=3600.0, help="How long to wait for the node to come up (its liveliness token) [s; default: --timeout]. Start the kit, then the node: the kit probes it the moment its token appears, which checks that the token is declared last.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the report as one JSON line.")] = False,
+    tags_seconds: Annotated[float, typer.Option("--tags-seconds", min=4.0, max=600.0, metavar="S", help="With --rig: how long the tags rule's episode may run while a tag the node says it hears is still unheard [s]; it runs 4 s when every tag is heard by then. A beacon that advertises every few seconds needs a few intervals.")] = 20.0,
     grid_tolerance: Annotated[Optional[float], typer.Option("--grid-tolerance", min=1.0, max=1000.0, metavar="MS", help="With --rig: how far a realtime sample may arrive from t0 + k T_RF [ms; default: the larger of 30 ms and T_RF/4]. The kit's own receipt counts too: widen it on a loaded machine.")] = None,
     mode: ModeOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None, zenoh_config: ConfigOpt = None,
 ) -> None:
@@ -83,7 +84,8 @@ def check(
         if rig is not None:
             from ra2vipas.services.rigs.conformance import ConformanceKit, report
 
-            kit = ConformanceKit(bus, rig, timeout, grid_tolerance_s=None if grid_tolerance is None else grid_tolerance / 1e3)
+            kit = ConformanceKit(bus, rig, timeout, grid_tolerance_s=None if grid_tolerance is None else grid_tolerance / 1e3,
+                                 tags_seconds=tags_seconds)
             what, role = f"rig {rig}", "sensors"
         else:
             from ra2vipas.services.rigs.controller_conformance import ControllerKit, report

@@ -60,7 +60,8 @@ RULES: dict[str, str] = {
     "realtime-timing": "realtime: one EpisodeTiming after the last sample, at most steps-1 latencies, no late command when every "
                        "command came at once",
     "tags": "a node that says how many tags it hears (1.5: descriptor tags = N > 1) runs an episode that searches for all N, at "
-            "T_RF pace: its advertisements name only tags 0 .. N-1, each tag heard, each with one address of its own",
+            "T_RF pace (4 s, and on while a tag is unheard, up to --tags-seconds): its advertisements name only tags 0 .. N-1, "
+            "each tag heard, each with one address of its own",
     "training": "data/{rig}/training answers a TrainingStream of n_train samples (indices 0..n-1, nu frames each, job_id echoed); "
                 "from a rig whose radio is adverts, each sample carries what Rx(iso) heard (maybe nothing), never an rf pair",
     "truth": "a rig that says it publishes EpisodeTruth does so for every episode; one that says it does not, publishes none",
@@ -89,8 +90,11 @@ class ConformanceKit:
     single answer [s]."""
 
     def __init__(self, bus: Bus, rig: str, timeout: float = 5.0, clock=time.monotonic,
-                 grid_tolerance_s: float | None = None) -> None:
+                 grid_tolerance_s: float | None = None, tags_seconds: float = 20.0) -> None:
         self.bus, self.rig, self.timeout, self.clock = bus, keys.check_chunk(rig), timeout, clock
+        # the tags rule's episode runs TAGS_SECONDS, and on up to this long while a tag is still unheard
+        # (a battery beacon may advertise every few seconds, and a receiver misses some of them)
+        self.tags_seconds = max(float(tags_seconds), self.TAGS_SECONDS)
         # how far a realtime sample may arrive from t0 + k T_RF (None: max(30 ms, T_RF/4)); the
         # kit's own receipt is part of it, so a loaded machine (a CI running other work) needs more
         self.grid_tolerance_s = grid_tolerance_s
@@ -504,27 +508,35 @@ class ConformanceKit:
     def _tags(self, scenario: Scenario, descriptor: RigDescriptor | None) -> None:
         """The ``tags`` rule: an episode that searches for every tag the node says it hears, commanded
         at T_RF pace in fast mode (a BLE node's advertisements arrive in real time), whose
-        advertisements must name those tags only, every one of them, each with its own address."""
+        advertisements must name those tags only, every one of them, each with its own address. It
+        runs ``TAGS_SECONDS``, and on while a tag is still unheard, up to ``tags_seconds`` (then an
+        EpisodeStop ends it early)."""
         n = descriptor.tags if descriptor is not None else None
         if n is None or n < 2:
             self._result("tags", None, "the descriptor says no number of tags (1.5)" if n is None else
                          "the node hears one tag: rf-evidence checks it")
             return
         period = scenario.rf_period_s
-        steps = max(int(round(self.TAGS_SECONDS / period)), 2)
+        least = max(int(round(self.TAGS_SECONDS / period)), 2)
+        steps = max(int(round(self.tags_seconds / period)), least)
         episode = scenario.model_copy(update={"steps": steps, "n_tags": n, "one_tag_per_person": n <= scenario.n_targets})
         eid = self._id("tags")
         self._start(eid, episode)
         time.sleep(0.2)
         heard: dict[int, int] = {}
         addresses = dict(self._addresses)  # tag 0's address from the one-tag episodes: the same here
+        ran = 0
         for t in range(steps):
+            if t >= least and len(heard) == n:  # every tag heard, for at least TAGS_SECONDS: enough
+                self.bus.publish(keys.episode_control(self.rig), dump(EpisodeStop(episode_id=eid, reason="conformance: every tag heard")))
+                break
             mark = len(self.measurements)
             self._command(eid, t, math.remainder(0.3 * t, 2.0 * math.pi))
             got = self._wait_measurement(eid, t, mark)
             if got is None:
                 self._result("tags", False, f"no Measurement for step {t} of an episode with n_tags = {n} within {self.timeout:g} s")
                 return
+            ran = t + 1
             parsed = got[1]
             evidence = list(parsed.get("adverts") or [])  # 1.3 adverts; the 1.0 pair is tag 0's, rf_tags (1.4) the others'
             evidence += ([parsed["rf"]] if parsed.get("rf") else []) + list(parsed.get("rf_tags") or [])
@@ -549,9 +561,11 @@ class ConformanceKit:
             return
         counts = ", ".join(f"tag {k}: {heard.get(k, 0)}" for k in range(n))
         silent = [k for k in range(n) if not heard.get(k)]
-        self._result("tags", not silent, (f"tag {', '.join(map(str, silent))} never heard in {steps * period:g} s of an episode "
-                                          f"with n_tags = {n} ({counts}): are they in range and advertising?") if silent else
-                     f"pieces of RF evidence per tag in {steps * period:g} s: {counts}")
+        seconds = f"{round(ran * period, 1):g}"
+        self._result("tags", not silent, (f"tag {', '.join(map(str, silent))} never heard in {seconds} s of an episode "
+                                          f"with n_tags = {n} ({counts}): are they in range and advertising? (a beacon that "
+                                          f"advertises less often needs a longer --tags-seconds)") if silent else
+                     f"pieces of RF evidence per tag in {seconds} s: {counts}")
 
     def _training(self, scenario: Scenario, nu: int) -> None:
         job = f"conformance-{self._nonce}"
@@ -625,9 +639,10 @@ def _first(err: ValidationError) -> str:
 
 
 def check_rig(bus: Bus, rig: str, timeout: float = 5.0, steps: int = 6, realtime_steps: int = 8,
-              wait: float | None = None, clock=time.monotonic, grid_tolerance_s: float | None = None) -> list[RuleResult]:
+              wait: float | None = None, clock=time.monotonic, grid_tolerance_s: float | None = None,
+              tags_seconds: float = 20.0) -> list[RuleResult]:
     """Run the kit against ``rig``; one ``RuleResult`` per rule of ``RULES``."""
-    kit = ConformanceKit(bus, rig, timeout, clock=clock, grid_tolerance_s=grid_tolerance_s)
+    kit = ConformanceKit(bus, rig, timeout, clock=clock, grid_tolerance_s=grid_tolerance_s, tags_seconds=tags_seconds)
     try:
         return kit.run(steps=steps, realtime_steps=realtime_steps, wait=wait)
     finally:

@@ -6,10 +6,12 @@ the example's own ``main`` with ``--ble-tag``; only the scanner factory is the f
 (tx + k) mod N of the fake layout and advertises on its own schedule.
 
     python ble_node.py --rig ble-1 --connect tcp/ROUTER:7447 [--ble-tag A --ble-tag B] [--all-tags | --first-tag-only] [--pair-training]
+                       [--slow-tag SECONDS]
 
 ``--all-tags``, ``--first-tag-only`` and ``--pair-training`` are bugs for the conformance kit's tests: the
 node sends every tag it listens for, or tag 0's only, whatever the episode's ``n_tags``; its training stream
-is made-up RSSI pairs.
+is made-up RSSI pairs. ``--slow-tag SECONDS`` is no bug: tags 1 and up are battery beacons that advertise every
+SECONDS, the first time SECONDS after an episode starts listening for them (an unlucky phase).
 """
 
 import importlib.util
@@ -32,6 +34,10 @@ spec.loader.exec_module(example)
 TAG = "e7:8f:13:56:24:ce"
 
 
+SLOW_TAG_S = 0.0  # --slow-tag: tags 1 and up advertise this rarely (0: every 0.45 s, as tag 0)
+LISTENING_SINCE: dict[int, float] = {}  # tag -> when the current episode's receivers began listening for it
+
+
 class FakeTag:
     """Plays a tag's advertisements into the fake scanners, RSSI from the driver's geometry: tag k
     (address ``address``) is carried by target (tx + k) mod N."""
@@ -42,8 +48,17 @@ class FakeTag:
         self.stop = threading.Event()
         threading.Thread(target=self.run, daemon=True).start()
 
+    def _silent(self) -> bool:
+        """A slow beacon (``--slow-tag``) between its advertisements."""
+        if not SLOW_TAG_S or self.k == 0 or self.k not in LISTENING_SINCE:
+            return bool(SLOW_TAG_S) and self.k > 0
+        elapsed = time.monotonic() - LISTENING_SINCE[self.k]
+        return elapsed < SLOW_TAG_S or (elapsed % SLOW_TAG_S) > 0.5
+
     def run(self) -> None:
         while not self.stop.wait(0.45 + self.rng.uniform(0.0, 0.01)):
+            if self._silent():
+                continue
             d = self.driver
             carrier = (d.tx + self.k) % len(d.bearings)
             training = d.training_range_m if self.k == 0 else None  # a training episode: tag 0 on the optical axis
@@ -92,6 +107,19 @@ if __name__ == "__main__":
                     for j in range(n)]
 
         example.HardwareNode.train_on_adverts = pair_training
+    if "--slow-tag" in sys.argv:
+        at = sys.argv.index("--slow-tag")
+        SLOW_TAG_S = float(sys.argv[at + 1])
+        del sys.argv[at:at + 2]
+        listening_reset = ble_receiver.BleReceivers.reset
+
+        def reset_and_note(self, n_tags=None):
+            listening_reset(self, n_tags)
+            wanted = len(self.tags) if n_tags is None else int(n_tags)
+            LISTENING_SINCE.clear()
+            LISTENING_SINCE.update({k: time.monotonic() for k in range(1, wanted)})
+
+        ble_receiver.BleReceivers.reset = reset_and_note
     if "--ble-tag" not in sys.argv:
         sys.argv += ["--ble-tag", TAG]
     example.main()

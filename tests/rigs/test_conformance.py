@@ -40,11 +40,12 @@ def kit(endpoint: str, rig: str) -> dict:
 GRID_TOLERANCE_MS = 75.0
 
 
-def kit_first(registry: Scripts, endpoint: str, rig: str, start_node, timeout: float = 5) -> tuple[dict, subprocess.Popen]:
+def kit_first(registry: Scripts, endpoint: str, rig: str, start_node, timeout: float = 5, tags_seconds: float = 20) -> tuple[dict, subprocess.Popen]:
     """The kit started before the node (``--wait``), so it probes the node the moment its token
     appears; then ``start_node()``. Returns the kit's report and the node's process."""
     kit_proc = registry.start("protocol", "check", "--rig", rig, "--connect", endpoint, "--zenoh-mode", "client", "--json",
-                              "--timeout", f"{timeout:g}", "--wait", "120", "--grid-tolerance", f"{GRID_TOLERANCE_MS:g}")
+                              "--timeout", f"{timeout:g}", "--wait", "120", "--grid-tolerance", f"{GRID_TOLERANCE_MS:g}",
+                              "--tags-seconds", f"{tags_seconds:g}")
     wait_for_line(kit_proc, f"watching for rig {rig}", 60)
     node = start_node()
     out, _ = kit_proc.communicate(timeout=300)
@@ -96,12 +97,13 @@ def test_a_node_that_says_how_many_tags_it_hears_is_held_to_it():
     real_world = liar.hardware
     liar.hardware = lambda scenario: real_world(scenario).model_copy(update={"n_tags": min(scenario.n_tags, 2)})
     try:
-        results = {r.rule: r for r in check_rig(bus, "rig-3", timeout=3.0, grid_tolerance_s=GRID_TOLERANCE_MS / 1e3)}
+        results = {r.rule: r for r in check_rig(bus, "rig-3", timeout=3.0, grid_tolerance_s=GRID_TOLERANCE_MS / 1e3, tags_seconds=6.0)}
     finally:
         liar.close()
         bus.close()
     assert results["tags"].status == "fail", results["tags"]
-    assert results["tags"].detail.startswith("tag 2 never heard in 4 s of an episode with n_tags = 3 (tag 0: 40, tag 1: 40, tag 2: 0)")
+    # it ran on past 4 s while tag 2 was unheard, up to tags_seconds
+    assert results["tags"].detail.startswith("tag 2 never heard in 6 s of an episode with n_tags = 3 (tag 0: 60, tag 1: 60, tag 2: 0)")
 
 
 def test_the_realtime_grid_rule_fails_a_node_off_the_grid():
@@ -232,11 +234,32 @@ def test_a_two_tag_node_that_hears_only_tag_0_whatever_the_episode_fails_tags(ro
         wait_for_line(node, "hardware node ble-deaf up", 60)
         return node
 
-    body, node = kit_first(registry, endpoint, "ble-deaf", start)
+    body, node = kit_first(registry, endpoint, "ble-deaf", start, tags_seconds=5)
     failed = {r["rule"]: r["detail"] for r in body["rules"] if r["status"] == "fail" and not r["rule"].startswith("realtime-")}
     assert list(failed) == ["tags"], failed
-    assert re.fullmatch(r"tag 1 never heard in 4 s of an episode with n_tags = 2 \(tag 0: \d+, tag 1: 0\): are they in range "
-                        r"and advertising\?", failed["tags"]), failed
+    assert re.fullmatch(r"tag 1 never heard in 5 s of an episode with n_tags = 2 \(tag 0: \d+, tag 1: 0\): are they in range "
+                        r"and advertising\? \(a beacon that advertises less often needs a longer --tags-seconds\)", failed["tags"]), failed
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
+
+
+def test_a_beacon_that_advertises_every_few_seconds_is_heard_by_a_longer_tags_episode(router):
+    """A two-tag BLE node whose tag 1 is a slow battery beacon (an advertisement every 6 s, the first 6 s after an
+    episode starts listening for it): the tags rule's episode runs on past its 4 s while tag 1 is unheard and
+    passes once it is; the episode then stops (well before the 20 s it may run)."""
+    registry, endpoint = router
+
+    def start():
+        node = registry.script(BLE_NODE, "--rig", "ble-slow", "--connect", endpoint, "--slow-tag", "6", "--ble-tag",
+                               "e7:8f:13:56:24:ce", "--ble-tag", "c3:5a:01:9e:44:b2")
+        wait_for_line(node, "hardware node ble-slow up", 60)
+        return node
+
+    body, node = kit_first(registry, endpoint, "ble-slow", start)
+    detail = next(r for r in body["rules"] if r["rule"] == "tags")
+    assert detail["status"] == "pass", detail
+    got = re.fullmatch(r"pieces of RF evidence per tag in ([\d.]+) s: tag 0: \d+, tag 1: [12]", detail["detail"])
+    assert got and 6.0 <= float(got.group(1)) <= 9.0, detail
     os.killpg(node.pid, signal.SIGTERM)
     assert node.wait(30) == 0
 
