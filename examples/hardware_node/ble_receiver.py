@@ -12,10 +12,16 @@ started: the tests run it on ``FakeScanner`` (no BLE adapter needed).
 
 How the callback stream becomes per-step lists (``AdvertCollector``):
 
-* only the tags' addresses count (case-insensitive); every other device is ignored. With several
-  tags each advertisement also names its tag (``tag``: k) and the address it came from (``address``,
-  upper case), and a campaign that searches for fewer tags (the scenario's ``n_tags``) gets only
-  tags 0 .. n_tags - 1; with one tag the lists are protocol 1.3's, byte for byte;
+* only the tags count; every other device is ignored. A tag is named by its address (case-insensitive)
+  or, for a beacon whose address changes (a resolvable private address, rotated every few minutes),
+  by the identity it advertises: ``ibeacon:UUID[:MAJOR[:MINOR]]`` (Apple's manufacturer data, company
+  0x004C, type 0x02 0x15) or ``eddystone:NAMESPACE[:INSTANCE]`` (an Eddystone-UID frame, service data
+  of 0xFEAA), read from bleak's ``AdvertisementData.manufacturer_data`` / ``service_data``; a shorter
+  identity matches every beacon that extends it. With several tags each advertisement also names its
+  tag (``tag``: k) and, for a tag named by its address, that address (``address``, upper case; a
+  beacon named by its identity sends none: its address is not the tag's), and a campaign that
+  searches for fewer tags (the scenario's ``n_tags``) gets only tags 0 .. n_tags - 1; with one tag
+  the lists are protocol 1.3's, byte for byte;
 * each advertisement is stamped on arrival with the node's clock and belongs to the step whose
   window (the previous ``take`` to this one) it arrived in, ``offset_s`` after that window opened;
 * **duplicates**: a second report of the same tag from the same receiver within ``duplicate_window_s``
@@ -44,22 +50,71 @@ log = logging.getLogger("ble-receiver")
 DUPLICATE_WINDOW_S = 0.005
 MAX_PENDING = 10_000  # advertisements kept untaken (protocol: at most 10 000 per step)
 ADDRESS = re.compile(r"^[0-9A-Fa-f]{2}(:[0-9A-Fa-f]{2}){5}$")  # what BlueZ reports: six bytes, colon-separated
+IBEACON_COMPANY = 0x004C  # Apple: iBeacon's manufacturer data starts 0x02 0x15, then UUID (16), major (2), minor (2), power (1)
+EDDYSTONE_SERVICE = "0000feaa-0000-1000-8000-00805f9b34fb"  # Eddystone's service data; frame 0x00 (UID): power, namespace (10), instance (6)
+_UUID = re.compile(r"^[0-9a-f]{8}-?[0-9a-f]{4}-?[0-9a-f]{4}-?[0-9a-f]{4}-?[0-9a-f]{12}$")
+_HEX = re.compile(r"^[0-9a-f]*$")
+BAD_TAG = ("is not a BLE address (six hex bytes, e.g. E7:8F:13:56:24:CE) or a beacon identity (ibeacon:UUID[:MAJOR[:MINOR]], "
+           "eddystone:NAMESPACE[:INSTANCE])")
+
+
+def _uuid(hex32: str) -> str:
+    return f"{hex32[:8]}-{hex32[8:12]}-{hex32[12:16]}-{hex32[16:20]}-{hex32[20:]}"
+
+
+def parse_tag(text: str) -> str:
+    """One tag as ``--ble-tag`` names it, in its canonical form: an address (upper case), or a beacon
+    identity ``ibeacon:uuid[:major[:minor]]`` / ``eddystone:namespace[:instance]`` (lower-case hex);
+    ValueError (one line) for anything else."""
+    t = str(text).strip()
+    if ADDRESS.match(t):
+        return t.upper()
+    kind, _, rest = t.partition(":")
+    parts = rest.lower().split(":") if rest else []
+    if kind.lower() == "ibeacon" and 1 <= len(parts) <= 3 and _UUID.match(parts[0]) \
+            and all(p.isdigit() and int(p) <= 65535 for p in parts[1:]):
+        return "ibeacon:" + ":".join([_uuid(parts[0].replace("-", ""))] + [str(int(p)) for p in parts[1:]])
+    if kind.lower() == "eddystone" and 1 <= len(parts) <= 2 and len(parts[0]) == 20 and _HEX.match(parts[0]) \
+            and all(len(p) == 12 and _HEX.match(p) for p in parts[1:]):
+        return "eddystone:" + ":".join(parts)
+    if kind.lower() == "ibeacon":
+        raise ValueError(f"{t!r} is not an iBeacon identity (ibeacon:UUID[:MAJOR[:MINOR]], MAJOR and MINOR 0-65535, "
+                         f"e.g. ibeacon:f7826da6-4fa2-4e98-8024-bc5b71e0893e:1:42)")
+    if kind.lower() == "eddystone":
+        raise ValueError(f"{t!r} is not an Eddystone-UID identity (eddystone:NAMESPACE[:INSTANCE], 10 and 6 hex bytes, "
+                         f"e.g. eddystone:edd1ebeac04e5defa017:0a1b2c3d4e5f)")
+    raise ValueError(f"{t!r} {BAD_TAG}")
 
 
 def tag_addresses(addresses: str | Sequence[str]) -> list[str]:
-    """The tags' addresses, upper case, tag k the k-th; ValueError (one line) for one that is not six
-    colon-separated hex bytes or that is given twice."""
+    """The tags (``parse_tag``), tag k the k-th; ValueError (one line) for one that is malformed, given
+    twice, or a beacon identity that another one's beacons would match too."""
     given = [addresses] if isinstance(addresses, str) else list(addresses)
     if not given:
         raise ValueError("no tag address given")
     out: list[str] = []
-    for address in given:
-        text = str(address).strip()
-        if not ADDRESS.match(text):
-            raise ValueError(f"{text!r} is not a BLE address (six hex bytes, e.g. E7:8F:13:56:24:CE)")
-        if text.upper() in out:
-            raise ValueError(f"tag address {text.upper()} given twice")
-        out.append(text.upper())
+    for text in given:
+        tag = parse_tag(text)
+        if tag in out:
+            raise ValueError(f"tag {'address ' if ADDRESS.match(tag) else ''}{tag} given twice")
+        for other in out:
+            if tag.startswith(other + ":") or other.startswith(tag + ":"):
+                raise ValueError(f"tags {other} and {tag} overlap: one beacon would be both (name each by its whole identity)")
+        out.append(tag)
+    return out
+
+
+def beacon_identities(advertisement_data) -> list[str]:
+    """The beacon identities an advertisement carries (``parse_tag``'s canonical form): iBeacon's
+    ``ibeacon:uuid:major:minor`` and Eddystone-UID's ``eddystone:namespace:instance``."""
+    out = []
+    apple = (getattr(advertisement_data, "manufacturer_data", None) or {}).get(IBEACON_COMPANY)
+    if apple and len(apple) >= 22 and apple[0] == 0x02 and apple[1] == 0x15:
+        out.append(f"ibeacon:{_uuid(bytes(apple[2:18]).hex())}:{int.from_bytes(apple[18:20], 'big')}:"
+                   f"{int.from_bytes(apple[20:22], 'big')}")
+    eddystone = (getattr(advertisement_data, "service_data", None) or {}).get(EDDYSTONE_SERVICE)
+    if eddystone and len(eddystone) >= 18 and eddystone[0] == 0x00:
+        out.append(f"eddystone:{bytes(eddystone[2:12]).hex()}:{bytes(eddystone[12:18]).hex()}")
     return out
 
 
@@ -118,9 +173,10 @@ class AdvertCollector:
             advert: dict[str, Any] = {"receiver": receiver, "rssi_dbm": rssi, "offset_s": round(max(0.0, stamp - start), 6)}
             if channel in (37, 38, 39):
                 advert["channel"] = channel
-            if several:  # protocol 1.4: which tag, from which address
+            if several:  # protocol 1.4: which tag, from which address (a beacon named by its identity: none)
                 advert["tag"] = tag
-                advert["address"] = self.addresses[tag]
+                if ADDRESS.match(self.addresses[tag]):
+                    advert["address"] = self.addresses[tag]
             out.append(advert)
         return out
 
@@ -136,8 +192,9 @@ def bleak_scanner(detection_callback, adapter: str | None):
 
 
 class BleReceivers:
-    """Rx(iso) and Rx(dir) as two scanners (two adapters) listening for ``tags``: one address, or
-    several (tag k the k-th; ValueError for a malformed or repeated one, ``tag_addresses``).
+    """Rx(iso) and Rx(dir) as two scanners (two adapters) listening for ``tags``: one address or beacon
+    identity, or several (tag k the k-th; ValueError for a malformed, repeated or overlapping one,
+    ``tag_addresses``).
 
     ``scanner_factory(detection_callback, adapter)`` builds a scanner with ``async start()`` and
     ``async stop()`` (bleak's ``BleakScanner`` by default; ``FakeScanner`` in tests). The scanners
@@ -147,7 +204,8 @@ class BleReceivers:
     def __init__(self, tags: str | Sequence[str], adapters: dict[str, str | None] | None = None,
                  scanner_factory: Callable = bleak_scanner, clock: Callable[[], float] = time.monotonic) -> None:
         self.tags = tag_addresses(tags)
-        self.index = {address.lower(): k for k, address in enumerate(self.tags)}
+        self.index = {tag.lower(): k for k, tag in enumerate(self.tags) if ADDRESS.match(tag)}
+        self.beacons = [(tag, k) for k, tag in enumerate(self.tags) if not ADDRESS.match(tag)]  # named by identity
         self.adapters = adapters or {"iso": "hci0", "dir": "hci1"}
         self.factory = scanner_factory
         self.collector = AdvertCollector(clock, addresses=self.tags)
@@ -158,6 +216,9 @@ class BleReceivers:
     def callback_for(self, receiver: str):
         def detected(device, advertisement_data) -> None:
             tag = self.index.get(str(getattr(device, "address", "")).lower())
+            if tag is None and self.beacons:  # a beacon named by what it advertises, whatever its address now
+                tag = next((k for identity in beacon_identities(advertisement_data) for spec, k in self.beacons
+                            if identity == spec or identity.startswith(spec + ":")), None)
             if tag is None:
                 return
             rssi = getattr(advertisement_data, "rssi", None)
@@ -230,8 +291,10 @@ class _WithBle:
 
     @property
     def tag_addresses(self) -> list[str]:
-        """The tags' addresses, tag k the k-th (upper case)."""
-        return list(self._receivers.tags)
+        """The tags' addresses, tag k the k-th (upper case); none when a tag is named by its beacon identity
+        (its address is not the tag's)."""
+        tags = list(self._receivers.tags)
+        return tags if all(ADDRESS.match(t) for t in tags) else []
 
     def read_adverts(self) -> list[dict[str, Any]]:
         return self._receivers.read_adverts()
@@ -262,8 +325,9 @@ class FakeScanner:
     async def stop(self) -> None:
         self.running = False
 
-    def emit(self, address: str, rssi: int) -> None:
+    def emit(self, address: str, rssi: int, manufacturer_data: dict | None = None, service_data: dict | None = None) -> None:
         if self.running:
             device = type("BLEDevice", (), {"address": address})()
-            data = type("AdvertisementData", (), {"rssi": rssi})()
+            data = type("AdvertisementData", (), {"rssi": rssi, "manufacturer_data": manufacturer_data or {},
+                                                  "service_data": service_data or {}})()
             self.callback(device, data)

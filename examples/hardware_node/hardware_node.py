@@ -399,10 +399,11 @@ def main(node_class: type = HardwareNode, driver_class: type = FakeDriver) -> No
     parser.add_argument("--password-file", help="file holding the Zenoh password")
     parser.add_argument("--seed", type=int, default=0, help="the fake driver's layout")
     parser.add_argument("--publish-truth", action="store_true", help="publish EpisodeTruth (the fake driver knows its layout)")
-    parser.add_argument("--ble-tag", metavar="ADDRESS", action="append", default=[],
-                        help="real BLE receivers (bleak): the Tx tag's address, e.g. E7:8F:13:56:24:CE; repeat it for several "
-                             "tags (tag k is the k-th given; protocol 1.4); the fake driver keeps the pan unit and the camera "
-                             "(ble_receiver.py, README)")
+    parser.add_argument("--ble-tag", metavar="TAG", action="append", default=[],
+                        help="real BLE receivers (bleak): the Tx tag's address, e.g. E7:8F:13:56:24:CE, or for a beacon whose "
+                             "address changes the identity it advertises, ibeacon:UUID[:MAJOR[:MINOR]] or "
+                             "eddystone:NAMESPACE[:INSTANCE]; repeat it for several tags (tag k is the k-th given; protocol "
+                             "1.4); the fake driver keeps the pan unit and the camera (ble_receiver.py, README)")
     parser.add_argument("--iso-adapter", default="hci0", help="the BlueZ adapter of Rx(iso) (with --ble-tag)")
     parser.add_argument("--dir-adapter", default="hci1", help="the BlueZ adapter of Rx(dir), the directional one (with --ble-tag)")
     args = parser.parse_args()

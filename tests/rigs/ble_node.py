@@ -10,7 +10,8 @@ the example's own ``main`` with ``--ble-tag``; only the scanner factory is the f
 
 ``--all-tags``, ``--first-tag-only`` and ``--pair-training`` are bugs for the conformance kit's tests: the
 node sends every tag it listens for, or tag 0's only, whatever the episode's ``n_tags``; its training stream
-is made-up RSSI pairs. ``--slow-tag SECONDS`` is no bug: tags 1 and up are battery beacons that advertise every
+is made-up RSSI pairs. A tag given as ``ibeacon:UUID:MAJOR:MINOR`` advertises that identity from an address that changes every
+2 s (a resolvable private address). ``--slow-tag SECONDS`` is no bug: tags 1 and up are battery beacons that advertise every
 SECONDS, the first time SECONDS after an episode starts listening for them (an unlucky phase).
 """
 
@@ -65,9 +66,16 @@ class FakeTag:
             g = -30.0 - 20.0 * math.log10(d.ranges[carrier] if training is None else training)
             delta = 0.0 if training is not None else example.wrap(d.pan - d.bearings[carrier])
             gain = 10.0 * math.log10(max(1.0 - 0.5 * delta * delta, 0.01))
+            sender, payload = self.address, None
+            if self.address.startswith("ibeacon:"):  # a beacon named by its identity: its address rotates every 2 s
+                _, uuid, major, minor = self.address.split(":")
+                payload = {0x004C: bytes([0x02, 0x15]) + bytes.fromhex(uuid.replace("-", "")) + int(major).to_bytes(2, "big")
+                           + int(minor).to_bytes(2, "big") + bytes([0xC5])}
+                turn = int(time.monotonic() / 2.0)
+                sender = f"4{self.k}:{turn % 256:02X}:{turn // 256 % 256:02X}:00:00:0{self.k}"
             for scanner, level in zip(list(ble_receiver.FakeScanner.instances), (g, g + gain)):
                 if self.rng.random() > 0.1:
-                    scanner.emit(self.address, round(level + self.rng.gauss(0.0, 3.0)))
+                    scanner.emit(sender, round(level + self.rng.gauss(0.0, 3.0)), manufacturer_data=payload)
 
 
 original = ble_receiver.BleReceivers.__init__

@@ -2,7 +2,8 @@
 scanner backend (no BLE adapter here): the callback stream of one tag becomes the per-step
 advertisement lists, with late, lost and duplicate packets handled as documented, and every
 list is a valid protocol 1.3 ``adverts``; several tags' streams become protocol 1.4 lists in which
-each advertisement names its tag and address; bad addresses and scanners that cannot start are
+each advertisement names its tag and address; a beacon whose address changes is followed by the
+identity it advertises (iBeacon, Eddystone-UID); bad addresses and scanners that cannot start are
 refused in one line."""
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from tests.integration.conftest import ROOT
 HERE = ROOT / "examples" / "hardware_node"
 TAG = "E7:8F:13:56:24:CE"
 TAG2 = "C3:5A:01:9E:44:B2"
+UUID = "f7826da6-4fa2-4e98-8024-bc5b71e0893e"
 
 
 def _load():
@@ -194,10 +196,15 @@ def test_a_campaign_for_fewer_tags_gets_only_those(two_tags):
 
 
 @pytest.mark.parametrize("tags, message", [
-    ("E7:8F:13", "'E7:8F:13' is not a BLE address (six hex bytes, e.g. E7:8F:13:56:24:CE)"),
+    ("E7:8F:13", "'E7:8F:13' is not a BLE address (six hex bytes, e.g. E7:8F:13:56:24:CE) or a beacon identity"),
     ("E7-8F-13-56-24-CE", "'E7-8F-13-56-24-CE' is not a BLE address"),
     ([TAG, TAG.lower()], f"tag address {TAG} given twice"),
     ([], "no tag address given"),
+    ("ibeacon:f7826da6-4fa2-4e98-8024", "'ibeacon:f7826da6-4fa2-4e98-8024' is not an iBeacon identity (ibeacon:UUID[:MAJOR[:MINOR]]"),
+    (f"ibeacon:{UUID}:1:70000", f"'ibeacon:{UUID}:1:70000' is not an iBeacon identity"),
+    ("eddystone:edd1ebeac04e5defa017:0a1b", "'eddystone:edd1ebeac04e5defa017:0a1b' is not an Eddystone-UID identity"),
+    ([f"ibeacon:{UUID}:1", f"ibeacon:{UUID.upper()}:1:42"], f"tags ibeacon:{UUID}:1 and ibeacon:{UUID}:1:42 overlap"),
+    ([f"ibeacon:{UUID.replace('-', '')}:1:42", f"IBEACON:{UUID}:1:42"], f"tag ibeacon:{UUID}:1:42 given twice"),
 ])
 def test_bad_tag_addresses_are_refused_in_one_line(tags, message):
     with pytest.raises(ValueError) as err:
@@ -238,3 +245,63 @@ def test_a_node_left_listening_between_episodes_keeps_only_the_newest_advertisem
     step = receivers.read_adverts()
     assert len(step) == ble.MAX_PENDING and step[0]["offset_s"] == pytest.approx(0.01 * 501)  # the oldest 500 went
     _valid(step)  # still one valid step: the protocol allows 10 000
+
+
+def _ibeacon(uuid: str, major: int, minor: int) -> dict:
+    """iBeacon's manufacturer data as bleak reports it: {0x004C: 02 15 UUID major minor power}."""
+    return {0x004C: bytes([0x02, 0x15]) + bytes.fromhex(uuid.replace("-", "")) + major.to_bytes(2, "big")
+            + minor.to_bytes(2, "big") + bytes([0xC5])}
+
+
+def _eddystone(namespace: str, instance: str) -> dict:
+    """An Eddystone-UID frame as bleak reports it: {0xFEAA's 128-bit UUID: 00 power namespace instance 00 00}."""
+    return {ble.EDDYSTONE_SERVICE: bytes([0x00, 0xEE]) + bytes.fromhex(namespace) + bytes.fromhex(instance) + bytes(2)}
+
+
+def test_a_beacon_whose_address_changes_is_followed_by_the_identity_it_advertises():
+    """Tags named by what they advertise (an iBeacon by UUID, major and minor; an Eddystone-UID by namespace
+    only: any instance) are heard from whatever address they use now (a resolvable private address rotates);
+    other beacons of the same UUID, or other frames, are not the tags; the advertisements name the tag and
+    no address (the address is not the tag's), and the lists are valid protocol 1.4."""
+    clock = Clock()
+    ble.FakeScanner.instances.clear()
+    namespace = "edd1ebeac04e5defa017"
+    receivers = ble.BleReceivers([f"iBeacon:{UUID.upper()}:1:42", f"eddystone:{namespace.upper()}"], scanner_factory=ble.FakeScanner,
+                                 clock=clock)
+    assert receivers.tags == [f"ibeacon:{UUID}:1:42", f"eddystone:{namespace}"]  # canonical: lower-case hex, numbers as given
+    receivers.start()
+    iso, dir_ = ble.FakeScanner.instances
+    try:
+        receivers.reset()
+        clock.now = 100.01
+        iso.emit("4A:11:22:33:44:55", -60, manufacturer_data=_ibeacon(UUID, 1, 42))
+        clock.now = 100.02
+        iso.emit("4A:11:22:33:44:56", -61, manufacturer_data=_ibeacon(UUID, 1, 43))  # the same UUID, another minor: not the tag
+        iso.emit("4A:11:22:33:44:57", -62, manufacturer_data={0x0059: bytes(23)})  # another company's data
+        clock.now = 100.03
+        dir_.emit("7B:00:00:00:00:01", -70, service_data=_eddystone(namespace, "0a1b2c3d4e5f"))
+        clock.now = 100.04
+        dir_.emit("7B:00:00:00:00:02", -71, service_data={ble.EDDYSTONE_SERVICE: bytes([0x10, 0xEE]) + b"url"})  # a URL frame
+        clock.now = 100.1
+        first = receivers.read_adverts()
+        clock.now = 100.15
+        iso.emit("5C:99:88:77:66:55", -59, manufacturer_data=_ibeacon(UUID, 1, 42))  # its address rotated: the same tag
+        clock.now = 100.2
+        second = receivers.read_adverts()
+    finally:
+        receivers.stop()
+    assert first == [{"receiver": "iso", "rssi_dbm": -60, "offset_s": 0.01, "tag": 0},
+                     {"receiver": "dir", "rssi_dbm": -70, "offset_s": 0.03, "tag": 1}]
+    assert second == [{"receiver": "iso", "rssi_dbm": -59, "offset_s": 0.05, "tag": 0}]
+    m = _valid(first + second)
+    assert m.rssi_dbm("iso") == (-60, -59) and m.rssi_dbm("dir", tag=1) == (-70,)
+    wrapped = ble.with_ble(object(), receivers)
+    assert wrapped.n_tags == 2 and wrapped.tag_addresses == []  # EpisodeTruth names no address for such tags
+
+
+def test_beacon_identities_read_ibeacon_and_eddystone_uid_frames():
+    data = type("AdvertisementData", (), {"manufacturer_data": _ibeacon(UUID, 65535, 0),
+                                          "service_data": _eddystone("00112233445566778899", "aabbccddeeff")})()
+    assert ble.beacon_identities(data) == [f"ibeacon:{UUID}:65535:0", "eddystone:00112233445566778899:aabbccddeeff"]
+    short = type("AdvertisementData", (), {"manufacturer_data": {0x004C: bytes([0x02, 0x15, 1, 2])}, "service_data": {}})()
+    assert ble.beacon_identities(short) == []  # truncated: no identity, never a guess

@@ -111,7 +111,12 @@ def test_the_node_refuses_a_bad_tag_address_and_receivers_that_cannot_start_in_o
     bad = subprocess.run([sys.executable, str(EXAMPLE), "--ble-tag", "E7:8F:13"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
     assert bad.stderr.strip().splitlines()[-1].endswith("error: --ble-tag: 'E7:8F:13' is not a BLE address (six hex bytes, "
-                                                       "e.g. E7:8F:13:56:24:CE)")
+                                                       "e.g. E7:8F:13:56:24:CE) or a beacon identity (ibeacon:UUID[:MAJOR[:MINOR]], "
+                                                       "eddystone:NAMESPACE[:INSTANCE])")
+    beacon = subprocess.run([sys.executable, str(EXAMPLE), "--ble-tag", "ibeacon:f7826da6:1:42"], capture_output=True, text=True, timeout=60)
+    assert beacon.returncode == 2 and "Traceback" not in beacon.stderr
+    assert beacon.stderr.strip().splitlines()[-1].startswith("hardware_node.py: error: --ble-tag: 'ibeacon:f7826da6:1:42' is not an "
+                                                          "iBeacon identity (ibeacon:UUID[:MAJOR[:MINOR]]"), beacon.stderr
     twice = subprocess.run([sys.executable, str(EXAMPLE), "--ble-tag", TAGS[0], "--ble-tag", TAGS[0].lower()], capture_output=True,
                            text=True, timeout=60)
     assert twice.returncode == 2 and twice.stderr.strip().splitlines()[-1].endswith(f"--ble-tag: tag address {TAGS[0]} given twice")

@@ -158,14 +158,17 @@ def test_the_reference_hardware_node_passes(router, record_property):
     assert node.wait(30) == 0
 
 
-@pytest.mark.parametrize("tags", [["e7:8f:13:56:24:ce"], ["e7:8f:13:56:24:ce", "c3:5a:01:9e:44:b2"]], ids=["one-tag", "two-tags"])
+@pytest.mark.parametrize("tags", [["e7:8f:13:56:24:ce"], ["e7:8f:13:56:24:ce", "c3:5a:01:9e:44:b2"],
+                                  ["ibeacon:f7826da6-4fa2-4e98-8024-bc5b71e0893e:1:41", "ibeacon:f7826da6-4fa2-4e98-8024-bc5b71e0893e:1:42"]],
+                         ids=["one-tag", "two-tags", "two-ibeacons"])
 def test_the_hardware_node_with_ble_receivers_passes(router, tags):
     """A node that sends protocol 1.3 adverts (the example node with its BLE driver on the fake
     scanner backend: steps with none, one or two advertisements) passes every rule, as the 1.0
     pair node above does; so does one listening for two tags (protocol 1.4: each advertisement
-    names its tag; the kit's one-tag episodes get tag 0's)."""
+    names its tag; the kit's one-tag episodes get tag 0's), and one whose two tags are iBeacons
+    named by their identity, advertising from addresses that change every 2 s (no address sent)."""
     registry, endpoint = router
-    rig = f"ble-{len(tags)}"
+    rig = f"ble-{len(tags)}{'-ib' if tags[0].startswith('ibeacon') else ''}"
 
     def start():
         node = registry.script(BLE_NODE, "--rig", rig, "--connect", endpoint, *[a for tag in tags for a in ("--ble-tag", tag)])
