@@ -182,12 +182,24 @@ class AdvertCollector:
 
 
 def bleak_scanner(detection_callback, adapter: str | None):
-    """A real scanner: bleak's ``BleakScanner`` on BlueZ adapter ``adapter`` (e.g. ``hci0``)."""
+    """A real scanner: bleak's ``BleakScanner`` on BlueZ adapter ``adapter`` (e.g. ``hci0``), asking BlueZ
+    for every advertisement: bleak sets BlueZ's discovery filter ``DuplicateData`` to false, so BlueZ
+    reports a beacon again only when its data changes, and a beacon whose payload never changes
+    would be heard about once (bleak's ``BlueZDiscoveryFilters``); the driver sets it to true."""
     from bleak import BleakScanner  # optional: only a real receiver needs it
 
-    kwargs: dict[str, Any] = {"detection_callback": detection_callback}
+    bluez: dict[str, Any] = {"filters": {"DuplicateData": True}}
+    kwargs: dict[str, Any] = {"detection_callback": detection_callback, "bluez": bluez}
     if adapter:
-        kwargs["adapter"] = adapter
+        try:  # bleak 3 takes the adapter in its BlueZ arguments (the keyword is deprecated there)
+            from bleak.args.bluez import BlueZScannerArgs
+            in_bluez = "adapter" in getattr(BlueZScannerArgs, "__annotations__", {})
+        except ImportError:
+            in_bluez = False
+        if in_bluez:
+            bluez["adapter"] = adapter
+        else:
+            kwargs["adapter"] = adapter
     return BleakScanner(**kwargs)
 
 

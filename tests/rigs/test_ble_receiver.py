@@ -70,6 +70,35 @@ def test_the_driver_imports_no_ble_library_until_a_real_scanner_starts():
     assert "from bleak import BleakScanner" in (HERE / "ble_receiver.py").read_text()
 
 
+@pytest.mark.parametrize("bleak3", [False, True], ids=["bleak-0.22-2.x", "bleak-3"])
+def test_a_real_scanner_asks_bluez_for_every_advertisement_on_its_adapter(monkeypatch, bleak3):
+    """bleak leaves BlueZ's DuplicateData filter false (a beacon whose payload does not change is reported
+    about once); the driver's scanner sets it true, and names its adapter as the installed bleak takes it
+    (bleak 3: in its BlueZ arguments; before: the ``adapter`` keyword). A fake ``bleak`` module records it."""
+    import types
+
+    made = []
+    fake = types.ModuleType("bleak")
+    fake.BleakScanner = lambda **kwargs: made.append(kwargs) or object()
+    monkeypatch.setitem(sys.modules, "bleak", fake)
+    if bleak3:
+        args = types.ModuleType("bleak.args")
+        bluez = types.ModuleType("bleak.args.bluez")
+        bluez.BlueZScannerArgs = type("BlueZScannerArgs", (), {"__annotations__": {"adapter": str, "filters": dict}})
+        monkeypatch.setitem(sys.modules, "bleak.args", args)
+        monkeypatch.setitem(sys.modules, "bleak.args.bluez", bluez)
+    else:
+        monkeypatch.setitem(sys.modules, "bleak.args", None)  # no such package before bleak 1.0
+    callback = object()
+    ble.bleak_scanner(callback, "hci1")
+    (kwargs,) = made
+    assert kwargs["detection_callback"] is callback and kwargs["bluez"]["filters"] == {"DuplicateData": True}
+    if bleak3:
+        assert kwargs["bluez"]["adapter"] == "hci1" and "adapter" not in kwargs
+    else:
+        assert kwargs["adapter"] == "hci1" and "adapter" not in kwargs["bluez"]
+
+
 def test_each_step_gets_what_was_heard_since_the_previous_one(rig):
     receivers, clock, iso, dir_ = rig
     receivers.reset()  # the episode starts at t = 100.0
