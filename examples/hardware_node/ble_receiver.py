@@ -133,6 +133,8 @@ class AdvertCollector:
         self.wanted = max(len(self.addresses), 1)  # the tags the current campaign searches for
         self.duplicates = 0
         self.late = 0
+        self.heard: collections.Counter[int] = collections.Counter()  # this episode's advertisements sent, per tag
+        self.listening_since = self.window_start
 
     def reset(self, n_tags: int | None = None) -> None:
         """Start a new episode: forget what was heard; the first step's window opens now. ``n_tags``: the
@@ -140,8 +142,9 @@ class AdvertCollector:
         with self.lock:
             self.pending.clear()
             self.last.clear()
-            self.window_start = self.clock()
+            self.window_start = self.listening_since = self.clock()
             self.wanted = max(len(self.addresses), 1) if n_tags is None else int(n_tags)
+            self.heard.clear()
 
     def add(self, receiver: str, rssi_dbm: int, at: float | None = None, channel: int | None = None, tag: int = 0) -> None:
         """One advertisement of tag ``tag`` heard by ``receiver`` (``iso``|``dir``), stamped ``at`` (now if None)."""
@@ -173,12 +176,21 @@ class AdvertCollector:
             advert: dict[str, Any] = {"receiver": receiver, "rssi_dbm": rssi, "offset_s": round(max(0.0, stamp - start), 6)}
             if channel in (37, 38, 39):
                 advert["channel"] = channel
+            self.heard[tag] += 1
             if several:  # protocol 1.4: which tag, from which address (a beacon named by its identity: none)
                 advert["tag"] = tag
                 if ADDRESS.match(self.addresses[tag]):
                     advert["address"] = self.addresses[tag]
             out.append(advert)
         return out
+
+
+    def silent(self, after_s: float = 5.0) -> list[int]:
+        """The tags this episode searches for that sent nothing since it began, once it has listened
+        ``after_s`` seconds (a shorter episode may simply have been between two advertisements)."""
+        if self.clock() - self.listening_since < after_s:
+            return []
+        return [k for k in range(self.wanted) if not self.heard[k]]
 
 
 def bleak_scanner(detection_callback, adapter: str | None):
@@ -310,6 +322,10 @@ class _WithBle:
 
     def read_adverts(self) -> list[dict[str, Any]]:
         return self._receivers.read_adverts()
+
+    def silent_tags(self) -> list[tuple[int, str]]:
+        """(k, tag) of each tag the episode searches for that sent nothing in its 5 s or more."""
+        return [(k, self._receivers.tags[k]) for k in self._receivers.collector.silent() if k < len(self._receivers.tags)]
 
     def reset_adverts(self, n_tags: int | None = None) -> None:
         self._receivers.reset(n_tags)

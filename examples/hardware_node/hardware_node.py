@@ -250,6 +250,10 @@ class HardwareNode:
     def end(self, episode_id: str) -> None:
         self.early.pop(episode_id, None)
         if self.episodes.pop(episode_id, None) is not None:
+            for k, tag in getattr(self.driver, "silent_tags", lambda: [])():  # BLE receivers: say so once, at the end
+                log.warning("episode %s: tag %d (%s) was never heard: out of range, not advertising, or its address changed "
+                            "(name a beacon whose address rotates by its identity, --ble-tag ibeacon:UUID:MAJOR:MINOR)",
+                            episode_id, k, tag)
             self.finished[episode_id] = None
             while len(self.finished) > 10000:
                 self.finished.pop(next(iter(self.finished)))

@@ -334,3 +334,26 @@ def test_beacon_identities_read_ibeacon_and_eddystone_uid_frames():
     assert ble.beacon_identities(data) == [f"ibeacon:{UUID}:65535:0", "eddystone:00112233445566778899:aabbccddeeff"]
     short = type("AdvertisementData", (), {"manufacturer_data": {0x004C: bytes([0x02, 0x15, 1, 2])}, "service_data": {}})()
     assert ble.beacon_identities(short) == []  # truncated: no identity, never a guess
+
+
+def test_a_tag_never_heard_in_an_episode_of_5_s_or_more_is_named(two_tags):
+    """The node warns at an episode's end about a tag it searched for and never heard (out of range, not
+    advertising, or its address rotated): the collector names it once 5 s have passed, not before (a shorter
+    episode may fall between two advertisements), and never a tag the episode does not search for."""
+    receivers, clock, iso, dir_ = two_tags
+    wrapped = ble.with_ble(object(), receivers)
+    receivers.reset()
+    clock.now = 101.0
+    iso.emit(TAG, -60)
+    clock.now = 101.1
+    assert len(receivers.read_adverts()) == 1
+    assert wrapped.silent_tags() == []  # 1 s: too soon to say
+    clock.now = 105.5
+    receivers.read_adverts()
+    assert wrapped.silent_tags() == [(1, TAG2)]
+    receivers.reset(n_tags=1)  # an episode for tag 0 only: tag 1's silence is not a problem
+    clock.now = 111.0
+    iso.emit(TAG, -61)
+    clock.now = 111.1
+    assert len(receivers.read_adverts()) == 1
+    assert wrapped.silent_tags() == []

@@ -265,6 +265,29 @@ def test_a_beacon_that_advertises_every_few_seconds_is_heard_by_a_longer_tags_ep
     assert got and 6.0 <= float(got.group(1)) <= 9.0, detail
     os.killpg(node.pid, signal.SIGTERM)
     assert node.wait(30) == 0
+    out, _ = node.communicate(timeout=30)  # its log (stderr joins stdout)
+    assert "was never heard" not in out  # every episode of 5 s or more heard both tags
+
+
+def test_a_tag_never_heard_in_an_episode_is_named_in_the_nodes_log(router):
+    """A two-tag BLE node whose tag 1 advertises once a minute: the kit's tags episode (6 s) never hears it,
+    and the node says so in its log when the episode ends, naming the tag and what to check."""
+    registry, endpoint = router
+
+    def start():
+        node = registry.script(BLE_NODE, "--rig", "ble-mute", "--connect", endpoint, "--slow-tag", "60", "--ble-tag",
+                               "e7:8f:13:56:24:ce", "--ble-tag", "c3:5a:01:9e:44:b2")
+        wait_for_line(node, "hardware node ble-mute up", 60)
+        return node
+
+    body, node = kit_first(registry, endpoint, "ble-mute", start, tags_seconds=6)
+    assert next(r["status"] for r in body["rules"] if r["rule"] == "tags") == "fail"
+    os.killpg(node.pid, signal.SIGTERM)
+    assert node.wait(30) == 0
+    out, _ = node.communicate(timeout=30)  # its log (stderr joins stdout)
+    warned = [line for line in out.splitlines() if "was never heard" in line]
+    assert len(warned) == 1 and "tag 1 (C3:5A:01:9E:44:B2) was never heard: out of range, not advertising, or its address changed" \
+        in warned[0], out[-2000:]
 
 
 def test_a_broken_node_fails_naming_the_rule(router):
