@@ -31,6 +31,8 @@ How the callback stream becomes per-step lists (``AdvertCollector``):
 * **late**: a report stamped before the current window opened (a callback the event loop ran
   after the step was cut) is carried by the current step at offset 0, never dropped or moved back;
 * **lost**: nothing arrives, and the step's list is empty: no RSSI is made up;
+* **no RSSI**: a report whose RSSI is bleak's -127 (BlueZ had none for the device: HCI's "not
+  available", 127) is dropped, not read as a -127 dBm packet;
 * **idle**: between episodes nobody takes the lists, so only the newest ``MAX_PENDING`` (10 000, what
   one step may carry) are kept: a node left listening for days does not grow.
 """
@@ -48,6 +50,7 @@ from typing import Any, Callable, Sequence
 log = logging.getLogger("ble-receiver")
 
 DUPLICATE_WINDOW_S = 0.005
+NO_RSSI = -127  # what bleak reports when BlueZ has no RSSI for the device (HCI says 127: "not available")
 MAX_PENDING = 10_000  # advertisements kept untaken (protocol: at most 10 000 per step)
 ADDRESS = re.compile(r"^[0-9A-Fa-f]{2}(:[0-9A-Fa-f]{2}){5}$")  # what BlueZ reports: six bytes, colon-separated
 IBEACON_COMPANY = 0x004C  # Apple: iBeacon's manufacturer data starts 0x02 0x15, then UUID (16), major (2), minor (2), power (1)
@@ -133,6 +136,7 @@ class AdvertCollector:
         self.wanted = max(len(self.addresses), 1)  # the tags the current campaign searches for
         self.duplicates = 0
         self.late = 0
+        self.unavailable = 0  # reports without an RSSI (bleak's -127): dropped, never a reading
         self.heard: collections.Counter[int] = collections.Counter()  # this episode's advertisements sent, per tag
         self.listening_since = self.window_start
 
@@ -246,7 +250,8 @@ class BleReceivers:
             if tag is None:
                 return
             rssi = getattr(advertisement_data, "rssi", None)
-            if rssi is None:
+            if rssi is None or not NO_RSSI < int(rssi) < -NO_RSSI:  # bleak's -127 (HCI's 127): no RSSI, not a reading
+                self.collector.unavailable += 1
                 return
             self.collector.add(receiver, int(rssi), tag=tag)
         return detected

@@ -107,9 +107,12 @@ def test_each_step_gets_what_was_heard_since_the_previous_one(rig):
     clock.now = 100.07
     dir_.emit(TAG, -70)
     iso.emit("aa:bb:cc:dd:ee:ff", -40)  # another device: ignored
+    clock.now = 100.09
+    dir_.emit(TAG, -127)  # bleak's "no RSSI" (BlueZ had none for the device): not a -127 dBm packet
     clock.now = 100.1
     step0 = receivers.read_adverts()
     assert step0 == [{"receiver": "iso", "rssi_dbm": -61, "offset_s": 0.03}, {"receiver": "dir", "rssi_dbm": -70, "offset_s": 0.07}]
+    assert receivers.collector.unavailable == 1
     clock.now = 100.2
     assert receivers.read_adverts() == []  # lost: nothing heard, nothing made up
     clock.now = 100.25
