@@ -8,7 +8,9 @@ Built on bleak (https://bleak.readthedocs.io; ``pip install bleak``, an optional
 ``BleakScanner(detection_callback, adapter=...)`` calls back with ``(BLEDevice, AdvertisementData)``
 for every advertisement; ``device.address`` names the sender, ``advertisement_data.rssi`` is the
 RSSI in whole dBm. Imports nothing from ra2vipas, and nothing from bleak until a real scanner is
-started: the tests run it on ``FakeScanner`` (no BLE adapter needed).
+started: the tests run it on ``FakeScanner`` (no BLE adapter needed). ``python ble_receiver.py scan``
+lists the devices an adapter hears (address, advertisements per second, median RSSI, beacon identity):
+what ``--ble-tag`` takes, and whether every advertisement is reported.
 
 How the callback stream becomes per-step lists (``AdvertCollector``):
 
@@ -39,10 +41,13 @@ How the callback stream becomes per-step lists (``AdvertCollector``):
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import collections
 import logging
 import re
+import statistics
+import sys
 import threading
 import time
 from typing import Any, Callable, Sequence
@@ -364,3 +369,92 @@ class FakeScanner:
             data = type("AdvertisementData", (), {"rssi": rssi, "manufacturer_data": manufacturer_data or {},
                                                   "service_data": service_data or {}})()
             self.callback(device, data)
+
+
+class DeviceSurvey:
+    """What a scanner hears, per address (``callback`` is its detection callback): how many
+    advertisements (a report within 5 ms of the previous one is the same event, as the node counts),
+    their RSSI, the beacon identities and the name they carry. For finding a tag's ``--ble-tag``
+    and checking the adapter reports every advertisement (``python ble_receiver.py scan``)."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self.lock = threading.Lock()
+        self.seen: dict[str, dict[str, Any]] = {}
+
+    def callback(self, device, advertisement_data) -> None:
+        rssi = getattr(advertisement_data, "rssi", None)
+        if rssi is None or not NO_RSSI < int(rssi) < -NO_RSSI:
+            return
+        now = self.clock()
+        address = str(getattr(device, "address", "")).upper()
+        with self.lock:
+            d = self.seen.setdefault(address, {"rssi": [], "last": None, "identities": set(), "name": None})
+            if d["last"] is not None and now - d["last"] < DUPLICATE_WINDOW_S:
+                return
+            d["last"] = now
+            d["rssi"].append(int(rssi))
+            d["identities"].update(beacon_identities(advertisement_data))
+            d["name"] = getattr(advertisement_data, "local_name", None) or d["name"]
+
+    def rows(self, seconds: float) -> list[dict[str, Any]]:
+        """One row per address, the loudest first: address, advertisements per second, median RSSI [dBm],
+        beacon identities, name."""
+        with self.lock:
+            rows = [{"address": a, "per_second": len(d["rssi"]) / max(seconds, 1e-9), "median_rssi_dbm": statistics.median(d["rssi"]),
+                     "identities": sorted(d["identities"]), "name": d["name"]} for a, d in self.seen.items() if d["rssi"]]
+        return sorted(rows, key=lambda r: (-r["median_rssi_dbm"], r["address"]))
+
+
+def scan(seconds: float, adapter: str | None = None, scanner_factory: Callable = bleak_scanner,
+         clock: Callable[[], float] = time.monotonic) -> list[dict[str, Any]]:
+    """Listen ``seconds`` on ``adapter`` and return ``DeviceSurvey.rows``; ``ScannerError`` (one line) if
+    the scanner cannot start."""
+    survey = DeviceSurvey(clock)
+    loop = asyncio.new_event_loop()
+    try:
+        try:
+            scanner = scanner_factory(survey.callback, adapter)
+            loop.run_until_complete(scanner.start())
+        except ImportError as err:
+            raise ScannerError(f"real BLE receivers need bleak ({err}): pip install bleak") from err
+        except Exception as err:  # bleak's BleakError: no such adapter, BlueZ not running, not allowed
+            raise ScannerError(f"cannot scan on adapter {adapter or 'default'}: {str(err).strip() or type(err).__name__}") from err
+        try:
+            loop.run_until_complete(asyncio.sleep(seconds))
+        finally:
+            loop.run_until_complete(scanner.stop())
+    finally:
+        loop.close()
+    return survey.rows(seconds)
+
+
+def main(argv: Sequence[str] | None = None, scanner_factory: Callable = bleak_scanner, clock: Callable[[], float] = time.monotonic) -> int:
+    """``python ble_receiver.py scan [--seconds S] [--adapter hciN]``: every BLE device the adapter hears,
+    the loudest first, with its advertisements per second (to compare with the tag's advertising rate),
+    its median RSSI and the beacon identities it advertises (what ``--ble-tag`` takes)."""
+    parser = argparse.ArgumentParser(prog="ble_receiver.py", description="List the BLE devices an adapter hears, to find a tag's "
+                                     "--ble-tag (its address or beacon identity) and check every advertisement is reported.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("scan", help="listen and list every device heard, the loudest first")
+    p.add_argument("--seconds", type=float, default=10.0, help="how long to listen [s] (default 10)")
+    p.add_argument("--adapter", default="hci0", help="the BlueZ adapter (default hci0)")
+    args = parser.parse_args(argv)
+    if not 0.0 < args.seconds <= 3600.0:
+        parser.error("--seconds: expected a number in (0, 3600]")
+    try:
+        rows = scan(args.seconds, args.adapter, scanner_factory, clock)
+    except ScannerError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    if not rows:
+        print(f"nothing heard in {args.seconds:g} s on {args.adapter}")
+        return 0
+    print(f"{'address':<17}  {'adverts/s':>9}  {'median dBm':>10}  beacon identity (--ble-tag)  name")
+    for r in rows:
+        print(f"{r['address']:<17}  {r['per_second']:>9.2f}  {r['median_rssi_dbm']:>10g}  {', '.join(r['identities']) or '-'}  {r['name'] or ''}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -360,3 +360,51 @@ def test_a_tag_never_heard_in_an_episode_of_5_s_or_more_is_named(two_tags):
     clock.now = 111.1
     assert len(receivers.read_adverts()) == 1
     assert wrapped.silent_tags() == []
+
+
+class _Beacons(ble.FakeScanner):
+    """A scanner that hears, as it starts: a tag by its address (20 events, each reported twice within 5 ms),
+    an iBeacon from two rotating addresses, and one report without an RSSI."""
+
+    clock = Clock()
+
+    async def start(self) -> None:
+        self.running = True
+        c = _Beacons.clock
+        for k in range(20):
+            c.now += 0.5
+            self.emit(TAG, -60 - k % 3)
+            c.now += 0.001
+            self.emit(TAG.lower(), -60)  # the same event reported again: counted once
+            self.emit(f"4A:00:00:00:00:0{k % 2}", -75, manufacturer_data=_ibeacon(UUID, 1, 42))
+        self.emit("11:22:33:44:55:66", -127)  # no RSSI: not a device heard
+
+
+def test_scan_lists_the_devices_heard_loudest_first_with_their_rate_and_identity(capsys):
+    """``python ble_receiver.py scan`` (for finding a tag's --ble-tag and checking the adapter reports every
+    advertisement): one row per address, the loudest first, its advertisements per second (a report within 5 ms of
+    the previous one is the same event), its median RSSI and the beacon identity it advertises."""
+    _Beacons.clock.now = 0.0
+    rows = ble.scan(2.0, "hci0", scanner_factory=_Beacons, clock=_Beacons.clock)
+    assert [(r["address"], r["per_second"], r["median_rssi_dbm"], r["identities"]) for r in rows] == [
+        (TAG, 10.0, -61, []), ("4A:00:00:00:00:00", 5.0, -75, [f"ibeacon:{UUID}:1:42"]),
+        ("4A:00:00:00:00:01", 5.0, -75, [f"ibeacon:{UUID}:1:42"])]
+    _Beacons.clock.now = 0.0
+    assert ble.main(["scan", "--seconds", "0.5", "--adapter", "hci1"], scanner_factory=_Beacons, clock=_Beacons.clock) == 0
+    assert ble.FakeScanner.instances[-1].adapter == "hci1"
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].split() == ["address", "adverts/s", "median", "dBm", "beacon", "identity", "(--ble-tag)", "name"]
+    assert [line.split()[:4] for line in out[1:]] == [[TAG, "40.00", "-61", "-"], ["4A:00:00:00:00:00", "20.00", "-75", f"ibeacon:{UUID}:1:42"],
+                                                      ["4A:00:00:00:00:01", "20.00", "-75", f"ibeacon:{UUID}:1:42"]]
+
+
+def test_scan_says_in_one_line_why_it_cannot_listen(capsys):
+    class NoAdapter(ble.FakeScanner):
+        async def start(self) -> None:
+            raise RuntimeError("No Bluetooth adapters found.")
+
+    assert ble.main(["scan", "--seconds", "0.01"], scanner_factory=NoAdapter) == 1
+    assert capsys.readouterr().err == "error: cannot scan on adapter hci0: No Bluetooth adapters found.\n"
+    with pytest.raises(SystemExit) as exit_:
+        ble.main(["scan", "--seconds", "0"])
+    assert exit_.value.code == 2 and "--seconds: expected a number in (0, 3600]" in capsys.readouterr().err

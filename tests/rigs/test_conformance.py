@@ -54,6 +54,16 @@ def kit_first(registry: Scripts, endpoint: str, rig: str, start_node, timeout: f
     return body, node
 
 
+def two_tag_node(registry: Scripts, endpoint: str, rig: str, *flags: str):
+    """``kit_first``'s ``start_node``: the BLE test node listening for two tags, with ``flags``."""
+    def start() -> subprocess.Popen:
+        node = registry.script(BLE_NODE, "--rig", rig, "--connect", endpoint, *flags, "--ble-tag", "e7:8f:13:56:24:ce",
+                               "--ble-tag", "c3:5a:01:9e:44:b2")
+        wait_for_line(node, f"hardware node {rig} up", 60)
+        return node
+    return start
+
+
 def statuses(body: dict) -> dict[str, str]:
     return {r["rule"]: r["status"] for r in body["rules"]}
 
@@ -210,14 +220,7 @@ def test_a_two_tag_node_that_sends_tags_the_episode_does_not_search_for_fails_rf
     """The two-tag BLE node with a bug (every tag sent, whatever the episode's n_tags): the kit's one-tag
     episodes get tag 1's advertisements too, and the rf-evidence rule says so (the node passes without the bug)."""
     registry, endpoint = router
-
-    def start():
-        node = registry.script(BLE_NODE, "--rig", "ble-bad", "--connect", endpoint, "--all-tags", "--ble-tag", "e7:8f:13:56:24:ce",
-                               "--ble-tag", "c3:5a:01:9e:44:b2")
-        wait_for_line(node, "hardware node ble-bad up", 60)
-        return node
-
-    body, node = kit_first(registry, endpoint, "ble-bad", start)
+    body, node = kit_first(registry, endpoint, "ble-bad", two_tag_node(registry, endpoint, "ble-bad", "--all-tags"))
     failed = {r["rule"]: r["detail"] for r in body["rules"] if r["status"] == "fail" and not r["rule"].startswith("realtime-")}
     assert list(failed) == ["rf-evidence"], [r for r in body["rules"] if r["rule"] == "rf-evidence"]
     assert failed["rf-evidence"].endswith("advertisements of tag 1 in an episode whose scenario searches for one tag (n_tags = 1: "
@@ -230,14 +233,8 @@ def test_a_two_tag_node_that_hears_only_tag_0_whatever_the_episode_fails_tags(ro
     """The two-tag BLE node with a bug (it listens for tag 0 only, whatever the episode's n_tags): it says it
     hears 2 tags, and the kit's episode searching for both never hears tag 1 (the node passes without the bug)."""
     registry, endpoint = router
-
-    def start():
-        node = registry.script(BLE_NODE, "--rig", "ble-deaf", "--connect", endpoint, "--first-tag-only", "--ble-tag",
-                               "e7:8f:13:56:24:ce", "--ble-tag", "c3:5a:01:9e:44:b2")
-        wait_for_line(node, "hardware node ble-deaf up", 60)
-        return node
-
-    body, node = kit_first(registry, endpoint, "ble-deaf", start, tags_seconds=5)
+    body, node = kit_first(registry, endpoint, "ble-deaf", two_tag_node(registry, endpoint, "ble-deaf", "--first-tag-only"),
+                           tags_seconds=5)
     failed = {r["rule"]: r["detail"] for r in body["rules"] if r["status"] == "fail" and not r["rule"].startswith("realtime-")}
     assert list(failed) == ["tags"], failed
     assert re.fullmatch(r"tag 1 never heard in 5 s of an episode with n_tags = 2 \(tag 0: \d+, tag 1: 0\): are they in range "
@@ -251,14 +248,7 @@ def test_a_beacon_that_advertises_every_few_seconds_is_heard_by_a_longer_tags_ep
     episode starts listening for it): the tags rule's episode runs on past its 4 s while tag 1 is unheard and
     passes once it is; the episode then stops (well before the 20 s it may run)."""
     registry, endpoint = router
-
-    def start():
-        node = registry.script(BLE_NODE, "--rig", "ble-slow", "--connect", endpoint, "--slow-tag", "6", "--ble-tag",
-                               "e7:8f:13:56:24:ce", "--ble-tag", "c3:5a:01:9e:44:b2")
-        wait_for_line(node, "hardware node ble-slow up", 60)
-        return node
-
-    body, node = kit_first(registry, endpoint, "ble-slow", start)
+    body, node = kit_first(registry, endpoint, "ble-slow", two_tag_node(registry, endpoint, "ble-slow", "--slow-tag", "6"))
     detail = next(r for r in body["rules"] if r["rule"] == "tags")
     assert detail["status"] == "pass", detail
     got = re.fullmatch(r"pieces of RF evidence per tag in ([\d.]+) s: tag 0: \d+, tag 1: [12]", detail["detail"])
@@ -273,14 +263,8 @@ def test_a_tag_never_heard_in_an_episode_is_named_in_the_nodes_log(router):
     """A two-tag BLE node whose tag 1 advertises once a minute: the kit's tags episode (6 s) never hears it,
     and the node says so in its log when the episode ends, naming the tag and what to check."""
     registry, endpoint = router
-
-    def start():
-        node = registry.script(BLE_NODE, "--rig", "ble-mute", "--connect", endpoint, "--slow-tag", "60", "--ble-tag",
-                               "e7:8f:13:56:24:ce", "--ble-tag", "c3:5a:01:9e:44:b2")
-        wait_for_line(node, "hardware node ble-mute up", 60)
-        return node
-
-    body, node = kit_first(registry, endpoint, "ble-mute", start, tags_seconds=6)
+    body, node = kit_first(registry, endpoint, "ble-mute", two_tag_node(registry, endpoint, "ble-mute", "--slow-tag", "60"),
+                           tags_seconds=6)
     assert next(r["status"] for r in body["rules"] if r["rule"] == "tags") == "fail"
     os.killpg(node.pid, signal.SIGTERM)
     assert node.wait(30) == 0
