@@ -126,6 +126,14 @@ def beacon_identities(advertisement_data) -> list[str]:
     return out
 
 
+def ibeacon_data(identity: str, power: int = -59) -> dict[int, bytes]:
+    """What an iBeacon of ``identity`` (``ibeacon:uuid:major:minor``) advertises, as bleak's
+    ``manufacturer_data``: ``beacon_identities``' inverse, for a fake tag (tests, ``FakeScanner``)."""
+    _, uuid, major, minor = parse_tag(identity).split(":")
+    return {IBEACON_COMPANY: bytes([0x02, 0x15]) + bytes.fromhex(uuid.replace("-", "")) + int(major).to_bytes(2, "big")
+            + int(minor).to_bytes(2, "big") + (power & 0xFF).to_bytes(1, "big")}
+
+
 class AdvertCollector:
     """Thread-safe: ``add`` from the scanners' callbacks, ``take`` once per control step."""
 

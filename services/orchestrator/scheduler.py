@@ -430,8 +430,8 @@ class Scheduler:
                     "(ra2vipas sensors, or ra2vipas rig), and check that every service joins the same Zenoh router "
                     "(--connect tcp/ROUTER:7447, client mode)")
         run.awaiting_sensors = False
-        replayed = [name for name in live if (d := self.rigs[name].descriptor) is not None and d.kind in ("simulated", "survey")]
-        if error.startswith(TRAINING_DATA_ERROR) and live and len(replayed) == len(live):
+        if error.startswith(TRAINING_DATA_ERROR) and live and all(
+                (d := self.rigs[name].descriptor) is not None and d.kind in ("simulated", "survey") for name in live):
             return (f"{error} (every live rig is simulated or a recorded survey: its training episode of this scenario and seed "
                     "is the same each time)")
         if run.model_failing_since is None:

@@ -50,10 +50,13 @@ class FakeTag:
         threading.Thread(target=self.run, daemon=True).start()
 
     def _silent(self) -> bool:
-        """A slow beacon (``--slow-tag``) between its advertisements."""
-        if not SLOW_TAG_S or self.k == 0 or self.k not in LISTENING_SINCE:
-            return bool(SLOW_TAG_S) and self.k > 0
-        elapsed = time.monotonic() - LISTENING_SINCE[self.k]
+        """A slow beacon (``--slow-tag``, tags 1 and up) between its advertisements, or not listened for."""
+        if not SLOW_TAG_S or self.k == 0:
+            return False
+        since = LISTENING_SINCE.get(self.k)
+        if since is None:
+            return True
+        elapsed = time.monotonic() - since
         return elapsed < SLOW_TAG_S or (elapsed % SLOW_TAG_S) > 0.5
 
     def run(self) -> None:
@@ -68,9 +71,7 @@ class FakeTag:
             gain = 10.0 * math.log10(max(1.0 - 0.5 * delta * delta, 0.01))
             sender, payload = self.address, None
             if self.address.startswith("ibeacon:"):  # a beacon named by its identity: its address rotates every 2 s
-                _, uuid, major, minor = self.address.split(":")
-                payload = {0x004C: bytes([0x02, 0x15]) + bytes.fromhex(uuid.replace("-", "")) + int(major).to_bytes(2, "big")
-                           + int(minor).to_bytes(2, "big") + bytes([0xC5])}
+                payload = ble_receiver.ibeacon_data(self.address)
                 turn = int(time.monotonic() / 2.0)
                 sender = f"4{self.k}:{turn % 256:02X}:{turn // 256 % 256:02X}:00:00:0{self.k}"
             for scanner, level in zip(list(ble_receiver.FakeScanner.instances), (g, g + gain)):

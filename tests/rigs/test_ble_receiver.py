@@ -280,7 +280,8 @@ def test_a_node_left_listening_between_episodes_keeps_only_the_newest_advertisem
 
 
 def _ibeacon(uuid: str, major: int, minor: int) -> dict:
-    """iBeacon's manufacturer data as bleak reports it: {0x004C: 02 15 UUID major minor power}."""
+    """iBeacon's manufacturer data as bleak reports it: {0x004C: 02 15 UUID major minor power}, written out
+    here byte by byte (independent of the driver's ``ibeacon_data``, which the fake tags use)."""
     return {0x004C: bytes([0x02, 0x15]) + bytes.fromhex(uuid.replace("-", "")) + major.to_bytes(2, "big")
             + minor.to_bytes(2, "big") + bytes([0xC5])}
 
@@ -337,6 +338,7 @@ def test_beacon_identities_read_ibeacon_and_eddystone_uid_frames():
     assert ble.beacon_identities(data) == [f"ibeacon:{UUID}:65535:0", "eddystone:00112233445566778899:aabbccddeeff"]
     short = type("AdvertisementData", (), {"manufacturer_data": {0x004C: bytes([0x02, 0x15, 1, 2])}, "service_data": {}})()
     assert ble.beacon_identities(short) == []  # truncated: no identity, never a guess
+    assert ble.ibeacon_data(f"ibeacon:{UUID.upper()}:7:9", power=-59) == _ibeacon(UUID, 7, 9)  # what the fake tags advertise
 
 
 def test_a_tag_never_heard_in_an_episode_of_5_s_or_more_is_named(two_tags):
